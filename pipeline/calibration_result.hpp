@@ -1,0 +1,62 @@
+// The result every calibration method reports (batch refit or filter snapshot), as the CLI
+// prints it, the daemon publishes it (calibration_t) and the history stores it.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "pipeline/calibration_types.hpp"
+
+namespace magcal {
+
+// Values and order match calibration_t.status (design.md): lowest non-zero wins when several
+// apply.
+enum class CalibrationStatus : int8_t {
+  kOk = 0,            // estimate valid
+  kNotConverged = 1,  // iteration limit reached / filter not yet converged
+  kUnobservable = 2,  // geometry does not determine all parameters (Fisher ill-conditioned)
+  kFailed = 3,        // no valid estimate (e.g. I + E not positive definite, too few samples)
+  kRejected = 4,      // estimate computed but refused by the acceptance gates
+};
+const char* to_string(CalibrationStatus s);  // "ok", "not_converged", ...
+
+struct AlignmentEstimate {
+  Eigen::Matrix3d R_sensor_from_body = Eigen::Matrix3d::Identity();
+  // Covariance of the small rotation angles (roll, pitch, yaw about R_hat), rad^2.
+  Eigen::Matrix3d angle_covariance_rad2 = Eigen::Matrix3d::Zero();
+  int n_samples = 0;
+};
+
+struct CalibrationResult {
+  std::string method;  // "centered", "twostep", "ekf", "ukf"
+  int64_t utime = 0;   // time the estimate refers to
+  int64_t window_start_utime = 0;
+  int64_t window_end_utime = 0;
+  int n_samples = 0;
+
+  CalibrationParameters parameters;
+  Matrix9d covariance = Matrix9d::Zero();  // of p = [b; D11 D22 D33 D12 D13 D23]
+
+  bool has_alignment = false;
+  AlignmentEstimate alignment;
+
+  double residual_rms_nT = 0.0;  // rms of |B_cal| - |h|
+  int iterations = 0;
+  bool converged = false;
+  CalibrationStatus status = CalibrationStatus::kFailed;
+  std::string message;  // why, when status is not ok
+
+  double fisher_condition_number = 0.0;  // of the scaled Fisher matrix (estimation.md 2d)
+  int n_downweighted = 0;                // robust mode: samples given reduced weight
+
+  // Acceptance verdict (gates); rejected results keep their numbers for inspection.
+  bool accepted = true;
+  std::vector<std::string> rejection_reasons;
+
+  Eigen::Vector3d bias_sigma_nT() const { return covariance.diagonal().head<3>().cwiseSqrt(); }
+};
+
+}  // namespace magcal
