@@ -15,8 +15,8 @@ namespace magcal {
 // Quaternion as a plain 4-vector (w, x, y, z), so no library's storage order leaks through.
 using QuaternionWxyz = Eigen::Vector4d;
 
-Eigen::Matrix3d dcm_from_quaternion(const QuaternionWxyz& q);   // normalises q first
-QuaternionWxyz quaternion_from_dcm(const Eigen::Matrix3d& A);   // w >= 0
+Eigen::Matrix3d dcm_from_quaternion(const QuaternionWxyz& q);  // normalises q first
+QuaternionWxyz quaternion_from_dcm(const Eigen::Matrix3d& A);  // w >= 0
 QuaternionWxyz quaternion_multiply(const QuaternionWxyz& p, const QuaternionWxyz& q);  // p ⊗ q
 QuaternionWxyz quaternion_conjugate(const QuaternionWxyz& q);
 // v_b = q ⊗ v ⊗ q*

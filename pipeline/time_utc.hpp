@@ -20,8 +20,8 @@ constexpr double kJulianDateJ2000 = 2451545.0;      // JD of 2000-01-01T12:00:00
 
 struct CalendarTime {
   int year = 1970;
-  int month = 1;   // 1..12
-  int day = 1;     // 1..31
+  int month = 1;  // 1..12
+  int day = 1;    // 1..31
   int hour = 0;
   int minute = 0;
   double second = 0.0;

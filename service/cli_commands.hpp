@@ -45,8 +45,21 @@ struct FitArgs {
   std::string sat;
   bool json = false;
   std::string trace_file;  // ekf/ukf: state and 1-sigma after every sample
+  // Real recordings in foreign CSV layouts (service/real_data_fit.hpp, issue 7).
+  bool sigma_given = false;          // --sigma-nT given explicitly (else estimated)
+  std::string field_unit;            // nT|uT|G|mG; empty: from the column name
+  std::optional<double> alt_km;      // assumed altitude when the file has none
+  int skip_first = 0;                // start-up rows dropped
+  bool estimate_time_offset = false;
+  std::string offset_range_s;        // "MIN:MAX" (default -1000:1000)
+  std::optional<double> time_offset_s;
+  std::string reference_magnitude;   // "auto" | value in nT (constant field); empty: IGRF
+  bool split_halves = false;
+  std::optional<double> expected_residual_nT;  // residual gate's expected rms
 };
 int run_fit(const FitArgs& args);
+// Dispatched from run_fit when the CSV is not the design's sample format.
+int run_recording_fit(const FitArgs& args);
 
 struct EvaluateArgs {
   std::string scenario = "paper";

@@ -47,6 +47,21 @@ int main(int argc, char** argv) {
   fit_cmd->add_option("--sat", fit.sat, "spacecraft id (required when a log holds several)");
   fit_cmd->add_option("--trace", fit.trace_file, "ekf/ukf: write state and 1-sigma per sample (CSV)");
   fit_cmd->add_flag("--json", fit.json, "print JSON");
+  fit_cmd->add_option("--field-unit", fit.field_unit, "recording CSV: field unit nT|uT|G|mG");
+  fit_cmd->add_option("--alt-km", fit.alt_km, "recording CSV: assumed altitude (km) when absent");
+  fit_cmd->add_option("--skip-first", fit.skip_first, "recording CSV: drop the first N rows");
+  fit_cmd->add_flag("--estimate-time-offset", fit.estimate_time_offset,
+                    "recording CSV: estimate the time-tag offset of the position stream");
+  fit_cmd->add_option("--offset-range-s", fit.offset_range_s,
+                      "MIN:MAX search range of the offset (default -1000:1000)");
+  fit_cmd->add_option("--time-offset-s", fit.time_offset_s,
+                      "recording CSV: apply this offset (reference at t + tau)");
+  fit_cmd->add_option("--reference-magnitude", fit.reference_magnitude,
+                      "recording CSV: constant field magnitude, auto|VALUE_nT");
+  fit_cmd->add_flag("--split-halves", fit.split_halves,
+                    "recording CSV: also fit the two halves separately");
+  fit_cmd->add_option("--expected-residual-nT", fit.expected_residual_nT,
+                      "recording CSV: expected residual rms for the acceptance gate");
 
   EvaluateArgs evaluate;
   auto* eval_cmd = app.add_subcommand("evaluate", "Monte-Carlo evaluation against the paper");
@@ -95,7 +110,10 @@ int main(int argc, char** argv) {
 
   if (*field_cmd) return run_field(field);
   if (*sim_cmd) return run_sim(sim);
-  if (*fit_cmd) return run_fit(fit);
+  if (*fit_cmd) {
+    fit.sigma_given = fit_cmd->get_option("--sigma-nT")->count() > 0;
+    return run_fit(fit);
+  }
   if (*eval_cmd) return run_evaluate(evaluate);
   if (*refit_cmd) return run_refit(refit);
   if (*hist_cmd) return run_history(history);

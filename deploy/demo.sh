@@ -1,0 +1,62 @@
+#!/usr/bin/env bash
+# magcal demo: simulate a day of the paper scenario, replay it through the daemon (refits on
+# the data clock), then show what an operator sees. Builds nothing: run it after the build.
+#   deploy/demo.sh [BIN_DIR]      (default: build/bin next to this script's repository)
+# Each run uses a fresh temporary directory and database, removed at the end
+# (set KEEP=1 to keep it).
+set -euo pipefail
+
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+bin="$(cd "${1:-${MAGCAL_BIN_DIR:-$here/../build/bin}}" && pwd)"
+for exe in magcal magcald; do
+  if [[ ! -x "$bin/$exe" ]]; then
+    echo "demo.sh: $bin/$exe not found: build first (cmake --build build -j2)" >&2
+    exit 1
+  fi
+done
+
+work="$(mktemp -d -t magcal-demo.XXXXXX)"
+if [[ "${KEEP:-0}" != 1 ]]; then trap 'rm -rf "$work"' EXIT; fi
+cd "$work"
+sat=PAPER-1
+
+echo "== 1. simulate 24 h of the paper scenario (one spacecraft, 10 s samples, 200 per packet)"
+"$bin/magcal" sim --scenario paper --hours 24 --seed 1 --out day.lcm --truth truth.json --batch 200
+
+# Refits every 6 h of data time; only full 12 h windows (4320 samples at 10 s) are refitted, so
+# the 02:00 and 08:00 slots of the first day are skipped and 14:00 and 20:00 run.
+# sigma_nT = 7.5: the paper sensor's white noise is 3 nT, but quantisation, hysteresis and
+# nonlinearity leave ~7.5 nT of residual; a filter told 3 nT finds itself inconsistent
+# (normalised innovations ~6x too large) and keeps re-opening its covariance.
+cat > magcald.toml <<'TOML'
+[refit]
+clock = "data"
+every_hours = 6
+min_samples = 4000
+[ukf]
+sigma_nT = 7.5
+TOML
+
+echo
+echo "== 2. replay it through magcald (file:// replay: same code path as live, exits at the end)"
+"$bin/magcald" --config magcald.toml --db magcal.db --lcm-url "file://$work/day.lcm?speed=0" \
+  --log-level info 2>&1 | sed -e 's/^\[[^]]*\] //'
+
+echo
+echo "== 3. magcal status"
+"$bin/magcal" status --db magcal.db || true
+
+echo
+echo "== 4. UKF converging (history, every 2 h of data; then the last snapshot)"
+"$bin/magcal" history --db magcal.db --sat "$sat" --method ukf --format table \
+  | awk 'NR == 1 || (NR - 2) % 120 == 0 { print } { last = $0 } END { print last }' || true
+
+echo
+echo "== 5. scheduled refits (centered + LM + alignment, acceptance gates)"
+"$bin/magcal" history --db magcal.db --sat "$sat" --method twostep --format table || true
+
+echo
+echo "== 6. truth (from the simulator)"
+flat="$(tr -d ' \n' < truth.json)"
+echo "bias_nT $(grep -o '"bias_nT":\[[^]]*\]' <<< "$flat" | cut -d: -f2)"
+echo "D       $(grep -o '"D":\[\[[^]]*\],\[[^]]*\],\[[^]]*\]\]' <<< "$flat" | cut -d: -f2)"

@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# Builds magcal and runs every test: a Release build, then the same tests under
+# AddressSanitizer + UndefinedBehaviorSanitizer. Installs the Debian packages first if missing.
+#   MAGCAL_SKIP_SANITIZE=1  skips the sanitizer pass (quicker local runs)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+deploy/setup-deps.sh
+
+echo "== Release build and tests"
+cmake -S . -B build -DCMAKE_BUILD_TYPE=Release >/dev/null
+cmake --build build -j2
+ctest --test-dir build --output-on-failure -j2
+
+if [ "${MAGCAL_SKIP_SANITIZE:-0}" != 1 ]; then
+  echo "== AddressSanitizer + UndefinedBehaviorSanitizer build and tests"
+  cmake -S . -B build-asan -DCMAKE_BUILD_TYPE=RelWithDebInfo -DMAGCAL_SANITIZE=ON \
+    -DMAGCAL_BUILD_BENCH=OFF >/dev/null
+  cmake --build build-asan -j2
+  ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1 \
+    ctest --test-dir build-asan --output-on-failure -j2
+fi

@@ -1,0 +1,200 @@
+// Acceptance gates (issue 7). Definitions and defaults in the header.
+#include "pipeline/acceptance_gates.hpp"
+
+#include <cmath>
+#include <cstdio>
+
+#include <Eigen/Eigenvalues>
+
+namespace magcal {
+
+namespace {
+
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+
+template <typename... Args>
+std::string format(const char* fmt, Args... args) {
+  char buf[256];
+  std::snprintf(buf, sizeof(buf), fmt, args...);
+  return buf;
+}
+
+// Upper standard-normal quantile z with P(Z > z) = p, by bisection on erfc (pure, no tables).
+double normal_upper_quantile(double p) {
+  double lo = -40.0, hi = 40.0;
+  for (int i = 0; i < 200; ++i) {
+    const double mid = 0.5 * (lo + hi);
+    if (0.5 * std::erfc(mid / std::sqrt(2.0)) > p)
+      lo = mid;
+    else
+      hi = mid;
+  }
+  return 0.5 * (lo + hi);
+}
+
+const char* const kAxis[3] = {"x", "y", "z"};
+const char* const kDName[6] = {"D11", "D22", "D33", "D12", "D13", "D23"};
+
+void residual_gate(const CalibrationResult& r, const GateOptions& o, GateVerdict& v) {
+  const double rms = r.residual_rms_nT;
+  if (!(rms >= 0.0)) {
+    v.skipped.push_back("residual");
+    return;
+  }
+  if (o.residual_test == GateOptions::ResidualTest::kFactor) {
+    if (rms > o.residual_factor * o.expected_residual_nT)
+      v.reasons.push_back(format("residual_rms %.1f nT > %g x expected %.1f nT", rms,
+                                 o.residual_factor, o.expected_residual_nT));
+    return;
+  }
+  const double dof = static_cast<double>(r.n_samples) - 9.0;
+  if (!(dof >= 1.0)) {
+    v.skipped.push_back("residual");
+    return;
+  }
+  const double chi2 = r.n_samples * rms * rms / (o.expected_residual_nT * o.expected_residual_nT);
+  const double limit = chi_square_upper_quantile(dof, o.residual_tail_probability);
+  if (chi2 > limit)
+    v.reasons.push_back(
+        format("residual_chi2 %.1f > %.1f (rms %.1f nT, expected %.1f nT, dof %.0f, p %g)", chi2,
+               limit, rms, o.expected_residual_nT, dof, o.residual_tail_probability));
+}
+
+void observability_gate(const CalibrationResult& r, const GateInputs& in, const GateOptions& o,
+                        GateVerdict& v) {
+  const double cond = r.fisher_condition_number;
+  if (cond > 0.0 && std::isfinite(cond)) {
+    if (cond > o.max_fisher_condition)
+      v.reasons.push_back(format("fisher_condition %.3g > max %.3g", cond, o.max_fisher_condition));
+  } else if (std::isinf(cond)) {
+    v.reasons.push_back(format("fisher_condition inf > max %.3g", o.max_fisher_condition));
+  } else {
+    v.skipped.push_back("fisher_condition");
+  }
+  if (o.min_fisher_eigenvalue > 0.0) {
+    if (std::isnan(in.fisher_min_eigenvalue))
+      v.skipped.push_back("fisher_min_eigenvalue");
+    else if (in.fisher_min_eigenvalue < o.min_fisher_eigenvalue)
+      v.reasons.push_back(format("fisher_min_eigenvalue %.3g < min %.3g", in.fisher_min_eigenvalue,
+                                 o.min_fisher_eigenvalue));
+  }
+}
+
+void coverage_gate(const GateInputs& in, const GateOptions& o, GateVerdict& v) {
+  if (std::isnan(in.min_coverage_eigenvalue)) {
+    v.skipped.push_back("coverage");
+    return;
+  }
+  if (in.min_coverage_eigenvalue < o.min_coverage_eigenvalue)
+    v.reasons.push_back(format("coverage_min_eigenvalue %.4f < min %.4f",
+                               in.min_coverage_eigenvalue, o.min_coverage_eigenvalue));
+}
+
+void bounds_gate(const CalibrationResult& r, const GateOptions& o, GateVerdict& v) {
+  const Vector9d p = r.parameters.packed();
+  for (int i = 0; i < 3; ++i) {
+    // !(x <= max) also rejects NaN.
+    if (!(std::abs(p(i)) <= o.max_bias_nT))
+      v.reasons.push_back(
+          format("bias_bound %s |b| %.1f nT > %.1f nT", kAxis[i], std::abs(p(i)), o.max_bias_nT));
+  }
+  for (int j = 0; j < 6; ++j) {
+    const double value = std::abs(p(3 + j));
+    const bool diagonal = j < 3;
+    const double limit = diagonal ? o.max_scale : o.max_nonorthogonality;
+    if (!(value <= limit))
+      v.reasons.push_back(format("%s %s |D| %.4f > %.4f",
+                                 diagonal ? "scale_bound" : "nonorthogonality_bound", kDName[j],
+                                 value, limit));
+  }
+}
+
+void change_gate(const CalibrationResult& r, const GateInputs& in, const GateOptions& o,
+                 GateVerdict& v) {
+  if (in.previous_accepted == nullptr) {
+    v.skipped.push_back("change");
+    return;
+  }
+  const CalibrationResult& prev = *in.previous_accepted;
+  const Vector9d p = r.parameters.packed();
+  const Vector9d q = prev.parameters.packed();
+  for (int i = 0; i < 9; ++i) {
+    const double var = r.covariance(i, i) + prev.covariance(i, i);
+    const double sigma_comb = var > 0.0 ? std::sqrt(var) : 0.0;
+    const double floor = i < 3 ? o.bias_change_floor_nT : o.D_change_floor;
+    const double limit = std::max(o.max_change_sigma * sigma_comb, floor);
+    const double change = std::abs(p(i) - q(i));
+    if (!(change <= limit)) {
+      if (i < 3)
+        v.reasons.push_back(
+            format("bias_change %s %.1f nT > %.1f nT (%g sigma %.1f nT, floor %.1f nT)", kAxis[i],
+                   change, limit, o.max_change_sigma, sigma_comb, o.bias_change_floor_nT));
+      else
+        v.reasons.push_back(format("D_change %s %.5f > %.5f (%g sigma %.5f, floor %.5f)",
+                                   kDName[i - 3], change, limit, o.max_change_sigma, sigma_comb,
+                                   o.D_change_floor));
+    }
+  }
+}
+
+}  // namespace
+
+std::string GateOptions::validate() const {
+  if (!(expected_residual_nT > 0.0)) return "gates expected_residual_nT must be > 0";
+  if (!(residual_factor > 0.0)) return "gates residual_factor must be > 0";
+  if (!(residual_tail_probability > 0.0 && residual_tail_probability < 1.0))
+    return "gates residual_tail_probability must be in (0, 1)";
+  if (!(max_fisher_condition >= 1.0)) return "gates max_fisher_condition must be >= 1";
+  if (!(min_fisher_eigenvalue >= 0.0)) return "gates min_fisher_eigenvalue must be >= 0";
+  if (!(min_coverage_eigenvalue >= 0.0 && min_coverage_eigenvalue <= 1.0 / 3.0))
+    return "gates min_coverage_eigenvalue must be in [0, 1/3]";
+  if (!(max_bias_nT > 0.0) || !(max_scale > 0.0) || !(max_nonorthogonality > 0.0))
+    return "gates parameter bounds must be > 0";
+  if (!(max_change_sigma > 0.0) || !(bias_change_floor_nT >= 0.0) || !(D_change_floor >= 0.0))
+    return "gates change thresholds must be > 0 (floors >= 0)";
+  return {};
+}
+
+double chi_square_upper_quantile(double dof, double tail_probability) {
+  if (!(dof > 0.0) || !(tail_probability > 0.0 && tail_probability < 1.0)) return kNaN;
+  // Wilson–Hilferty: (X/k)^(1/3) ~ N(1 - 2/(9k), 2/(9k)).
+  const double a = 2.0 / (9.0 * dof);
+  const double c = 1.0 - a + normal_upper_quantile(tail_probability) * std::sqrt(a);
+  return dof * c * c * c;
+}
+
+GateVerdict evaluate_gates(const CalibrationResult& result, const GateInputs& inputs,
+                           const GateOptions& options) {
+  GateVerdict v;
+  if (options.residual_enabled) residual_gate(result, options, v);
+  if (options.observability_enabled) observability_gate(result, inputs, options, v);
+  if (options.coverage_enabled) coverage_gate(inputs, options, v);
+  if (options.bounds_enabled) bounds_gate(result, options, v);
+  if (options.change_enabled) change_gate(result, inputs, options, v);
+  v.accepted = v.reasons.empty();
+  return v;
+}
+
+void apply_verdict(CalibrationResult& result, const GateVerdict& verdict) {
+  result.accepted = verdict.accepted;
+  result.rejection_reasons = verdict.reasons;
+  if (!verdict.accepted && result.status == CalibrationStatus::kOk)
+    result.status = CalibrationStatus::kRejected;
+}
+
+Eigen::Vector3d direction_coverage_eigenvalues(const SampleSet& samples) {
+  Eigen::Matrix3d scatter = Eigen::Matrix3d::Zero();
+  int n = 0;
+  for (const auto& s : samples) {
+    const double norm = s.b_sensor_nT.norm();
+    if (!std::isfinite(norm) || norm <= 0.0) continue;
+    const Eigen::Vector3d d = s.b_sensor_nT / norm;
+    scatter.noalias() += d * d.transpose();
+    ++n;
+  }
+  if (n == 0) return Eigen::Vector3d::Constant(kNaN);
+  return Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(scatter / n, Eigen::EigenvaluesOnly)
+      .eigenvalues();
+}
+
+}  // namespace magcal

@@ -1,0 +1,195 @@
+#include "pipeline/batch_calibration.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+
+#include "pipeline/alignment.hpp"
+#include "pipeline/centered_solution.hpp"
+#include "pipeline/crlb.hpp"
+#include "pipeline/lm_refinement.hpp"
+#include "pipeline/parameter_recovery.hpp"
+
+namespace magcal {
+
+const char* to_string(BatchCalibrationOptions::Method m) {
+  return m == BatchCalibrationOptions::Method::kCentered ? "centered" : "twostep";
+}
+
+bool parse_batch_method(const std::string& name, BatchCalibrationOptions::Method* m) {
+  if (name == "centered") {
+    *m = BatchCalibrationOptions::Method::kCentered;
+  } else if (name == "twostep") {
+    *m = BatchCalibrationOptions::Method::kTwoStep;
+  } else {
+    return false;
+  }
+  return true;
+}
+
+std::string BatchCalibrationOptions::validate() const {
+  if (!(sigma_nT > 0.0) || !std::isfinite(sigma_nT)) return "sigma_nT must be positive";
+  if (!(huber_k > 0.0)) return "huber_k must be positive";
+  if (max_iterations < 1) return "max_iterations must be at least 1";
+  if (!(tolerance > 0.0)) return "tolerance must be positive";
+  if (min_samples < 10) return "min_samples must be at least 10";
+  if (!(min_coverage_eigenvalue >= 0.0)) return "min_coverage_eigenvalue must be >= 0";
+  if (!(max_fisher_condition > 1.0)) return "max_fisher_condition must exceed 1";
+  if (min_alignment_samples < 3) return "min_alignment_samples must be at least 3";
+  if (gates) {
+    if (std::string e = gate_options.validate(); !e.empty()) return "gates: " + e;
+  }
+  return {};
+}
+
+namespace {
+
+CalibrationResult fail(CalibrationResult r, CalibrationStatus status, std::string message) {
+  r.status = status;
+  r.message = std::move(message);
+  r.converged = false;
+  r.accepted = false;
+  r.rejection_reasons.push_back(to_string(status) + std::string(": ") + r.message);
+  return r;
+}
+
+}  // namespace
+
+CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrationOptions& options,
+                                  const CalibrationResult* previous_accepted) {
+  CalibrationResult r;
+  r.method = to_string(options.method);
+  r.n_samples = static_cast<int>(samples.size());
+  r.residual_rms_nT = std::numeric_limits<double>::quiet_NaN();
+  if (std::string err = options.validate(); !err.empty()) {
+    return fail(r, CalibrationStatus::kFailed, "invalid options: " + err);
+  }
+  if (r.n_samples < options.min_samples) {
+    return fail(r, CalibrationStatus::kFailed,
+                "too few samples: " + std::to_string(r.n_samples) + " < " +
+                    std::to_string(options.min_samples));
+  }
+  int64_t t0 = samples.front().utime, t1 = samples.front().utime;
+  for (std::size_t k = 0; k < samples.size(); ++k) {
+    const CalibrationSample& s = samples[k];
+    const double h = s.h_body_nT.norm();
+    if (!s.b_sensor_nT.allFinite() || !s.h_body_nT.allFinite() || !(h > 0.0) ||
+        !(s.b_sensor_nT.squaredNorm() > 0.0)) {
+      return fail(r, CalibrationStatus::kFailed,
+                  "sample " + std::to_string(k) +
+                      ": non-finite or zero measured/reference field (NaN/Inf in input)");
+    }
+    t0 = std::min(t0, s.utime);
+    t1 = std::max(t1, s.utime);
+  }
+  r.window_start_utime = t0;
+  r.window_end_utime = t1;
+  r.utime = t1;
+
+  const Eigen::Vector3d coverage = direction_coverage_eigenvalues(samples);
+  if (!(coverage(0) >= options.min_coverage_eigenvalue)) {
+    char buf[200];
+    std::snprintf(buf, sizeof buf,
+                  "unusable geometry: the field direction barely changes (smallest direction-"
+                  "scatter eigenvalue %.2g < %.2g)",
+                  coverage(0), options.min_coverage_eigenvalue);
+    return fail(r, CalibrationStatus::kUnobservable, buf);
+  }
+
+  // Stage 1a: centered solution.
+  CenteredOptions copt;
+  copt.sigma_nT = options.sigma_nT;
+  copt.min_samples = std::min(options.min_samples, r.n_samples);
+  const CenteredResult centered = centered_solution(samples, copt);
+  if (centered.status == CenteredStatus::kSingular) {
+    return fail(r, CalibrationStatus::kUnobservable, centered.message);
+  }
+  if (centered.status != CenteredStatus::kOk &&
+      centered.status != CenteredStatus::kNotPositiveDefinite) {
+    return fail(r, CalibrationStatus::kFailed, centered.message);
+  }
+
+  Vector9d theta = centered.theta;
+  Matrix9d theta_cov = centered.theta_covariance;
+  if (options.method == BatchCalibrationOptions::Method::kCentered) {
+    if (centered.status != CenteredStatus::kOk) {
+      return fail(r, CalibrationStatus::kFailed, centered.message);
+    }
+    r.iterations = 0;
+    r.converged = true;
+  } else {
+    // Stage 1b: LM from the centered solution (from [c; 0] if it is not PD, estimation.md 3a).
+    LmOptions lopt;
+    lopt.sigma_nT = options.sigma_nT;
+    lopt.max_iterations = options.max_iterations;
+    lopt.tolerance = options.tolerance;
+    lopt.robust = options.robust;
+    lopt.huber_k = options.huber_k;
+    lopt.min_samples = copt.min_samples;
+    const LmResult lm = refine_lm(samples, centered.theta, lopt);
+    if (lm.status == LmStatus::kSingular) {
+      return fail(r, CalibrationStatus::kUnobservable, lm.message);
+    }
+    if (lm.status != LmStatus::kOk && lm.status != LmStatus::kNotConverged) {
+      return fail(r, CalibrationStatus::kFailed, lm.message);
+    }
+    theta = lm.theta;
+    theta_cov = lm.theta_covariance;
+    r.iterations = lm.iterations;
+    r.converged = lm.converged;
+    r.n_downweighted = lm.n_downweighted;
+    if (!lm.converged) r.message = lm.message;
+  }
+
+  // Stage 1c: b, D.
+  const RecoveryResult rec = recover_parameters(theta, &theta_cov);
+  if (!rec.ok()) return fail(r, CalibrationStatus::kFailed, rec.message);
+  r.parameters = rec.parameters;
+  r.covariance = rec.covariance;
+
+  double sum_sq = 0.0;
+  for (const CalibrationSample& s : samples) {
+    const double e = r.parameters.apply(s.b_sensor_nT).norm() - s.h_body_nT.norm();
+    sum_sq += e * e;
+  }
+  r.residual_rms_nT = std::sqrt(sum_sq / static_cast<double>(samples.size()));
+
+  // Observability at the estimate.
+  const CrlbResult crlb = compute_crlb(samples, r.parameters, options.sigma_nT);
+  r.fisher_condition_number = crlb.condition_number;
+
+  r.status = r.converged ? CalibrationStatus::kOk : CalibrationStatus::kNotConverged;
+  if (!(crlb.condition_number <= options.max_fisher_condition)) {
+    char buf[160];
+    std::snprintf(buf, sizeof buf,
+                  "unobservable: scaled Fisher condition number %.3g > %.3g (field direction "
+                  "does not vary enough)",
+                  crlb.condition_number, options.max_fisher_condition);
+    return fail(r, CalibrationStatus::kUnobservable, buf);
+  }
+
+  // Stage 2: alignment on samples that carry a reference direction.
+  if (options.alignment) {
+    const std::vector<AlignmentPair> pairs = make_alignment_pairs(samples, r.parameters);
+    if (static_cast<int>(pairs.size()) >= options.min_alignment_samples) {
+      AlignmentOptions aopt;  // sigma from the residuals (honest under unmodelled effects)
+      const AlignmentResult al = align_procrustes(pairs, aopt);
+      if (al.ok()) {
+        r.has_alignment = true;
+        r.alignment = al.estimate;
+      }
+    }
+  }
+
+  // Gates.
+  if (options.gates) {
+    GateInputs in;
+    in.min_coverage_eigenvalue = coverage(0);
+    in.fisher_min_eigenvalue = crlb.min_eigenvalue;
+    in.previous_accepted = previous_accepted;
+    apply_verdict(r, evaluate_gates(r, in, options.gate_options));
+  }
+  return r;
+}
+
+}  // namespace magcal

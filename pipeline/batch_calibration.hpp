@@ -1,0 +1,57 @@
+// The batch refit pipeline used by `magcal fit` (centered/twostep), `magcal refit`, the daemon's
+// scheduled refits and the nightly fleet refit:
+//
+//   validate input (count, NaN/Inf, |h| > 0, direction coverage)
+//   -> centered solution (estimation.md 2a, weights from B_k)
+//   -> [twostep] Levenberg–Marquardt refinement (2b, optional Huber IRLS)
+//   -> recovery of b, D and their covariance (2c)
+//   -> residual rms of |B_cal| - |h|,  B_cal = (I + D) B - b  (|R^T v| = |v|)
+//   -> scaled Fisher condition number at the estimate (2d): unobservable above a limit
+//   -> stage 2 alignment, Procrustes, on samples with has_reference_direction (section 4)
+//   -> acceptance gates (pipeline/acceptance_gates.hpp) -> verdict
+//
+// Never returns a silent garbage estimate: too few samples / NaN / not PD -> kFailed,
+// geometry that does not determine the parameters -> kUnobservable, with a message.
+// Allocation-light: the estimators run on the caller's sample vector; only the alignment pairs
+// (and the robust residual buffer) are allocated once per call.
+#pragma once
+
+#include <string>
+
+#include "pipeline/acceptance_gates.hpp"
+#include "pipeline/calibration_result.hpp"
+#include "pipeline/calibration_types.hpp"
+
+namespace magcal {
+
+struct BatchCalibrationOptions {
+  enum class Method { kCentered, kTwoStep };  // "centered" | "twostep" (centered + LM)
+  Method method = Method::kTwoStep;
+  double sigma_nT = 3.0;  // magnetometer white noise per axis (weights, covariance)
+  bool robust = false;    // Huber IRLS in the refinement (twostep only)
+  double huber_k = 3.0;
+  int max_iterations = 50;   // LM
+  double tolerance = 1e-10;  // LM stop on dtheta^T F dtheta
+  int min_samples = 20;
+  // Hard geometry limits (beyond them no estimate is reported: kUnobservable). The acceptance
+  // gates have their own, stricter, thresholds for "computed but not trusted".
+  double min_coverage_eigenvalue = 1e-4;  // smallest eigenvalue of mean(d d^T), d = B/|B|
+  double max_fisher_condition = 1e10;     // scaled Fisher matrix at the estimate
+  bool alignment = true;                  // stage 2 when reference directions are available
+  int min_alignment_samples = 10;
+  bool gates = true;  // apply the acceptance gates
+  GateOptions gate_options;
+
+  std::string validate() const;  // empty when valid
+};
+
+const char* to_string(BatchCalibrationOptions::Method m);  // "centered", "twostep"
+// Parses "centered" / "twostep"; false for anything else.
+bool parse_batch_method(const std::string& name, BatchCalibrationOptions::Method* m);
+
+// previous_accepted: last accepted result of the same spacecraft (change gate), may be null.
+// window times are taken from the samples' utimes (min/max); utime = window end.
+CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrationOptions& options,
+                                  const CalibrationResult* previous_accepted = nullptr);
+
+}  // namespace magcal

@@ -1,0 +1,132 @@
+#include "pipeline/centered_solution.hpp"
+
+#include <cmath>
+#include <cstdio>
+#include <limits>
+
+#include <Eigen/Dense>
+
+#include "pipeline/scalar_measurement.hpp"
+
+namespace magcal {
+
+const char* to_string(CenteredStatus s) {
+  switch (s) {
+    case CenteredStatus::kOk:
+      return "ok";
+    case CenteredStatus::kNotPositiveDefinite:
+      return "not_positive_definite";
+    case CenteredStatus::kSingular:
+      return "singular";
+    case CenteredStatus::kTooFewSamples:
+      return "too_few_samples";
+    case CenteredStatus::kInvalidInput:
+      return "invalid_input";
+  }
+  return "invalid_input";
+}
+
+std::string CenteredOptions::validate() const {
+  if (!(sigma_nT > 0.0) || !std::isfinite(sigma_nT)) return "sigma_nT must be positive";
+  if (min_samples < 10) return "min_samples must be at least 10";
+  if (!(max_condition > 1.0)) return "max_condition must exceed 1";
+  return {};
+}
+
+CenteredResult centered_solution(const SampleSet& samples, const CenteredOptions& options,
+                                 const CalibrationParameters* weight_parameters) {
+  CenteredResult r;
+  if (std::string err = options.validate(); !err.empty()) {
+    r.message = "invalid options: " + err;
+    return r;
+  }
+  r.n_samples = static_cast<int>(samples.size());
+  if (r.n_samples < options.min_samples) {
+    r.status = CenteredStatus::kTooFewSamples;
+    r.message = "too few samples: " + std::to_string(r.n_samples) + " < " +
+                std::to_string(options.min_samples);
+    return r;
+  }
+  const double sigma = options.sigma_nT;
+  const double mu = scalar_noise_mean(sigma);  // constant: cancels, kept for the formula
+  auto weight = [&](const Eigen::Vector3d& B) {
+    const Eigen::Vector3d y = weight_parameters ? weight_parameters->apply(B) : B;
+    return 1.0 / scalar_noise_variance(y, sigma);
+  };
+
+  // Pass 1: weighted means.
+  double sum_w = 0.0, sum_wz = 0.0;
+  RowVector9d sum_wL = RowVector9d::Zero();
+  for (std::size_t k = 0; k < samples.size(); ++k) {
+    const CalibrationSample& s = samples[k];
+    const double h = s.h_body_nT.norm();
+    if (!s.b_sensor_nT.allFinite() || !std::isfinite(h) || !(h > 0.0)) {
+      r.status = CenteredStatus::kInvalidInput;
+      r.message = "sample " + std::to_string(k) + ": non-finite field or |h| <= 0";
+      return r;
+    }
+    const double w = weight(s.b_sensor_nT);
+    sum_w += w;
+    sum_wz += w * (scalar_measurement(s.b_sensor_nT, h) - mu);
+    sum_wL.noalias() += w * scalar_regressor(s.b_sensor_nT);
+  }
+  const double z_bar = sum_wz / sum_w;
+  const RowVector9d L_bar = sum_wL / sum_w;
+
+  // Pass 2: centered normal equations.
+  Matrix9d F = Matrix9d::Zero();
+  Vector9d g = Vector9d::Zero();
+  for (const CalibrationSample& s : samples) {
+    const double w = weight(s.b_sensor_nT);
+    const RowVector9d Lc = scalar_regressor(s.b_sensor_nT) - L_bar;
+    const double zc = scalar_measurement(s.b_sensor_nT, s.h_body_nT.norm()) - mu - z_bar;
+    F.noalias() += (Lc.transpose() * w) * Lc;  // fixed-size 9x9, vectorised
+    g.noalias() += (w * zc) * Lc.transpose();
+  }
+
+  // Scaled solve: F_s = S^-1 F S^-1.
+  const Vector9d d = F.diagonal();
+  if (!(d.minCoeff() > 0.0) || !d.allFinite()) {
+    r.status = CenteredStatus::kSingular;
+    r.message = "centered normal matrix is singular (a regressor does not vary)";
+    return r;
+  }
+  const Vector9d s_inv = d.cwiseSqrt().cwiseInverse();
+  const Matrix9d Fs = s_inv.asDiagonal() * F * s_inv.asDiagonal();
+  const Eigen::SelfAdjointEigenSolver<Matrix9d> eig(Fs);
+  const double lmin = eig.eigenvalues()(0), lmax = eig.eigenvalues()(8);
+  r.condition_number = lmin > 0.0 ? lmax / lmin : std::numeric_limits<double>::infinity();
+  if (!(r.condition_number < options.max_condition)) {
+    r.status = CenteredStatus::kSingular;
+    char buf[128];
+    std::snprintf(buf, sizeof buf,
+                  "centered normal matrix is singular (scaled condition number %.3g): the field "
+                  "direction does not vary enough",
+                  r.condition_number);
+    r.message = buf;
+    return r;
+  }
+  const Eigen::Matrix<double, 9, 9> Fs_inv = eig.eigenvectors() *
+                                             eig.eigenvalues().cwiseInverse().asDiagonal() *
+                                             eig.eigenvectors().transpose();
+  r.theta_covariance = s_inv.asDiagonal() * Fs_inv * s_inv.asDiagonal();
+  r.theta = r.theta_covariance * g;
+
+  const Eigen::Matrix3d I_E = Eigen::Matrix3d::Identity() + unpack_symmetric(r.theta.tail<6>());
+  const Eigen::Vector3d s_IE =
+      Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(I_E, Eigen::EigenvaluesOnly).eigenvalues();
+  if (!r.theta.allFinite()) {
+    r.status = CenteredStatus::kSingular;
+    r.message = "centered solution is not finite";
+    return r;
+  }
+  if (!(s_IE.minCoeff() > 0.0)) {
+    r.status = CenteredStatus::kNotPositiveDefinite;
+    r.message = "centered solution: I + E is not positive definite";
+    return r;
+  }
+  r.status = CenteredStatus::kOk;
+  return r;
+}
+
+}  // namespace magcal

@@ -1,0 +1,37 @@
+// Online stage-1 calibration: extended Kalman filter on the scalar measurement
+// (estimation.md section 3; Crassidis, Lai & Harman 2005).
+//
+// State x = p = [b1 b2 b3 D11 D22 D33 D12 D13 D23] (nT, 1), static with optional random walk Q.
+// Per sample (B_k sensor frame nT, |h_k| nT, utime):
+//   predict   P += Q(dt)                                       (filter_common.hpp)
+//   y_k = |B|^2 - |h|^2 - 3 sigma^2,  y_hat = h(x, B)           (scalar_measurement.hpp)
+//   H   = dz/dp at the prior x (the CRLB row, estimation.md 2d)
+//   S   = H P H^T + R_k,  K = P H^T / S,  x += K (y - y_hat)
+//   P   = (I - K H) P (I - K H)^T + K R_k K^T   (Joseph form, evaluated in O(n^2)), symmetrised.
+// Gating and the consistency monitor as documented in filter_common.hpp.
+// Fixed-size Eigen only: update() does not allocate.
+#pragma once
+
+#include <cstdint>
+
+#include <Eigen/Core>
+
+#include "pipeline/filter_common.hpp"
+
+namespace magcal {
+
+class MagnetometerEkf : public ScalarFilterBase {
+ public:
+  using Options = FilterOptions;
+  const Options& options() const { return options_; }
+
+  // options must be valid (Options::validate() empty); asserted.
+  explicit MagnetometerEkf(const Options& options = Options());
+
+  // One sample: b_sensor_nT = measured field (sensor frame), h_norm_nT = |reference field|,
+  // utime = sample time (microseconds; the filter predicts by the time since the last sample,
+  // dt <= 0 predicts nothing).
+  FilterUpdate update(const Eigen::Vector3d& b_sensor_nT, double h_norm_nT, int64_t utime);
+};
+
+}  // namespace magcal

@@ -1,0 +1,55 @@
+// Online stage-1 calibration: unscented Kalman filter on the scalar measurement
+// (estimation.md section 3; Crassidis, Lai & Harman 2005).
+//
+// State x = p = [b1 b2 b3 D11 D22 D33 D12 D13 D23] (nT, 1), static with optional random walk Q.
+// Scaled unscented transform with n = 9, lambda = alpha^2 (n + kappa) - n:
+//   L = chol(P) (guarded, filter_common.hpp), X_0 = x, X_{+-i} = x +- sqrt(n + lambda) L_i
+//   W0m = lambda / (n + lambda), W0c = W0m + 1 - alpha^2 + beta, Wi = 1 / (2 (n + lambda))
+// Defaults alpha = 1, beta = 2, kappa = 3 - n: lambda = -6, spread sqrt(3), W0m = -2, W0c = 0,
+// Wi = 1/6 (the negative centre weight is why the covariance guard is needed).
+// Per sample: predict P += Q(dt); Z_i = h(X_i, B) (scalar_measurement.hpp, the only
+// propagation: the state is static), y_hat = sum Wm Z_i,
+//   S = sum Wc (Z_i - y_hat)^2 + R_k,  Pxz = sum Wc (X_i - x)(Z_i - y_hat),
+//   K = Pxz / S,  x += K (y - y_hat),  P -= K S K^T, then symmetrised and guarded.
+// Gating and the consistency monitor as documented in filter_common.hpp.
+// Fixed-size Eigen only: update() does not allocate.
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include <Eigen/Core>
+
+#include "pipeline/filter_common.hpp"
+
+namespace magcal {
+
+// FilterOptions plus the unscented-transform parameters.
+struct UkfOptions : FilterOptions {
+  double alpha = 1.0;
+  double beta = 2.0;
+  double kappa = 3.0 - 9.0;      // 3 - n
+  std::string validate() const;  // also requires n + lambda = alpha^2 (n + kappa) > 0
+};
+
+class MagnetometerUkf : public ScalarFilterBase {
+ public:
+  using Options = UkfOptions;
+
+  // options must be valid (Options::validate() empty); asserted.
+  explicit MagnetometerUkf(const Options& options = Options());
+
+  const Options& options() const { return ukf_options_; }
+
+  // One sample: b_sensor_nT = measured field (sensor frame), h_norm_nT = |reference field|,
+  // utime = sample time (microseconds; the filter predicts by the time since the last sample,
+  // dt <= 0 predicts nothing).
+  FilterUpdate update(const Eigen::Vector3d& b_sensor_nT, double h_norm_nT, int64_t utime);
+
+ private:
+  Options ukf_options_;
+  double spread_ = 0.0;  // sqrt(n + lambda)
+  double w0m_ = 0.0, w0c_ = 0.0, wi_ = 0.0;
+};
+
+}  // namespace magcal

@@ -1,0 +1,181 @@
+#include "service/calibration_record.hpp"
+
+#include <cmath>
+#include <cstring>
+#include <limits>
+
+namespace magcal {
+namespace {
+
+// Counters blob layout (version 1): fixed-order int64/double fields, native little-endian.
+constexpr uint32_t kFilterBlobMagic = 0x4D434631;  // "MCF1"
+
+template <typename T>
+void put(std::vector<uint8_t>& out, const T& v) {
+  const auto* p = reinterpret_cast<const uint8_t*>(&v);
+  out.insert(out.end(), p, p + sizeof(T));
+}
+template <typename T>
+bool get(const std::vector<uint8_t>& in, size_t& pos, T& v) {
+  if (pos + sizeof(T) > in.size()) return false;
+  std::memcpy(&v, in.data() + pos, sizeof(T));
+  pos += sizeof(T);
+  return true;
+}
+
+}  // namespace
+
+storage::CalibrationRecord record_from_result(const std::string& sat_id,
+                                              const CalibrationResult& r) {
+  storage::CalibrationRecord rec;
+  rec.sat_id = sat_id;
+  rec.method = r.method;
+  rec.utime = r.utime;
+  rec.window_start_utime = r.window_start_utime;
+  rec.window_end_utime = r.window_end_utime;
+  rec.n_samples = r.n_samples;
+  for (int i = 0; i < 3; ++i) rec.bias_nT[static_cast<size_t>(i)] = r.parameters.bias_nT(i);
+  const Vector6d d = pack_symmetric(r.parameters.D);
+  for (int i = 0; i < 6; ++i) rec.D[static_cast<size_t>(i)] = d(i);
+  for (int i = 0; i < 9; ++i) {
+    for (int j = i; j < 9; ++j)
+      rec.cov[static_cast<size_t>(storage::cov_index(i, j))] = r.covariance(i, j);
+  }
+  rec.has_alignment = r.has_alignment;
+  if (r.has_alignment) {
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) {
+        rec.R_sensor_from_body[static_cast<size_t>(3 * i + j)] =
+            r.alignment.R_sensor_from_body(i, j);
+      }
+    }
+  }
+  rec.residual_rms_nT = r.residual_rms_nT;
+  rec.status = static_cast<int>(r.status);
+  rec.verdict = r.accepted ? "accepted" : "rejected";
+  rec.rejection_reasons = r.rejection_reasons;
+  rec.iterations = r.iterations;
+  return rec;
+}
+
+CalibrationResult result_from_record(const storage::CalibrationRecord& rec) {
+  CalibrationResult r;
+  r.method = rec.method;
+  r.utime = rec.utime;
+  r.window_start_utime = rec.window_start_utime;
+  r.window_end_utime = rec.window_end_utime;
+  r.n_samples = rec.n_samples;
+  Vector9d p;
+  for (int i = 0; i < 3; ++i) p(i) = rec.bias_nT[static_cast<size_t>(i)];
+  for (int i = 0; i < 6; ++i) p(3 + i) = rec.D[static_cast<size_t>(i)];
+  r.parameters = CalibrationParameters::from_packed(p);
+  for (int i = 0; i < 9; ++i) {
+    for (int j = 0; j < 9; ++j)
+      r.covariance(i, j) = rec.cov[static_cast<size_t>(storage::cov_index(i, j))];
+  }
+  r.has_alignment = rec.has_alignment;
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) {
+      r.alignment.R_sensor_from_body(i, j) = rec.R_sensor_from_body[static_cast<size_t>(3 * i + j)];
+    }
+  }
+  r.residual_rms_nT = rec.residual_rms_nT;
+  r.status = static_cast<CalibrationStatus>(rec.status);
+  r.accepted = rec.verdict == "accepted";
+  r.rejection_reasons = rec.rejection_reasons;
+  r.iterations = rec.iterations;
+  r.converged = rec.status == 0;
+  return r;
+}
+
+calibration_t message_from_result(const std::string& sat_id, const CalibrationResult& result) {
+  return storage::message_from_record(record_from_result(sat_id, result));
+}
+
+void fill_stored_sample(const mag_sample_t& msg, const std::string& sat_id,
+                        const CalibrationSample& sample, int64_t receive_utime,
+                        storage::StoredSample& out) {
+  out.sat_id = sat_id;
+  out.utime = msg.utime;
+  out.seq = msg.seq;
+  out.receive_utime = receive_utime;
+  for (int i = 0; i < 3; ++i) out.b_sensor_nT[static_cast<size_t>(i)] = msg.b_sensor_nT[i];
+  out.has_direction = sample.has_reference_direction;
+  out.h_norm_nT = reference_norm_nT(sample);
+  for (int i = 0; i < 3; ++i) {
+    out.h_body_nT[static_cast<size_t>(i)] = sample.has_reference_direction
+                                                ? sample.h_body_nT(i)
+                                                : std::numeric_limits<double>::quiet_NaN();
+  }
+  out.has_attitude = msg.has_attitude;
+  for (int i = 0; i < 4; ++i) out.q_body_from_eci[static_cast<size_t>(i)] = msg.q_body_from_eci[i];
+  out.has_position = msg.has_position;
+  for (int i = 0; i < 3; ++i) out.r_ecef_m[static_cast<size_t>(i)] = msg.r_ecef_m[i];
+  out.temperature_C = static_cast<double>(msg.temperature_C);
+}
+
+CalibrationSample calibration_sample_from_stored(const storage::StoredSample& s) {
+  CalibrationSample c;
+  c.utime = s.utime;
+  c.b_sensor_nT = Eigen::Vector3d(s.b_sensor_nT[0], s.b_sensor_nT[1], s.b_sensor_nT[2]);
+  c.has_reference_direction = s.has_direction;
+  c.h_body_nT = s.has_direction ? Eigen::Vector3d(s.h_body_nT[0], s.h_body_nT[1], s.h_body_nT[2])
+                                : Eigen::Vector3d(s.h_norm_nT, 0.0, 0.0);
+  return c;
+}
+
+storage::FilterState stored_filter_state(const std::string& sat_id, const std::string& method,
+                                         const FilterState& st) {
+  storage::FilterState out;
+  out.sat_id = sat_id;
+  out.method = method;
+  for (int i = 0; i < 9; ++i) out.x[static_cast<size_t>(i)] = st.x(i);
+  for (int i = 0; i < 9; ++i) {
+    for (int j = 0; j < 9; ++j) out.P[static_cast<size_t>(9 * i + j)] = st.P(i, j);
+  }
+  out.last_utime = st.last_utime;
+  out.n_samples = st.n_accepted;
+  auto& b = out.counters;
+  put(b, kFilterBlobMagic);
+  put(b, static_cast<uint8_t>(st.initialized));
+  put(b, static_cast<uint8_t>(st.consistent));
+  put(b, st.first_utime);
+  put(b, st.converged_since_utime);
+  put(b, st.n_rejected_invalid);
+  put(b, st.n_rejected_gate);
+  put(b, st.n_inconsistency_events);
+  put(b, st.n_covariance_repairs);
+  put(b, st.nis_window_sum);
+  put(b, st.nis_window_count);
+  put(b, st.last_window_mean_nis);
+  return out;
+}
+
+bool filter_state_from_stored(const storage::FilterState& in, FilterState& out) {
+  FilterState st;
+  for (int i = 0; i < 9; ++i) st.x(i) = in.x[static_cast<size_t>(i)];
+  for (int i = 0; i < 9; ++i) {
+    for (int j = 0; j < 9; ++j) st.P(i, j) = in.P[static_cast<size_t>(9 * i + j)];
+  }
+  st.last_utime = in.last_utime;
+  st.n_accepted = in.n_samples;
+  size_t pos = 0;
+  uint32_t magic = 0;
+  uint8_t initialized = 0, consistent = 0;
+  const auto& b = in.counters;
+  if (!get(b, pos, magic) || magic != kFilterBlobMagic || !get(b, pos, initialized) ||
+      !get(b, pos, consistent) || !get(b, pos, st.first_utime) ||
+      !get(b, pos, st.converged_since_utime) || !get(b, pos, st.n_rejected_invalid) ||
+      !get(b, pos, st.n_rejected_gate) || !get(b, pos, st.n_inconsistency_events) ||
+      !get(b, pos, st.n_covariance_repairs) || !get(b, pos, st.nis_window_sum) ||
+      !get(b, pos, st.nis_window_count) || !get(b, pos, st.last_window_mean_nis)) {
+    return false;
+  }
+  st.initialized = initialized != 0;
+  st.consistent = consistent != 0;
+  if (!st.x.allFinite() || !st.P.allFinite()) return false;
+  out = st;
+  return true;
+}
+
+}  // namespace magcal

@@ -1,0 +1,40 @@
+// Conversions between the pipeline's values and what storage keeps / LCM carries:
+//   CalibrationResult  -> storage::CalibrationRecord (history row; calibration_t through
+//                         storage::message_from_record) and back (previous accepted refit for
+//                         the change gate);
+//   CalibrationSample  -> storage::StoredSample and back (refit windows, UKF re-runs);
+//   FilterState (pipeline) <-> storage::FilterState (x, P, times; the remaining fields go into
+//                         the opaque counters blob so a restore is bit-exact).
+#pragma once
+
+#include <string>
+
+#include "pipeline/calibration_result.hpp"
+#include "pipeline/filter_common.hpp"
+#include "schemas/magcal_messages.hpp"
+#include "storage/calibration_history.hpp"
+#include "storage/filter_state_store.hpp"
+#include "storage/sample_window_store.hpp"
+
+namespace magcal {
+
+storage::CalibrationRecord record_from_result(const std::string& sat_id,
+                                              const CalibrationResult& result);
+CalibrationResult result_from_record(const storage::CalibrationRecord& record);
+calibration_t message_from_result(const std::string& sat_id, const CalibrationResult& result);
+
+// `sample` carries the reference field; `msg` the rest (seq, attitude, position, temperature).
+void fill_stored_sample(const mag_sample_t& msg, const std::string& sat_id,
+                        const CalibrationSample& sample, int64_t receive_utime,
+                        storage::StoredSample& out);
+CalibrationSample calibration_sample_from_stored(const storage::StoredSample& s);
+inline double reference_norm_nT(const CalibrationSample& s) {
+  return s.has_reference_direction ? s.h_body_nT.norm() : s.h_body_nT.x();
+}
+
+storage::FilterState stored_filter_state(const std::string& sat_id, const std::string& method,
+                                         const FilterState& state);
+// false when the blob is not one this code wrote (then the caller starts cold).
+bool filter_state_from_stored(const storage::FilterState& stored, FilterState& out);
+
+}  // namespace magcal

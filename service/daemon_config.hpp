@@ -1,0 +1,82 @@
+// magcald's configuration (design.md "The daemon's command line and config"): built-in
+// defaults, overridden by a TOML file, overridden by command-line flags. Every key has a default,
+// so no file is needed. An unknown key or a bad value is an error naming the key; the daemon
+// refuses to start. deploy/magcald.example.toml lists every key with its default.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "pipeline/acceptance_gates.hpp"
+#include "pipeline/magnetometer_ukf.hpp"
+
+namespace magcal {
+
+struct DaemonConfig {
+  struct Lcm {
+    std::string url;  // "" = LCM's default ($LCM_DEFAULT_URL, else udpm://239.255.76.67:7667)
+    // Where results and status go. "" = the input URL, except that a file:// input (replay)
+    // publishes nothing unless this is set (e.g. "file:///tmp/out.lcm?mode=w" or a udpm URL).
+    std::string publish_url;
+    std::string samples_channel = "MAGCAL_SAMPLES";
+    std::string batch_channel = "MAGCAL_BATCH";
+    std::string calibration_channel = "MAGCAL_CALIBRATION";
+    std::string status_channel = "MAGCAL_STATUS";
+  } lcm;
+  struct Storage {
+    std::string db_path = "magcal.db";
+    double window_hours = 12.0;
+    double retention_margin_hours = 1.0;
+    int commit_every_samples = 4000;  // one transaction per this many samples...
+    int commit_every_ms = 250;        // ...or this much wall time, whichever first
+  } storage;
+  struct Refit {
+    std::string daily_at_utc = "02:00";
+    double every_hours = 0.0;    // 0 = off
+    std::string clock = "wall";  // "wall" or "data"
+    int min_samples = 1000;
+    bool robust = false;  // outlier-resistant weighting in the batch fit
+  } refit;
+  struct Ukf {
+    MagnetometerUkf::Options filter;  // sigma_nT, process_noise, tuning, consistency monitor
+    double snapshot_every_s = 60.0;   // of data time
+  } ukf;
+  GateOptions gates;
+  struct Sensor {
+    double range_nT = 100000.0;
+  } sensor;
+  struct Igrf {
+    std::string coefficients_file;  // "" = built-in IGRF-14
+  } igrf;
+  struct Log {
+    std::string level = "info";    // trace, debug, info, warn, error, critical, off
+    double status_every_s = 60.0;  // counters in the log (the status message is more frequent)
+  } log;
+  struct Service {
+    std::vector<std::string> whitelist;  // empty = accept every spacecraft
+    int64_t queue_capacity_samples = 262144;
+    double status_every_s = 2.0;      // daemon_status_t on the status channel
+    double min_position_km = 6400.0;  // |r_ecef| outside [min, max] is an absurd position
+    double max_position_km = 8000.0;
+  } service;
+
+  // Empty when every value is valid; else one line naming the key.
+  std::string validate() const;
+
+  bool data_clock() const { return refit.clock == "data"; }
+  int64_t window_utime() const { return static_cast<int64_t>(storage.window_hours * 3.6e9); }
+};
+
+struct ConfigLoad {
+  DaemonConfig config;
+  std::string error;  // empty = ok; names the file and key
+  bool ok() const { return error.empty(); }
+};
+
+// Defaults overridden by the TOML file at `path` (empty path: defaults only), then validated.
+ConfigLoad load_daemon_config(const std::string& path);
+// Same from TOML text (tests); `origin` names it in errors.
+ConfigLoad parse_daemon_config(const std::string& toml_text, const std::string& origin);
+
+}  // namespace magcal

@@ -1,0 +1,116 @@
+// The daemon's worker (design.md "Daemon data flow"): for every decoded sample
+//   validate (sample_validator.hpp, then older_than_window / duplicate against the spacecraft's
+//   tracker and store) -> reference field -> that spacecraft's UKF update -> pending row;
+// UKF snapshots every `snapshot_every_s` of DATA time (history row + calibration_t);
+// pending rows and snapshot rows are committed together, one transaction per batch
+// (commit_every_samples or commit_every_ms, whichever first); retention runs in small
+// transactions after commits. With the data clock it also decides when refits are due.
+//
+// Owns its own database connection and everything it touches, so it runs on one thread; the
+// only cross-thread entry points are post_reanchor() and the retention floor.
+//
+// Restart (restore()): trackers come back from the stored windows; each UKF from its stored
+// state; if that state is older than the newest stored sample, the filter is re-run over the
+// newer stored samples (from their stored reference field, no IGRF).
+#pragma once
+
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "pipeline/calibration_result.hpp"
+#include "service/daemon_config.hpp"
+#include "service/health.hpp"
+#include "service/ingest_queue.hpp"
+#include "service/reference_field.hpp"
+#include "service/refit_scheduler.hpp"
+#include "service/sample_validator.hpp"
+#include "service/spacecraft_tracker.hpp"
+#include "service/throttled_log.hpp"
+#include "storage/calibration_history.hpp"
+#include "storage/database.hpp"
+#include "storage/filter_state_store.hpp"
+#include "storage/sample_window_store.hpp"
+
+namespace magcal {
+
+class IngestWorker {
+ public:
+  struct Hooks {
+    // A UKF snapshot was committed (publish it).
+    std::function<void(const std::string& sat_id, const CalibrationResult&)> on_snapshot;
+    // Data clock: scheduled time t_ref passed and the samples up to it are committed.
+    std::function<void(int64_t t_ref_utime)> on_refit_due;
+  };
+
+  // Opens its own connection to config.storage.db_path (throws storage::StorageError).
+  IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
+               std::unique_ptr<ReferenceField> field, Hooks hooks);
+  ~IngestWorker();
+
+  // Rebuilds trackers from the database (see file comment). Call once before process().
+  void restore();
+
+  // Validates and ingests every sample of a decoded frame.
+  void process(const IngestItem& item);
+  // Commits when the pending batch is full or old enough; call regularly.
+  void commit_if_due();
+  // Commits pending samples and snapshots now (one transaction), then runs retention.
+  void commit();
+  // Writes the filter state of every spacecraft whose filter changed since the last write.
+  void save_filter_states();
+
+  // From any thread: re-anchor sat_id's UKF on an accepted refit (applied by the worker thread
+  // at its next process()/commit_if_due()).
+  void post_reanchor(const std::string& sat_id, const CalibrationResult& refit);
+  // From any thread: retention never deletes samples at or after this time (the oldest window
+  // start of a refit that is due but not finished). INT64_MAX = no floor.
+  void set_retention_floor(int64_t utime) { retention_floor_.store(utime); }
+
+  int64_t data_clock_utime() const { return data_clock_utime_; }
+  size_t n_spacecraft() const { return fleet_.size(); }
+  int64_t pending_samples() const { return static_cast<int64_t>(pending_.size()); }
+  SpacecraftFleet& fleet() { return fleet_; }
+
+ private:
+  void ingest_sample(const mag_sample_t& s, const std::string& batch_sat_id, int64_t receive_utime);
+  bool is_duplicate(const std::string& sat_id, int64_t utime);
+  void maybe_snapshot(const std::string& sat_id, SpacecraftTracker& t, int64_t utime);
+  void apply_reanchors();
+  void run_retention();
+  void check_data_clock();
+
+  const DaemonConfig config_;  // a copy: callers may pass a temporary
+  DaemonCounters& counters_;
+  std::unique_ptr<ReferenceField> field_;
+  Hooks hooks_;
+  ValidatorOptions validator_;
+  storage::Database db_;
+  storage::SampleWindowStore samples_;
+  storage::CalibrationHistory history_;
+  storage::FilterStateStore filter_states_;
+  SpacecraftFleet fleet_;
+  ThrottledLog warnings_;
+  std::optional<RefitScheduler> data_scheduler_;
+
+  std::vector<storage::StoredSample> pending_;
+  std::vector<std::pair<std::string, CalibrationResult>> pending_snapshots_;
+  std::chrono::steady_clock::time_point first_pending_time_{};
+  std::chrono::steady_clock::time_point last_retention_time_{};
+  std::vector<std::string> retention_dirty_;
+  int64_t last_retention_data_utime_ = std::numeric_limits<int64_t>::min() / 2;
+  int64_t data_clock_utime_ = std::numeric_limits<int64_t>::min();
+  std::atomic<int64_t> retention_floor_{std::numeric_limits<int64_t>::max()};
+
+  std::mutex reanchor_mutex_;
+  std::vector<std::pair<std::string, CalibrationResult>> reanchors_;
+  std::atomic<bool> have_reanchors_{false};
+};
+
+}  // namespace magcal

@@ -1,0 +1,102 @@
+#include "service/refit_runner.hpp"
+
+#include <chrono>
+
+#include "service/calibration_record.hpp"
+
+namespace magcal {
+namespace {
+
+int64_t wall_utime() {
+  return std::chrono::duration_cast<std::chrono::microseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+}  // namespace
+
+BatchCalibrationOptions batch_options_from_config(const DaemonConfig& config) {
+  BatchCalibrationOptions o;
+  o.method = BatchCalibrationOptions::Method::kTwoStep;
+  o.sigma_nT = config.ukf.filter.sigma_nT;
+  o.robust = config.refit.robust;
+  o.gates = true;
+  o.gate_options = config.gates;
+  return o;
+}
+
+RefitRunner::RefitRunner(const DaemonConfig& config, storage::Database& db)
+    : config_(config),
+      options_(batch_options_from_config(config)),
+      samples_(db),
+      history_(db),
+      jobs_(db) {}
+
+std::vector<std::string> RefitRunner::spacecraft() {
+  return samples_.spacecraft();
+}
+
+RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> t_ref_utime,
+                              const std::string& trigger, int64_t scheduled_utime) {
+  RefitOutcome out;
+  try {
+    out.job_id = jobs_.start(sat_id, trigger, scheduled_utime, wall_utime());
+  } catch (const storage::StorageError& e) {
+    out.message = std::string("cannot write the job row: ") + e.what();
+    return out;
+  }
+  try {
+    if (!t_ref_utime) t_ref_utime = samples_.newest_utime(sat_id);
+    if (!t_ref_utime) {
+      out.kind = RefitOutcome::Kind::kSkipped;
+      out.job_outcome = storage::job_outcome::kSkipped;
+      out.message = "no stored samples for '" + sat_id + "'";
+      jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message);
+      return out;
+    }
+    const int64_t t_ref = *t_ref_utime;
+    samples_.read_window(sat_id, t_ref - config_.window_utime() + 1, t_ref + 1, rows_);
+    out.n_window_samples = static_cast<int>(rows_.size());
+    if (out.n_window_samples < config_.refit.min_samples) {
+      out.kind = RefitOutcome::Kind::kSkipped;
+      out.job_outcome = storage::job_outcome::kSkipped;
+      out.message = std::to_string(out.n_window_samples) + " samples in the window, " +
+                    std::to_string(config_.refit.min_samples) + " needed ([refit] min_samples)";
+      jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message);
+      return out;
+    }
+    window_.clear();
+    window_.reserve(rows_.size());
+    for (const auto& r : rows_) window_.push_back(calibration_sample_from_stored(r));
+
+    std::optional<CalibrationResult> previous;
+    if (const auto rec = history_.latest_accepted_refit(sat_id)) {
+      previous = result_from_record(*rec);
+    }
+    out.result = calibrate_batch(window_, options_, previous ? &*previous : nullptr);
+    out.result.utime = t_ref;  // the time the refit refers to: its scheduled window end
+    out.calibration_id = history_.append(record_from_result(sat_id, out.result));
+    out.kind = RefitOutcome::Kind::kComputed;
+    if (out.result.accepted && out.result.status == CalibrationStatus::kOk) {
+      out.job_outcome = storage::job_outcome::kOk;
+    } else if (out.result.status == CalibrationStatus::kRejected) {
+      out.job_outcome = storage::job_outcome::kRejected;
+    } else {
+      out.job_outcome = storage::job_outcome::kFailed;
+      out.message = out.result.message.empty() ? to_string(out.result.status) : out.result.message;
+    }
+    jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message, out.calibration_id);
+  } catch (const storage::StorageError& e) {
+    out.kind = RefitOutcome::Kind::kError;
+    out.job_outcome = storage::job_outcome::kFailed;
+    out.message = e.what();
+    try {
+      jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message);
+    } catch (const storage::StorageError&) {
+      // The database is unusable; the caller reports out.message.
+    }
+  }
+  return out;
+}
+
+}  // namespace magcal

@@ -1,0 +1,45 @@
+// When scheduled refits are due (design.md "The daemon's command line and config", [refit]).
+//
+// The schedule is the union of a daily time (daily_at_utc, minutes after 00:00 UTC) and, when
+// every_hours > 0, the times daily_at + k * every_hours (k integer, anchored on the daily time so
+// 02:00 with every_hours = 6 gives 02:00, 08:00, 14:00, 20:00). The clock is either the wall
+// clock or the data clock (the newest sample time seen), so a replayed day produces the refits
+// that day would have had. Pure logic, no threads: the caller feeds it the clock.
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <vector>
+
+namespace magcal {
+
+struct RefitSchedule {
+  int daily_minute_utc = 120;  // 02:00
+  double every_hours = 0.0;    // 0 = off
+};
+
+// "HH:MM" (00:00-23:59) -> minutes after midnight; nullopt if malformed.
+std::optional<int> parse_daily_time_utc(const std::string& text);
+
+// The first scheduled time strictly after t (utime).
+int64_t next_scheduled_utime(const RefitSchedule& schedule, int64_t after_utime);
+
+class RefitScheduler {
+ public:
+  explicit RefitScheduler(RefitSchedule schedule) : schedule_(schedule) {}
+
+  // Scheduled times in (previous clock, clock], ascending. The first call only sets the clock
+  // (nothing before the daemon saw its first clock value is due). A clock that goes backwards
+  // is ignored.
+  std::vector<int64_t> advance(int64_t clock_utime);
+
+  // Next due time after the current clock (for logs); nullopt before the first advance().
+  std::optional<int64_t> next_due() const;
+
+ private:
+  RefitSchedule schedule_;
+  std::optional<int64_t> clock_utime_;
+};
+
+}  // namespace magcal

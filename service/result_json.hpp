@@ -1,0 +1,26 @@
+// CalibrationResult -> JSON with the keys of design.md (`fit --json`, `history --format json`,
+// `status --json`), shared by `magcal fit`, `magcal refit`, `magcal history` and `status`.
+//
+// Keys always present: method, utime, window_start_utime, window_end_utime, n_samples,
+// bias_nT [3], D [[3],[3],[3]], bias_sigma_nT [3], D_sigma [6] (D11 D22 D33 D12 D13 D23),
+// covariance [[9]x9] (p = [b; D11 D22 D33 D12 D13 D23], nT^2 / nT / 1), residual_rms_nT,
+// iterations, converged, status ("ok", "not_converged", ...), verdict ("accepted" |
+// "rejected"), rejection_reasons [strings], fisher_condition_number, n_downweighted, message.
+// When result.has_alignment: R_sensor_from_body [[3],[3],[3]] (row-major rows),
+// alignment_deg {roll, pitch, yaw} (estimation.md section 0) and alignment_sigma_deg
+// {roll, pitch, yaw}. Non-finite numbers become null (JSON has no NaN).
+// Callers add their own keys (compute_ms, time strings, ...) to the returned object.
+#pragma once
+
+#include <nlohmann/json.hpp>
+
+#include "pipeline/calibration_result.hpp"
+
+namespace magcal {
+
+nlohmann::json calibration_result_to_json(const CalibrationResult& result);
+
+// A finite double as a JSON number, anything else as null.
+nlohmann::json json_number(double value);
+
+}  // namespace magcal

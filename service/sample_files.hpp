@@ -1,0 +1,122 @@
+// Sample files shared by `magcal sim` (writing) and `magcal fit` (reading).
+//
+// CSV (design.md "CSV sample format"): header line required, columns located by name, extra
+// columns ignored. Required columns:
+//   t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT
+//   t_s: seconds since 1970-01-01T00:00:00Z (leap seconds ignored); b: sensor frame (nT);
+//   h: reference field in the BODY frame (nT).
+// The writer adds optional extras: qw,qx,qy,qz (q_body_from_eci), r_ecef_x_m,r_ecef_y_m,
+// r_ecef_z_m, temperature_C. Numbers are written with full precision (round-trip exact).
+//
+// LCM event log (lcm::LogFile): mag_sample_t on MAGCAL_SAMPLES, or mag_batch_t packets of N
+// samples on MAGCAL_BATCH; each event's timestamp is the (first) sample utime.
+//
+// Errors are values: every function returns an error string (empty = ok) naming the file and,
+// for CSV, the line.
+#pragma once
+
+#include <cstdint>
+#include <cstdio>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "pipeline/calibration_types.hpp"
+#include "schemas/magcal_messages.hpp"
+
+namespace magcal {
+
+inline constexpr const char* kSamplesChannel = "MAGCAL_SAMPLES";
+inline constexpr const char* kBatchChannel = "MAGCAL_BATCH";
+
+// ---------------------------------------------------------------- CSV
+
+// Optional per-row extras (present when the file has the columns).
+struct CsvSampleExtras {
+  std::optional<Eigen::Vector4d> q_body_from_eci;  // w,x,y,z
+  std::optional<Eigen::Vector3d> r_ecef_m;
+  std::optional<double> temperature_C;
+};
+
+struct CsvSampleRow {
+  CalibrationSample sample;  // utime = round(t_s * 1e6); has_reference_direction = true
+  CsvSampleExtras extras;
+};
+
+struct CsvReadResult {
+  std::vector<CsvSampleRow> rows;
+  std::string error;  // empty = ok; e.g. "file.csv line 17: column bz_nT: not a number"
+  bool ok() const { return error.empty(); }
+};
+
+// Reads a sample CSV. Blank lines are skipped; any unparsable or non-finite required field is
+// an error naming the line (no partial result is returned then: rows is empty).
+CsvReadResult read_sample_csv(const std::string& path);
+
+// Streaming CSV writer. Writes the header on open, one row per write(); close() flushes and
+// reports I/O errors. Extras are written as empty fields when absent.
+class SampleCsvWriter {
+ public:
+  SampleCsvWriter() = default;
+  ~SampleCsvWriter();
+  SampleCsvWriter(const SampleCsvWriter&) = delete;
+  SampleCsvWriter& operator=(const SampleCsvWriter&) = delete;
+
+  std::string open(const std::string& path);  // "" on success
+  void write(const CalibrationSample& sample, const CsvSampleExtras& extras = {});
+  std::string close();  // "" on success
+
+ private:
+  std::FILE* file_ = nullptr;
+  std::string path_;
+};
+
+// Convenience: writes a whole set (no extras). "" on success.
+std::string write_sample_csv(const std::string& path, const SampleSet& samples);
+
+// ---------------------------------------------------------------- LCM log
+
+// Streaming LCM log writer. batch_size 0 => one mag_sample_t event per sample on
+// MAGCAL_SAMPLES; batch_size N > 0 => mag_batch_t events of up to N samples on MAGCAL_BATCH
+// (keep N <= ~400, toolchain.md). All samples of a batch must share sat_id.
+class SampleLcmLogWriter {
+ public:
+  SampleLcmLogWriter();
+  ~SampleLcmLogWriter();
+  SampleLcmLogWriter(const SampleLcmLogWriter&) = delete;
+  SampleLcmLogWriter& operator=(const SampleLcmLogWriter&) = delete;
+
+  std::string open(const std::string& path, int batch_size = 0);  // "" on success
+  std::string write(const mag_sample_t& sample);                  // "" on success
+  std::string close();  // flushes a partial batch; "" on success
+
+ private:
+  struct Impl;
+  Impl* impl_;
+};
+
+struct LcmReadOptions {
+  std::optional<std::string> sat_id;  // keep only this spacecraft when set
+};
+
+struct LcmReadResult {
+  std::vector<magcal::mag_sample_t> samples;  // file order, batches expanded
+  std::vector<std::string> sat_ids;           // every sat id seen (before filtering), sorted
+  int64_t events = 0;                         // events on our two channels
+  int64_t undecodable = 0;                    // events on our channels that failed to decode
+  std::string error;                          // empty = ok (file could not be opened, ...)
+  bool ok() const { return error.empty(); }
+};
+
+// Reads mag_sample_t from MAGCAL_SAMPLES and mag_batch_t from MAGCAL_BATCH; other channels
+// are ignored.
+LcmReadResult read_sample_lcm_log(const std::string& path, const LcmReadOptions& options = {});
+
+// Conversion used by `magcal fit`: has_reference => h_body_nT with direction; otherwise
+// has_reference_direction = false and h_body_nT is left zero (the caller computes |h| from
+// IGRF at r_ecef).
+CalibrationSample to_calibration_sample(const mag_sample_t& msg);
+
+}  // namespace magcal

@@ -1,0 +1,99 @@
+// Table `calibrations`: every calibration result the service produces (UKF/EKF snapshots and
+// every refit), never deleted by retention.
+//
+// Parameters as in calibration_t / estimation.md: p = [b1 b2 b3 D11 D22 D33 D12 D13 D23]
+// (nT, nT, nT, 1, 1, 1, 1, 1, 1); cov = upper triangle, row-major, of the 9x9 covariance of p;
+// bias_sigma_nT = sqrt of its first three diagonal entries (stored as columns for sqlite3 users).
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "schemas/magcal_messages.hpp"
+#include "storage/database.hpp"
+#include "storage/statement.hpp"
+
+namespace magcal::storage {
+
+struct CalibrationRecord {
+  int64_t id = 0;  // assigned by append()
+  std::string sat_id;
+  std::string method;  // "ukf", "ekf", "centered", "twostep"
+  int64_t utime = 0;   // time the estimate refers to
+  int64_t window_start_utime = 0;
+  int64_t window_end_utime = 0;
+  int32_t n_samples = 0;
+  std::array<double, 3> bias_nT{};
+  std::array<double, 6> D{};  // D11 D22 D33 D12 D13 D23
+  std::array<double, 45> cov{};
+  std::array<double, 3> bias_sigma_nT{};  // filled by append() from cov
+  bool has_alignment = false;
+  std::array<double, 9> R_sensor_from_body{1, 0, 0, 0, 1, 0, 0, 0, 1};  // row-major
+  double residual_rms_nT = 0.0;
+  int status = 0;  // calibration_t.status: 0 ok, 1 not converged, 2 unobservable, 3 failed,
+                   // 4 rejected by acceptance gates
+  std::string verdict = "accepted";  // "accepted" | "rejected"
+  std::vector<std::string> rejection_reasons;
+  int iterations = 0;
+  std::string software_version;  // empty: this build's MAGCAL_VERSION
+  int64_t created_utime = 0;     // 0: wall-clock now
+};
+
+// "ok", "not_converged", "unobservable", "failed", "rejected" (design.md); "unknown" otherwise.
+const char* status_name(int status);
+// Index of (i, j) in a row-major upper triangle of a 9x9 matrix (i, j in any order).
+constexpr int cov_index(int i, int j) {
+  return i <= j ? i * 9 - i * (i - 1) / 2 + (j - i) : cov_index(j, i);
+}
+// True for the offline methods ("centered", "twostep"): a refit; false for online filters.
+bool is_refit_method(std::string_view method);
+
+// calibration_t <-> record (verdict from status: 4 = rejected; reasons are not in the message).
+CalibrationRecord record_from_message(const calibration_t& msg);
+calibration_t message_from_record(const CalibrationRecord& record);
+
+struct HistoryQuery {
+  std::string sat_id;
+  std::string method;                  // empty: all methods
+  std::optional<int64_t> since_utime;  // inclusive
+  std::optional<int64_t> until_utime;  // inclusive
+  std::optional<int> limit;            // only the N newest (by utime)...
+  bool descending = false;             // ...returned in this order
+};
+
+class CalibrationHistory {
+ public:
+  explicit CalibrationHistory(Database& db);
+
+  // Stores one result; returns its id. Throws StorageError.
+  int64_t append(const CalibrationRecord& record);
+  std::vector<CalibrationRecord> query(const HistoryQuery& q);
+
+  std::optional<CalibrationRecord> latest(std::string_view sat_id, std::string_view method);
+  // Newest refit (centered or twostep), any verdict / only accepted ones.
+  std::optional<CalibrationRecord> latest_refit(std::string_view sat_id);
+  std::optional<CalibrationRecord> latest_accepted_refit(std::string_view sat_id);
+  // The refit before the newest one (any verdict).
+  std::optional<CalibrationRecord> previous_refit(std::string_view sat_id);
+  // Spacecraft with at least one stored result, sorted.
+  std::vector<std::string> spacecraft();
+
+ private:
+  CalibrationRecord read_row(Statement& st);
+  std::optional<CalibrationRecord> first(Statement& st);
+  Database& db_;
+  Statement insert_;
+  Statement query_all_;
+  Statement query_method_;
+  Statement latest_;
+  Statement refits_;
+  Statement accepted_refit_;
+  Statement spacecraft_;
+  Statement reasons_;
+};
+
+}  // namespace magcal::storage

@@ -1,0 +1,204 @@
+#include "storage/database.hpp"
+
+#include <sqlite3.h>
+
+#include <filesystem>
+#include <string>
+#include <utility>
+
+#include "storage/migrations.hpp"
+#include "storage/statement.hpp"
+
+namespace magcal::storage {
+namespace {
+
+int64_t pragma_int(Database& db, const char* pragma) {
+  Statement st(db, std::string("PRAGMA ") + pragma);
+  return st.step() ? st.column_int64(0) : 0;
+}
+
+}  // namespace
+
+Database::Database(const std::string& path, const OpenOptions& options)
+    : path_(path), read_only_(options.read_only) {
+  const bool memory = path == ":memory:" || path.empty();
+  if (options.read_only && !memory && !std::filesystem::exists(path)) {
+    // Never create a file by reading: report it as missing.
+    throw StorageError(StorageError::Kind::kNotFound, "database not found: " + path);
+  }
+  const int flags =
+      (options.read_only ? SQLITE_OPEN_READONLY : SQLITE_OPEN_READWRITE | SQLITE_OPEN_CREATE) |
+      SQLITE_OPEN_NOMUTEX;  // one thread per connection (see header)
+  const int rc = sqlite3_open_v2(path.c_str(), &db_, flags, nullptr);
+  if (rc != SQLITE_OK) {
+    std::string msg = db_ ? sqlite3_errmsg(db_) : sqlite3_errstr(rc);
+    sqlite3_close(db_);
+    db_ = nullptr;
+    throw StorageError(StorageError::Kind::kSqlite, "cannot open database " + path + ": " + msg);
+  }
+  try {
+    configure(options);
+    check_and_migrate(options);
+  } catch (...) {
+    sqlite3_close(db_);
+    db_ = nullptr;
+    throw;
+  }
+}
+
+Database::~Database() {
+  // Statements belong to the stores, which are destroyed first (they hold a Database&);
+  // sqlite3_close_v2 still copes if one is left.
+  if (db_) sqlite3_close_v2(db_);
+}
+
+Database::Database(Database&& other) noexcept
+    : db_(std::exchange(other.db_, nullptr)),
+      path_(std::move(other.path_)),
+      read_only_(other.read_only_) {}
+
+Database& Database::operator=(Database&& other) noexcept {
+  if (this != &other) {
+    if (db_) sqlite3_close_v2(db_);
+    db_ = std::exchange(other.db_, nullptr);
+    path_ = std::move(other.path_);
+    read_only_ = other.read_only_;
+  }
+  return *this;
+}
+
+void Database::configure(const OpenOptions& options) {
+  // A reader (the CLI, the sqlite3 shell) or a second writer (`magcal refit`) holding a lock
+  // must make us wait briefly, never fail: the daemon's ingest would otherwise drop batches.
+  sqlite3_busy_timeout(db_, options.busy_timeout_ms);
+  // Referential integrity (refit_jobs.calibration_id -> calibrations.id) is off by default in
+  // SQLite and per connection.
+  exec("PRAGMA foreign_keys = ON");
+  if (options.read_only) return;
+  // WAL: readers never block the writer and see a consistent snapshot while it writes; a
+  // crash leaves every committed transaction intact. Persistent in the file.
+  exec("PRAGMA journal_mode = WAL");
+  // NORMAL in WAL mode: no fsync per commit (the insert rate needs it); an application crash
+  // loses nothing committed, a power loss at most the last commits, never consistency.
+  exec("PRAGMA synchronous = NORMAL");
+}
+
+void Database::check_and_migrate(const OpenOptions& options) {
+  const auto all = migrations();
+  const int latest = static_cast<int>(all.size());
+  const int target = options.migrate_to < 0 ? latest : options.migrate_to;
+  if (target > latest) {
+    throw StorageError(
+        StorageError::Kind::kInvalidArgument,
+        "migrate_to " + std::to_string(target) + " > known schema " + std::to_string(latest));
+  }
+
+  auto check = [&](int64_t app_id, int64_t version, bool empty) {
+    if (app_id == 0 && version == 0 && empty) return;  // a new file: ours to initialise
+    if (app_id != kApplicationId) {
+      throw StorageError(
+          StorageError::Kind::kForeignFile,
+          path_ + " is not a magcal database (application_id " + std::to_string(app_id) + ")");
+    }
+    if (version > latest) {
+      throw StorageError(StorageError::Kind::kNewerSchema,
+                         path_ + " has schema version " + std::to_string(version) +
+                             ", newer than this magcal knows (" + std::to_string(latest) +
+                             "): upgrade magcal");
+    }
+  };
+  auto is_empty = [&] {
+    Statement st(*this, "SELECT count(*) FROM sqlite_schema");
+    return st.step() && st.column_int64(0) == 0;
+  };
+
+  int64_t version = pragma_int(*this, "user_version");
+  check(pragma_int(*this, "application_id"), version, is_empty());
+  if (version >= target) return;
+  if (options.read_only) {
+    if (version == 0) {
+      throw StorageError(StorageError::Kind::kForeignFile,
+                         path_ + " is empty, not a magcal database");
+    }
+    throw StorageError(StorageError::Kind::kOlderSchema,
+                       path_ + " has schema version " + std::to_string(version) +
+                           "; open it once read-write (magcald or magcal refit) to upgrade");
+  }
+  // Each migration in its own IMMEDIATE transaction; re-read the version under the write lock
+  // because another process may have migrated meanwhile.
+  for (const Migration& m : all) {
+    if (m.version > target) break;
+    Transaction tx(*this);
+    const int64_t app_id = pragma_int(*this, "application_id");
+    version = pragma_int(*this, "user_version");
+    check(app_id, version, version == 0 && is_empty());
+    if (m.version <= version) continue;
+    if (m.version != version + 1) {
+      throw StorageError(StorageError::Kind::kSqlite,
+                         "migration gap before " + std::string(m.name));
+    }
+    if (m.version == 1) exec("PRAGMA application_id = " + std::to_string(kApplicationId));
+    exec(m.sql);
+    exec("PRAGMA user_version = " + std::to_string(m.version));
+    tx.commit();
+  }
+}
+
+int Database::latest_schema_version() {
+  return static_cast<int>(migrations().size());
+}
+
+int Database::schema_version() const {
+  return static_cast<int>(pragma_int(const_cast<Database&>(*this), "user_version"));
+}
+
+void Database::exec(std::string_view sql) {
+  const std::string text(sql);
+  char* err = nullptr;
+  const int rc = sqlite3_exec(db_, text.c_str(), nullptr, nullptr, &err);
+  if (rc != SQLITE_OK) {
+    std::string msg = err ? err : sqlite3_errstr(rc);
+    sqlite3_free(err);
+    const auto kind = (rc & 0xff) == SQLITE_NOTADB ? StorageError::Kind::kForeignFile
+                                                   : StorageError::Kind::kSqlite;
+    throw StorageError(kind, path_ + ": " + msg);
+  }
+}
+
+int64_t Database::last_insert_id() const {
+  return sqlite3_last_insert_rowid(db_);
+}
+
+std::string Database::integrity_check() {
+  Statement st(*this, "PRAGMA integrity_check");
+  std::string report;
+  while (st.step()) {
+    if (!report.empty()) report += '\n';
+    report += st.column_text(0);
+  }
+  return report;
+}
+
+Transaction::Transaction(Database& db, Mode mode) : db_(db) {
+  // Inside an outer transaction (a caller grouping several store calls) nest as a savepoint.
+  nested_ = sqlite3_get_autocommit(db_.handle()) == 0;
+  if (nested_) {
+    db_.exec("SAVEPOINT magcal_tx");
+  } else {
+    db_.exec(mode == Mode::kImmediate ? "BEGIN IMMEDIATE" : "BEGIN DEFERRED");
+  }
+  open_ = true;
+}
+
+Transaction::~Transaction() {
+  if (!open_ || !db_.handle()) return;
+  const char* sql = nested_ ? "ROLLBACK TO magcal_tx; RELEASE magcal_tx" : "ROLLBACK";
+  sqlite3_exec(db_.handle(), sql, nullptr, nullptr, nullptr);
+}
+
+void Transaction::commit() {
+  db_.exec(nested_ ? "RELEASE magcal_tx" : "COMMIT");
+  open_ = false;
+}
+
+}  // namespace magcal::storage

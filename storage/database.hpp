@@ -1,0 +1,112 @@
+// The SQLite connection of magcal: opening, pragmas, schema migrations, transactions.
+//
+// Error policy (whole storage/ library): every failure is thrown as the one exception type
+// StorageError (with a Kind), and the service catches it at its edge (CLI run_*, daemon start /
+// worker loop) to print one line and choose an exit code. Data outcomes that are not failures
+// are values: duplicate samples are counted in InsertStats, "not found" is std::nullopt.
+//
+// Threads: a Database and the stores built on it belong to one thread at a time (prepared
+// statements are per connection). Give each thread (ingest worker, refit scheduler, CLI) its own
+// Database; WAL lets them read and write concurrently, the busy timeout serialises writers.
+//
+// Schema: numbered migrations (storage/migrations/NNNN_name.sql, embedded in the binary), each
+// applied in one transaction that also sets PRAGMA user_version = NNNN. PRAGMA application_id =
+// kApplicationId marks a magcal file; any other non-zero id is refused, as is a user_version
+// newer than this code knows. Opening an older file read-write upgrades it.
+#pragma once
+
+#include <cstdint>
+#include <stdexcept>
+#include <string>
+#include <string_view>
+
+struct sqlite3;  // <sqlite3.h> stays out of public headers
+
+namespace magcal::storage {
+
+// 'MGCL' — what `PRAGMA application_id` reads on a magcal database.
+constexpr int32_t kApplicationId = 0x4D47434C;
+
+class StorageError : public std::runtime_error {
+ public:
+  enum class Kind {
+    kNotFound,     // read-only open of a missing file
+    kForeignFile,  // not a SQLite file, or another application's (application_id)
+    kNewerSchema,  // user_version newer than this code: refuse rather than guess
+    kOlderSchema,  // read-only open of a database that needs a migration first
+    kInvalidArgument,
+    kSqlite,  // any other SQLite error (I/O, corrupt, busy after the timeout, ...)
+  };
+  StorageError(Kind kind, const std::string& what) : std::runtime_error(what), kind_(kind) {}
+  Kind kind() const { return kind_; }
+
+ private:
+  Kind kind_;
+};
+
+struct OpenOptions {
+  // Read-only never creates, migrates or writes a file (the CLI's history/status use it).
+  bool read_only = false;
+  // Migrate up to this version only (-1: the newest this code knows). For tests that build an
+  // old database; production code leaves it alone.
+  int migrate_to = -1;
+  // How long a statement waits on another connection's lock before failing.
+  int busy_timeout_ms = 5000;
+};
+
+class Database {
+ public:
+  // `path` may be ":memory:". Throws StorageError.
+  explicit Database(const std::string& path, const OpenOptions& options = {});
+  ~Database();
+  Database(Database&& other) noexcept;
+  Database& operator=(Database&& other) noexcept;
+  Database(const Database&) = delete;
+  Database& operator=(const Database&) = delete;
+
+  // Newest schema version this code knows (= number of embedded migrations).
+  static int latest_schema_version();
+  // PRAGMA user_version of the open file.
+  int schema_version() const;
+
+  const std::string& path() const { return path_; }
+  bool read_only() const { return read_only_; }
+
+  // Runs one or more SQL statements without results (DDL, pragmas, tests).
+  void exec(std::string_view sql);
+  // rowid of the last INSERT on this connection.
+  int64_t last_insert_id() const;
+  // Runs `PRAGMA integrity_check`; returns "ok" on a sound file, else SQLite's report.
+  std::string integrity_check();
+
+  sqlite3* handle() const { return db_; }
+
+ private:
+  void configure(const OpenOptions& options);
+  void check_and_migrate(const OpenOptions& options);
+
+  sqlite3* db_ = nullptr;
+  std::string path_;
+  bool read_only_ = false;
+};
+
+// RAII transaction: BEGIN IMMEDIATE (takes the write lock up front, so a writer waits on the
+// busy timeout at BEGIN instead of failing half-way) or a deferred BEGIN for read snapshots.
+// Rolled back on destruction unless commit() was called. Inside an already open transaction
+// it becomes a SAVEPOINT, so a caller can group several store calls into one commit.
+class Transaction {
+ public:
+  enum class Mode { kImmediate, kDeferred };
+  explicit Transaction(Database& db, Mode mode = Mode::kImmediate);
+  ~Transaction();
+  Transaction(const Transaction&) = delete;
+  Transaction& operator=(const Transaction&) = delete;
+  void commit();
+
+ private:
+  Database& db_;
+  bool open_ = false;
+  bool nested_ = false;
+};
+
+}  // namespace magcal::storage

@@ -1,0 +1,46 @@
+// Table `filter_states`: the latest online filter state per (sat_id, method), so the daemon
+// resumes exactly after a restart. x and P are stored as BLOBs of raw little-endian IEEE-754
+// doubles: the round trip is bit-exact.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "storage/database.hpp"
+#include "storage/statement.hpp"
+
+namespace magcal::storage {
+
+struct FilterState {
+  std::string sat_id;
+  std::string method;             // "ukf" | "ekf"
+  std::array<double, 9> x{};      // [b1 b2 b3 D11 D22 D33 D12 D13 D23]
+  std::array<double, 81> P{};     // 9x9 covariance, row-major
+  int64_t last_utime = 0;         // newest sample the state includes
+  int64_t n_samples = 0;          // samples processed
+  std::vector<uint8_t> counters;  // opaque to storage (the filter's own counters)
+  int64_t updated_utime = 0;      // wall time of the save; 0: now
+};
+
+class FilterStateStore {
+ public:
+  explicit FilterStateStore(Database& db);
+
+  // Insert or replace the row of (sat_id, method).
+  void save(const FilterState& state);
+  std::optional<FilterState> load(std::string_view sat_id, std::string_view method);
+  std::vector<FilterState> load_all();
+
+ private:
+  FilterState read_row(Statement& st);
+  Database& db_;
+  Statement upsert_;
+  Statement load_;
+  Statement load_all_;
+};
+
+}  // namespace magcal::storage

@@ -1,0 +1,91 @@
+#include "storage/refit_job_log.hpp"
+
+namespace magcal::storage {
+namespace {
+
+constexpr const char* kSelect =
+    "SELECT id, sat_id, trigger_kind, scheduled_utime, started_utime, finished_utime, outcome, "
+    "error, calibration_id FROM refit_jobs ";
+
+std::optional<int64_t> optional_int(const Statement& st, int col) {
+  if (st.is_null(col)) return std::nullopt;
+  return st.column_int64(col);
+}
+
+RefitJob read_row(const Statement& st) {
+  RefitJob j;
+  j.id = st.column_int64(0);
+  j.sat_id = st.column_text(1);
+  j.trigger = st.column_text(2);
+  j.scheduled_utime = st.column_int64(3);
+  j.started_utime = optional_int(st, 4);
+  j.finished_utime = optional_int(st, 5);
+  j.outcome = st.column_text(6);
+  j.error = st.column_text(7);
+  j.calibration_id = optional_int(st, 8);
+  return j;
+}
+
+}  // namespace
+
+RefitJobLog::RefitJobLog(Database& db)
+    : db_(db),
+      insert_(db,
+              "INSERT INTO refit_jobs (sat_id, trigger_kind, scheduled_utime, started_utime, "
+              "outcome) VALUES (?1, ?2, ?3, ?4, 'running')"),
+      finish_(db,
+              "UPDATE refit_jobs SET outcome = ?2, finished_utime = ?3, error = ?4, "
+              "calibration_id = ?5 WHERE id = ?1"),
+      interrupt_(db,
+                 "UPDATE refit_jobs SET outcome = 'interrupted', finished_utime = ?1, error = "
+                 "'process ended while the refit was running' WHERE outcome = 'running'"),
+      get_(db, std::string(kSelect) + "WHERE id = ?1"),
+      recent_(db, std::string(kSelect) + "WHERE sat_id = ?1 ORDER BY id DESC LIMIT ?2") {}
+
+int64_t RefitJobLog::start(std::string_view sat_id, std::string_view trigger,
+                           int64_t scheduled_utime, int64_t started_utime) {
+  auto use = insert_.use();
+  insert_.bind(1, sat_id).bind(2, trigger).bind(3, scheduled_utime).bind(4, started_utime);
+  insert_.execute();
+  return db_.last_insert_id();
+}
+
+void RefitJobLog::finish(int64_t job_id, std::string_view outcome, int64_t finished_utime,
+                         std::string_view error, std::optional<int64_t> calibration_id) {
+  auto use = finish_.use();
+  finish_.bind(1, job_id).bind(2, outcome).bind(3, finished_utime).bind(4, error);
+  finish_.bind(5, calibration_id);
+  if (finish_.execute() != 1) {
+    throw StorageError(StorageError::Kind::kInvalidArgument,
+                       "no refit job with id " + std::to_string(job_id));
+  }
+}
+
+int RefitJobLog::mark_running_interrupted(int64_t now_utime) {
+  auto use = interrupt_.use();
+  interrupt_.bind(1, now_utime);
+  return interrupt_.execute();
+}
+
+std::optional<RefitJob> RefitJobLog::get(int64_t job_id) {
+  auto use = get_.use();
+  get_.bind(1, job_id);
+  if (!get_.step()) return std::nullopt;
+  return read_row(get_);
+}
+
+std::optional<RefitJob> RefitJobLog::latest(std::string_view sat_id) {
+  auto jobs = recent(sat_id, 1);
+  if (jobs.empty()) return std::nullopt;
+  return jobs.front();
+}
+
+std::vector<RefitJob> RefitJobLog::recent(std::string_view sat_id, int limit) {
+  std::vector<RefitJob> out;
+  auto use = recent_.use();
+  recent_.bind(1, sat_id).bind(2, limit);
+  while (recent_.step()) out.push_back(read_row(recent_));
+  return out;
+}
+
+}  // namespace magcal::storage

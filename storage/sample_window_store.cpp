@@ -1,0 +1,171 @@
+#include "storage/sample_window_store.hpp"
+
+#include <cmath>
+#include <limits>
+
+namespace magcal::storage {
+namespace {
+
+constexpr const char* kColumns =
+    "utime, seq, receive_utime, bx_nT, by_nT, bz_nT, has_direction, hx_nT, hy_nT, hz_nT, "
+    "h_norm_nT, qw, qx, qy, qz, rx_m, ry_m, rz_m, temperature_C";
+
+std::string select_window_sql() {
+  return std::string("SELECT ") + kColumns +
+         " FROM samples WHERE sat_id = ?1 AND utime >= ?2 AND utime < ?3 ORDER BY utime";
+}
+
+}  // namespace
+
+SampleWindowStore::SampleWindowStore(Database& db)
+    : db_(db),
+      insert_(db,
+              "INSERT INTO samples (sat_id, utime, seq, receive_utime, bx_nT, by_nT, "
+              "bz_nT, has_direction, hx_nT, hy_nT, hz_nT, h_norm_nT, qw, qx, qy, qz, rx_m, ry_m, "
+              "rz_m, temperature_C) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, "
+              "?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20) "
+              // Only a repeated key is ignored (and counted); OR IGNORE would also swallow
+              // NOT NULL violations (NaN is bound as NULL) and count them as duplicates.
+              "ON CONFLICT (sat_id, utime) DO NOTHING"),
+      window_(db, select_window_sql()),
+      count_window_(
+          db, "SELECT count(*) FROM samples WHERE sat_id = ?1 AND utime >= ?2 AND utime < ?3"),
+      newest_(db, "SELECT max(utime) FROM samples WHERE sat_id = ?1"),
+      count_(db, "SELECT count(*) FROM samples WHERE sat_id = ?1"),
+      // Skip-scan over the primary key: one b-tree seek per spacecraft, not a full scan.
+      spacecraft_(db,
+                  "WITH RECURSIVE s(id) AS (SELECT min(sat_id) FROM samples UNION ALL "
+                  "SELECT (SELECT min(sat_id) FROM samples WHERE sat_id > s.id) FROM s "
+                  "WHERE s.id IS NOT NULL) SELECT id FROM s WHERE id IS NOT NULL"),
+      // DELETE ... LIMIT needs a compile option Debian's SQLite may lack: select the chunk.
+      delete_chunk_(db,
+                    "DELETE FROM samples WHERE sat_id = ?1 AND utime IN (SELECT utime FROM "
+                    "samples WHERE sat_id = ?1 AND utime < ?2 ORDER BY utime LIMIT ?3)") {}
+
+InsertStats SampleWindowStore::insert_batch(std::span<const StoredSample> samples) {
+  InsertStats stats;
+  if (samples.empty()) return stats;
+  Transaction tx(db_);
+  for (const StoredSample& s : samples) {
+    auto use = insert_.use();
+    insert_.bind(1, s.sat_id).bind(2, s.utime).bind(3, s.seq).bind(4, s.receive_utime);
+    insert_.bind(5, s.b_sensor_nT[0]).bind(6, s.b_sensor_nT[1]).bind(7, s.b_sensor_nT[2]);
+    insert_.bind(8, s.has_direction ? 1 : 0);
+    if (s.has_direction) {
+      insert_.bind(9, s.h_body_nT[0]).bind(10, s.h_body_nT[1]).bind(11, s.h_body_nT[2]);
+    }
+    insert_.bind(12, s.h_norm_nT);
+    if (s.has_attitude) {
+      for (int i = 0; i < 4; ++i) insert_.bind(13 + i, s.q_body_from_eci[i]);
+    }
+    if (s.has_position) {
+      for (int i = 0; i < 3; ++i) insert_.bind(17 + i, s.r_ecef_m[i]);
+    }
+    insert_.bind(20, s.temperature_C);  // NaN -> NULL
+    if (insert_.execute() == 1) {
+      ++stats.inserted;
+    } else {
+      ++stats.duplicates;
+    }
+  }
+  tx.commit();
+  return stats;
+}
+
+void SampleWindowStore::read_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime,
+                                    std::vector<StoredSample>& out) {
+  out.clear();
+  auto use = window_.use();
+  window_.bind(1, sat_id).bind(2, t0_utime).bind(3, t1_utime);
+  constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+  // The hot loop (a 12 h window is 4320 rows): NOT NULL columns are read without a type check,
+  // nullable groups are tested once per group.
+  Statement& st = window_;
+  while (st.step()) {
+    StoredSample& s = out.emplace_back();
+    s.sat_id = sat_id;
+    s.utime = st.column_int64(0);
+    s.seq = st.column_int64(1);
+    s.receive_utime = st.column_int64(2);
+    for (int i = 0; i < 3; ++i) s.b_sensor_nT[i] = st.column_double_not_null(3 + i);
+    s.has_direction = st.column_int64(6) != 0;
+    for (int i = 0; i < 3; ++i) {
+      s.h_body_nT[i] = s.has_direction ? st.column_double_not_null(7 + i) : kNaN;
+    }
+    s.h_norm_nT = st.column_double_not_null(10);
+    s.has_attitude = !st.is_null(11);
+    if (s.has_attitude) {
+      for (int i = 0; i < 4; ++i) s.q_body_from_eci[i] = st.column_double_not_null(11 + i);
+    }
+    s.has_position = !st.is_null(15);
+    if (s.has_position) {
+      for (int i = 0; i < 3; ++i) s.r_ecef_m[i] = st.column_double_not_null(15 + i);
+    }
+    s.temperature_C = st.column_double(18);
+  }
+}
+
+std::vector<StoredSample> SampleWindowStore::window(std::string_view sat_id, int64_t t0_utime,
+                                                    int64_t t1_utime) {
+  std::vector<StoredSample> out;
+  read_window(sat_id, t0_utime, t1_utime, out);
+  return out;
+}
+
+int64_t SampleWindowStore::count_in_window(std::string_view sat_id, int64_t t0_utime,
+                                           int64_t t1_utime) {
+  auto use = count_window_.use();
+  count_window_.bind(1, sat_id).bind(2, t0_utime).bind(3, t1_utime);
+  return count_window_.step() ? count_window_.column_int64(0) : 0;
+}
+
+std::optional<int64_t> SampleWindowStore::newest_utime(std::string_view sat_id) {
+  auto use = newest_.use();
+  newest_.bind(1, sat_id);
+  if (!newest_.step() || newest_.is_null(0)) return std::nullopt;
+  return newest_.column_int64(0);
+}
+
+int64_t SampleWindowStore::count(std::string_view sat_id) {
+  auto use = count_.use();
+  count_.bind(1, sat_id);
+  return count_.step() ? count_.column_int64(0) : 0;
+}
+
+std::vector<std::string> SampleWindowStore::spacecraft() {
+  std::vector<std::string> out;
+  auto use = spacecraft_.use();
+  while (spacecraft_.step()) out.push_back(spacecraft_.column_text(0));
+  return out;
+}
+
+RetentionStats SampleWindowStore::delete_before(std::string_view sat_id, int64_t cutoff_utime,
+                                                int chunk_rows) {
+  if (chunk_rows <= 0) {
+    throw StorageError(StorageError::Kind::kInvalidArgument, "chunk_rows must be positive");
+  }
+  RetentionStats stats;
+  for (;;) {
+    Transaction tx(db_);
+    int deleted = 0;
+    {
+      auto use = delete_chunk_.use();
+      delete_chunk_.bind(1, sat_id).bind(2, cutoff_utime).bind(3, chunk_rows);
+      deleted = delete_chunk_.execute();
+    }
+    tx.commit();
+    ++stats.transactions;
+    stats.deleted += deleted;
+    if (deleted < chunk_rows) break;
+  }
+  return stats;
+}
+
+RetentionStats SampleWindowStore::apply_retention(std::string_view sat_id, int64_t window_utime,
+                                                  int64_t margin_utime, int chunk_rows) {
+  const auto newest = newest_utime(sat_id);
+  if (!newest) return {};
+  return delete_before(sat_id, *newest - window_utime - margin_utime, chunk_rows);
+}
+
+}  // namespace magcal::storage

@@ -1,0 +1,94 @@
+// Table `samples`: the per-spacecraft sample windows the daemon refits and restarts from.
+//
+// One row per (sat_id, utime) — the primary key of a WITHOUT ROWID table, so a spacecraft's
+// window is one contiguous b-tree range in time order. Each row keeps its reference field
+// (h_body_nT in the body frame, or only |h| when there was no direction), so a refit never
+// recomputes IGRF. Duplicate (sat_id, utime) rows are refused and counted, never stored twice.
+//
+// Units: nT for fields, metres for r_ecef_m, microseconds since 1970-01-01Z (utime) for times,
+// quaternion (w, x, y, z) body-from-ECI as in mag_sample_t (estimation.md section 0).
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <limits>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "storage/database.hpp"
+#include "storage/statement.hpp"
+
+namespace magcal::storage {
+
+struct StoredSample {
+  std::string sat_id;
+  int64_t utime = 0;                    // sample time
+  int64_t seq = 0;                      // per-spacecraft sequence number
+  int64_t receive_utime = 0;            // wall time the ground received it
+  std::array<double, 3> b_sensor_nT{};  // measured field, sensor frame
+  // Reference field. has_direction: h_body_nT is the body-frame vector (|h| = its norm);
+  // otherwise only h_norm_nT is known and h_body_nT is not stored (reads back as NaN).
+  bool has_direction = false;
+  std::array<double, 3> h_body_nT{};
+  double h_norm_nT = 0.0;
+  bool has_attitude = false;
+  std::array<double, 4> q_body_from_eci{1.0, 0.0, 0.0, 0.0};  // w, x, y, z
+  bool has_position = false;
+  std::array<double, 3> r_ecef_m{};
+  double temperature_C = std::numeric_limits<double>::quiet_NaN();  // NaN = unknown (NULL)
+};
+
+struct InsertStats {
+  int64_t inserted = 0;
+  int64_t duplicates = 0;  // (sat_id, utime) already stored (or twice in the batch)
+};
+
+struct RetentionStats {
+  int64_t deleted = 0;
+  int transactions = 0;
+};
+
+class SampleWindowStore {
+ public:
+  explicit SampleWindowStore(Database& db);  // prepares its statements; throws StorageError
+
+  // All samples in one transaction (one fsync-free WAL commit). Throws StorageError (the
+  // transaction is rolled back: nothing of the batch is stored).
+  InsertStats insert_batch(std::span<const StoredSample> samples);
+
+  // Samples of `sat_id` with t0 <= utime < t1, ascending utime, into `out` (cleared first; its
+  // capacity is reused). A refit window (t_ref - W, t_ref] is [t_ref - W + 1, t_ref + 1).
+  void read_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime,
+                   std::vector<StoredSample>& out);
+  std::vector<StoredSample> window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime);
+
+  int64_t count_in_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime);
+  std::optional<int64_t> newest_utime(std::string_view sat_id);
+  int64_t count(std::string_view sat_id);
+  // Spacecraft with at least one stored sample, sorted.
+  std::vector<std::string> spacecraft();
+
+  // Deletes the samples of `sat_id` with utime < cutoff_utime, at most `chunk_rows` per
+  // transaction so a concurrent writer waits at most one small chunk.
+  RetentionStats delete_before(std::string_view sat_id, int64_t cutoff_utime,
+                               int chunk_rows = 2000);
+  // Retention rule (design.md): cutoff = newest sample of sat_id - window - margin (data time).
+  // Samples exactly at the cutoff are kept.
+  RetentionStats apply_retention(std::string_view sat_id, int64_t window_utime,
+                                 int64_t margin_utime, int chunk_rows = 2000);
+
+ private:
+  Database& db_;
+  Statement insert_;
+  Statement window_;
+  Statement count_window_;
+  Statement newest_;
+  Statement count_;
+  Statement spacecraft_;
+  Statement delete_chunk_;
+};
+
+}  // namespace magcal::storage

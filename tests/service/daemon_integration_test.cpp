@@ -1,0 +1,559 @@
+// magcald as a real process (issue 6 "Done when"): replay of a simulated day via file:// (and,
+// when multicast works here, live over udpm with lcm-logplayer and an independent lcm-logger);
+// SIGTERM mid-stream then restart; a stream of malformed frames. Results are read back by
+// independent decoders (lcm::LogFile + the generated types, the storage API).
+// No sleeps to wait for things: every wait polls its condition against a deadline.
+#include <catch2/catch.hpp>
+
+#include <fcntl.h>
+#include <signal.h>
+#include <spawn.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <functional>
+#include <set>
+#include <thread>
+
+#include <lcm/lcm-cpp.hpp>
+#include <nlohmann/json.hpp>
+
+#include "schemas/magcal_messages.hpp"
+#include "storage/calibration_history.hpp"
+#include "storage/sample_window_store.hpp"
+
+extern char** environ;
+
+namespace {
+
+namespace fs = std::filesystem;
+using Clock = std::chrono::steady_clock;
+
+constexpr int kSimSamples = 8640;          // 24 h at 10 s (paper scenario)
+constexpr double kRefitBiasTol_nT = 10.0;  // refit vs simulator truth, per axis
+constexpr double kNoJumpSigmas = 5.0;      // UKF before/after restart
+constexpr double kNoJumpFloor_nT = 1.0;
+
+struct TempDir {
+  fs::path dir;
+  explicit TempDir(const std::string& name) {
+    dir = fs::temp_directory_path() / ("magcald_it_" + std::to_string(::getpid()) + "_" + name);
+    fs::remove_all(dir);
+    fs::create_directories(dir);
+  }
+  ~TempDir() { fs::remove_all(dir); }
+  std::string operator/(const std::string& f) const { return (dir / f).string(); }
+};
+
+// posix_spawn with stdout/stderr to a file.
+pid_t spawn(const std::vector<std::string>& args, const std::string& log_path) {
+  std::vector<char*> argv;
+  for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
+  argv.push_back(nullptr);
+  posix_spawn_file_actions_t fa;
+  posix_spawn_file_actions_init(&fa);
+  posix_spawn_file_actions_addopen(&fa, 1, log_path.c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644);
+  posix_spawn_file_actions_adddup2(&fa, 1, 2);
+  pid_t pid = -1;
+  const int rc = posix_spawnp(&pid, argv[0], &fa, nullptr, argv.data(), environ);
+  posix_spawn_file_actions_destroy(&fa);
+  return rc == 0 ? pid : -1;
+}
+
+// Exit code, or -1 on timeout (the process is then killed), -2 if killed by a signal.
+int wait_exit(pid_t pid, double timeout_s) {
+  const auto deadline = Clock::now() + std::chrono::duration<double>(timeout_s);
+  while (Clock::now() < deadline) {
+    int status = 0;
+    const pid_t r = ::waitpid(pid, &status, WNOHANG);
+    if (r == pid) return WIFEXITED(status) ? WEXITSTATUS(status) : -2;
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  ::kill(pid, SIGKILL);
+  ::waitpid(pid, nullptr, 0);
+  return -1;
+}
+
+bool wait_until(const std::function<bool()>& cond, double timeout_s) {
+  const auto deadline = Clock::now() + std::chrono::duration<double>(timeout_s);
+  while (Clock::now() < deadline) {
+    if (cond()) return true;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  return cond();
+}
+
+int run(const std::vector<std::string>& args, const std::string& log, double timeout_s = 60) {
+  const pid_t pid = spawn(args, log);
+  return pid < 0 ? -3 : wait_exit(pid, timeout_s);
+}
+
+std::string slurp(const std::string& path) {
+  std::ifstream in(path);
+  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
+
+const std::string kBin = MAGCAL_BIN_DIR;
+
+// Every event of an LCM log, decoded by the generated types (an independent reader).
+struct Published {
+  std::vector<magcal::calibration_t> calibrations;
+  std::vector<magcal::daemon_status_t> statuses;
+  int undecodable = 0;
+};
+Published read_published(const std::string& path) {
+  Published p;
+  lcm::LogFile log(path, "r");
+  if (!log.good()) return p;
+  while (const lcm::LogEvent* e = log.readNextEvent()) {
+    if (e->channel == "MAGCAL_CALIBRATION") {
+      magcal::calibration_t c;
+      if (c.decode(e->data, 0, e->datalen) == e->datalen) {
+        p.calibrations.push_back(c);
+      } else {
+        ++p.undecodable;
+      }
+    } else if (e->channel == "MAGCAL_STATUS") {
+      magcal::daemon_status_t s;
+      if (s.decode(e->data, 0, e->datalen) == e->datalen) {
+        p.statuses.push_back(s);
+      } else {
+        ++p.undecodable;
+      }
+    }
+  }
+  return p;
+}
+
+int64_t rejected(const magcal::daemon_status_t& s, const std::string& reason) {
+  for (int i = 0; i < s.n_reasons; ++i) {
+    if (s.rejected_reason[static_cast<size_t>(i)] == reason)
+      return s.rejected_count[static_cast<size_t>(i)];
+  }
+  FAIL("reason " << reason << " missing from the status message");
+  return -1;
+}
+
+std::vector<magcal::storage::CalibrationRecord> history(const std::string& db,
+                                                        const std::string& sat,
+                                                        const std::string& method) {
+  magcal::storage::OpenOptions ro;
+  ro.read_only = true;
+  magcal::storage::Database d(db, ro);
+  magcal::storage::CalibrationHistory h(d);
+  magcal::storage::HistoryQuery q;
+  q.sat_id = sat;
+  q.method = method;
+  return h.query(q);
+}
+
+int64_t stored_count(const std::string& db, const std::string& sat) {
+  try {
+    magcal::storage::OpenOptions ro;
+    ro.read_only = true;
+    magcal::storage::Database d(db, ro);
+    magcal::storage::SampleWindowStore s(d);
+    return s.count(sat);
+  } catch (const magcal::storage::StorageError&) {
+    return -1;  // not created yet
+  }
+}
+
+void write_config(const std::string& path, const std::string& extra) {
+  std::ofstream out(path);
+  out << "[refit]\nclock = \"data\"\nevery_hours = 6\nmin_samples = 4000\n"
+      << "[ukf]\nsigma_nT = 7.5\n"
+      << extra;
+}
+
+std::string simulate_day(const TempDir& tmp) {
+  const std::string log = tmp / "day.lcm";
+  REQUIRE(run({kBin + "/magcal", "sim", "--scenario", "paper", "--hours", "24", "--seed", "1",
+               "--out", log, "--truth", tmp / "truth.json", "--batch", "200"},
+              tmp / "sim.log") == 0);
+  return log;
+}
+
+// Multicast over loopback works here (toolchain.md: not in every network namespace).
+bool multicast_available(const std::string& url) {
+  lcm::LCM a(url);
+  if (!a.good()) return false;
+  bool got = false;
+  a.subscribeFunction(
+      "MAGCAL_PROBE",
+      +[](const lcm::ReceiveBuffer*, const std::string&, bool* flag) { *flag = true; }, &got);
+  for (int i = 0; i < 5 && !got; ++i) {
+    uint8_t byte = 1;
+    a.publish("MAGCAL_PROBE", &byte, 1);
+    a.handleTimeout(200);
+  }
+  return got;
+}
+
+}  // namespace
+
+TEST_CASE("replay a simulated day via file://: all samples, snapshots, data-clock refits",
+          "[daemon][integration]") {
+  TempDir tmp("replay");
+  const std::string log = simulate_day(tmp);
+  const std::string out = tmp / "out.lcm";
+  write_config(tmp / "d.toml", "[lcm]\npublish_url = \"file://" + out + "?mode=w\"\n");
+  const int rc = run({kBin + "/magcald", "--config", tmp / "d.toml", "--db", tmp / "m.db",
+                      "--lcm-url", "file://" + log + "?speed=0"},
+                     tmp / "magcald.log");
+  INFO(slurp(tmp / "magcald.log"));
+  REQUIRE(rc == 0);
+
+  const auto pub = read_published(out);
+  CHECK(pub.undecodable == 0);
+  REQUIRE_FALSE(pub.statuses.empty());
+  const auto& last = pub.statuses.back();
+  CHECK(last.received == kSimSamples);
+  CHECK(last.stored == kSimSamples);
+  CHECK(last.rejected == 0);
+  CHECK(last.queue_overflow == 0);
+  CHECK(last.missing_by_seq == 0);
+  CHECK(last.n_spacecraft == 1);
+  CHECK(last.refits_run == 2);  // 14:00 and 20:00 (02:00 and 08:00 lack a full window)
+
+  const auto ukf = history(tmp / "m.db", "PAPER-1", "ukf");
+  const auto refits = history(tmp / "m.db", "PAPER-1", "twostep");
+  CHECK(ukf.size() >= 1400);  // one per 60 s of data
+  REQUIRE(refits.size() == 2);
+  // What was published is what was stored.
+  CHECK(pub.calibrations.size() == ukf.size() + refits.size());
+
+  const auto truth = nlohmann::json::parse(slurp(tmp / "truth.json"));
+  for (const auto& r : refits) {
+    CHECK(r.verdict == "accepted");
+    for (int i = 0; i < 3; ++i) {
+      CHECK(std::abs(r.bias_nT[static_cast<size_t>(i)] - truth["bias_nT"][i].get<double>()) <
+            kRefitBiasTol_nT);
+    }
+  }
+  // Retention keeps the newest window + margin (data time), never the results.
+  const int64_t kept = stored_count(tmp / "m.db", "PAPER-1");
+  CHECK(kept >= 12 * 360);
+  CHECK(kept <= 13 * 360 + 1);
+}
+
+TEST_CASE("live over udpm: lcm-logplayer in, lcm-logger records the results",
+          "[daemon][integration][multicast]") {
+  const int port = 7700 + static_cast<int>(::getpid() % 200);  // not the default bus
+  const std::string url = "udpm://239.255.76.67:" + std::to_string(port) + "?ttl=0";
+  if (!multicast_available(url)) {
+    WARN("multicast over loopback unavailable here: live udpm variant skipped (file:// covered)");
+    return;
+  }
+  TempDir tmp("udpm");
+  const std::string log = simulate_day(tmp);
+  // Snapshots every 600 s of data keep the bursts small: lcm-logger drops beyond its queue.
+  {
+    std::ofstream cfg(tmp / "d.toml");
+    cfg << "[refit]\nclock = \"data\"\nevery_hours = 6\nmin_samples = 4000\n"
+        << "[ukf]\nsigma_nT = 7.5\nsnapshot_every_s = 600\n[service]\nstatus_every_s = 0.2\n";
+  }
+  const std::string recorded = tmp / "recorded.lcm";
+  const pid_t logger = spawn({"lcm-logger", "--lcm-url=" + url + "&recv_buf_size=4194304", "-c",
+                              "MAGCAL_CALIBRATION", "-f", recorded},
+                             tmp / "logger.log");
+  REQUIRE(logger > 0);
+  const pid_t daemon = spawn({kBin + "/magcald", "--config", tmp / "d.toml", "--db", tmp / "m.db",
+                              "--lcm-url", url + "&recv_buf_size=4194304"},
+                             tmp / "magcald.log");
+  REQUIRE(daemon > 0);
+
+  // The daemon is up (and subscribed) once its status messages arrive.
+  lcm::LCM listener(url);
+  REQUIRE(listener.good());
+  // Raw subscriptions decoded here (an independent decoder; unbounded LCM queues).
+  struct Listener {
+    magcal::daemon_status_t st{};
+    int n = 0;
+    size_t calibrations = 0;
+    int undecodable = 0;
+  } heard;
+  listener
+      .subscribeFunction(
+          "MAGCAL_STATUS",
+          +[](const lcm::ReceiveBuffer* rb, const std::string&, Listener* l) {
+            magcal::daemon_status_t m;
+            if (m.decode(rb->data, 0, static_cast<int>(rb->data_size)) < 0) {
+              ++l->undecodable;
+              return;
+            }
+            l->st = m;
+            ++l->n;
+          },
+          &heard)
+      ->setQueueCapacity(0);
+  listener
+      .subscribeFunction(
+          "MAGCAL_CALIBRATION",
+          +[](const lcm::ReceiveBuffer* rb, const std::string&, Listener* l) {
+            magcal::calibration_t m;
+            if (m.decode(rb->data, 0, static_cast<int>(rb->data_size)) < 0) {
+              ++l->undecodable;
+              return;
+            }
+            ++l->calibrations;
+          },
+          &heard)
+      ->setQueueCapacity(0);
+  REQUIRE(wait_until(
+      [&] {
+        listener.handleTimeout(50);
+        return heard.n >= 2 && fs::exists(recorded);
+      },
+      20));
+
+  REQUIRE(run({"lcm-logplayer", "-l", url, "-s", "0", log}, tmp / "player.log") == 0);
+  const bool all_stored = wait_until(
+      [&] {
+        listener.handleTimeout(50);
+        return heard.st.stored == kSimSamples;
+      },
+      30);
+  ::kill(daemon, SIGTERM);
+  const int rc = wait_exit(daemon, 30);
+  const size_t expected = history(tmp / "m.db", "PAPER-1", "ukf").size() +
+                          history(tmp / "m.db", "PAPER-1", "twostep").size();
+  // lcm-logger flushes every 100 ms: wait for it to have written everything.
+  wait_until([&] { return read_published(recorded).calibrations.size() >= expected; }, 10);
+  ::kill(logger, SIGINT);
+  wait_exit(logger, 10);
+  INFO(slurp(tmp / "magcald.log"));
+  CHECK(all_stored);
+  CHECK(rc == 0);
+  CHECK(heard.st.received == kSimSamples);
+  CHECK(heard.st.rejected == 0);
+
+  const auto pub = read_published(recorded);
+  CHECK(pub.undecodable == 0);
+  const auto ukf = history(tmp / "m.db", "PAPER-1", "ukf");
+  const auto refits = history(tmp / "m.db", "PAPER-1", "twostep");
+  CHECK(refits.size() == 2);
+  // The independent recorder saw every published result.
+  std::set<std::pair<std::string, int64_t>> seen;
+  for (const auto& c : pub.calibrations) seen.insert({c.method, c.utime});
+  std::string missing;
+  for (const auto* rows : {&ukf, &refits}) {
+    for (const auto& r : *rows) {
+      if (!seen.count({r.method, r.utime}))
+        missing += r.method + "@" + std::to_string(r.utime) + " ";
+    }
+  }
+  // Our own subscriber (unbounded LCM queue) must see every result exactly.
+  listener.handleTimeout(0);
+  CHECK(heard.calibrations == ukf.size() + refits.size());
+  CHECK(heard.undecodable == 0);
+  // lcm-logger 1.3.1 itself drops runs of consecutive messages here (measured: 0-20 of 145
+  // per run, while the subscriber above, with setQueueCapacity(0), got all of them), so its
+  // recording is checked for decodability and reported, not counted exactly.
+  if (pub.calibrations.size() != ukf.size() + refits.size()) {
+    WARN("lcm-logger recorded " << pub.calibrations.size() << " of " << ukf.size() + refits.size()
+                                << " results; not recorded: " << missing);
+  }
+  CHECK_FALSE(pub.calibrations.empty());
+}
+
+TEST_CASE("SIGTERM mid-stream, restart: every sample stored or counted, no jump",
+          "[daemon][integration]") {
+  TempDir tmp("restart");
+  const std::string log = simulate_day(tmp);
+  const std::string db = tmp / "m.db";
+  write_config(tmp / "d.toml", "[lcm]\npublish_url = \"file://" + tmp / "out1.lcm" + "?mode=w\"\n");
+  // speed 20000: the day's 43 packets arrive over ~4 s, so the signal lands mid-stream.
+  const pid_t d1 = spawn({kBin + "/magcald", "--config", tmp / "d.toml", "--db", db, "--lcm-url",
+                          "file://" + log + "?speed=20000"},
+                         tmp / "run1.log");
+  REQUIRE(d1 > 0);
+  REQUIRE(wait_until([&] { return stored_count(db, "PAPER-1") >= 1000; }, 30));
+  // An on-demand refit in its own process while the daemon writes (SQLite WAL).
+  {
+    std::ofstream cfg(tmp / "refit.toml");
+    cfg << "[refit]\nmin_samples = 500\n";
+  }
+  const int refit_rc = run({kBin + "/magcal", "refit", "--db", db, "--sat", "PAPER-1", "--config",
+                            tmp / "refit.toml", "--json"},
+                           tmp / "refit.json");
+  ::kill(d1, SIGTERM);
+  const int rc1 = wait_exit(d1, 30);
+  INFO(slurp(tmp / "run1.log"));
+  REQUIRE(rc1 == 0);
+  {
+    INFO(slurp(tmp / "refit.json"));
+    CHECK(refit_rc == 0);
+    const auto j = nlohmann::json::parse(slurp(tmp / "refit.json"), nullptr, false);
+    REQUIRE_FALSE(j.is_discarded());
+    CHECK(j["method"] == "twostep");
+    CHECK(j["n_samples"].get<int>() >= 500);
+    CHECK(j.contains("verdict"));
+  }
+  const auto p1 = read_published(tmp / "out1.lcm");
+  REQUIRE_FALSE(p1.statuses.empty());
+  const auto s1 = p1.statuses.back();
+  CHECK(s1.received == s1.stored + s1.rejected + s1.queue_overflow);  // drained, nothing lost
+  CHECK(s1.stored < kSimSamples);                                     // really mid-stream
+  CHECK(stored_count(db, "PAPER-1") == s1.stored);
+  const auto before = history(db, "PAPER-1", "ukf");
+  REQUIRE_FALSE(before.empty());
+
+  // Restart and replay the whole day: what was stored comes back as duplicates.
+  write_config(tmp / "d.toml", "[lcm]\npublish_url = \"file://" + tmp / "out2.lcm" + "?mode=w\"\n");
+  const int rc2 = run({kBin + "/magcald", "--config", tmp / "d.toml", "--db", db, "--lcm-url",
+                       "file://" + log + "?speed=0"},
+                      tmp / "run2.log");
+  INFO(slurp(tmp / "run2.log"));
+  REQUIRE(rc2 == 0);
+  const auto s2 = read_published(tmp / "out2.lcm").statuses.back();
+  CHECK(s2.received == kSimSamples);
+  CHECK(s2.received == s2.stored + s2.rejected);
+  CHECK(rejected(s2, "duplicate") == s1.stored);
+  CHECK(s1.stored + s2.stored == kSimSamples);
+
+  // The first snapshot after the restart continues from the last one before it.
+  const auto after = history(db, "PAPER-1", "ukf");
+  REQUIRE(after.size() > before.size());
+  const auto& a = before.back();
+  const auto& b = after[before.size()];
+  CHECK(b.utime > a.utime);
+  for (size_t i = 0; i < 3; ++i) {
+    const double sigma = std::hypot(a.bias_sigma_nT[i], b.bias_sigma_nT[i]);
+    INFO("axis " << i << ": " << a.bias_nT[i] << " -> " << b.bias_nT[i] << " sigma " << sigma);
+    CHECK(std::abs(b.bias_nT[i] - a.bias_nT[i]) <=
+          std::max(kNoJumpSigmas * sigma, kNoJumpFloor_nT));
+  }
+}
+
+TEST_CASE("malformed frames are counted per reason and the daemon carries on",
+          "[daemon][integration]") {
+  TempDir tmp("malformed");
+  const int64_t t0 = 1704067200000000;  // 2024-01-01T00:00:00Z
+  const int64_t step = 10'000'000;
+  auto sample = [&](int64_t seq, int64_t utime, const std::string& sat = "SAT-A") {
+    magcal::mag_sample_t s{};
+    s.utime = utime;
+    s.sat_id = sat;
+    s.seq = seq;
+    s.b_sensor_nT[0] = 21000.0 + static_cast<double>(seq % 7) * 100.0;
+    s.b_sensor_nT[1] = -15000.0 + static_cast<double>(seq % 5) * 200.0;
+    s.b_sensor_nT[2] = 30000.0;
+    s.has_reference = true;
+    s.h_body_nT[0] = 20000.0;
+    s.h_body_nT[1] = -15000.0;
+    s.h_body_nT[2] = 31000.0;
+    s.temperature_C = std::nanf("");
+    return s;
+  };
+  const std::string log = tmp / "bad.lcm";
+  {
+    lcm::LogFile out(log, "w");
+    REQUIRE(out.good());
+    int64_t event = 0;
+    auto write = [&](const std::string& channel, const std::vector<uint8_t>& bytes) {
+      lcm::LogEvent e;
+      e.eventnum = event++;
+      e.timestamp = t0 + event;
+      e.channel = channel;
+      e.datalen = static_cast<int32_t>(bytes.size());
+      e.data = const_cast<uint8_t*>(bytes.data());
+      out.writeEvent(&e);
+    };
+    auto encode = [](const auto& msg) {
+      std::vector<uint8_t> b(static_cast<size_t>(msg.getEncodedSize()));
+      msg.encode(b.data(), 0, static_cast<int>(b.size()));
+      return b;
+    };
+    for (int k = 0; k < 100; ++k) write("MAGCAL_SAMPLES", encode(sample(k, t0 + k * step)));
+    const int64_t newest = t0 + 99 * step;
+    magcal::calibration_t cal{};
+    cal.sat_id = "SAT-A";
+    write("MAGCAL_SAMPLES", encode(cal));          // wrong type
+    write("MAGCAL_BATCH", encode(sample(0, t0)));  // wrong type (sample on batch)
+    auto trunc = encode(sample(1, t0 + 1));
+    trunc.resize(trunc.size() - 5);
+    write("MAGCAL_SAMPLES", trunc);               // truncated
+    write("MAGCAL_SAMPLES", {0x01, 0x02, 0x03});  // shorter than a fingerprint
+    auto nan = sample(100, newest + step);
+    nan.b_sensor_nT[1] = std::nan("");
+    write("MAGCAL_SAMPLES", encode(nan));                         // non_finite
+    write("MAGCAL_SAMPLES", encode(sample(50, t0 + 50 * step)));  // duplicate
+    write("MAGCAL_SAMPLES", encode(sample(101, newest - 12LL * 3600 * 1000000 - step)));  // old
+    auto absurd = sample(102, newest + 2 * step);
+    absurd.has_position = true;
+    absurd.r_ecef_m[0] = 1.0e6;
+    write("MAGCAL_SAMPLES", encode(absurd));  // absurd_position
+    auto loud = sample(103, newest + 3 * step);
+    loud.b_sensor_nT[0] = 2.0e5;
+    write("MAGCAL_SAMPLES", encode(loud));                                 // out_of_range
+    write("MAGCAL_SAMPLES", encode(sample(5, t0 + 5 * step + step / 2)));  // out of order: stored
+    magcal::mag_batch_t batch;
+    batch.sat_id = "SAT-A";
+    batch.samples = {sample(104, newest + 4 * step), sample(105, newest + 5 * step),
+                     sample(106, newest + 6 * step, "SAT-B")};  // last one: mismatch
+    batch.n = 3;
+    write("MAGCAL_BATCH", encode(batch));
+    write("MAGCAL_SAMPLES", encode(sample(0, t0, "SAT-X")));           // not on the whitelist
+    write("MAGCAL_SAMPLES", encode(sample(110, newest + 10 * step)));  // seq 106..109 missing
+  }
+  const std::string out = tmp / "out.lcm";
+  {
+    std::ofstream cfg(tmp / "d.toml");
+    cfg << "[lcm]\npublish_url = \"file://" << out << "?mode=w\"\n"
+        << "[service]\nwhitelist = [\"SAT-A\", \"SAT-B\"]\n";
+  }
+  const int rc = run({kBin + "/magcald", "--config", tmp / "d.toml", "--db", tmp / "m.db",
+                      "--lcm-url", "file://" + log + "?speed=0"},
+                     tmp / "magcald.log");
+  const std::string daemon_log = slurp(tmp / "magcald.log");
+  INFO(daemon_log);
+  REQUIRE(rc == 0);
+  const auto st = read_published(out).statuses.back();
+  CHECK(st.received == 115);
+  CHECK(st.stored == 104);
+  CHECK(st.rejected == 11);
+  CHECK(rejected(st, "wrong_type") == 2);
+  CHECK(rejected(st, "decode_error") == 2);
+  CHECK(rejected(st, "non_finite") == 1);
+  CHECK(rejected(st, "duplicate") == 1);
+  CHECK(rejected(st, "older_than_window") == 1);
+  CHECK(rejected(st, "absurd_position") == 1);
+  CHECK(rejected(st, "out_of_range") == 1);
+  CHECK(rejected(st, "batch_sat_mismatch") == 1);
+  CHECK(rejected(st, "unknown_spacecraft") == 1);
+  CHECK(st.missing_by_seq == 4);
+  CHECK(stored_count(tmp / "m.db", "SAT-A") == 104);
+  CHECK_THAT(daemon_log, Catch::Contains("rejected sample (non_finite)"));
+}
+
+TEST_CASE("bad config and unusable database: clear error, non-zero exit", "[daemon][integration]") {
+  TempDir tmp("badcfg");
+  {
+    std::ofstream cfg(tmp / "bad.toml");
+    cfg << "[refit]\nclock = \"sundial\"\n";
+  }
+  CHECK(run({kBin + "/magcald", "--config", tmp / "bad.toml"}, tmp / "a.log") == 1);
+  CHECK_THAT(slurp(tmp / "a.log"), Catch::Contains("[refit] clock"));
+  {
+    std::ofstream cfg(tmp / "unknown.toml");
+    cfg << "[storage]\nwindow = 3\n";
+  }
+  CHECK(run({kBin + "/magcald", "--config", tmp / "unknown.toml"}, tmp / "b.log") == 1);
+  CHECK_THAT(slurp(tmp / "b.log"), Catch::Contains("unknown key [storage] window"));
+  CHECK(run({kBin + "/magcald", "--db", "/nonexistent-dir/x/m.db", "--lcm-url",
+             "file://" + tmp / "none.lcm"},
+            tmp / "c.log") == 2);
+  CHECK_THAT(slurp(tmp / "c.log"), Catch::Contains("/nonexistent-dir/x/m.db"));
+  {
+    std::ofstream junk(tmp / "junk.db");
+    junk << "this is not a database, just text long enough to be a file header............\n";
+  }
+  CHECK(run({kBin + "/magcald", "--db", tmp / "junk.db", "--lcm-url", "file://" + tmp / "none.lcm"},
+            tmp / "d.log") == 2);
+  CHECK(run({kBin + "/magcald", "--log-level", "loud"}, tmp / "e.log") == 1);
+}

@@ -1,0 +1,202 @@
+// calibrations table: exact round trip, filters, limit-newest in either order, refit queries,
+// conversion from/to calibration_t.
+#include "storage/calibration_history.hpp"
+
+#include <catch2/catch.hpp>
+#include <cmath>
+
+using namespace magcal::storage;
+
+namespace {
+
+constexpr int64_t kHour = 3'600'000'000LL;
+constexpr int64_t kT0 = 1'767'225'600'000'000LL;  // 2026-01-01T00:00:00Z
+
+CalibrationRecord make_record(const std::string& sat, const std::string& method, int64_t utime,
+                              int k) {
+  CalibrationRecord r;
+  r.sat_id = sat;
+  r.method = method;
+  r.utime = utime;
+  r.window_start_utime = utime - 12 * kHour;
+  r.window_end_utime = utime;
+  r.n_samples = 4320 + k;
+  r.bias_nT = {100.0 + k, -50.0 + 0.5 * k, 25.0 - k};
+  r.D = {1e-3 * k, -2e-3, 3e-3, 1e-4, -1e-4, 2e-4};
+  for (int i = 0; i < 45; ++i) r.cov[i] = 1e-6 * (i + 1) + 1e-9 * k;
+  r.cov[cov_index(0, 0)] = 4.0 + k;  // bias variances, nT^2
+  r.cov[cov_index(1, 1)] = 9.0;
+  r.cov[cov_index(2, 2)] = 0.25;
+  r.has_alignment = k % 2 == 1;
+  r.R_sensor_from_body = {0.0, 1.0, 0.0, -1.0, 0.0, 0.0, 0.0, 0.0, 1.0};
+  r.residual_rms_nT = 3.1 + 0.01 * k;
+  r.status = k % 5 == 4 ? 4 : 0;
+  r.verdict = r.status == 0 ? "accepted" : "rejected";
+  if (r.status) r.rejection_reasons = {"residual_rms 12.0 nT > 9.0 nT", "quote \" and \\ kept"};
+  r.iterations = 7;
+  r.software_version = "test-1.0";
+  r.created_utime = utime + 1000;
+  return r;
+}
+
+}  // namespace
+
+TEST_CASE("cov_index addresses the row-major upper triangle") {
+  CHECK(cov_index(0, 0) == 0);
+  CHECK(cov_index(0, 8) == 8);
+  CHECK(cov_index(1, 1) == 9);
+  CHECK(cov_index(2, 2) == 17);
+  CHECK(cov_index(8, 8) == 44);
+  CHECK(cov_index(3, 1) == cov_index(1, 3));
+  // Every (i <= j) pair maps to a distinct index 0..44 in row-major order.
+  int expected = 0;
+  for (int i = 0; i < 9; ++i) {
+    for (int j = i; j < 9; ++j) CHECK(cov_index(i, j) == expected++);
+  }
+}
+
+TEST_CASE("a calibration record round-trips exactly; bias sigma comes from cov") {
+  Database db(":memory:");
+  CalibrationHistory history(db);
+  for (int k : {3, 4}) {  // with alignment + accepted, without alignment + rejected
+    const CalibrationRecord r = make_record("SAT1", "twostep", kT0 + k * kHour, k);
+    const int64_t id = history.append(r);
+    CHECK(id > 0);
+    HistoryQuery q;
+    q.sat_id = "SAT1";
+    q.since_utime = r.utime;
+    q.until_utime = r.utime;
+    const auto rows = history.query(q);
+    REQUIRE(rows.size() == 1);
+    const CalibrationRecord& got = rows[0];
+    CHECK(got.id == id);
+    CHECK(got.sat_id == r.sat_id);
+    CHECK(got.method == r.method);
+    CHECK(got.utime == r.utime);
+    CHECK(got.window_start_utime == r.window_start_utime);
+    CHECK(got.window_end_utime == r.window_end_utime);
+    CHECK(got.n_samples == r.n_samples);
+    CHECK(got.bias_nT == r.bias_nT);
+    CHECK(got.D == r.D);
+    CHECK(got.cov == r.cov);
+    for (int i = 0; i < 3; ++i) CHECK(got.bias_sigma_nT[i] == std::sqrt(r.cov[cov_index(i, i)]));
+    CHECK(got.has_alignment == r.has_alignment);
+    if (r.has_alignment) CHECK(got.R_sensor_from_body == r.R_sensor_from_body);
+    CHECK(got.residual_rms_nT == r.residual_rms_nT);
+    CHECK(got.status == r.status);
+    CHECK(got.verdict == r.verdict);
+    CHECK(got.rejection_reasons == r.rejection_reasons);
+    CHECK(got.iterations == r.iterations);
+    CHECK(got.software_version == r.software_version);
+    CHECK(got.created_utime == r.created_utime);
+  }
+}
+
+TEST_CASE("history query: sat, method, inclusive range, limit newest, either order") {
+  Database db(":memory:");
+  CalibrationHistory history(db);
+  // 48 h of hourly ukf snapshots and daily twostep refits on two spacecraft.
+  for (int k = 0; k < 48; ++k) {
+    history.append(make_record("SAT1", "ukf", kT0 + k * kHour, k));
+    history.append(make_record("SAT2", "ukf", kT0 + k * kHour, k));
+    if (k % 24 == 2) history.append(make_record("SAT1", "twostep", kT0 + k * kHour, k));
+  }
+  HistoryQuery q;
+  q.sat_id = "SAT1";
+  CHECK(history.query(q).size() == 50);
+  q.method = "ukf";
+  auto rows = history.query(q);
+  REQUIRE(rows.size() == 48);
+  CHECK(rows.front().utime == kT0);  // ascending by default
+  CHECK(rows.back().utime == kT0 + 47 * kHour);
+
+  q.since_utime = kT0 + 10 * kHour;
+  q.until_utime = kT0 + 20 * kHour;
+  rows = history.query(q);
+  REQUIRE(rows.size() == 11);  // both ends inclusive
+  CHECK(rows.front().utime == kT0 + 10 * kHour);
+  CHECK(rows.back().utime == kT0 + 20 * kHour);
+
+  q.limit = 3;  // the 3 newest of the range, printed oldest first
+  rows = history.query(q);
+  REQUIRE(rows.size() == 3);
+  CHECK(rows[0].utime == kT0 + 18 * kHour);
+  CHECK(rows[2].utime == kT0 + 20 * kHour);
+  q.descending = true;
+  rows = history.query(q);
+  REQUIRE(rows.size() == 3);
+  CHECK(rows[0].utime == kT0 + 20 * kHour);
+  CHECK(rows[2].utime == kT0 + 18 * kHour);
+
+  q = HistoryQuery{};
+  q.sat_id = "SAT1";
+  q.method = "twostep";
+  CHECK(history.query(q).size() == 2);
+  q.sat_id = "UNKNOWN";
+  CHECK(history.query(q).empty());
+  CHECK(history.spacecraft() == std::vector<std::string>{"SAT1", "SAT2"});
+}
+
+TEST_CASE("latest, latest refit, previous refit, latest accepted refit") {
+  Database db(":memory:");
+  CalibrationHistory history(db);
+  CHECK_FALSE(history.latest_refit("SAT1").has_value());
+  CHECK_FALSE(history.previous_refit("SAT1").has_value());
+  history.append(make_record("SAT1", "centered", kT0 + 1 * kHour, 1));  // accepted
+  CHECK(history.latest_refit("SAT1")->utime == kT0 + 1 * kHour);
+  CHECK_FALSE(history.previous_refit("SAT1").has_value());
+  history.append(make_record("SAT1", "twostep", kT0 + 2 * kHour, 2));  // accepted
+  history.append(make_record("SAT1", "ukf", kT0 + 5 * kHour, 5));
+  history.append(make_record("SAT1", "twostep", kT0 + 4 * kHour, 4));  // rejected (k % 5 == 4)
+  CHECK(history.latest("SAT1", "ukf")->utime == kT0 + 5 * kHour);
+  CHECK_FALSE(history.latest("SAT1", "ekf").has_value());
+  const auto latest = history.latest_refit("SAT1");
+  REQUIRE(latest.has_value());
+  CHECK(latest->utime == kT0 + 4 * kHour);
+  CHECK(latest->verdict == "rejected");
+  CHECK(history.previous_refit("SAT1")->utime == kT0 + 2 * kHour);
+  CHECK(history.latest_accepted_refit("SAT1")->utime == kT0 + 2 * kHour);
+  CHECK(is_refit_method("twostep"));
+  CHECK(is_refit_method("centered"));
+  CHECK_FALSE(is_refit_method("ukf"));
+}
+
+TEST_CASE("invalid records are refused") {
+  Database db(":memory:");
+  CalibrationHistory history(db);
+  auto r = make_record("SAT1", "ukf", kT0, 0);
+  r.verdict = "maybe";
+  CHECK_THROWS_AS(history.append(r), StorageError);
+  r = make_record("SAT1", "ukf", kT0, 0);
+  r.status = 5;
+  CHECK_THROWS_AS(history.append(r), StorageError);
+  r = make_record("SAT1", "ukf", kT0, 0);
+  r.bias_nT[1] = std::nan("");  // NOT NULL column
+  CHECK_THROWS_AS(history.append(r), StorageError);
+  HistoryQuery q;
+  q.sat_id = "SAT1";
+  CHECK(history.query(q).empty());
+}
+
+TEST_CASE("calibration_t converts both ways without loss") {
+  const CalibrationRecord r = make_record("SAT9", "twostep", kT0, 1);
+  const magcal::calibration_t msg = message_from_record(r);
+  CHECK(msg.sat_id == "SAT9");
+  CHECK(msg.status == 0);
+  const CalibrationRecord back = record_from_message(msg);
+  CHECK(back.bias_nT == r.bias_nT);
+  CHECK(back.D == r.D);
+  CHECK(back.cov == r.cov);
+  CHECK(back.R_sensor_from_body == r.R_sensor_from_body);
+  CHECK(back.has_alignment == r.has_alignment);
+  CHECK(back.window_start_utime == r.window_start_utime);
+  CHECK(back.n_samples == r.n_samples);
+  CHECK(back.verdict == "accepted");
+  CHECK(back.bias_sigma_nT[0] == std::sqrt(r.cov[0]));
+  auto rejected = msg;
+  rejected.status = 4;
+  CHECK(record_from_message(rejected).verdict == "rejected");
+  CHECK(std::string(status_name(4)) == "rejected");
+  CHECK(std::string(status_name(1)) == "not_converged");
+  CHECK(std::string(status_name(9)) == "unknown");
+}

@@ -1,0 +1,238 @@
+// Connection, pragmas and migrations: new file, upgrade from version 1, foreign and newer files
+// refused, read-only never creates, embedded migrations identical to storage/migrations/*.sql.
+#include "storage/database.hpp"
+
+#include <unistd.h>
+
+#include <catch2/catch.hpp>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+
+#include "storage/calibration_history.hpp"
+#include "storage/meta_store.hpp"
+#include "storage/migrations.hpp"
+#include "storage/statement.hpp"
+
+namespace fs = std::filesystem;
+using namespace magcal::storage;
+
+namespace {
+
+struct TempDir {
+  fs::path path;
+  TempDir() {
+    static int counter = 0;
+    path = fs::temp_directory_path() /
+           ("magcal_db_test_" + std::to_string(::getpid()) + "_" + std::to_string(counter++));
+    fs::create_directories(path);
+  }
+  ~TempDir() { fs::remove_all(path); }
+  std::string file(const std::string& name) const { return (path / name).string(); }
+};
+
+int64_t query_int(Database& db, const std::string& sql) {
+  Statement st(db, sql);
+  REQUIRE(st.step());
+  return st.column_int64(0);
+}
+
+std::string query_text(Database& db, const std::string& sql) {
+  Statement st(db, sql);
+  REQUIRE(st.step());
+  return st.column_text(0);
+}
+
+StorageError::Kind open_error(const std::string& path, OpenOptions options = {}) {
+  try {
+    Database db(path, options);
+  } catch (const StorageError& e) {
+    return e.kind();
+  }
+  FAIL("open of " << path << " succeeded");
+  return StorageError::Kind::kSqlite;
+}
+
+}  // namespace
+
+TEST_CASE("a new file gets the newest schema, WAL and the application id") {
+  TempDir dir;
+  Database db(dir.file("new.db"));
+  CHECK(db.schema_version() == Database::latest_schema_version());
+  CHECK(db.schema_version() == static_cast<int>(migrations().size()));
+  CHECK(query_int(db, "PRAGMA application_id") == kApplicationId);
+  CHECK(query_text(db, "PRAGMA journal_mode") == "wal");
+  CHECK(query_int(db, "PRAGMA foreign_keys") == 1);
+  CHECK(query_int(db, "PRAGMA synchronous") == 1);  // NORMAL
+  for (const char* table : {"samples", "calibrations", "refit_jobs", "filter_states", "meta"}) {
+    CHECK(query_int(db, std::string("SELECT count(*) FROM sqlite_schema WHERE name = '") + table +
+                            "'") == 1);
+  }
+  CHECK(db.integrity_check() == "ok");
+}
+
+TEST_CASE("an in-memory database works the same") {
+  Database db(":memory:");
+  CHECK(db.schema_version() == Database::latest_schema_version());
+  MetaStore meta(db);
+  meta.set("k", "v");
+  CHECK(meta.get("k") == "v");
+  CHECK_FALSE(meta.get("absent").has_value());
+}
+
+TEST_CASE("migrations are numbered 1..N and each bumps user_version") {
+  const auto all = migrations();
+  REQUIRE(!all.empty());
+  for (size_t k = 0; k < all.size(); ++k) {
+    CHECK(all[k].version == static_cast<int>(k + 1));
+    OpenOptions options;
+    options.migrate_to = all[k].version;
+    Database db(":memory:", options);
+    CHECK(db.schema_version() == all[k].version);
+  }
+}
+
+TEST_CASE("embedded migrations equal the .sql files in storage/migrations") {
+  for (const Migration& m : migrations()) {
+    const fs::path file =
+        fs::path(MAGCAL_SOURCE_DIR) / "storage" / "migrations" / (std::string(m.name) + ".sql");
+    INFO(file);
+    std::ifstream in(file, std::ios::binary);
+    REQUIRE(in.good());
+    std::stringstream text;
+    text << in.rdbuf();
+    CHECK(text.str() == m.sql);
+  }
+}
+
+TEST_CASE("a version-1 database is upgraded on open and keeps its data") {
+  TempDir dir;
+  const std::string path = dir.file("v1.db");
+  {
+    OpenOptions v1;
+    v1.migrate_to = 1;
+    Database db(path, v1);
+    REQUIRE(db.schema_version() == 1);
+    CHECK(query_int(db, "SELECT count(*) FROM sqlite_schema WHERE name = 'meta'") == 0);
+    CalibrationHistory history(db);
+    CalibrationRecord r;
+    r.sat_id = "SAT1";
+    r.method = "twostep";
+    r.utime = 42;
+    history.append(r);
+  }
+  {
+    // Read-only code does not migrate: it says what to do.
+    OpenOptions ro;
+    ro.read_only = true;
+    CHECK(open_error(path, ro) == StorageError::Kind::kOlderSchema);
+  }
+  Database db(path);
+  CHECK(db.schema_version() == Database::latest_schema_version());
+  CHECK(query_int(db, "SELECT count(*) FROM sqlite_schema WHERE name = 'meta'") == 1);
+  CalibrationHistory history(db);
+  const auto latest = history.latest("SAT1", "twostep");
+  REQUIRE(latest.has_value());
+  CHECK(latest->utime == 42);
+  CHECK(db.integrity_check() == "ok");
+}
+
+TEST_CASE("a database from a newer magcal is refused") {
+  TempDir dir;
+  const std::string path = dir.file("newer.db");
+  {
+    Database db(path);
+    db.exec("PRAGMA user_version = " + std::to_string(Database::latest_schema_version() + 1));
+  }
+  CHECK(open_error(path) == StorageError::Kind::kNewerSchema);
+  OpenOptions ro;
+  ro.read_only = true;
+  CHECK(open_error(path, ro) == StorageError::Kind::kNewerSchema);
+}
+
+TEST_CASE("foreign and corrupt files are refused and left untouched") {
+  TempDir dir;
+  SECTION("another application's SQLite file") {
+    const std::string path = dir.file("other.db");
+    {
+      // A plain SQLite file with a table and no (or another) application_id.
+      Database tmp(":memory:");
+      tmp.exec("VACUUM INTO '" + path + "'");
+    }
+    {
+      OpenOptions raw;
+      raw.migrate_to = 0;  // creates nothing
+      Database db(path, raw);
+      db.exec("PRAGMA application_id = 1234");
+    }
+    CHECK(open_error(path) == StorageError::Kind::kForeignFile);
+  }
+  SECTION("a SQLite file with tables but without application_id") {
+    const std::string path = dir.file("plain.db");
+    {
+      OpenOptions raw;
+      raw.migrate_to = 0;
+      Database db(path, raw);
+      db.exec("CREATE TABLE t(x)");
+    }
+    CHECK(open_error(path) == StorageError::Kind::kForeignFile);
+  }
+  SECTION("not a SQLite file at all") {
+    const std::string path = dir.file("garbage.db");
+    {
+      std::ofstream out(path, std::ios::binary);
+      for (int k = 0; k < 512; ++k) out << "this is not a database ";
+    }
+    const auto size = fs::file_size(path);
+    CHECK(open_error(path) == StorageError::Kind::kForeignFile);
+    OpenOptions ro;
+    ro.read_only = true;
+    CHECK(open_error(path, ro) == StorageError::Kind::kForeignFile);
+    CHECK(fs::file_size(path) == size);
+  }
+}
+
+TEST_CASE("read-only open never creates a file") {
+  TempDir dir;
+  const std::string path = dir.file("missing.db");
+  OpenOptions ro;
+  ro.read_only = true;
+  CHECK(open_error(path, ro) == StorageError::Kind::kNotFound);
+  CHECK_FALSE(fs::exists(path));
+  // An empty file is not a magcal database either, and stays empty.
+  { std::ofstream touch(path); }
+  CHECK(open_error(path, ro) == StorageError::Kind::kForeignFile);
+  CHECK(fs::file_size(path) == 0);
+}
+
+TEST_CASE("read-only connections cannot write") {
+  TempDir dir;
+  const std::string path = dir.file("ro.db");
+  { Database db(path); }
+  OpenOptions ro;
+  ro.read_only = true;
+  Database db(path, ro);
+  CHECK(db.schema_version() == Database::latest_schema_version());
+  CHECK_THROWS_AS(db.exec("CREATE TABLE x(y)"), StorageError);
+}
+
+TEST_CASE("a transaction rolls back unless committed, and nests as a savepoint") {
+  Database db(":memory:");
+  MetaStore meta(db);
+  {
+    Transaction tx(db);
+    meta.set("a", "1");
+  }
+  CHECK_FALSE(meta.get("a").has_value());
+  {
+    Transaction outer(db);
+    meta.set("b", "1");
+    {
+      Transaction inner(db);
+      meta.set("c", "1");
+    }  // inner rolled back, outer continues
+    outer.commit();
+  }
+  CHECK(meta.get("b") == "1");
+  CHECK_FALSE(meta.get("c").has_value());
+}

@@ -1,0 +1,64 @@
+// refit_jobs table: lifecycle, crash recovery, foreign key to calibrations.
+#include "storage/refit_job_log.hpp"
+
+#include <catch2/catch.hpp>
+
+#include "storage/calibration_history.hpp"
+
+using namespace magcal::storage;
+
+TEST_CASE("a refit job runs, finishes and links its calibration") {
+  Database db(":memory:");
+  RefitJobLog jobs(db);
+  CalibrationHistory history(db);
+  const int64_t id = jobs.start("SAT1", "scheduled", 1000, 1005);
+  auto job = jobs.get(id);
+  REQUIRE(job.has_value());
+  CHECK(job->outcome == job_outcome::kRunning);
+  CHECK(job->started_utime == 1005);
+  CHECK_FALSE(job->finished_utime.has_value());
+  CHECK_FALSE(job->calibration_id.has_value());
+
+  CalibrationRecord r;
+  r.sat_id = "SAT1";
+  r.method = "twostep";
+  const int64_t cal = history.append(r);
+  jobs.finish(id, job_outcome::kOk, 2000, "", cal);
+  job = jobs.get(id);
+  CHECK(job->outcome == "ok");
+  CHECK(job->finished_utime == 2000);
+  CHECK(job->calibration_id == cal);
+  CHECK(job->trigger == "scheduled");
+  CHECK(job->scheduled_utime == 1000);
+
+  const int64_t failed = jobs.start("SAT1", "manual", 3000, 3000);
+  jobs.finish(failed, job_outcome::kFailed, 3100, "too few samples: 12 < 1000");
+  CHECK(jobs.latest("SAT1")->id == failed);
+  CHECK(jobs.latest("SAT1")->error == "too few samples: 12 < 1000");
+  CHECK(jobs.recent("SAT1", 10).size() == 2);
+  CHECK_FALSE(jobs.latest("SAT2").has_value());
+}
+
+TEST_CASE("unknown job ids and dangling calibration ids are refused") {
+  Database db(":memory:");
+  RefitJobLog jobs(db);
+  CHECK_THROWS_AS(jobs.finish(999, job_outcome::kOk, 1), StorageError);
+  const int64_t id = jobs.start("SAT1", "manual", 1, 1);
+  CHECK_THROWS_AS(jobs.finish(id, job_outcome::kOk, 2, "", int64_t{12345}), StorageError);
+  CHECK(jobs.get(id)->outcome == "running");
+}
+
+TEST_CASE("jobs running when the process died become interrupted") {
+  Database db(":memory:");
+  RefitJobLog jobs(db);
+  const int64_t done = jobs.start("SAT1", "scheduled", 1, 2);
+  jobs.finish(done, job_outcome::kOk, 3);
+  const int64_t a = jobs.start("SAT1", "scheduled", 10, 11);
+  const int64_t b = jobs.start("SAT2", "manual", 10, 12);
+  CHECK(jobs.mark_running_interrupted(99) == 2);
+  CHECK(jobs.get(a)->outcome == job_outcome::kInterrupted);
+  CHECK(jobs.get(b)->outcome == job_outcome::kInterrupted);
+  CHECK(jobs.get(b)->finished_utime == 99);
+  CHECK(jobs.get(done)->outcome == job_outcome::kOk);
+  CHECK(jobs.mark_running_interrupted(100) == 0);
+}

@@ -1,0 +1,281 @@
+// samples table: round trip, duplicates, window order and bounds, retention, atomic batches and
+// a writer killed mid-stream.
+#include "storage/sample_window_store.hpp"
+
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <catch2/catch.hpp>
+#include <cmath>
+#include <filesystem>
+#include <random>
+
+#include "storage/calibration_history.hpp"
+
+namespace fs = std::filesystem;
+using namespace magcal::storage;
+
+namespace {
+
+constexpr int64_t kSecond = 1'000'000;
+constexpr int64_t kT0 = 1'767'225'600LL * kSecond;  // 2026-01-01T00:00:00Z
+
+struct TempDir {
+  fs::path path;
+  TempDir() {
+    static int counter = 0;
+    path = fs::temp_directory_path() /
+           ("magcal_samples_test_" + std::to_string(::getpid()) + "_" + std::to_string(counter++));
+    fs::create_directories(path);
+  }
+  ~TempDir() { fs::remove_all(path); }
+  std::string file(const std::string& name) const { return (path / name).string(); }
+};
+
+StoredSample make_sample(const std::string& sat, int64_t utime, int64_t seq) {
+  StoredSample s;
+  s.sat_id = sat;
+  s.utime = utime;
+  s.seq = seq;
+  s.receive_utime = utime + 5 * kSecond;
+  const double a = 1e-3 * static_cast<double>(seq);
+  s.b_sensor_nT = {20000.0 * std::cos(a), 20000.0 * std::sin(a), -30000.0 + seq};
+  s.has_direction = seq % 2 == 0;
+  s.h_body_nT = {19990.0 * std::cos(a), 19990.0 * std::sin(a), -29990.0};
+  s.h_norm_nT = std::sqrt(19990.0 * 19990.0 + 29990.0 * 29990.0);
+  s.has_attitude = seq % 3 == 0;
+  s.q_body_from_eci = {0.5, 0.5, -0.5, 0.5};
+  s.has_position = seq % 5 != 0;
+  s.r_ecef_m = {7.0e6, -1.0e5 * a, 3.0e3};
+  s.temperature_C = seq % 7 == 0 ? std::nan("") : 20.0 + 0.25 * static_cast<double>(seq % 4);
+  return s;
+}
+
+std::vector<StoredSample> make_series(const std::string& sat, int n, int64_t step_utime,
+                                      int64_t first_seq = 0) {
+  std::vector<StoredSample> out;
+  for (int k = 0; k < n; ++k) {
+    out.push_back(make_sample(sat, kT0 + (first_seq + k) * step_utime, first_seq + k));
+  }
+  return out;
+}
+
+bool same_double(double a, double b) {
+  return (std::isnan(a) && std::isnan(b)) || a == b;
+}
+
+void check_equal(const StoredSample& got, const StoredSample& want) {
+  INFO("utime " << want.utime);
+  CHECK(got.sat_id == want.sat_id);
+  CHECK(got.utime == want.utime);
+  CHECK(got.seq == want.seq);
+  CHECK(got.receive_utime == want.receive_utime);
+  CHECK(got.b_sensor_nT == want.b_sensor_nT);
+  CHECK(got.has_direction == want.has_direction);
+  for (int i = 0; i < 3; ++i) {
+    CHECK(same_double(got.h_body_nT[i], want.has_direction ? want.h_body_nT[i] : std::nan("")));
+  }
+  CHECK(got.h_norm_nT == want.h_norm_nT);
+  CHECK(got.has_attitude == want.has_attitude);
+  if (want.has_attitude) CHECK(got.q_body_from_eci == want.q_body_from_eci);
+  CHECK(got.has_position == want.has_position);
+  if (want.has_position) CHECK(got.r_ecef_m == want.r_ecef_m);
+  CHECK(same_double(got.temperature_C, want.temperature_C));
+}
+
+}  // namespace
+
+TEST_CASE("samples round-trip exactly, including absent fields") {
+  Database db(":memory:");
+  SampleWindowStore store(db);
+  const auto series = make_series("SAT1", 50, 10 * kSecond);
+  const InsertStats stats = store.insert_batch(series);
+  CHECK(stats.inserted == 50);
+  CHECK(stats.duplicates == 0);
+  const auto back = store.window("SAT1", kT0, kT0 + 1000 * kSecond);
+  REQUIRE(back.size() == series.size());
+  for (size_t k = 0; k < back.size(); ++k) check_equal(back[k], series[k]);
+  CHECK(store.count("SAT1") == 50);
+  CHECK(store.newest_utime("SAT1") == series.back().utime);
+  CHECK_FALSE(store.newest_utime("NOPE").has_value());
+  CHECK(store.window("NOPE", kT0, kT0 + 1000 * kSecond).empty());
+}
+
+TEST_CASE("duplicate (sat_id, utime) is rejected, counted, and the first copy kept") {
+  Database db(":memory:");
+  SampleWindowStore store(db);
+  auto first = make_series("SAT1", 10, kSecond);
+  REQUIRE(store.insert_batch(first).inserted == 10);
+
+  std::vector<StoredSample> second = make_series("SAT1", 5, kSecond, 8);  // 8, 9 stored already
+  second.push_back(second.back());                                        // twice in one batch
+  StoredSample changed = first[3];
+  changed.b_sensor_nT[0] += 1.0;  // same key, different values: still a duplicate
+  second.push_back(changed);
+  StoredSample other_sat = first[3];
+  other_sat.sat_id = "SAT2";  // same time, other spacecraft: not a duplicate
+  second.push_back(other_sat);
+
+  const InsertStats stats = store.insert_batch(second);
+  CHECK(stats.inserted == 3 + 1);    // seq 10, 11, 12 and SAT2
+  CHECK(stats.duplicates == 2 + 2);  // seq 8, 9, the repeat, the changed copy
+  CHECK(store.count("SAT1") == 13);
+  CHECK(store.count("SAT2") == 1);
+  const auto back = store.window("SAT1", first[3].utime, first[3].utime + 1);
+  REQUIRE(back.size() == 1);
+  CHECK(back[0].b_sensor_nT == first[3].b_sensor_nT);
+  CHECK(store.spacecraft() == std::vector<std::string>{"SAT1", "SAT2"});
+}
+
+TEST_CASE("window query: [t0, t1), ascending time, only the asked spacecraft") {
+  Database db(":memory:");
+  SampleWindowStore store(db);
+  auto a = make_series("SAT-A", 500, 3 * kSecond);
+  auto b = make_series("SAT-B", 500, 3 * kSecond);
+  // Out-of-order arrival (recorder playback) is normal: insert shuffled, in several batches.
+  std::vector<StoredSample> all = a;
+  all.insert(all.end(), b.begin(), b.end());
+  std::mt19937 rng(7);
+  std::shuffle(all.begin(), all.end(), rng);
+  for (size_t k = 0; k < all.size(); k += 128) {
+    const size_t n = std::min<size_t>(128, all.size() - k);
+    store.insert_batch(std::span(all).subspan(k, n));
+  }
+  const int64_t t0 = a[100].utime;
+  const int64_t t1 = a[300].utime;
+  std::vector<StoredSample> window;
+  store.read_window("SAT-A", t0, t1, window);
+  REQUIRE(window.size() == 200);  // a[100] included, a[300] excluded
+  CHECK(window.front().utime == t0);
+  CHECK(window.back().utime == a[299].utime);
+  CHECK(std::is_sorted(window.begin(), window.end(),
+                       [](const auto& x, const auto& y) { return x.utime < y.utime; }));
+  for (const auto& s : window) CHECK(s.sat_id == "SAT-A");
+  CHECK(store.count_in_window("SAT-A", t0, t1) == 200);
+  CHECK(store.count_in_window("SAT-B", t0, t1) == 200);
+  // Empty and reversed ranges.
+  CHECK(store.count_in_window("SAT-A", t0, t0) == 0);
+  store.read_window("SAT-A", t1, t0, window);
+  CHECK(window.empty());
+  // The refit window (t_ref - W, t_ref] maps to [t_ref - W + 1, t_ref + 1).
+  const int64_t t_ref = a[300].utime;
+  const int64_t w = a[300].utime - a[100].utime;
+  CHECK(store.count_in_window("SAT-A", t_ref - w + 1, t_ref + 1) == 200);
+}
+
+TEST_CASE("a batch that fails stores nothing of itself") {
+  Database db(":memory:");
+  SampleWindowStore store(db);
+  auto batch = make_series("SAT1", 20, kSecond);
+  batch[13].h_norm_nT = std::nan("");  // NOT NULL column: the insert fails mid-batch
+  CHECK_THROWS_AS(store.insert_batch(batch), StorageError);
+  CHECK(store.count("SAT1") == 0);
+  batch[13].h_norm_nT = 50000.0;
+  CHECK(store.insert_batch(batch).inserted == 20);
+}
+
+TEST_CASE("retention deletes exactly what is older than newest - window - margin") {
+  Database db(":memory:");
+  SampleWindowStore store(db);
+  CalibrationHistory history(db);
+  const int64_t step = 10 * kSecond;
+  const auto a = make_series("SAT1", 3000, step);  // 30 000 s of data
+  const auto b = make_series("SAT2", 100, step);
+  store.insert_batch(a);
+  store.insert_batch(b);
+  CalibrationRecord r;
+  r.sat_id = "SAT1";
+  r.method = "ukf";
+  r.utime = a.front().utime;  // a result about the oldest data: never deleted
+  history.append(r);
+
+  const int64_t window_utime = 6 * 3600 * kSecond / 3;  // 2 h
+  const int64_t margin_utime = 1800 * kSecond;          // 0.5 h
+  const int64_t cutoff = a.back().utime - window_utime - margin_utime;
+  const auto expected_kept =
+      std::count_if(a.begin(), a.end(), [&](const auto& s) { return s.utime >= cutoff; });
+  REQUIRE(expected_kept > 0);
+  REQUIRE(expected_kept < static_cast<long>(a.size()));
+  const int chunk = 250;
+  const RetentionStats stats = store.apply_retention("SAT1", window_utime, margin_utime, chunk);
+  CHECK(stats.deleted == static_cast<int64_t>(a.size()) - expected_kept);
+  CHECK(stats.transactions == stats.deleted / chunk + 1);
+  CHECK(store.count("SAT1") == expected_kept);
+  const auto kept = store.window("SAT1", std::numeric_limits<int64_t>::min(),
+                                 std::numeric_limits<int64_t>::max());
+  REQUIRE(!kept.empty());
+  CHECK(kept.front().utime == cutoff);  // the sample exactly at the cutoff stays (10 s grid)
+  CHECK(store.count("SAT2") == 100);    // other spacecraft untouched
+  CHECK(history.latest("SAT1", "ukf").has_value());
+
+  // Idempotent; an unknown spacecraft is a no-op.
+  CHECK(store.apply_retention("SAT1", window_utime, margin_utime, chunk).deleted == 0);
+  CHECK(store.apply_retention("NOPE", window_utime, margin_utime).deleted == 0);
+  CHECK_THROWS_AS(store.delete_before("SAT1", cutoff, 0), StorageError);
+}
+
+TEST_CASE("a reader sees only committed batches while a writer is mid-transaction") {
+  TempDir dir;
+  const std::string path = dir.file("concurrent.db");
+  Database writer_db(path);
+  SampleWindowStore writer(writer_db);
+  writer.insert_batch(make_series("SAT1", 100, kSecond));
+
+  OpenOptions ro;
+  ro.read_only = true;
+  Database reader_db(path, ro);
+  SampleWindowStore reader(reader_db);
+  {
+    Transaction open_batch(writer_db);
+    writer.insert_batch(make_series("SAT1", 100, kSecond, 100));  // nested: not yet committed
+    CHECK(reader.count("SAT1") == 100);
+    open_batch.commit();
+  }
+  CHECK(reader.count("SAT1") == 200);
+}
+
+TEST_CASE("a writer killed mid-stream loses no committed batch and leaves a sound file") {
+  TempDir dir;
+  const std::string path = dir.file("crash.db");
+  { Database create(path); }
+  constexpr int kBatch = 200;
+  int fds[2];
+  REQUIRE(::pipe(fds) == 0);
+  const pid_t child = ::fork();
+  REQUIRE(child >= 0);
+  if (child == 0) {
+    // Child: write batches forever, report each committed batch number on the pipe.
+    ::close(fds[0]);
+    try {
+      Database db(path);
+      SampleWindowStore store(db);
+      for (int64_t n = 0;; ++n) {
+        store.insert_batch(make_series("SAT1", kBatch, kSecond, n * kBatch));
+        if (::write(fds[1], &n, sizeof n) != sizeof n) ::_exit(3);
+      }
+    } catch (...) {
+      ::_exit(2);
+    }
+  }
+  ::close(fds[1]);
+  int64_t committed = -1;
+  int64_t n = 0;
+  while (committed < 25 && ::read(fds[0], &n, sizeof n) == sizeof n) committed = n;
+  REQUIRE(::kill(child, SIGKILL) == 0);  // almost certainly inside the next batch
+  int status = 0;
+  ::waitpid(child, &status, 0);
+  ::close(fds[0]);
+  REQUIRE(WIFSIGNALED(status));
+  REQUIRE(committed >= 25);
+
+  Database db(path);
+  CHECK(db.integrity_check() == "ok");
+  SampleWindowStore store(db);
+  const int64_t stored = store.count("SAT1");
+  CHECK(stored >= (committed + 1) * kBatch);  // every acknowledged batch is there...
+  CHECK(stored % kBatch == 0);                // ...and no half batch
+  const auto all = store.window("SAT1", kT0, kT0 + stored * kSecond);
+  CHECK(static_cast<int64_t>(all.size()) == stored);  // contiguous from the first sample
+}
