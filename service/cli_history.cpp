@@ -24,29 +24,6 @@
 
 namespace magcal::cli {
 
-// Lossless ISO 8601: whole seconds print without a fraction, anything else with microseconds.
-std::string history_time(int64_t utime) {
-  return format_iso8601_utc(utime, utime % kMicrosPerSecond == 0 ? 0 : 6);
-}
-
-// One stored result as the JSON object of `history --format json` (also used by `status`).
-nlohmann::json history_record_json(const storage::CalibrationRecord& rec) {
-  nlohmann::json j = calibration_result_to_json(result_from_record(rec));
-  // Not stored in the database: leave them out rather than print defaults as if measured.
-  for (const char* key : {"alignment_sigma_deg", "fisher_condition_number", "n_downweighted",
-                          "message", "converged"}) {
-    j.erase(key);
-  }
-  j["id"] = rec.id;
-  j["sat_id"] = rec.sat_id;
-  j["time"] = history_time(rec.utime);
-  j["window_start"] = history_time(rec.window_start_utime);
-  j["window_end"] = history_time(rec.window_end_utime);
-  j["software_version"] = rec.software_version;
-  j["created_time"] = history_time(rec.created_utime);
-  return j;
-}
-
 namespace {
 
 // Shortest text that reads back to the same double; empty for NaN (absent).

@@ -20,10 +20,6 @@
 
 namespace magcal::cli {
 
-// Defined in cli_history.cpp: the shared `history` JSON object of one stored result.
-nlohmann::json history_record_json(const storage::CalibrationRecord& rec);
-std::string history_time(int64_t utime);
-
 namespace {
 
 struct SpacecraftStatus {

@@ -15,6 +15,7 @@
 #include <nlohmann/json.hpp>
 
 #include "pipeline/calibration_result.hpp"
+#include "storage/calibration_history.hpp"
 
 namespace magcal {
 
@@ -22,5 +23,12 @@ nlohmann::json calibration_result_to_json(const CalibrationResult& result);
 
 // A finite double as a JSON number, anything else as null.
 nlohmann::json json_number(double value);
+
+// Lossless ISO 8601: whole seconds print without a fraction, anything else with microseconds.
+std::string history_time(int64_t utime);
+
+// One stored result as the JSON object of `history --format json` (also used by `status`):
+// the fit keys plus id, sat_id, time strings and software version.
+nlohmann::json history_record_json(const storage::CalibrationRecord& rec);
 
 }  // namespace magcal

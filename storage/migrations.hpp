@@ -1,6 +1,6 @@
 // The schema migrations, embedded in the binary (the binary never needs the source tree).
-// storage/migrations/NNNN_name.sql are the readable originals; a test checks that the
-// embedded text and the files are identical.
+// storage/migrations/NNNN_name.sql are the one copy: storage/embed_migrations.cmake turns them
+// into a generated embedded_migrations.cpp at build time (numbered 0001, 0002, ... without gaps).
 #pragma once
 
 #include <span>
