@@ -44,16 +44,16 @@ echo "== 2. replay it through magcald (file:// replay: same code path as live, e
 
 echo
 echo "== 3. magcal status"
-"$bin/magcal" status --db magcal.db || true
+"$bin/magcal" status --db magcal.db
 
 echo
 echo "== 4. UKF converging (history, every 2 h of data; then the last snapshot)"
 "$bin/magcal" history --db magcal.db --sat "$sat" --method ukf --format table \
-  | awk 'NR == 1 || (NR - 2) % 120 == 0 { print } { last = $0 } END { print last }' || true
+  | awk 'NR == 1 || (NR - 2) % 120 == 0 { print } { last = $0 } END { print last }'
 
 echo
 echo "== 5. scheduled refits (centered + LM + alignment, acceptance gates)"
-"$bin/magcal" history --db magcal.db --sat "$sat" --method twostep --format table || true
+"$bin/magcal" history --db magcal.db --sat "$sat" --method twostep --format table
 
 echo
 echo "== 6. truth (from the simulator)"

@@ -130,12 +130,15 @@ TEST_CASE("lcm-logplayer replays a simulated log (skipped without the tool)") {
   }
   struct Counter {
     int decoded = 0, bad = 0;
-    void on(const lcm::ReceiveBuffer* rbuf, const std::string&) {
+    // subscribeFunction, as the daemon does: LCM 1.3.1's untyped member-method subscription
+    // hands its callback a bad context pointer (UBSan reports it).
+    static void on(const lcm::ReceiveBuffer* rbuf, const std::string&, Counter* self) {
       mag_sample_t m;
-      (m.decode(rbuf->data, 0, static_cast<int>(rbuf->data_size)) > 0 ? decoded : bad) += 1;
+      (m.decode(rbuf->data, 0, static_cast<int>(rbuf->data_size)) > 0 ? self->decoded
+                                                                      : self->bad) += 1;
     }
   } counter;
-  lcm::Subscription* sub = lcm.subscribe(kSamplesChannel, &Counter::on, &counter);
+  lcm::Subscription* sub = lcm.subscribeFunction(kSamplesChannel, &Counter::on, &counter);
   sub->setQueueCapacity(0);  // unbounded: 180 small messages
   const std::string cmd =
       "timeout 60 lcm-logplayer -s 0 -l '" + url + "' '" + log + "' > /dev/null 2>&1 &";
