@@ -222,6 +222,18 @@ bool ScalarFilterBase::gate(FilterUpdate& u) {
   return true;
 }
 
+void ScalarFilterBase::commit_posterior(FilterUpdate& u, const Vector9d& x_new,
+                                        const Matrix9d& P_new) {
+  if (!x_new.allFinite() || !P_new.allFinite()) {
+    ++state_.n_rejected_invalid;
+    u.status = FilterUpdateStatus::kRejectedNumerical;
+    return;
+  }
+  state_.x = x_new;
+  state_.P = P_new;
+  finish_accepted(u);
+}
+
 void ScalarFilterBase::finish_accepted(FilterUpdate& u) {
   state_.P = 0.5 * (state_.P + state_.P.transpose()).eval();
   ++state_.n_accepted;

@@ -167,6 +167,9 @@ class ScalarFilterBase {
   // Fills u.nis; if outside the gate counts the rejection, runs the monitor and returns false.
   bool gate(FilterUpdate& u);
   // After a measurement update: guard P, count, convergence time, run the monitor.
+  // Commits the posterior (then symmetrises, guards, counts) unless it is not finite, in which
+  // case the state is left untouched and the update reported as rejected (numerical).
+  void commit_posterior(FilterUpdate& u, const Vector9d& x_new, const Matrix9d& P_new);
   void finish_accepted(FilterUpdate& u);
 
   FilterOptions options_;

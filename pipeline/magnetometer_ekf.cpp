@@ -39,14 +39,7 @@ FilterUpdate MagnetometerEkf::update(const Eigen::Vector3d& b_sensor_nT, double 
   const Matrix9d AP = P - K * PHt.transpose();
   const Vector9d APHt = AP * H.transpose();
   const Matrix9d P_new = AP - APHt * K.transpose() + (R * K) * K.transpose();
-  if (!x_new.allFinite() || !P_new.allFinite()) {
-    ++state_.n_rejected_invalid;
-    u.status = FilterUpdateStatus::kRejectedNumerical;
-    return u;
-  }
-  state_.x = x_new;
-  state_.P = P_new;
-  finish_accepted(u);
+  commit_posterior(u, x_new, P_new);
   return u;
 }
 

@@ -79,14 +79,7 @@ FilterUpdate MagnetometerUkf::update(const Eigen::Vector3d& b_sensor_nT, double 
   const Vector9d K = Pxz / u.innovation_variance_nT4;
   const Vector9d x_new = x + K * u.innovation_nT2;
   const Matrix9d P_new = state_.P - K * Pxz.transpose();  // = P - K S K^T
-  if (!x_new.allFinite() || !P_new.allFinite()) {
-    ++state_.n_rejected_invalid;
-    u.status = FilterUpdateStatus::kRejectedNumerical;
-    return u;
-  }
-  state_.x = x_new;
-  state_.P = P_new;
-  finish_accepted(u);
+  commit_posterior(u, x_new, P_new);
   return u;
 }
 
