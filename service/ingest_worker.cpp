@@ -309,13 +309,13 @@ void IngestWorker::post_reanchor(const std::string& sat_id, const CalibrationRes
 }
 
 void IngestWorker::apply_reanchors() {
-  std::vector<std::pair<std::string, CalibrationResult>> todo;
+  std::vector<std::pair<std::string, CalibrationResult>> due_reanchors;
   {
     std::lock_guard lock(reanchor_mutex_);
-    todo.swap(reanchors_);
+    due_reanchors.swap(reanchors_);
     have_reanchors_.store(false, std::memory_order_release);
   }
-  for (const auto& [sat, refit] : todo) {
+  for (const auto& [sat, refit] : due_reanchors) {
     SpacecraftTracker* t = fleet_.find(sat);
     if (!t || !refit.covariance.allFinite()) continue;
     // estimation.md 3a: the online tracker continues from the accepted batch estimate.
