@@ -17,8 +17,13 @@
 #include "storage/sample_window_store.hpp"
 
 namespace fs = std::filesystem;
+#include "tests/service/cli_test_support.hpp"
+
 using namespace magcal;
 using namespace magcal::storage;
+using magcal::test::Run;
+using magcal::test::TempDir;
+using magcal::test::run_magcal;
 
 namespace {
 
@@ -26,41 +31,6 @@ constexpr int64_t kSecond = 1'000'000;
 constexpr int64_t kHour = 3600 * kSecond;
 constexpr int64_t kT0 = 1'767'225'600LL * kSecond;  // 2026-01-01T00:00:00Z
 constexpr int64_t kWindow = 12 * kHour;             // the daemon's default window_hours
-
-struct TempDir {
-  fs::path path;
-  TempDir() {
-    static int counter = 0;
-    path = fs::temp_directory_path() /
-           ("magcal_cli_status_" + std::to_string(::getpid()) + "_" + std::to_string(counter++));
-    fs::create_directories(path);
-  }
-  ~TempDir() { fs::remove_all(path); }
-  std::string file(const std::string& name) const { return (path / name).string(); }
-};
-
-struct Run {
-  int exit_code = -1;
-  std::string out, err;
-};
-
-Run run_magcal(const std::string& args, const TempDir& dir) {
-  const std::string err_file = dir.file("stderr.txt");
-  const std::string cmd = std::string(MAGCAL_BIN_DIR) + "/magcal " + args + " 2>" + err_file;
-  Run r;
-  FILE* p = ::popen(cmd.c_str(), "r");
-  REQUIRE(p != nullptr);
-  char buf[4096];
-  size_t n;
-  while ((n = std::fread(buf, 1, sizeof buf, p)) > 0) r.out.append(buf, n);
-  const int status = ::pclose(p);
-  r.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  std::ifstream e(err_file);
-  std::stringstream ss;
-  ss << e.rdbuf();
-  r.err = ss.str();
-  return r;
-}
 
 CalibrationRecord make_record(const std::string& sat, const std::string& method, int64_t utime,
                               std::array<double, 3> bias, const std::string& verdict) {
