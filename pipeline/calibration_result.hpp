@@ -3,6 +3,7 @@
 #pragma once
 
 #include <cstdint>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -51,6 +52,25 @@ struct CalibrationResult {
 
   double fisher_condition_number = 0.0;  // of the scaled Fisher matrix (estimation.md 2d)
   int n_downweighted = 0;                // robust mode: samples given reduced weight
+
+  // Evidence behind `covariance` (estimation.md section 7). NaN / 0 / false = not computed.
+  // `covariance` is the one we stand behind (published in calibration_t.cov); the white-noise
+  // inverse information (statistical part, nominal sigma) is kept beside it for comparison.
+  Matrix9d covariance_white_noise = Matrix9d::Zero();
+  double noise_scale = std::numeric_limits<double>::quiet_NaN();  // sqrt(chi2 / (n - n_params))
+  // Lag-1 autocorrelation of the normalised scalar residuals, in sample order.
+  double residual_autocorrelation = std::numeric_limits<double>::quiet_NaN();
+  int covariance_lag_window = 0;  // HAC (Newey–West, Bartlett) lag window, samples; 0 = none
+  // Robust fits: residual_rms_nT is over the kept samples, this one over all of them.
+  double residual_rms_all_nT = std::numeric_limits<double>::quiet_NaN();
+  // Extended model (odd per-axis nonlinearity k3_i B_i^3, 1/nT^2), when the data support it.
+  bool has_nonlinearity = false;
+  Eigen::Vector3d nonlinearity_k3 = Eigen::Vector3d::Zero();
+
+  // Online filters: mean normalised innovation squared over the snapshot period, and the
+  // effective per-axis measurement noise the (adaptive) filter currently uses.
+  double nis_mean = std::numeric_limits<double>::quiet_NaN();
+  double measurement_noise_nT = std::numeric_limits<double>::quiet_NaN();
 
   // Acceptance verdict (gates); rejected results keep their numbers for inspection.
   bool accepted = true;
