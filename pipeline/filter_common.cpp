@@ -7,6 +7,7 @@
 #include <Eigen/Eigenvalues>
 
 #include "pipeline/scalar_measurement.hpp"
+#include "pipeline/time_utc.hpp"
 
 namespace magcal {
 
@@ -198,7 +199,8 @@ bool ScalarFilterBase::begin_update(const Eigen::Vector3d& b_sensor_nT, double h
     return true;
   }
   if (utime > state_.last_utime) {
-    const double dt_s = static_cast<double>(utime - state_.last_utime) / kMicrosecondsPerSecond;
+    const double dt_s =
+        static_cast<double>(saturating_sub(utime, state_.last_utime)) / kMicrosecondsPerSecond;
     state_.P.diagonal() += process_noise_diagonal(options_.process_noise_per_sqrt_hour, dt_s);
     state_.last_utime = utime;
   }

@@ -7,6 +7,7 @@
 #pragma once
 
 #include <cstdint>
+#include <limits>
 #include <optional>
 #include <string>
 #include <string_view>
@@ -45,6 +46,33 @@ double julian_centuries_tt_from_utime(int64_t utime, double tt_minus_utc_s = 69.
 std::optional<int64_t> parse_iso8601_utc(std::string_view text);
 // "YYYY-MM-DDTHH:MM:SS.ffffffZ"; fractional digits (0..6) as asked, rounded to that precision.
 std::string format_iso8601_utc(int64_t utime, int fractional_digits = 0);
+
+// Time tags magcal accepts from telemetry: 1990-01-01T00:00:00Z <= utime < 2100-01-01T00:00:00Z.
+// Anything outside is a corrupt tag (and would overflow the arithmetic below near the int64
+// limits). Differences of plausible utimes fit in int64 with 58 bits to spare.
+constexpr int64_t kMinPlausibleUtime = 631'152'000'000'000;    // 1990-01-01T00:00:00Z
+constexpr int64_t kMaxPlausibleUtime = 4'102'444'800'000'000;  // 2100-01-01T00:00:00Z
+constexpr bool is_plausible_utime(int64_t utime) {
+  return utime >= kMinPlausibleUtime && utime < kMaxPlausibleUtime;
+}
+
+// a - b and a + b clamped to [INT64_MIN, INT64_MAX] instead of overflowing (undefined
+// behaviour): for differences of untrusted times and sequence numbers, e.g. utime - last_utime
+// or newest_utime - window_utime.
+constexpr int64_t saturating_sub(int64_t a, int64_t b) {
+  int64_t r = 0;
+  if (__builtin_sub_overflow(a, b, &r)) {
+    return b < 0 ? std::numeric_limits<int64_t>::max() : std::numeric_limits<int64_t>::min();
+  }
+  return r;
+}
+constexpr int64_t saturating_add(int64_t a, int64_t b) {
+  int64_t r = 0;
+  if (__builtin_add_overflow(a, b, &r)) {
+    return b > 0 ? std::numeric_limits<int64_t>::max() : std::numeric_limits<int64_t>::min();
+  }
+  return r;
+}
 
 inline double seconds_from_utime(int64_t utime) {
   return static_cast<double>(utime) / kMicrosPerSecond;

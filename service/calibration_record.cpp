@@ -89,7 +89,24 @@ CalibrationResult result_from_record(const storage::CalibrationRecord& rec) {
 }
 
 calibration_t message_from_result(const std::string& sat_id, const CalibrationResult& result) {
-  return storage::message_from_record(record_from_result(sat_id, result));
+  calibration_t msg = storage::message_from_record(record_from_result(sat_id, result));
+  if (!std::isfinite(msg.residual_rms_nT)) msg.residual_rms_nT = -1.0;
+  bool non_finite = false;
+  auto sanitize = [&](double* v, int n) {
+    for (int i = 0; i < n; ++i) {
+      if (!std::isfinite(v[i])) {
+        v[i] = 0.0;
+        non_finite = true;
+      }
+    }
+  };
+  sanitize(msg.bias_nT, 3);
+  sanitize(msg.D, 6);
+  sanitize(msg.cov, 45);
+  sanitize(msg.R_sensor_from_body, 9);
+  constexpr int8_t kFailed = static_cast<int8_t>(CalibrationStatus::kFailed);
+  if (non_finite && (msg.status == 0 || msg.status > kFailed)) msg.status = kFailed;
+  return msg;
 }
 
 void fill_stored_sample(const mag_sample_t& msg, const std::string& sat_id,

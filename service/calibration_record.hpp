@@ -21,6 +21,10 @@ namespace magcal {
 storage::CalibrationRecord record_from_result(const std::string& sat_id,
                                               const CalibrationResult& result);
 CalibrationResult result_from_record(const storage::CalibrationRecord& record);
+// What goes out on LCM never carries NaN or Inf (a reader cannot tell them from corruption):
+// a non-finite residual_rms_nT (unknown, e.g. a failed refit) is sent as -1; non-finite
+// bias_nT, D, cov or R_sensor_from_body entries are sent as 0 and the status becomes 3
+// (failed) unless it already says not converged (1) or unobservable (2).
 calibration_t message_from_result(const std::string& sat_id, const CalibrationResult& result);
 
 // `sample` carries the reference field; `msg` the rest (seq, attitude, position, temperature).

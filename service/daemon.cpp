@@ -293,6 +293,7 @@ int Daemon::run(const std::atomic<bool>& stop) {
   d.refit_cv.notify_all();
   refitter.join();
   d.worker->commit_if_due();  // applies re-anchors posted by the last refits
+  d.worker->reject_held();    // uncorroborated times: counted, never dropped silently
   d.worker->commit();
   d.worker->save_filter_states();
   const auto st = d.status();

@@ -175,6 +175,9 @@ std::map<std::string, Section> key_table(DaemonConfig& c) {
       {"sensor", {{"range_nT", bind(c.sensor.range_nT)}}},
       {"igrf", {{"coefficients_file", bind(c.igrf.coefficients_file)}}},
       {"log", {{"level", bind(c.log.level)}, {"status_every_s", bind(c.log.status_every_s)}}},
+      {"ingest",
+       {{"max_time_jump_s", bind(c.ingest.max_time_jump_s)},
+        {"max_future_s", bind(c.ingest.max_future_s)}}},
       {"service",
        {{"whitelist", bind_string_list(c.service.whitelist)},
         {"queue_capacity_samples", bind(c.service.queue_capacity_samples)},
@@ -228,6 +231,13 @@ std::string DaemonConfig::validate() const {
            "\"";
   }
   if (!(log.status_every_s > 0.0)) return "[log] status_every_s: must be > 0";
+  // Bounded so that the microsecond conversions stay far from the int64 limits.
+  if (!(ingest.max_time_jump_s >= 1.0 && ingest.max_time_jump_s <= 1e6)) {
+    return "[ingest] max_time_jump_s: must be within [1, 1e6] s";
+  }
+  if (!(ingest.max_future_s >= 0.0 && ingest.max_future_s <= 1e6)) {
+    return "[ingest] max_future_s: must be within [0, 1e6] s";
+  }
   if (service.queue_capacity_samples < 1000) {
     return "[service] queue_capacity_samples: must be >= 1000";
   }

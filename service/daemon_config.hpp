@@ -53,6 +53,15 @@ struct DaemonConfig {
     std::string level = "info";    // trace, debug, info, warn, error, critical, off
     double status_every_s = 60.0;  // counters in the log (the status message is more frequent)
   } log;
+  // Time plausibility of incoming samples (spacecraft_tracker.hpp has the rules).
+  struct Ingest {
+    // A sample more than this past its spacecraft's newest accepted sample is held until
+    // later samples corroborate the new time (a data gap, a recorder dump) or the stream
+    // contradicts it (time_jump).
+    double max_time_jump_s = 3600.0;
+    // A sample more than this past the wall clock at receipt is rejected (future_time).
+    double max_future_s = 300.0;
+  } ingest;
   struct Service {
     std::vector<std::string> whitelist;  // empty = accept every spacecraft
     int64_t queue_capacity_samples = 262144;
@@ -66,6 +75,8 @@ struct DaemonConfig {
 
   bool data_clock() const { return refit.clock == "data"; }
   int64_t window_utime() const { return static_cast<int64_t>(storage.window_hours * 3.6e9); }
+  int64_t max_time_jump_utime() const { return static_cast<int64_t>(ingest.max_time_jump_s * 1e6); }
+  int64_t max_future_utime() const { return static_cast<int64_t>(ingest.max_future_s * 1e6); }
 };
 
 struct ConfigLoad {

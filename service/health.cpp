@@ -34,6 +34,12 @@ const char* to_string(RejectReason r) {
       return "duplicate";
     case RejectReason::kFutureTime:
       return "future_time";
+    case RejectReason::kTimeOutOfRange:
+      return "time_out_of_range";
+    case RejectReason::kTimeJump:
+      return "time_jump";
+    case RejectReason::kTimeJumpUnconfirmed:
+      return "time_jump_unconfirmed";
     case RejectReason::kStorageError:
       return "storage_error";
     case RejectReason::kCount:

@@ -12,8 +12,7 @@
 namespace magcal {
 namespace {
 
-constexpr int64_t kNoTime = std::numeric_limits<int64_t>::min();
-constexpr int64_t kMaxFutureUtime = 86'400'000'000;         // a day ahead of the wall clock
+constexpr int64_t kNoTime = SpacecraftTracker::kNoTime;
 constexpr double kRetentionEvery_s = 2.0;                   // wall time...
 constexpr int64_t kRetentionEveryData_utime = 600'000'000;  // ...or data time
 constexpr int kRetentionChunkRows = 2000;
@@ -71,10 +70,10 @@ void IngestWorker::restore() {
     if (!newest) continue;
     SpacecraftTracker& t = fleet_.get(sat);
     t.newest_utime = *newest;
-    samples_.read_window(sat, *newest, *newest + 1, rows);
+    samples_.read_window(sat, *newest, saturating_add(*newest, 1), rows);
     if (!rows.empty()) t.last_seq = rows.back().seq;
 
-    int64_t from = *newest - window + 1;
+    int64_t from = saturating_sub(*newest, window) + 1;
     if (const auto stored = filter_states_.load(sat, "ukf")) {
       FilterState st;
       if (filter_state_from_stored(*stored, st)) {
@@ -85,7 +84,7 @@ void IngestWorker::restore() {
       }
     }
     if (from <= *newest) {
-      samples_.read_window(sat, from, *newest + 1, rows);
+      samples_.read_window(sat, from, saturating_add(*newest, 1), rows);
       for (const auto& r : rows) {
         const CalibrationSample s = calibration_sample_from_stored(r);
         t.ukf.update(s.b_sensor_nT, reference_norm_nT(s), s.utime);
@@ -94,7 +93,7 @@ void IngestWorker::restore() {
       t.state_dirty = !rows.empty();
     }
     const auto last_snapshot = history_.latest(sat, "ukf");
-    t.next_snapshot_utime = (last_snapshot ? last_snapshot->utime : *newest) + period;
+    t.next_snapshot_utime = saturating_add(last_snapshot ? last_snapshot->utime : *newest, period);
     data_clock_utime_ = std::max(data_clock_utime_, *newest);
   }
   counters_.n_spacecraft.store(static_cast<int32_t>(fleet_.size()));
@@ -107,6 +106,7 @@ void IngestWorker::restore() {
 
 void IngestWorker::process(const IngestItem& item) {
   if (have_reanchors_.load(std::memory_order_acquire)) apply_reanchors();
+  ++frame_counter_;
   for (const auto& s : item.samples) ingest_sample(s, item.batch_sat_id, item.receive_utime);
   if (data_scheduler_) check_data_clock();
 }
@@ -119,76 +119,154 @@ bool IngestWorker::is_duplicate(const std::string& sat_id, int64_t utime) {
   return samples_.count_in_window(sat_id, utime, utime + 1) > 0;
 }
 
+void IngestWorker::reject_sample(RejectReason r, const std::string& sat, const mag_sample_t& s) {
+  counters_.reject(r);
+  warnings_.warn(to_string(r), fmt::format("rejected sample ({}): sat '{}' utime {} seq {}",
+                                           to_string(r), sat, s.utime, s.seq));
+}
+
 void IngestWorker::ingest_sample(const mag_sample_t& s, const std::string& batch_sat_id,
                                  int64_t receive_utime) {
   const auto reason = check_sample(s, batch_sat_id, validator_);
   const std::string& sat = sample_sat_id(s, batch_sat_id);
-  SpacecraftTracker* t = nullptr;
-  auto reject = [&](RejectReason r) {
-    counters_.reject(r);
-    warnings_.warn(to_string(r), fmt::format("rejected sample ({}): sat '{}' utime {} seq {}",
-                                             to_string(r), sat, s.utime, s.seq));
-  };
   if (reason) {
     if (*reason != RejectReason::kInvalidSatId && *reason != RejectReason::kBatchSatMismatch &&
         *reason != RejectReason::kUnknownSpacecraft) {
       // The frame was received: it is not missing, whatever is wrong with it.
-      if ((t = fleet_.find(sat))) counters_.missing_by_seq += t->observe_seq(s.seq);
+      if (auto* t = fleet_.find(sat)) counters_.missing_by_seq += t->observe_seq(s.seq);
     }
-    reject(*reason);
+    reject_sample(*reason, sat, s);
     return;
   }
-  if (s.utime > (receive_utime > 0 ? receive_utime : wall_utime()) + kMaxFutureUtime) {
-    reject(RejectReason::kFutureTime);
+  bool created = false;
+  SpacecraftTracker& t = fleet_.get(sat, &created);
+  if (created) {
+    counters_.n_spacecraft.store(static_cast<int32_t>(fleet_.size()));
+    spdlog::info("new spacecraft '{}' (first sample {})", sat, format_iso8601_utc(s.utime));
+  }
+  counters_.missing_by_seq += t.observe_seq(s.seq);
+  // Telemetry cannot come from the future (beyond clock skew): a corrupt time tag.
+  const int64_t now = receive_utime > 0 ? receive_utime : wall_utime();
+  if (s.utime > saturating_add(now, config_.max_future_utime())) {
+    reject_sample(RejectReason::kFutureTime, sat, s);
     return;
   }
-  t = fleet_.find(sat);
-  if (t) {
-    counters_.missing_by_seq += t->observe_seq(s.seq);
-    if (t->newest_utime != kNoTime) {
-      if (s.utime <= t->newest_utime - config_.window_utime()) {
-        reject(RejectReason::kOlderThanWindow);
-        return;
-      }
-      if (s.utime <= t->newest_utime && is_duplicate(sat, s.utime)) {
-        reject(RejectReason::kDuplicate);
-        return;
-      }
+  if (t.on_time_base(s.utime, config_.max_time_jump_utime())) {
+    accept_sample(sat, t, s, receive_utime);
+  } else {
+    hold_sample(sat, t, s, receive_utime);
+  }
+}
+
+void IngestWorker::accept_sample(const std::string& sat, SpacecraftTracker& t,
+                                 const mag_sample_t& s, int64_t receive_utime) {
+  if (t.newest_utime != kNoTime) {
+    if (s.utime <= saturating_sub(t.newest_utime, config_.window_utime())) {
+      reject_sample(RejectReason::kOlderThanWindow, sat, s);
+      return;
+    }
+    if (s.utime <= t.newest_utime && is_duplicate(sat, s.utime)) {
+      reject_sample(RejectReason::kDuplicate, sat, s);
+      return;
     }
   }
   const auto sample = to_reference_sample(s, *field_);
   if (!sample) {
-    reject(RejectReason::kReferenceFailed);
+    reject_sample(RejectReason::kReferenceFailed, sat, s);
     return;
   }
-  if (!t) {
-    bool created = false;
-    t = &fleet_.get(sat, &created);
-    t->observe_seq(s.seq);
-    counters_.n_spacecraft.store(static_cast<int32_t>(fleet_.size()));
-    spdlog::info("new spacecraft '{}' (first sample {})", sat, format_iso8601_utc(s.utime));
-  }
-
-  t->ukf.update(sample->b_sensor_nT, reference_norm_nT(*sample), s.utime);
-  t->state_dirty = true;
+  t.ukf.update(sample->b_sensor_nT, reference_norm_nT(*sample), s.utime);
+  t.state_dirty = true;
   counters_.ukf_updates.fetch_add(1, std::memory_order_relaxed);
 
   if (pending_.empty()) first_pending_time_ = std::chrono::steady_clock::now();
   fill_stored_sample(s, sat, *sample, receive_utime, pending_.emplace_back());
-  if (s.utime > t->newest_utime) t->newest_utime = s.utime;
-  if (!t->retention_due) {
-    t->retention_due = true;
+  const bool advanced = s.utime > t.newest_utime;
+  if (advanced) {
+    t.newest_utime = s.utime;
+    ++t.advances;
+  }
+  if (!t.retention_due) {
+    t.retention_due = true;
     retention_dirty_.push_back(sat);
   }
   data_clock_utime_ = std::max(data_clock_utime_, s.utime);
-  maybe_snapshot(sat, *t, s.utime);
+  maybe_snapshot(sat, t, s.utime);
   if (static_cast<int>(pending_.size()) >= config_.storage.commit_every_samples) commit();
+  if (advanced && !t.held.empty()) resolve_held(sat, t);
+}
+
+void IngestWorker::hold_sample(const std::string& sat, SpacecraftTracker& t, const mag_sample_t& s,
+                               int64_t receive_utime) {
+  if (t.holds_utime(s.utime)) {
+    reject_sample(RejectReason::kDuplicate, sat, s);  // a repeat cannot corroborate itself
+    return;
+  }
+  if (t.held.size() >= static_cast<size_t>(SpacecraftTracker::kHeldCapacity)) {
+    reject_sample(RejectReason::kTimeJump, sat, t.held.front().sample);
+    t.held.erase(t.held.begin());
+  }
+  if (t.held.empty() && t.newest_utime != kNoTime) {  // (a new spacecraft's first samples: normal)
+    warnings_.warn("time_hold",
+                   fmt::format("{}: sample at {} held: {} s past the newest sample (waiting for {} "
+                               "more to corroborate it)",
+                               sat, format_iso8601_utc(s.utime),
+                               saturating_sub(s.utime, t.newest_utime) / 1000000,
+                               SpacecraftTracker::kCorroborating));
+  }
+  t.hold(s, receive_utime, frame_counter_);
+  const int64_t base = t.corroborated_utime(config_.max_time_jump_utime());
+  if (base == kNoTime) return;
+  if (t.newest_utime != kNoTime) {
+    spdlog::warn("{}: time jump of {} s to {} corroborated by {} samples: accepted", sat,
+                 saturating_sub(base, t.newest_utime) / 1000000, format_iso8601_utc(base),
+                 t.held.size());
+  }
+  t.newest_utime = base;
+  resolve_held(sat, t);
+}
+
+void IngestWorker::resolve_held(const std::string& sat, SpacecraftTracker& t) {
+  if (resolving_held_) return;  // accept_sample() below advanced the base: this loop goes on
+  resolving_held_ = true;
+  const int64_t max_jump = config_.max_time_jump_utime();
+  size_t keep = 0;
+  // In place (accept_sample() never adds to the hold): arrival order, no allocation.
+  for (size_t i = 0; i < t.held.size(); ++i) {
+    HeldSample& h = t.held[i];
+    if (t.on_time_base(h.sample.utime, max_jump)) {
+      accept_sample(sat, t, h.sample, h.receive_utime);
+    } else if (t.advances - h.advances_at_hold >= SpacecraftTracker::kCorroborating) {
+      reject_sample(RejectReason::kTimeJump, sat, h.sample);
+    } else {
+      if (keep != i) t.held[keep] = std::move(h);
+      ++keep;
+    }
+  }
+  t.held.erase(t.held.begin() + static_cast<std::ptrdiff_t>(keep), t.held.end());
+  if (t.held.empty()) t.held.shrink_to_fit();  // a hold is rare: give its memory back
+  resolving_held_ = false;
+}
+
+void IngestWorker::reject_held() {
+  fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
+    for (const auto& h : t.held) reject_sample(RejectReason::kTimeJumpUnconfirmed, sat, h.sample);
+    t.held.clear();
+    t.held.shrink_to_fit();
+  });
+}
+
+int64_t IngestWorker::held_samples() {
+  int64_t n = 0;
+  fleet_.for_each(
+      [&](const std::string&, SpacecraftTracker& t) { n += static_cast<int64_t>(t.held.size()); });
+  return n;
 }
 
 void IngestWorker::maybe_snapshot(const std::string& sat_id, SpacecraftTracker& t, int64_t utime) {
   const int64_t period = snapshot_period_utime(config_);
   if (t.next_snapshot_utime == kNoTime) {
-    t.next_snapshot_utime = utime + period;
+    t.next_snapshot_utime = saturating_add(utime, period);
     return;
   }
   if (utime < t.next_snapshot_utime || !t.ukf.initialized()) return;
@@ -200,7 +278,7 @@ void IngestWorker::maybe_snapshot(const std::string& sat_id, SpacecraftTracker& 
   // only the parameter bounds apply, the other gates report themselves skipped.
   apply_verdict(snap, evaluate_gates(snap, GateInputs{}, config_.gates));
   pending_snapshots_.emplace_back(sat_id, std::move(snap));
-  t.next_snapshot_utime += ((utime - t.next_snapshot_utime) / period + 1) * period;
+  t.next_snapshot_utime += (saturating_sub(utime, t.next_snapshot_utime) / period + 1) * period;
 }
 
 void IngestWorker::commit_if_due() {
@@ -265,7 +343,7 @@ void IngestWorker::run_retention() {
     SpacecraftTracker* t = fleet_.find(sat);
     if (!t || t->newest_utime == kNoTime) continue;
     t->retention_due = false;
-    const int64_t cutoff = std::min(t->newest_utime - window - margin, floor);
+    const int64_t cutoff = std::min(saturating_sub(t->newest_utime, window + margin), floor);
     try {
       samples_.delete_before(sat, cutoff, kRetentionChunkRows);
     } catch (const storage::StorageError& e) {
@@ -278,6 +356,12 @@ void IngestWorker::run_retention() {
 void IngestWorker::check_data_clock() {
   if (data_clock_utime_ == kNoTime) return;
   const auto due = data_scheduler_->advance(data_clock_utime_);
+  if (data_scheduler_->skipped() != refits_skipped_logged_) {
+    spdlog::warn("data clock jumped to {}: {} scheduled refits skipped, only the latest runs",
+                 format_iso8601_utc(data_clock_utime_),
+                 data_scheduler_->skipped() - refits_skipped_logged_);
+    refits_skipped_logged_ = data_scheduler_->skipped();
+  }
   if (due.empty()) return;
   commit();  // the refit reads what is committed: everything up to t_ref
   for (const int64_t t : due) {

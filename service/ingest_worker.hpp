@@ -65,6 +65,11 @@ class IngestWorker {
   void commit();
   // Writes the filter state of every spacecraft whose filter changed since the last write.
   void save_filter_states();
+  // At shutdown, before the last commit: every sample still held for corroboration of its time
+  // (spacecraft_tracker.hpp) is rejected as time_jump_unconfirmed, so it is counted.
+  void reject_held();
+  // Samples currently held, all spacecraft (in flight, like the pending batch).
+  int64_t held_samples();
 
   // From any thread: re-anchor sat_id's UKF on an accepted refit (applied by the worker thread
   // at its next process()/commit_if_due()).
@@ -80,6 +85,14 @@ class IngestWorker {
 
  private:
   void ingest_sample(const mag_sample_t& s, const std::string& batch_sat_id, int64_t receive_utime);
+  // The per-spacecraft checks and the store of a sample on its spacecraft's time base.
+  void accept_sample(const std::string& sat, SpacecraftTracker& t, const mag_sample_t& s,
+                     int64_t receive_utime);
+  void hold_sample(const std::string& sat, SpacecraftTracker& t, const mag_sample_t& s,
+                   int64_t receive_utime);
+  // Re-examines t's held samples after its time base moved (see spacecraft_tracker.hpp).
+  void resolve_held(const std::string& sat, SpacecraftTracker& t);
+  void reject_sample(RejectReason r, const std::string& sat, const mag_sample_t& s);
   bool is_duplicate(const std::string& sat_id, int64_t utime);
   void maybe_snapshot(const std::string& sat_id, SpacecraftTracker& t, int64_t utime);
   void apply_reanchors();
@@ -106,6 +119,9 @@ class IngestWorker {
   std::vector<std::string> retention_dirty_;
   int64_t last_retention_data_utime_ = std::numeric_limits<int64_t>::min() / 2;
   int64_t data_clock_utime_ = std::numeric_limits<int64_t>::min();
+  int64_t frame_counter_ = 0;    // frames processed (a hold needs more than one to resolve)
+  bool resolving_held_ = false;  // resolve_held() is running (no re-entry)
+  int64_t refits_skipped_logged_ = 0;
   std::atomic<int64_t> retention_floor_{std::numeric_limits<int64_t>::max()};
 
   std::mutex reanchor_mutex_;

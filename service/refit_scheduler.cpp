@@ -4,6 +4,8 @@
 #include <cmath>
 #include <limits>
 
+#include "pipeline/time_utc.hpp"
+
 namespace magcal {
 namespace {
 
@@ -48,14 +50,46 @@ int64_t next_scheduled_utime(const RefitSchedule& schedule, int64_t after_utime)
   return best;
 }
 
+// Scheduled times <= t counted from an arbitrary origin (only differences are meaningful): the
+// schedule repeats every day from the daily time, with ceil(day / period) times per day.
+int64_t scheduled_count_through(const RefitSchedule& schedule, int64_t t) {
+  const int64_t anchor = schedule.daily_minute_utc * kMicrosPerMinute;
+  const int64_t day = floor_div(t - anchor, kMicrosPerDay);
+  const int64_t into_day = t - anchor - day * kMicrosPerDay;  // [0, day)
+  int64_t per_day = 1;
+  int64_t today = 1;
+  if (schedule.every_hours > 0.0) {
+    const auto period = static_cast<int64_t>(std::llround(schedule.every_hours * 3.6e9));
+    if (period > 0) {
+      per_day = (kMicrosPerDay + period - 1) / period;
+      today = into_day / period + 1;
+    }
+  }
+  return day * per_day + today;
+}
+
 std::vector<int64_t> RefitScheduler::advance(int64_t clock_utime) {
   std::vector<int64_t> due;
+  clock_utime = std::clamp(clock_utime, kMinPlausibleUtime, kMaxPlausibleUtime);
   if (!clock_utime_) {
     clock_utime_ = clock_utime;
     return due;
   }
   if (clock_utime <= *clock_utime_) return due;
   int64_t t = next_scheduled_utime(schedule_, *clock_utime_);
+  if (clock_utime - *clock_utime_ > kMicrosPerDay) {
+    // Only the latest due time (found within the last day before the clock).
+    int64_t latest = t;
+    for (int64_t u = next_scheduled_utime(schedule_, clock_utime - kMicrosPerDay); u <= clock_utime;
+         u = next_scheduled_utime(schedule_, u)) {
+      latest = u;
+    }
+    skipped_ += scheduled_count_through(schedule_, clock_utime) -
+                scheduled_count_through(schedule_, *clock_utime_) - 1;
+    due.push_back(latest);
+    clock_utime_ = clock_utime;
+    return due;
+  }
   while (t <= clock_utime) {
     due.push_back(t);
     t = next_scheduled_utime(schedule_, t);

@@ -31,8 +31,13 @@ class RefitScheduler {
 
   // Scheduled times in (previous clock, clock], ascending. The first call only sets the clock
   // (nothing before the daemon saw its first clock value is due). A clock that goes backwards
-  // is ignored.
+  // is ignored. A clock that jumps forward by more than a day (first data after a long outage,
+  // a stepped wall clock) gives only the latest due time: catching up on stale windows would
+  // refit the same data many times; the others are counted in skipped(). The clock is clamped
+  // to the plausible utime range (pipeline/time_utc.hpp).
   std::vector<int64_t> advance(int64_t clock_utime);
+  // Due times dropped by advance() so far.
+  int64_t skipped() const { return skipped_; }
 
   // Next due time after the current clock (for logs); nullopt before the first advance().
   std::optional<int64_t> next_due() const;
@@ -40,6 +45,7 @@ class RefitScheduler {
  private:
   RefitSchedule schedule_;
   std::optional<int64_t> clock_utime_;
+  int64_t skipped_ = 0;
 };
 
 }  // namespace magcal

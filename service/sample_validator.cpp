@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cmath>
 
+#include "pipeline/time_utc.hpp"
+
 namespace magcal {
 namespace {
 
@@ -31,6 +33,7 @@ std::optional<RejectReason> check_sample(const mag_sample_t& s, const std::strin
       !std::binary_search(options.whitelist.begin(), options.whitelist.end(), sat)) {
     return RejectReason::kUnknownSpacecraft;
   }
+  if (!is_plausible_utime(s.utime)) return RejectReason::kTimeOutOfRange;
   if (!all_finite(s.b_sensor_nT, 3) || (s.has_position && !all_finite(s.r_ecef_m, 3)) ||
       (s.has_attitude && !all_finite(s.q_body_from_eci, 4)) ||
       (s.has_reference && !all_finite(s.h_body_nT, 3))) {

@@ -5,14 +5,15 @@
 //   invalid_sat_id      empty sat_id (a batch sample with an empty id inherits the batch's)
 //   batch_sat_mismatch  a batch sample naming another spacecraft than its batch
 //   unknown_spacecraft  not on the whitelist (when one is configured)
+//   time_out_of_range   utime outside [1990-01-01, 2100-01-01) (pipeline/time_utc.hpp)
 //   non_finite          NaN/Inf in b_sensor_nT, or in r_ecef_m / q_body_from_eci / h_body_nT
 //                       when their has_* flag is set (temperature_C NaN = unknown, accepted)
 //   bad_attitude        has_attitude with a quaternion norm outside [0.9, 1.1]
 //   out_of_range        any |b_sensor_nT component| > range_nT
 //   absurd_position     has_position with |r_ecef| outside [min, max] (6400-8000 km)
 //   no_reference        neither has_reference nor has_position
-// The per-spacecraft checks (older_than_window, duplicate) need the tracker: see
-// spacecraft_tracker.hpp.
+// The per-spacecraft checks (time plausibility against the stream: time_jump, future_time;
+// older_than_window, duplicate) need the tracker: see spacecraft_tracker.hpp.
 //
 // Reference field (design.md data flow): h_body_nT from the frame when has_reference; else
 // IGRF at r_ecef rotated to the body frame with q_body_from_eci when has_attitude; else only

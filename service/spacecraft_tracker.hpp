@@ -1,32 +1,82 @@
 // Per-spacecraft online state held by the daemon's worker: the UKF (estimation.md section 3),
-// the newest sample time (the spacecraft's window edge, data time), the last sequence number
-// (gaps count as missing samples) and the next snapshot time. A spacecraft appears on its first
-// valid frame. Size is what the memory target counts (design.md: < 4 KB per spacecraft).
+// the newest accepted sample time (the spacecraft's window edge, data time), the last sequence
+// number (gaps count as missing samples), the next snapshot time, and the samples held while
+// their time is uncorroborated. A spacecraft appears on its first valid frame. Size is what the
+// memory target counts (design.md: < 4 KB per spacecraft; held samples only while held).
+//
+// Time plausibility (issue 11: one frame must not move a spacecraft's time). The "time base" is
+// newest_utime, the newest ACCEPTED sample; retention, the data clock and the UKF only ever see
+// accepted samples. A valid sample is
+//   on the base   when utime <= newest_utime + max_time_jump: it goes on to older_than_window /
+//                 duplicate / store (older in-window samples are a recorder dump: accepted);
+//   held          when it is further ahead, or when the spacecraft has no base yet (its first
+//                 samples after a start with an empty database; a restart takes the base from
+//                 the stored window).
+// Held samples are resolved by what comes next:
+//   corroborated  the newest held sample has kCorroborating others (distinct times) within
+//                 max_time_jump of it, and they came in more than one frame (so one frame, even
+//                 a batch, cannot set the time alone; exception: a full hold, kHeldCapacity
+//                 consistent samples of one batch, is accepted rather than dropped). The base
+//                 moves to the newest of them and every held sample is re-examined in arrival
+//                 order (stored, rejected older_than_window, or held on).
+//   contradicted  kCorroborating accepted samples advanced the old base after it was held:
+//                 rejected as time_jump. A sample the old base has caught up with (within
+//                 max_time_jump of it again) is accepted instead.
+//   displaced     the hold is full: the oldest held sample is rejected as time_jump.
+//   shutdown      rejected as time_jump_unconfirmed (IngestWorker::reject_held), never lost
+//                 silently; a replay can re-send them.
+// Samples far in the past need no hold: they never move the base (older_than_window beyond it).
 #pragma once
 
 #include <cstdint>
 #include <limits>
 #include <string>
 #include <unordered_map>
+#include <vector>
 
 #include "pipeline/magnetometer_ukf.hpp"
+#include "schemas/magcal_messages.hpp"
 
 namespace magcal {
+
+// A sample waiting for corroboration of its time (its sat_id is the tracker's, left empty).
+struct HeldSample {
+  mag_sample_t sample;
+  int64_t receive_utime = 0;
+  int64_t frame = 0;             // the worker's frame counter when it arrived
+  int64_t advances_at_hold = 0;  // SpacecraftTracker::advances when it was held
+};
 
 struct SpacecraftTracker {
   explicit SpacecraftTracker(const MagnetometerUkf::Options& options) : ukf(options) {}
 
+  static constexpr int64_t kNoTime = std::numeric_limits<int64_t>::min();
+  static constexpr int kCorroborating = 3;  // further samples that confirm or refute a time
+  static constexpr int kHeldCapacity = 32;  // per spacecraft
+
   MagnetometerUkf ukf;
-  int64_t newest_utime = std::numeric_limits<int64_t>::min();  // newest stored sample
-  int64_t last_seq = std::numeric_limits<int64_t>::min();      // none yet
-  int64_t next_snapshot_utime = std::numeric_limits<int64_t>::min();
-  bool state_dirty = false;    // filter changed since its state was last written
-  bool retention_due = false;  // new samples since the last retention pass
+  int64_t newest_utime = kNoTime;  // newest accepted sample (the time base); none yet
+  int64_t last_seq = std::numeric_limits<int64_t>::min();  // none yet
+  int64_t next_snapshot_utime = kNoTime;
+  int64_t advances = 0;          // accepted samples that moved newest_utime forward
+  bool state_dirty = false;      // filter changed since its state was last written
+  bool retention_due = false;    // new samples since the last retention pass
+  std::vector<HeldSample> held;  // arrival order; at most kHeldCapacity, freed when empty
 
   // Missing samples implied by `seq` (a forward gap); out-of-order or repeated numbers, and
   // jumps larger than kMaxSeqGap (a counter reset), imply none. Advances last_seq.
   int64_t observe_seq(int64_t seq);
   static constexpr int64_t kMaxSeqGap = 1'000'000;
+
+  // True when a sample at `utime` is on the time base (see the file comment), false when it
+  // must be held. `utime` is plausible (pipeline/time_utc.hpp).
+  bool on_time_base(int64_t utime, int64_t max_time_jump_utime) const;
+  // The newest time of the held samples that corroborate the newest held one, or kNoTime while
+  // they do not (yet).
+  int64_t corroborated_utime(int64_t max_time_jump_utime) const;
+  // Copies `s` into the hold (sat_id left empty); the caller makes room first.
+  void hold(const mag_sample_t& s, int64_t receive_utime, int64_t frame);
+  bool holds_utime(int64_t utime) const;
 };
 
 class SpacecraftFleet {

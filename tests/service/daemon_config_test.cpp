@@ -27,6 +27,8 @@ TEST_CASE("defaults are valid and match design.md", "[daemon_config]") {
   CHECK(c.lcm.calibration_channel == "MAGCAL_CALIBRATION");
   CHECK(c.lcm.status_channel == "MAGCAL_STATUS");
   CHECK(c.service.whitelist.empty());
+  CHECK(c.ingest.max_time_jump_s == 3600.0);
+  CHECK(c.ingest.max_future_s == 300.0);
 }
 
 TEST_CASE("the example config lists every key with exactly the defaults", "[daemon_config]") {
@@ -72,6 +74,8 @@ TEST_CASE("the example config lists every key with exactly the defaults", "[daem
   CHECK(c.service.min_position_km == d.service.min_position_km);
   CHECK(c.service.max_position_km == d.service.max_position_km);
   CHECK(c.log.status_every_s == d.log.status_every_s);
+  CHECK(c.ingest.max_time_jump_s == d.ingest.max_time_jump_s);
+  CHECK(c.ingest.max_future_s == d.ingest.max_future_s);
 }
 
 TEST_CASE("values are read, integers accepted for floats", "[daemon_config]") {
@@ -125,6 +129,9 @@ TEST_CASE("unknown keys, bad types and bad values name the key", "[daemon_config
       {"[lcm]\nstatus_channel = \"\"\n", "[lcm] status_channel"},
       {"[service]\nwhitelist = \"SAT\"\n", "[service] whitelist"},
       {"[sensor]\nrange_nT = nan\n", "[sensor] range_nT"},
+      {"[ingest]\nmax_time_jump_s = 0\n", "[ingest] max_time_jump_s"},
+      {"[ingest]\nmax_future_s = -1\n", "[ingest] max_future_s"},
+      {"[ingest]\nmax_future_s = inf\n", "[ingest] max_future_s"},
       {"lcm = 3\n", "[lcm] must be a table"},
       {"[storage\n", "t.toml:1"},
   };
