@@ -38,7 +38,7 @@ const char* to_string(RejectReason r) {
       return "time_out_of_range";
     case RejectReason::kTimeJump:
       return "time_jump";
-    case RejectReason::kTimeJumpUnconfirmed:
+    case RejectReason::kJumpUnconfirmed:
       return "time_jump_unconfirmed";
     case RejectReason::kStorageError:
       return "storage_error";

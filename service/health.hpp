@@ -17,24 +17,24 @@
 namespace magcal {
 
 enum class RejectReason : int {
-  kDecodeError = 0,      // truncated or corrupt frame of our type
-  kWrongType,            // fingerprint of another type (or none we know)
-  kNonFinite,            // NaN/Inf in b_sensor_nT or in a field whose has_* flag is set
-  kBadAttitude,          // has_attitude with a quaternion far from unit norm
-  kBatchSatMismatch,     // a batch's sample names another spacecraft than the batch
-  kInvalidSatId,         // empty spacecraft id
-  kUnknownSpacecraft,    // not on the configured whitelist
-  kOutOfRange,           // |component| beyond [sensor] range_nT
-  kAbsurdPosition,       // |r_ecef| not within 6400-8000 km
-  kNoReference,          // neither h_body_nT nor a position to compute IGRF from
-  kReferenceFailed,      // IGRF refused the date (outside the coefficient file's validity)
-  kOlderThanWindow,      // older than the spacecraft's newest sample minus the window
-  kDuplicate,            // (sat_id, utime) already received
-  kFutureTime,           // more than [ingest] max_future_s ahead of the wall clock at receipt
-  kTimeOutOfRange,       // utime outside 1990-01-01 .. 2100-01-01 (corrupt time tag)
-  kTimeJump,             // held past the stream's newest time, then contradicted by the stream
-  kTimeJumpUnconfirmed,  // still held (uncorroborated) at shutdown
-  kStorageError,         // the database refused the batch (logged as an error)
+  kDecodeError = 0,    // truncated or corrupt frame of our type
+  kWrongType,          // fingerprint of another type (or none we know)
+  kNonFinite,          // NaN/Inf in b_sensor_nT or in a field whose has_* flag is set
+  kBadAttitude,        // has_attitude with a quaternion far from unit norm
+  kBatchSatMismatch,   // a batch's sample names another spacecraft than the batch
+  kInvalidSatId,       // empty spacecraft id
+  kUnknownSpacecraft,  // not on the configured whitelist
+  kOutOfRange,         // |component| beyond [sensor] range_nT
+  kAbsurdPosition,     // |r_ecef| not within 6400-8000 km
+  kNoReference,        // neither h_body_nT nor a position to compute IGRF from
+  kReferenceFailed,    // IGRF refused the date (outside the coefficient file's validity)
+  kOlderThanWindow,    // older than the spacecraft's newest sample minus the window
+  kDuplicate,          // (sat_id, utime) already received
+  kFutureTime,         // more than [ingest] max_future_s ahead of the wall clock at receipt
+  kTimeOutOfRange,     // utime outside 1990-01-01 .. 2100-01-01 (corrupt time tag)
+  kTimeJump,           // held past the stream's newest time, then contradicted by the stream
+  kJumpUnconfirmed,    // still held (uncorroborated) at shutdown
+  kStorageError,       // the database refused the batch (logged as an error)
   kCount
 };
 constexpr int kRejectReasonCount = static_cast<int>(RejectReason::kCount);

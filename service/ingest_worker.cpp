@@ -250,7 +250,7 @@ void IngestWorker::resolve_held(const std::string& sat, SpacecraftTracker& t) {
 
 void IngestWorker::reject_held() {
   fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
-    for (const auto& h : t.held) reject_sample(RejectReason::kTimeJumpUnconfirmed, sat, h.sample);
+    for (const auto& h : t.held) reject_sample(RejectReason::kJumpUnconfirmed, sat, h.sample);
     t.held.clear();
     t.held.shrink_to_fit();
   });

@@ -1,6 +1,7 @@
 #include "service/lcm_ingest.hpp"
 
 #include <chrono>
+#include <stdexcept>
 
 #include "schemas/magcal_messages.hpp"
 
@@ -22,6 +23,32 @@ bool has_fingerprint(const void* data, int size, int64_t hash) {
   return static_cast<int64_t>(v) == hash;
 }
 
+int32_t read_int32_be(const uint8_t* b) {
+  uint32_t v = 0;
+  for (int i = 0; i < 4; ++i) v = (v << 8) | b[i];
+  return static_cast<int32_t>(v);
+}
+
+// The smallest encoded mag_sample_t: utime, sat_id (int32 length + one NUL), seq, the fixed
+// doubles, booleans and the float.
+constexpr int64_t kMinEncodedSampleBytes =
+    8 + 4 + 1 + 8 + 3 * 8 + 1 + 3 * 8 + 1 + 4 * 8 + 1 + 3 * 8 + 4;
+
+// lcmgen's mag_batch_t decoder resizes `samples` to the frame's n before reading them: a
+// corrupt n of 2^31 - 1 would allocate hundreds of GB. n must fit in the bytes that follow.
+bool plausible_batch_header(const uint8_t* b, int size) {
+  int64_t pos = 8;  // fingerprint
+  if (size < pos + 4) return false;
+  const int32_t sat_len = read_int32_be(b + pos);
+  pos += 4;
+  if (sat_len < 1 || sat_len > size - pos) return false;
+  pos += sat_len;
+  if (size < pos + 4) return false;
+  const int32_t n = read_int32_be(b + pos);
+  pos += 4;
+  return n >= 0 && n <= (size - pos) / kMinEncodedSampleBytes;
+}
+
 }  // namespace
 
 bool is_file_url(const std::string& url) {
@@ -33,21 +60,32 @@ DecodeOutcome decode_frame(const void* data, int size, bool expect_batch, Ingest
   out.from_batch = expect_batch;
   out.samples.clear();
   out.batch_sat_id.clear();
-  if (expect_batch) {
-    if (!has_fingerprint(data, size, mag_batch_t::getHash())) return DecodeOutcome::kWrongType;
-    mag_batch_t batch;
-    if (batch.decode(data, 0, size) != size) return DecodeOutcome::kDecodeError;
-    out.batch_sat_id = std::move(batch.sat_id);
-    out.samples = std::move(batch.samples);
+  // lcmgen's decoders call std::string::assign(p, length - 1) with an unchecked string length
+  // of 0 or less, which throws std::length_error: a corrupt frame, not a daemon failure.
+  try {
+    if (expect_batch) {
+      if (!has_fingerprint(data, size, mag_batch_t::getHash())) return DecodeOutcome::kWrongType;
+      if (!plausible_batch_header(static_cast<const uint8_t*>(data), size)) {
+        return DecodeOutcome::kDecodeError;
+      }
+      mag_batch_t batch;
+      if (batch.decode(data, 0, size) != size) return DecodeOutcome::kDecodeError;
+      out.batch_sat_id = std::move(batch.sat_id);
+      out.samples = std::move(batch.samples);
+      return DecodeOutcome::kOk;
+    }
+    if (!has_fingerprint(data, size, mag_sample_t::getHash())) return DecodeOutcome::kWrongType;
+    out.samples.resize(1);
+    if (out.samples[0].decode(data, 0, size) != size) {
+      out.samples.clear();
+      return DecodeOutcome::kDecodeError;
+    }
     return DecodeOutcome::kOk;
-  }
-  if (!has_fingerprint(data, size, mag_sample_t::getHash())) return DecodeOutcome::kWrongType;
-  out.samples.resize(1);
-  if (out.samples[0].decode(data, 0, size) != size) {
+  } catch (const std::length_error&) {
     out.samples.clear();
+    out.batch_sat_id.clear();
     return DecodeOutcome::kDecodeError;
   }
-  return DecodeOutcome::kOk;
 }
 
 LcmIngest::LcmIngest(lcm::LCM& lcm, const std::string& samples_channel,

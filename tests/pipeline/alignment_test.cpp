@@ -14,6 +14,8 @@
 #include <Eigen/Geometry>
 #include <catch2/catch.hpp>
 
+#include "tests/test_skip.hpp"
+
 #include "pipeline/batch_calibration.hpp"
 
 using namespace magcal;
@@ -413,7 +415,7 @@ TEST_CASE("BROAD lab data: joint R and ENU field make the rotated field constant
                            "/real/broad_02_undisturbed_slow_rotation_B_mag_quat.csv";
   std::ifstream in(path);
   if (!in) {
-    WARN("skipped: BROAD recording not found at " << path);
+    magcal::test::skip_or_fail("BROAD recording not found at " + std::string(path));
     return;
   }
   std::vector<Eigen::Vector3d> B_nT;

@@ -19,6 +19,8 @@
 
 #include <catch2/catch.hpp>
 
+#include "tests/test_skip.hpp"
+
 #include "pipeline/time_utc.hpp"
 
 using namespace magcal;
@@ -122,7 +124,8 @@ Eigen::Vector3d field_by_finite_differences(const Coefficients& c, const Eigen::
 TEST_CASE("official IGRF-14 test values (pyIGRF) to 0.01 nT", "[igrf]") {
   const auto csv = read_shared("igrf14_official_testvalues.csv");
   if (!csv) {
-    WARN("igrf14_official_testvalues.csv not found in " MAGCAL_SHARED_DATA_DIR "; skipped");
+    magcal::test::skip_or_fail(
+        "igrf14_official_testvalues.csv not found in " MAGCAL_SHARED_DATA_DIR);
     return;
   }
   std::istringstream in(*csv);
@@ -247,7 +250,7 @@ TEST_CASE("built-in table equals the parsed official file; .shc gives the same f
   const auto txt = read_shared("igrf14coeffs.txt");
   const auto shc = read_shared("IGRF14.shc");
   if (!txt || !shc) {
-    WARN("IGRF-14 coefficient files not found in " MAGCAL_SHARED_DATA_DIR "; skipped");
+    magcal::test::skip_or_fail("IGRF-14 coefficient files not found in " MAGCAL_SHARED_DATA_DIR);
     return;
   }
   std::string err;

@@ -1,5 +1,7 @@
 #include <catch2/catch.hpp>
 
+#include "tests/test_skip.hpp"
+
 #include <chrono>
 #include <cstdlib>
 #include <filesystem>
@@ -114,7 +116,7 @@ TEST_CASE("magcal sim errors: usage vs data, nothing half-written") {
 
 TEST_CASE("lcm-logplayer replays a simulated log (skipped without the tool)") {
   if (std::system("command -v lcm-logplayer > /dev/null 2>&1") != 0) {
-    WARN("lcm-logplayer not installed: skipped");
+    magcal::test::skip_or_fail("lcm-logplayer not installed");
     return;
   }
   const fs::path d = temp_dir();
@@ -125,7 +127,7 @@ TEST_CASE("lcm-logplayer replays a simulated log (skipped without the tool)") {
       "udpm://239.255.76.67:7671?ttl=0&recv_buf_size=4194304";  // own port: no cross-talk
   lcm::LCM lcm(url);
   if (!lcm.good()) {
-    WARN("no multicast route on this machine: lcm-logplayer replay skipped");
+    magcal::test::skip_or_fail("no multicast route on this machine: lcm-logplayer replay");
     return;
   }
   struct Counter {

@@ -267,7 +267,7 @@ TEST_CASE("one rogue time tag is rejected and every valid sample kept", "[ingest
         frames.insert(frames.begin() + static_cast<long>(at), rogue);
         feed_frames(*w, frames);
         const auto expect = at == valid.size() && c.expect == RejectReason::kTimeJump
-                                ? RejectReason::kTimeJumpUnconfirmed  // last: nothing followed
+                                ? RejectReason::kJumpUnconfirmed  // last: nothing followed
                                 : c.expect;
         CHECK(counters.stored == static_cast<int64_t>(valid.size()));
         CHECK(counters.rejected_count(expect) == 1);
@@ -358,7 +358,7 @@ TEST_CASE("the first samples of a spacecraft need corroboration too", "[ingest_w
     w->reject_held();
     w->commit();
     CHECK(counters.stored == 0);
-    CHECK(counters.rejected_count(RejectReason::kTimeJumpUnconfirmed) == 5);
+    CHECK(counters.rejected_count(RejectReason::kJumpUnconfirmed) == 5);
   }
 }
 
@@ -392,7 +392,7 @@ TEST_CASE("a shifted batch frame cannot move the time; the hold stays bounded",
   }
   w->reject_held();
   CHECK(counters.rejected_count(RejectReason::kTimeJump) +
-            counters.rejected_count(RejectReason::kTimeJumpUnconfirmed) ==
+            counters.rejected_count(RejectReason::kJumpUnconfirmed) ==
         120);
 }
 

@@ -1,7 +1,7 @@
 // Recording-based fit (service/real_data_fit.hpp) on the two real files of
 // ../shared/data/real (README there: sources, licences, statistics measured independently with
-// numpy) and on simulated recordings with known truth. Real-file tests are skipped (WARN) when
-// the folder is absent.
+// numpy) and on simulated recordings with known truth. Real-file tests are skipped
+// (tests/test_skip.hpp) when the folder is absent.
 #include "service/real_data_fit.hpp"
 
 #include <array>
@@ -14,7 +14,9 @@
 
 #include <Eigen/Dense>
 #include <catch2/catch.hpp>
+
 #include <nlohmann/json.hpp>
+#include "tests/test_skip.hpp"
 
 #include "pipeline/rotation.hpp"
 
@@ -74,7 +76,7 @@ TEST_CASE("ISS Astro Pi: offset found, residual drops, halves agree in bias, gat
           "[real][iss]") {
   const auto rec = read_iss();
   if (!rec) {
-    WARN("skipped: " << kIssPath << " not found");
+    magcal::test::skip_or_fail(std::string(kIssPath) + " not found");
     return;
   }
   CHECK(rec->n_skipped_first == 20);
@@ -147,11 +149,10 @@ TEST_CASE("ISS Astro Pi: offset found, residual drops, halves agree in bias, gat
 // the bias agreement). This test pins down why: the halves' difference is many times their
 // formal sigma, so the gap is unmodelled (ISS stray fields, a drifting lag), not noise — and it
 // still guards the fit against regressions with a 0.1 bound.
-TEST_CASE("ISS Astro Pi: halves' diag(D) differ by more than noise, less than 0.1",
-          "[real][iss]") {
+TEST_CASE("ISS Astro Pi: halves' diag(D) differ by more than noise, less than 0.1", "[real][iss]") {
   const auto rec = read_iss();
   if (!rec) {
-    WARN("skipped: " << kIssPath << " not found");
+    magcal::test::skip_or_fail(std::string(kIssPath) + " not found");
     return;
   }
   RecordingFitOptions o;
@@ -170,8 +171,7 @@ TEST_CASE("ISS Astro Pi: halves' diag(D) differ by more than noise, less than 0.
   constexpr double kRegressionBound = 0.1;
   CHECK(max_abs_diff(d1, d2) < kRegressionBound);
   // D22: the largest gap, compared with the combined formal 1-sigma of the two halves.
-  const double sigma_combined =
-      std::sqrt(r1.covariance(4, 4) + r2.covariance(4, 4));
+  const double sigma_combined = std::sqrt(r1.covariance(4, 4) + r2.covariance(4, 4));
   WARN("D22 gap " << std::abs(d1(1) - d2(1)) << " = " << std::abs(d1(1) - d2(1)) / sigma_combined
                   << " formal sigma");
   CHECK(std::abs(d1(1) - d2(1)) > 5.0 * sigma_combined);
@@ -181,7 +181,7 @@ TEST_CASE("BROAD lab data: auto magnitude, residual ~0.8 uT, stage 2 against opt
           "[real][broad]") {
   const auto rec = read_broad();
   if (!rec) {
-    WARN("skipped: " << kBroadPath << " not found");
+    magcal::test::skip_or_fail(std::string(kBroadPath) + " not found");
     return;
   }
   CHECK(rec->rows.size() == 53240);
