@@ -146,8 +146,10 @@ int run_status(const StatusArgs& args) {
       s.last_sample_utime = samples.newest_utime(id);
       if (s.last_sample_utime) {
         // The refit window (newest - W, newest].
-        s.samples_in_window = samples.count_in_window(id, *s.last_sample_utime - window_utime + 1,
-                                                      *s.last_sample_utime + 1);
+        // Saturating: a database written before the time bounds may hold any utime.
+        s.samples_in_window =
+            samples.count_in_window(id, saturating_sub(*s.last_sample_utime, window_utime) + 1,
+                                    saturating_add(*s.last_sample_utime, 1));
       }
       s.last_ukf = history.latest(id, "ukf");
       s.last_refit = history.latest_refit(id);

@@ -304,3 +304,45 @@ TEST_CASE("mutated frames: no crash, every frame accounted for", "[ingest][fuzz]
     CHECK(counters.rejected_count(r) > 0);
   }
 }
+
+TEST_CASE("decode_frame: corrupt string lengths and batch counts are decode errors",
+          "[ingest][fuzz]") {
+  // lcmgen's decoders would throw std::length_error on a string length <= 0 and allocate
+  // n samples before reading them; these are the frames the fuzzer first found.
+  mag_batch_t batch;
+  batch.sat_id = "SAT-1";
+  mag_sample_t s{};
+  s.utime = kT0;
+  s.sat_id = "SAT-1";
+  batch.samples = {s, s};
+  batch.n = 2;
+  const auto good = encode(batch);
+  IngestItem item;
+  REQUIRE(decode_frame(good.data(), static_cast<int>(good.size()), true, item) ==
+          DecodeOutcome::kOk);
+  CHECK(item.samples.size() == 2);
+  for (const int32_t n :
+       {std::numeric_limits<int32_t>::max(), std::numeric_limits<int32_t>::min(), -1, 1 << 20}) {
+    auto b = good;
+    set_batch_n(b, batch, n);
+    INFO("n = " << n);
+    CHECK(decode_frame(b.data(), static_cast<int>(b.size()), true, item) ==
+          DecodeOutcome::kDecodeError);
+    CHECK(item.samples.empty());
+  }
+  for (const int32_t len : {0, -1, std::numeric_limits<int32_t>::min()}) {
+    INFO("string length " << len);
+    auto b = good;  // the batch's sat_id length
+    for (int i = 0; i < 4; ++i)
+      b[8 + static_cast<size_t>(i)] =
+          static_cast<uint8_t>(static_cast<uint32_t>(len) >> (24 - 8 * i));
+    CHECK(decode_frame(b.data(), static_cast<int>(b.size()), true, item) ==
+          DecodeOutcome::kDecodeError);
+    auto one = encode(s);  // a sample's sat_id length, after its utime
+    for (int i = 0; i < 4; ++i)
+      one[16 + static_cast<size_t>(i)] =
+          static_cast<uint8_t>(static_cast<uint32_t>(len) >> (24 - 8 * i));
+    CHECK(decode_frame(one.data(), static_cast<int>(one.size()), false, item) ==
+          DecodeOutcome::kDecodeError);
+  }
+}
