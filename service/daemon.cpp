@@ -256,7 +256,9 @@ struct Daemon::Impl {
         next = 0;
         if (!queue->pop_all(items, 100)) break;
       }
-      while (next < items.size() && !worker->backlogged()) worker->process(items[next++]);
+      while (next < items.size() && !worker->backlogged() && !fatal.load()) {
+        worker->process(items[next++]);
+      }
       if (worker->backlogged()) {
         // Back-pressure: take no more frames (a live queue then overflows, counted; a replay
         // waits) until the pending batch is committed.

@@ -45,10 +45,13 @@ void StorageRetry::failed(const storage::StorageError& e) {
         "error (SQLite code {}): {}",
         what_, failing_s, max_failure_s_, attempts_failed_, e.sqlite_code(), e.what()));
   }
-  // The first failure and then one line per doubling of the backoff: a few lines per outage.
-  if (attempts_failed_ == 1 || backoff_s_ < kMaxBackoff_s) {
-    spdlog::error("database {} failed (SQLite code {}), kept in memory, retry in {:.2f} s: {}",
-                  what_, e.sqlite_code(), backoff_s_, e.what());
+  // One line per doubling of the backoff, then one every 5 attempts (10 s): a live outage stays
+  // visible in the log without flooding it.
+  if (backoff_s_ < kMaxBackoff_s || attempts_failed_ % 5 == 0) {
+    spdlog::error(
+        "database {} failed (SQLite code {}; failing for {:.1f} s of max_failure_s {}), kept in "
+        "memory, retry in {:.2f} s: {}",
+        what_, e.sqlite_code(), failing_s, max_failure_s_, backoff_s_, e.what());
   }
   // Never retry later than the give-up time, so an outage ends on time.
   const double wait_s = std::min(backoff_s_, std::max(0.0, max_failure_s_ - failing_s));

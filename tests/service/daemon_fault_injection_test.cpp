@@ -378,6 +378,59 @@ TEST_CASE("database file deleted or moved away underneath: clear log, exit 3, no
   }
 }
 
+TEST_CASE("database made read-only underneath: the open file keeps working, a restart refuses",
+          "[daemon][fault]") {
+  // Permissions are checked at open(2) only: a running daemon keeps writing through its open
+  // descriptors (a read-only remount is refused while files are open for writing), so what a
+  // permission change breaks is the next start, which must refuse clearly and write nothing.
+  // Root ignores permissions: as root the daemon runs as nobody.
+  constexpr int kN = 3000;
+  const Scenario sc("magcald_fault_readonly", kN, 50'000);  // 60 frames over 3 s
+  const auto& [tmp, log, db] = sc;
+  std::vector<std::string> as_user;
+  if (::geteuid() == 0) as_user = {"setpriv", "--reuid=65534", "--regid=65534", "--clear-groups"};
+  fs::permissions(tmp.path, fs::perms::all);  // the daemon's user creates the database here
+  const auto cfg = write_config(tmp, "d.toml", tmp.file("out.lcm"), "max_failure_s = 2\n");
+  auto daemon_args = [&](const std::string& speed) {
+    std::vector<std::string> args = as_user;
+    for (const std::string& a :
+         {kBin + "/magcald", std::string("--config"), cfg, std::string("--db"), db,
+          std::string("--lcm-url"), "file://" + log + "?speed=" + speed}) {
+      args.push_back(a);
+    }
+    return args;
+  };
+  const pid_t d = spawn(daemon_args("1"), tmp.file("run1.log"));
+  REQUIRE(d > 0);
+  REQUIRE(wait_until([&] { return read_stored(db).count >= 300; }, 20));
+  const auto ro = fs::perms::owner_read | fs::perms::group_read | fs::perms::others_read;
+  fs::permissions(db, ro);
+  fs::permissions(tmp.path,
+                  ro | fs::perms::owner_exec | fs::perms::group_exec | fs::perms::others_exec);
+  const int rc1 = wait_exit(d, 30);
+  {
+    INFO(slurp(tmp.file("run1.log")));
+    CHECK(rc1 == 0);
+  }
+  const auto s1 = read_published(tmp.file("out.lcm")).statuses.back();
+  CHECK(s1.stored == kN);
+  const auto before = read_stored(db);
+  CHECK(before.count == kN);
+
+  const int rc2 = run(daemon_args("0"), tmp.file("run2.log"));
+  const std::string run2_log = slurp(tmp.file("run2.log"));
+  INFO(run2_log);
+  CHECK(rc2 == 2);
+  CHECK_THAT(run2_log, Catch::Contains(db));
+  const auto after = read_stored(db);
+  CHECK(after.integrity == "ok");
+  CHECK(after.count == kN);
+  fs::permissions(tmp.path, fs::perms::all);  // let TempDir clean up
+  WARN("read-only: running daemon stored " << s1.stored << "/" << kN << " (exit " << rc1
+                                           << "); restart exit " << rc2 << ": "
+                                           << run2_log.substr(0, 160));
+}
+
 TEST_CASE("kill -9 at 20 random points of a replay: after a re-replay every sample once",
           "[daemon][fault]") {
   constexpr int kN = 1500;
