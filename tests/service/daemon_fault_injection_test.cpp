@@ -291,10 +291,11 @@ TEST_CASE("full filesystem: kept and retried, exit 3 after max_failure_s, re-rep
       filler.write(block.data(), static_cast<std::streamsize>(block.size()));
     }
   }
-  // Transactions of 500 samples: the disk fills part-way through the replay.
-  const auto cfg1 =
-      write_config(tmp, "d1.toml", tmp.file("out1.lcm"),
-                   "busy_timeout_ms = 100\nmax_failure_s = 1.5\ncommit_every_samples = 500\n");
+  // Transactions of 500 samples: the disk fills part-way through the replay. At most 1000
+  // samples held uncommitted: the rest waits in the receive queue (back-pressure).
+  const auto cfg1 = write_config(tmp, "d1.toml", tmp.file("out1.lcm"),
+                                 "busy_timeout_ms = 100\nmax_failure_s = 1.5\n"
+                                 "commit_every_samples = 500\nmax_pending_samples = 1000\n");
   const pid_t d1 = start_daemon(cfg1, db, log, "0", tmp.file("run1.log"));
   REQUIRE(d1 > 0);
   const auto stop = expect_storage_stop(d1, tmp.file("run1.log"), tmp.file("out1.lcm"),
@@ -310,6 +311,12 @@ TEST_CASE("full filesystem: kept and retried, exit 3 after max_failure_s, re-rep
   CHECK(s1.stored == st1.count);
   CHECK(s1.stored + stop.not_committed == kN);
   CHECK(s1.stored > 0);
+  int64_t max_pending = 0;
+  for (const auto& st : read_published(tmp.file("out1.lcm")).statuses) {
+    max_pending = std::max(max_pending, st.storage_pending);
+  }
+  CHECK(max_pending >= 500);            // a failed batch was kept...
+  CHECK(max_pending <= 1000 + kBatch);  // ...within the bound (plus the frame being taken)
 
   // Space freed: a restart and the same replay store the rest, the stored part as duplicates.
   fs::remove(fsm.dir + "/filler.bin");
@@ -329,7 +336,8 @@ TEST_CASE("full filesystem: kept and retried, exit 3 after max_failure_s, re-rep
   CHECK(st2.count == kN);
   CHECK(st2.distinct == kN);
   WARN("full filesystem: " << s1.storage_failures << " failed commits over max_failure_s 1.5 s, "
-                           << s1.stored << " stored, " << rejected(s1, "storage_error")
+                           << "at most " << max_pending << " samples pending, " << s1.stored
+                           << " stored, " << rejected(s1, "storage_error")
                            << " counted not committed, exit " << rc1 << "; after freeing space "
                            << s2.stored << " stored, " << rejected(s2, "duplicate")
                            << " duplicates, exit " << rc2);
