@@ -26,6 +26,8 @@ class StorageOutage : public std::runtime_error {
   using std::runtime_error::runtime_error;
 };
 
+// One storage path's retry state; used by one thread (the worker's commit, its duplicate
+// check, the refit thread each have their own). The health flag is shared through counters.
 class StorageRetry {
  public:
   using Clock = std::chrono::steady_clock;
@@ -43,7 +45,7 @@ class StorageRetry {
   void failed(const storage::StorageError& e);
   // Records a successful attempt: ends the outage (logged with its length).
   void succeeded();
-  // An attempt now counts as a retry (after a failure).
+  // Call before each attempt: counted as a retry when the path is failing.
   void attempting();
 
   bool failing() const { return failing_; }
