@@ -20,6 +20,7 @@
 #include "service/lcm_publisher.hpp"
 #include "service/refit_runner.hpp"
 #include "service/refit_scheduler.hpp"
+#include "service/storage_retry.hpp"
 #include "storage/refit_job_log.hpp"
 
 namespace magcal {
@@ -63,7 +64,54 @@ struct Daemon::Impl {
   bool refit_stop = false;
   bool refit_drain = false;  // finish queued requests before stopping (replay)
 
-  daemon_status_t status() const {
+  // A fatal failure (storage broken for max_failure_s, a thread died): the first one wins.
+  std::atomic<bool> fatal{false};
+  std::mutex fatal_mutex;
+  int fatal_exit = 0;
+  std::string fatal_reason;
+
+  // From any thread: log why, stop receiving, stop the worker and the refit thread; run() then
+  // returns `exit_code`. Never half-alive: nothing keeps receiving what cannot be stored.
+  void fail(int exit_code, const std::string& why) {
+    {
+      std::lock_guard lock(fatal_mutex);
+      if (fatal_exit != 0) return;
+      fatal_exit = exit_code;
+      fatal_reason = why;
+    }
+    spdlog::critical("{}: stopping magcald (exit code {})", why, exit_code);
+    fatal.store(true);
+    queue->close();  // the receive side stops; a blocked replay push returns
+    {
+      std::lock_guard lock(refit_mutex);
+      refit_stop = true;
+      refit_drain = false;
+    }
+    refit_cv.notify_all();
+    refit_idle_cv.notify_all();
+  }
+
+  // Runs a thread's body; whatever escapes it ends the process (non-zero), never the thread
+  // alone.
+  template <typename Body>
+  void guarded(const char* thread, Body&& body) {
+    try {
+      body();
+    } catch (const StorageOutage& e) {
+      fail(kExitStorageFailed, fmt::format("storage failed ({} thread): {}", thread, e.what()));
+    } catch (const std::exception& e) {
+      fail(kExitThreadDied, fmt::format("{} thread died: {}", thread, e.what()));
+    } catch (...) {
+      fail(kExitThreadDied, fmt::format("{} thread died: unknown exception", thread));
+    }
+  }
+
+  // Worker thread, or the main thread after the join.
+  daemon_status_t status() {
+    // Samples the worker holds uncommitted; after a fatal stop they are counted as
+    // storage_error instead.
+    counters.storage_pending.store(fatal.load() ? 0 : worker->pending_samples(),
+                                   std::memory_order_relaxed);
     const QueueGauge g{queue->depth_samples(), queue->capacity_samples(),
                        queue->overflow_samples()};
     const auto uptime = std::chrono::duration_cast<std::chrono::seconds>(
@@ -97,15 +145,24 @@ struct Daemon::Impl {
     publisher->publish(message_from_result(sat, snap));
   }
 
+  // Refit thread: one refit, its storage errors retried with backoff (each attempt has its job
+  // row); StorageOutage once storage stays broken.
+  RefitOutcome run_refit(StorageRetry& retry, const std::string& sat, const RefitRequest& req) {
+    return retry.run_blocking([&] {
+      RefitOutcome out = refits->run(sat, req.t_ref_utime, "scheduled", req.scheduled_utime);
+      if (out.kind == RefitOutcome::Kind::kError && out.transient_error) {
+        throw storage::StorageError(storage::StorageError::Kind::kSqlite, out.message,
+                                    out.sqlite_code);
+      }
+      return out;
+    });
+  }
+
   void refit_all(const RefitRequest& req) {
-    std::vector<std::string> sats;
-    try {
-      sats = refits->spacecraft();
-    } catch (const storage::StorageError& e) {
-      spdlog::error("refit: cannot list spacecraft: {}", e.what());
-    }
+    StorageRetry retry("refit", config.storage.max_failure_s, counters);
+    const auto sats = retry.run_blocking([&] { return refits->spacecraft(); });
     for (const auto& sat : sats) {
-      const auto out = refits->run(sat, req.t_ref_utime, "scheduled", req.scheduled_utime);
+      const auto out = run_refit(retry, sat, req);
       if (out.kind == RefitOutcome::Kind::kSkipped) {
         spdlog::info("refit {} at {}: skipped ({})", sat, format_iso8601_utc(req.scheduled_utime),
                      out.message);
@@ -140,6 +197,10 @@ struct Daemon::Impl {
   }
 
   void refit_thread() {
+    guarded("refit", [this] { refit_loop(); });
+  }
+
+  void refit_loop() {
     const bool wall = !config.data_clock();
     const RefitSchedule schedule{parse_daily_time_utc(config.refit.daily_at_utc).value_or(120),
                                  config.refit.every_hours};
@@ -179,38 +240,53 @@ struct Daemon::Impl {
   }
 
   void worker_thread() {
+    guarded("worker", [this] { worker_loop(); });
+  }
+
+  void worker_loop() {
     using clock = std::chrono::steady_clock;
     auto last_status = clock::now();
     auto last_log = clock::now();
     auto last_states = clock::now();
     std::vector<IngestItem> items;
-    try {
-      while (queue->pop_all(items, 100)) {
-        for (const auto& item : items) worker->process(item);
+    size_t next = 0;  // items[next..] are popped but not processed yet
+    while (!fatal.load()) {
+      if (next == items.size() && !worker->backlogged()) {
         items.clear();
-        worker->commit_if_due();
-        const auto now = clock::now();
-        if (std::chrono::duration<double>(now - last_status).count() >=
-            config.service.status_every_s) {
-          last_status = now;
-          publisher->publish(status());
-        }
-        if (std::chrono::duration<double>(now - last_log).count() >= config.log.status_every_s) {
-          last_log = now;
-          spdlog::info("{}", format_status_line(status()));
-        }
-        if (std::chrono::duration<double>(now - last_states).count() >= kFilterStateEvery_s) {
-          last_states = now;
-          worker->save_filter_states();
-        }
+        next = 0;
+        if (!queue->pop_all(items, 100)) break;
       }
-      worker->commit();
-    } catch (const std::exception& e) {
-      // Storage errors are handled inside the worker; anything else is a bug: log it loudly
-      // and stop ingesting rather than losing samples silently.
-      spdlog::critical("worker stopped: {}", e.what());
-      queue->close();  // the receive side then counts what it cannot hand off as overflow
+      while (next < items.size() && !worker->backlogged() && !fatal.load()) {
+        worker->process(items[next++]);
+      }
+      if (worker->backlogged()) {
+        // Back-pressure: take no more frames (a live queue then overflows, counted; a replay
+        // waits) until the pending batch is committed.
+        if (worker->commit_failing()) {
+          std::this_thread::sleep_until(std::min(worker->next_commit_attempt(),
+                                                 clock::now() + std::chrono::milliseconds(100)));
+        }
+        worker->commit();
+      }
+      worker->commit_if_due();
+      const auto now = clock::now();
+      if (std::chrono::duration<double>(now - last_status).count() >=
+          config.service.status_every_s) {
+        last_status = now;
+        publisher->publish(status());
+      }
+      if (std::chrono::duration<double>(now - last_log).count() >= config.log.status_every_s) {
+        last_log = now;
+        spdlog::info("{}", format_status_line(status()));
+      }
+      if (std::chrono::duration<double>(now - last_states).count() >= kFilterStateEvery_s) {
+        last_states = now;
+        worker->save_filter_states();
+      }
     }
+    if (fatal.load()) return;
+    // Drained (end of log or stop): store everything, retrying until max_failure_s.
+    worker->flush();
   }
 };
 
@@ -238,7 +314,8 @@ std::string Daemon::open() {
         IngestWorker::Hooks{
             [&d](const std::string& sat, const CalibrationResult& r) { d.on_snapshot(sat, r); },
             [&d](int64_t t) { d.on_refit_due(t); }});
-    d.refit_db = std::make_unique<storage::Database>(c.storage.db_path);
+    d.refit_db = std::make_unique<storage::Database>(
+        c.storage.db_path, storage::OpenOptions{.busy_timeout_ms = c.storage.busy_timeout_ms});
     d.refits = std::make_unique<RefitRunner>(d.config, *d.refit_db);
     storage::RefitJobLog jobs(*d.refit_db);
     if (const int n = jobs.mark_running_interrupted(wall_utime())) {
@@ -277,28 +354,53 @@ int Daemon::run(const std::atomic<bool>& stop) {
   std::thread refitter([&d] { d.refit_thread(); });
 
   LcmIngest ingest(*d.lcm, c.lcm.samples_channel, c.lcm.batch_channel, *d.queue, d.counters);
-  const auto end = ingest.run(stop, d.replay);
+  const auto end = ingest.run(stop, d.replay, &d.fatal);
   spdlog::info("{}; draining {} queued samples",
-               end == LcmIngest::End::kEndOfLog  ? "end of log"
-               : end == LcmIngest::End::kStopped ? "stop requested"
-                                                 : "LCM receive failed",
+               d.fatal.load()                     ? "stopped on a fatal error"
+               : end == LcmIngest::End::kEndOfLog ? "end of log"
+               : end == LcmIngest::End::kStopped  ? "stop requested"
+                                                  : "LCM receive failed",
                d.queue->depth_samples());
   d.queue->close();
   worker.join();
   {
     std::lock_guard lock(d.refit_mutex);
     d.refit_stop = true;
-    d.refit_drain = end == LcmIngest::End::kEndOfLog;  // a replay finishes its refits
+    // A replay finishes its refits (unless storage failed).
+    d.refit_drain = end == LcmIngest::End::kEndOfLog && !d.fatal.load();
   }
   d.refit_cv.notify_all();
   refitter.join();
-  d.worker->commit_if_due();  // applies re-anchors posted by the last refits
-  d.worker->reject_held();    // uncorroborated times: counted, never dropped silently
-  d.worker->commit();
-  d.worker->save_filter_states();
+  if (!d.fatal.load()) {
+    d.guarded("main", [&d] {
+      d.worker->commit_if_due();  // applies re-anchors posted by the last refits
+      d.worker->reject_held();    // uncorroborated times: counted, never dropped silently
+      d.worker->flush();
+      d.worker->save_filter_states();
+    });
+  }
+  if (d.fatal.load()) {
+    // Everything received and neither stored nor counted yet was never committed: the pending
+    // batch, the frames popped or still queued. Counted, so the books balance.
+    const int64_t not_committed = d.counters.received.load() - d.counters.stored.load() -
+                                  d.counters.rejected_total() - d.queue->overflow_samples();
+    if (not_committed > 0) {
+      d.counters.reject(RejectReason::kStorageError, not_committed);
+      spdlog::error(
+          "{} received samples were not committed (counted as storage_error; never stored, so "
+          "re-running the replay or recorder dump fills them, stored ones come back as counted "
+          "duplicates)",
+          not_committed);
+    }
+  }
   const auto st = d.status();
   d.publisher->publish(st);
   spdlog::info("final {}", format_status_line(st));
+  if (d.fatal.load()) {
+    std::lock_guard lock(d.fatal_mutex);
+    spdlog::critical("magcald stopped: {} (exit code {})", d.fatal_reason, d.fatal_exit);
+    return d.fatal_exit;
+  }
   return end == LcmIngest::End::kError ? cli::kExitData : cli::kExitOk;
 }
 

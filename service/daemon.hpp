@@ -10,7 +10,14 @@
 //
 // run() ends when `stop` is set (SIGINT/SIGTERM) or, for a file:// URL, at the end of the log:
 // stop receiving, drain the queue, commit, finish due refits (replay) or the running one
-// (signal), write filter states, publish a last status. Exit codes as in cli_commands.hpp.
+// (signal), write filter states, publish a last status. Exit codes as in cli_commands.hpp, and
+// the two below.
+//
+// Never half-alive: storage that stays broken for [storage] max_failure_s (each failed
+// operation kept and retried, service/storage_retry.hpp), or a worker or refit thread that dies
+// for any reason, stops receiving and ends run() with a non-zero exit code and the reason in
+// the log; every received sample that was not committed is counted as storage_error and logged
+// (re-running a replay fills them: stored samples come back as counted duplicates).
 #pragma once
 
 #include <atomic>
@@ -21,6 +28,10 @@
 #include "service/health.hpp"
 
 namespace magcal {
+
+// magcald exit codes beyond cli_commands.hpp's 0 ok, 1 usage, 2 data / database at start:
+constexpr int kExitStorageFailed = 3;  // storage broken for [storage] max_failure_s, or for good
+constexpr int kExitThreadDied = 4;     // a worker or refit thread died of an unexpected error
 
 class Daemon {
  public:

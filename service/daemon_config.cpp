@@ -119,7 +119,10 @@ std::map<std::string, Section> key_table(DaemonConfig& c) {
         {"window_hours", bind(c.storage.window_hours)},
         {"retention_margin_hours", bind(c.storage.retention_margin_hours)},
         {"commit_every_samples", bind(c.storage.commit_every_samples)},
-        {"commit_every_ms", bind(c.storage.commit_every_ms)}}},
+        {"commit_every_ms", bind(c.storage.commit_every_ms)},
+        {"busy_timeout_ms", bind(c.storage.busy_timeout_ms)},
+        {"max_failure_s", bind(c.storage.max_failure_s)},
+        {"max_pending_samples", bind(c.storage.max_pending_samples)}}},
       {"refit",
        {{"daily_at_utc", bind(c.refit.daily_at_utc)},
         {"every_hours", bind(c.refit.every_hours)},
@@ -208,6 +211,11 @@ std::string DaemonConfig::validate() const {
   }
   if (storage.commit_every_samples < 1) return "[storage] commit_every_samples: must be >= 1";
   if (storage.commit_every_ms < 1) return "[storage] commit_every_ms: must be >= 1";
+  if (storage.busy_timeout_ms < 0) return "[storage] busy_timeout_ms: must be >= 0";
+  if (!(storage.max_failure_s > 0.0)) return "[storage] max_failure_s: must be > 0";
+  if (storage.max_pending_samples < storage.commit_every_samples) {
+    return "[storage] max_pending_samples: must be >= commit_every_samples";
+  }
   if (!parse_daily_time_utc(refit.daily_at_utc)) {
     return "[refit] daily_at_utc: expected \"HH:MM\" (UTC), got \"" + refit.daily_at_utc + "\"";
   }

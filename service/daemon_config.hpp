@@ -30,6 +30,19 @@ struct DaemonConfig {
     double retention_margin_hours = 1.0;
     int commit_every_samples = 4000;  // one transaction per this many samples...
     int commit_every_ms = 250;        // ...or this much wall time, whichever first
+    // How long one SQLite statement waits on another connection's lock before it fails (and
+    // the daemon retries it with backoff).
+    int busy_timeout_ms = 5000;
+    // Storage failing continuously for this long (each failed commit retried with backoff)
+    // stops the daemon with exit code 3 so systemd restarts it and an operator is alerted.
+    // 60 s rides out what heals by itself (a `magcal refit`, backup or VACUUM holding the write
+    // lock; a checkpoint stalled by a slow disk), and is short enough to page someone within a
+    // minute of a full disk or a deleted file.
+    double max_failure_s = 60.0;
+    // Received samples held in memory while commits fail (about 200 bytes each: 40 MB). At the
+    // bound the worker stops taking frames: a live feed then overflows the receive queue
+    // (counted), a replay waits.
+    int64_t max_pending_samples = 200000;
   } storage;
   struct Refit {
     std::string daily_at_utc = "02:00";

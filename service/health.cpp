@@ -89,6 +89,10 @@ daemon_status_t make_status_message(const DaemonCounters& c, const QueueGauge& q
   s.refits_failed = c.refits_failed.load(std::memory_order_relaxed);
   s.last_refit_utime = c.last_refit_utime.load(std::memory_order_relaxed);
   s.last_refit_sat_id = c.last_refit_sat_id();
+  s.storage_healthy = c.storage_healthy();
+  s.storage_pending = c.storage_pending.load(std::memory_order_relaxed);
+  s.storage_failures = c.storage_failures.load(std::memory_order_relaxed);
+  s.storage_retries = c.storage_retries.load(std::memory_order_relaxed);
   return s;
 }
 
@@ -101,10 +105,13 @@ std::string format_status_line(const daemon_status_t& s) {
   }
   return fmt::format(
       "status: received={} stored={} rejected={}{}{} missing_by_seq={} queue={}/{} "
-      "overflow={} spacecraft={} refits={} (failed {})",
+      "overflow={} spacecraft={} refits={} (failed {}) storage={} (pending {}, failures {}, "
+      "retries {})",
       s.received, s.stored, s.rejected, reasons.empty() ? "" : " (",
       reasons.empty() ? "" : reasons.substr(1) + ")", s.missing_by_seq, s.queue_depth,
-      s.queue_capacity, s.queue_overflow, s.n_spacecraft, s.refits_run, s.refits_failed);
+      s.queue_capacity, s.queue_overflow, s.n_spacecraft, s.refits_run, s.refits_failed,
+      s.storage_healthy ? "healthy" : "FAILING", s.storage_pending, s.storage_failures,
+      s.storage_retries);
 }
 
 }  // namespace magcal

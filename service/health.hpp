@@ -2,7 +2,12 @@
 // numbers in the log at a lower rate).
 //
 // Invariant the tests check: received = stored + rejected (all reasons) + queue_overflow
-// + samples still in flight (queue and uncommitted batch). An undecodable frame counts as one
+// + samples still in flight (queue and uncommitted batch). A daemon that stops because storage
+// stays broken counts every received sample it could not commit as storage_error.
+//
+// Storage health: a storage operation that fails is kept and retried with backoff
+// (service/storage_retry.hpp); while any is failing, storage_healthy() is false (the status
+// message says so, and /-/healthy will answer 503). An undecodable frame counts as one
 // received and one rejected (decode_error / wrong_type): its sample count is unknowable.
 #pragma once
 
@@ -34,7 +39,7 @@ enum class RejectReason : int {
   kTimeOutOfRange,     // utime outside 1990-01-01 .. 2100-01-01 (corrupt time tag)
   kTimeJump,           // held past the stream's newest time, then contradicted by the stream
   kJumpUnconfirmed,    // still held (uncorroborated) at shutdown
-  kStorageError,       // the database refused the batch (logged as an error)
+  kStorageError,       // not committed: storage stayed broken until magcald stopped (logged)
   kCount
 };
 constexpr int kRejectReasonCount = static_cast<int>(RejectReason::kCount);
@@ -53,6 +58,14 @@ struct DaemonCounters {
   std::atomic<int64_t> refits_accepted{0};
   std::atomic<int64_t> last_refit_utime{0};
   std::atomic<int32_t> n_spacecraft{0};
+  // Storage (service/storage_retry.hpp): paths failing now, failed attempts, retries, and the
+  // samples the worker holds uncommitted (a gauge it sets).
+  std::atomic<int32_t> storage_failing_paths{0};
+  std::atomic<int64_t> storage_failures{0};
+  std::atomic<int64_t> storage_retries{0};
+  std::atomic<int64_t> storage_pending{0};
+
+  bool storage_healthy() const { return storage_failing_paths.load() == 0; }
 
   void reject(RejectReason r, int64_t n = 1) {
     rejected[static_cast<int>(r)].fetch_add(n, std::memory_order_relaxed);

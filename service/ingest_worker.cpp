@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <limits>
+#include <span>
+#include <thread>
 
 #include <spdlog/spdlog.h>
 
@@ -46,11 +48,14 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
       field_(std::move(field)),
       hooks_(std::move(hooks)),
       validator_(validator_options(config)),
-      db_(config.storage.db_path),
+      db_(config.storage.db_path,
+          storage::OpenOptions{.busy_timeout_ms = config.storage.busy_timeout_ms}),
       samples_(db_),
       history_(db_),
       filter_states_(db_),
-      fleet_(config.ukf.filter) {
+      fleet_(config.ukf.filter),
+      commit_retry_("commit", config.storage.max_failure_s, counters),
+      read_retry_("duplicate check", config.storage.max_failure_s, counters) {
   pending_.reserve(static_cast<size_t>(config.storage.commit_every_samples));
   if (config.data_clock()) {
     const auto minute = parse_daily_time_utc(config.refit.daily_at_utc);
@@ -116,7 +121,10 @@ bool IngestWorker::is_duplicate(const std::string& sat_id, int64_t utime) {
   for (const auto& p : pending_) {
     if (p.utime == utime && p.sat_id == sat_id) return true;
   }
-  return samples_.count_in_window(sat_id, utime, utime + 1) > 0;
+  // Reads work through most faults (WAL readers never wait for the writer); one that fails is
+  // retried in place: the sample must not be taken before its answer.
+  return read_retry_.run_blocking(
+      [&] { return samples_.count_in_window(sat_id, utime, utime + 1) > 0; });
 }
 
 void IngestWorker::reject_sample(RejectReason r, const std::string& sat, const mag_sample_t& s) {
@@ -289,47 +297,81 @@ void IngestWorker::commit_if_due() {
         std::chrono::duration<double, std::milli>(now - first_pending_time_).count();
     if (age_ms >= config_.storage.commit_every_ms || pending_.empty()) commit();
   }
-  if (!retention_dirty_.empty() &&
+  if (!retention_dirty_.empty() && !commit_retry_.failing() &&
       std::chrono::duration<double>(now - last_retention_time_).count() >= kRetentionEvery_s) {
     run_retention();
   }
 }
 
 void IngestWorker::commit() {
-  if (!pending_.empty()) {
+  if ((!pending_.empty() || !pending_snapshots_.empty()) && commit_retry_.due()) {
+    commit_retry_.attempting();
     try {
-      const auto stats = samples_.insert_batch(pending_);
-      counters_.stored.fetch_add(stats.inserted, std::memory_order_relaxed);
-      // Duplicates the in-memory check could not see (e.g. within one frame).
-      if (stats.duplicates > 0) counters_.reject(RejectReason::kDuplicate, stats.duplicates);
+      commit_pending();
+      commit_retry_.succeeded();
     } catch (const storage::StorageError& e) {
-      counters_.reject(RejectReason::kStorageError, static_cast<int64_t>(pending_.size()));
-      spdlog::error("database: {} samples not stored: {}", pending_.size(), e.what());
+      // Samples and snapshots stay pending (the UKF has used them: they must be stored).
+      commit_retry_.failed(e);  // throws StorageOutage when storage stays broken
+      return;
     }
-    pending_.clear();
-  }
-  if (!pending_snapshots_.empty()) {
-    try {
-      storage::Transaction tx(db_);
-      for (const auto& [sat, snap] : pending_snapshots_)
-        history_.append(record_from_result(sat, snap));
-      tx.commit();
-      counters_.snapshots.fetch_add(static_cast<int64_t>(pending_snapshots_.size()));
-      if (hooks_.on_snapshot) {
-        for (const auto& [sat, snap] : pending_snapshots_) hooks_.on_snapshot(sat, snap);
-      }
-    } catch (const storage::StorageError& e) {
-      spdlog::error("database: {} UKF snapshots not stored: {}", pending_snapshots_.size(),
-                    e.what());
-    }
-    pending_snapshots_.clear();
   }
   // Retention by data time too, so a fast replay keeps its windows as a live feed would.
-  if (!retention_dirty_.empty() &&
+  if (!retention_dirty_.empty() && !commit_retry_.failing() &&
       (data_clock_utime_ - last_retention_data_utime_ >= kRetentionEveryData_utime ||
        std::chrono::duration<double>(std::chrono::steady_clock::now() - last_retention_time_)
                .count() >= kRetentionEvery_s)) {
     run_retention();
+  }
+}
+
+void IngestWorker::commit_pending() {
+  // In WAL mode SQLite keeps committing into a deleted or replaced file without an error:
+  // check first, so nothing is committed where no one will find it.
+  db_.check_file_in_place();
+  // A backlog left by a storage fault goes in transactions of commit_every_samples: each holds
+  // the write lock briefly, and on a nearly full disk every chunk that fits is stored. The
+  // snapshots go with the last chunk (published once stored).
+  const auto chunk = static_cast<size_t>(config_.storage.commit_every_samples);
+  size_t done = 0;
+  try {
+    while (done < pending_.size() || !pending_snapshots_.empty()) {
+      const size_t n = std::min(chunk, pending_.size() - done);
+      const bool last = done + n == pending_.size();
+      storage::InsertStats stats;
+      {
+        storage::Transaction tx(db_);
+        stats = samples_.insert_batch(std::span(pending_).subspan(done, n));
+        if (last) {
+          for (const auto& [sat, snap] : pending_snapshots_) {
+            history_.append(record_from_result(sat, snap));
+          }
+        }
+        tx.commit();
+      }
+      done += n;
+      counters_.stored.fetch_add(stats.inserted, std::memory_order_relaxed);
+      // Duplicates the in-memory check could not see (e.g. within one frame).
+      if (stats.duplicates > 0) counters_.reject(RejectReason::kDuplicate, stats.duplicates);
+      if (last && !pending_snapshots_.empty()) {
+        counters_.snapshots.fetch_add(static_cast<int64_t>(pending_snapshots_.size()));
+        if (hooks_.on_snapshot) {
+          for (const auto& [sat, snap] : pending_snapshots_) hooks_.on_snapshot(sat, snap);
+        }
+        pending_snapshots_.clear();
+      }
+    }
+  } catch (const storage::StorageError&) {
+    // What was committed leaves the batch; the rest stays pending for the retry.
+    pending_.erase(pending_.begin(), pending_.begin() + static_cast<std::ptrdiff_t>(done));
+    throw;
+  }
+  pending_.clear();
+}
+
+void IngestWorker::flush() {
+  while (!pending_.empty() || !pending_snapshots_.empty()) {
+    if (!commit_retry_.due()) std::this_thread::sleep_until(commit_retry_.next_attempt());
+    commit();
   }
 }
 
@@ -339,18 +381,22 @@ void IngestWorker::run_retention() {
   const int64_t window = config_.window_utime();
   const auto margin = static_cast<int64_t>(config_.storage.retention_margin_hours * 3.6e9);
   const int64_t floor = retention_floor_.load();
+  std::vector<std::string> failed;
   for (const auto& sat : retention_dirty_) {
     SpacecraftTracker* t = fleet_.find(sat);
     if (!t || t->newest_utime == kNoTime) continue;
-    t->retention_due = false;
     const int64_t cutoff = std::min(saturating_sub(t->newest_utime, window + margin), floor);
     try {
       samples_.delete_before(sat, cutoff, kRetentionChunkRows);
+      t->retention_due = false;
     } catch (const storage::StorageError& e) {
-      spdlog::error("database: retention of '{}' failed: {}", sat, e.what());
+      // Nothing is lost by deleting later: kept for the next round.
+      counters_.storage_failures.fetch_add(1, std::memory_order_relaxed);
+      spdlog::error("database: retention of '{}' failed, retried later: {}", sat, e.what());
+      failed.push_back(sat);
     }
   }
-  retention_dirty_.clear();
+  retention_dirty_.swap(failed);
 }
 
 void IngestWorker::check_data_clock() {
@@ -363,27 +409,35 @@ void IngestWorker::check_data_clock() {
     refits_skipped_logged_ = data_scheduler_->skipped();
   }
   if (due.empty()) return;
-  commit();  // the refit reads what is committed: everything up to t_ref
+  flush();  // the refit reads what is committed: everything up to t_ref
   for (const int64_t t : due) {
     if (hooks_.on_refit_due) hooks_.on_refit_due(t);
   }
 }
 
 void IngestWorker::save_filter_states() {
+  // A saved state must not include samples that are not stored: after a crash they come again
+  // (re-replay, recorder dump) and the restored filter would use them twice.
+  commit();
+  if (!pending_.empty()) return;  // storage failing: saved once the commit goes through
+  std::vector<SpacecraftTracker*> saved;
   try {
+    db_.check_file_in_place();
     storage::Transaction tx(db_);
-    int n = 0;
     fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
       if (!t.state_dirty) return;
       filter_states_.save(stored_filter_state(sat, "ukf", t.ukf.state()));
-      t.state_dirty = false;
-      ++n;
+      saved.push_back(&t);
     });
     tx.commit();
-    if (n > 0) spdlog::debug("saved {} filter states", n);
   } catch (const storage::StorageError& e) {
-    spdlog::error("database: filter states not saved: {}", e.what());
+    // Still dirty: saved next time. Without it a restart re-runs the UKF over the stored window.
+    counters_.storage_failures.fetch_add(1, std::memory_order_relaxed);
+    spdlog::error("database: filter states not saved, retried later: {}", e.what());
+    return;
   }
+  for (SpacecraftTracker* t : saved) t->state_dirty = false;
+  if (!saved.empty()) spdlog::debug("saved {} filter states", saved.size());
 }
 
 void IngestWorker::post_reanchor(const std::string& sat_id, const CalibrationResult& refit) {

@@ -6,6 +6,12 @@
 // (commit_every_samples or commit_every_ms, whichever first); retention runs in small
 // transactions after commits. With the data clock it also decides when refits are due.
 //
+// Storage faults (service/storage_retry.hpp): a failed commit keeps its samples and snapshots
+// pending and is retried with backoff (snapshots are published only once stored); the caller
+// stops feeding process() while backlogged() (pending at [storage] max_pending_samples). The
+// duplicate check retries in place. Storage broken for [storage] max_failure_s (or a permanent
+// error) throws StorageOutage out of process() / commit_if_due() / commit() / flush().
+//
 // Owns its own database connection and everything it touches, so it runs on one thread; the
 // only cross-thread entry points are post_reanchor() and the retention floor.
 //
@@ -32,6 +38,7 @@
 #include "service/refit_scheduler.hpp"
 #include "service/sample_validator.hpp"
 #include "service/spacecraft_tracker.hpp"
+#include "service/storage_retry.hpp"
 #include "service/throttled_log.hpp"
 #include "storage/calibration_history.hpp"
 #include "storage/database.hpp"
@@ -61,9 +68,24 @@ class IngestWorker {
   void process(const IngestItem& item);
   // Commits when the pending batch is full or old enough; call regularly.
   void commit_if_due();
-  // Commits pending samples and snapshots now (one transaction), then runs retention.
+  // Commits pending samples and snapshots now (one transaction), then runs retention. After a
+  // failure, a no-op until the retry backoff has elapsed.
   void commit();
-  // Writes the filter state of every spacecraft whose filter changed since the last write.
+  // Commits everything pending, retrying through the backoff until it is stored; throws
+  // StorageOutage when storage stays broken (shutdown, and before a data-clock refit).
+  void flush();
+  // Pending at [storage] max_pending_samples: take no more frames until a commit succeeds.
+  bool backlogged() const {
+    return static_cast<int64_t>(pending_.size()) >= config_.storage.max_pending_samples;
+  }
+  // A failed commit is waiting for its retry.
+  bool commit_failing() const { return commit_retry_.failing(); }
+  std::chrono::steady_clock::time_point next_commit_attempt() const {
+    return commit_retry_.next_attempt();
+  }
+  // Commits, then writes the filter state of every spacecraft whose filter changed since the
+  // last write (not while samples it has used are uncommitted). A failure is logged and counted;
+  // the states are written next time.
   void save_filter_states();
   // At shutdown, before the last commit: every sample still held for corroboration of its time
   // (spacecraft_tracker.hpp) is rejected as time_jump_unconfirmed, so it is counted.
@@ -81,6 +103,7 @@ class IngestWorker {
   int64_t data_clock_utime() const { return data_clock_utime_; }
   size_t n_spacecraft() const { return fleet_.size(); }
   int64_t pending_samples() const { return static_cast<int64_t>(pending_.size()); }
+  int64_t pending_snapshots() const { return static_cast<int64_t>(pending_snapshots_.size()); }
   SpacecraftFleet& fleet() { return fleet_; }
 
  private:
@@ -98,6 +121,7 @@ class IngestWorker {
   void apply_reanchors();
   void run_retention();
   void check_data_clock();
+  void commit_pending();
 
   const DaemonConfig config_;  // a copy: callers may pass a temporary
   DaemonCounters& counters_;
@@ -111,6 +135,8 @@ class IngestWorker {
   SpacecraftFleet fleet_;
   ThrottledLog warnings_;
   std::optional<RefitScheduler> data_scheduler_;
+  StorageRetry commit_retry_;
+  StorageRetry read_retry_;
 
   std::vector<storage::StoredSample> pending_;
   std::vector<std::pair<std::string, CalibrationResult>> pending_snapshots_;

@@ -127,15 +127,20 @@ void LcmIngest::on_frame(const lcm::ReceiveBuffer* rbuf, bool batch) {
   queue_.push(std::move(item));  // overflow is counted by the queue
 }
 
-LcmIngest::End LcmIngest::run(const std::atomic<bool>& stop, bool is_file_provider) {
+LcmIngest::End LcmIngest::run(const std::atomic<bool>& stop, bool is_file_provider,
+                              const std::atomic<bool>* abort) {
+  auto stopped = [&] {
+    return stop.load(std::memory_order_relaxed) ||
+           (abort && abort->load(std::memory_order_relaxed));
+  };
   int failures = 0;
-  while (!stop.load(std::memory_order_relaxed)) {
+  while (!stopped()) {
     const int rc = lcm_.handleTimeout(100);
     if (rc >= 0) {
       failures = 0;
       continue;
     }
-    if (stop.load(std::memory_order_relaxed)) break;  // a signal interrupted the wait
+    if (stopped()) break;  // a signal interrupted the wait
     if (is_file_provider) return End::kEndOfLog;
     // Live provider: an interrupted wait (EINTR) is harmless; a provider that keeps failing
     // is not.

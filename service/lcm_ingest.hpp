@@ -37,9 +37,10 @@ class LcmIngest {
   LcmIngest(const LcmIngest&) = delete;
   LcmIngest& operator=(const LcmIngest&) = delete;
 
-  // Receives until `stop` is set (kStopped), the log ends (kEndOfLog: file:// only) or the
-  // provider fails (kError).
-  End run(const std::atomic<bool>& stop, bool is_file_provider);
+  // Receives until `stop` or `*abort` is set (kStopped), the log ends (kEndOfLog: file://
+  // only) or the provider fails (kError).
+  End run(const std::atomic<bool>& stop, bool is_file_provider,
+          const std::atomic<bool>* abort = nullptr);
 
  private:
   static void on_samples(const lcm::ReceiveBuffer* rbuf, const std::string& channel,

@@ -2,7 +2,8 @@
 // config"). Flags override the config file, which overrides the built-in defaults.
 //   magcald [--config FILE.toml] [--db FILE] [--lcm-url URL] [--log-level LEVEL]
 // Exit codes: 0 ok (stopped by SIGINT/SIGTERM or end of a replayed log), 1 usage or bad
-// config, 2 database / LCM / data error.
+// config, 2 database / LCM / data error at start, 3 storage failed for [storage] max_failure_s
+// while running, 4 a worker or refit thread died (service/daemon.hpp).
 #include <atomic>
 #include <csignal>
 #include <iostream>

@@ -43,6 +43,8 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
     out.job_id = jobs_.start(sat_id, trigger, scheduled_utime, wall_utime());
   } catch (const storage::StorageError& e) {
     out.message = std::string("cannot write the job row: ") + e.what();
+    out.sqlite_code = e.sqlite_code();
+    out.transient_error = e.transient();
     return out;
   }
   try {
@@ -90,6 +92,8 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
     out.kind = RefitOutcome::Kind::kError;
     out.job_outcome = storage::job_outcome::kFailed;
     out.message = e.what();
+    out.sqlite_code = e.sqlite_code();
+    out.transient_error = e.transient();
     try {
       jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message);
     } catch (const storage::StorageError&) {

@@ -37,6 +37,10 @@ struct RefitOutcome {
   int64_t job_id = 0;
   int64_t calibration_id = 0;
   int n_window_samples = 0;
+  // kError: SQLite's extended result code and whether a retry may heal it
+  // (storage::StorageError::transient()); the daemon's refit thread retries those.
+  int sqlite_code = 0;
+  bool transient_error = false;
   // Accepted by the gates and a valid estimate: the UKF may re-anchor on it.
   bool accepted() const {
     return kind == Kind::kComputed && result.accepted && result.status == CalibrationStatus::kOk;

@@ -32,10 +32,14 @@ Database::Database(const std::string& path, const OpenOptions& options)
   const int rc = sqlite3_open_v2(path.c_str(), &db_, flags, nullptr);
   if (rc != SQLITE_OK) {
     std::string msg = db_ ? sqlite3_errmsg(db_) : sqlite3_errstr(rc);
+    const int code = db_ ? sqlite3_extended_errcode(db_) : rc;
     sqlite3_close(db_);
     db_ = nullptr;
-    throw StorageError(StorageError::Kind::kSqlite, "cannot open database " + path + ": " + msg);
+    throw StorageError(StorageError::Kind::kSqlite, "cannot open database " + path + ": " + msg,
+                       code);
   }
+  // Every error carries its extended code (SQLITE_IOERR_WRITE, SQLITE_BUSY_SNAPSHOT, ...).
+  sqlite3_extended_result_codes(db_, 1);
   try {
     configure(options);
     check_and_migrate(options);
@@ -67,6 +71,23 @@ Database& Database::operator=(Database&& other) noexcept {
   return *this;
 }
 
+bool StorageError::transient() const {
+  switch (sqlite_code_ & 0xff) {
+    case SQLITE_BUSY:
+    case SQLITE_LOCKED:
+    case SQLITE_IOERR:
+    case SQLITE_FULL:
+    case SQLITE_READONLY:
+    case SQLITE_CANTOPEN:
+    case SQLITE_PROTOCOL:
+      return true;
+    default:
+      return false;
+  }
+}
+
+static_assert(kSqliteReadonlyDbMoved == SQLITE_READONLY_DBMOVED);
+
 void Database::configure(const OpenOptions& options) {
   // A reader (the CLI, the sqlite3 shell) or a second writer (`magcal refit`) holding a lock
   // must make us wait briefly, never fail: the daemon's ingest would otherwise drop batches.
@@ -75,6 +96,13 @@ void Database::configure(const OpenOptions& options) {
   // SQLite and per connection.
   exec("PRAGMA foreign_keys = ON");
   if (options.read_only) return;
+  // SQLite silently falls back to a read-only open when the file is not writable: say so now
+  // (a clear error at start) rather than at the first commit.
+  if (sqlite3_db_readonly(db_, "main") == 1) {
+    throw StorageError(StorageError::Kind::kSqlite,
+                       "cannot open database " + path_ + " for writing (read-only file?)",
+                       SQLITE_READONLY);
+  }
   // WAL: readers never block the writer and see a consistent snapshot while it writes; a
   // crash leaves every committed transaction intact. Persistent in the file.
   exec("PRAGMA journal_mode = WAL");
@@ -161,7 +189,7 @@ void Database::exec(std::string_view sql) {
     sqlite3_free(err);
     const auto kind = (rc & 0xff) == SQLITE_NOTADB ? StorageError::Kind::kForeignFile
                                                    : StorageError::Kind::kSqlite;
-    throw StorageError(kind, path_ + ": " + msg);
+    throw StorageError(kind, path_ + ": " + msg, rc);
   }
 }
 
@@ -177,6 +205,18 @@ std::string Database::integrity_check() {
     report += st.column_text(0);
   }
   return report;
+}
+
+void Database::check_file_in_place() {
+  int moved = 0;
+  if (sqlite3_file_control(db_, "main", SQLITE_FCNTL_HAS_MOVED, &moved) != SQLITE_OK) return;
+  if (moved) {
+    throw StorageError(StorageError::Kind::kSqlite,
+                       path_ +
+                           ": the database file was deleted, renamed or replaced while open; "
+                           "nothing more is committed into it",
+                       SQLITE_READONLY_DBMOVED);
+  }
 }
 
 Transaction::Transaction(Database& db, Mode mode) : db_(db) {

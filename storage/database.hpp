@@ -1,9 +1,13 @@
 // The SQLite connection of magcal: opening, pragmas, schema migrations, transactions.
 //
 // Error policy (whole storage/ library): every failure is thrown as the one exception type
-// StorageError (with a Kind), and the service catches it at its edge (CLI run_*, daemon start /
-// worker loop) to print one line and choose an exit code. Data outcomes that are not failures
-// are values: duplicate samples are counted in InsertStats, "not found" is std::nullopt.
+// StorageError (with a Kind and, for SQLite failures, SQLite's extended result code), and the
+// service catches it at its edge (CLI run_*, daemon start / worker loop) to print one line and
+// choose an exit code. transient() separates what a retry can heal (a lock held past the busy
+// timeout, I/O error, full disk, the file deleted / moved / made read-only underneath) from
+// what it cannot (corrupt or foreign file, schema, constraint, bad argument): the daemon
+// retries the first kind (service/storage_retry.hpp). Data outcomes that are not failures are
+// values: duplicate samples are counted in InsertStats, "not found" is std::nullopt.
 //
 // Threads: a Database and the stores built on it belong to one thread at a time (prepared
 // statements are per connection). Give each thread (ingest worker, refit scheduler, CLI) its own
@@ -37,12 +41,25 @@ class StorageError : public std::runtime_error {
     kInvalidArgument,
     kSqlite,  // any other SQLite error (I/O, corrupt, busy after the timeout, ...)
   };
-  StorageError(Kind kind, const std::string& what) : std::runtime_error(what), kind_(kind) {}
+  // sqlite_code: SQLite's extended result code (SQLITE_BUSY, SQLITE_IOERR_WRITE, ...), 0 when
+  // the failure is not SQLite's (kNotFound, kNewerSchema, ...).
+  StorageError(Kind kind, const std::string& what, int sqlite_code = 0)
+      : std::runtime_error(what), kind_(kind), sqlite_code_(sqlite_code) {}
   Kind kind() const { return kind_; }
+  int sqlite_code() const { return sqlite_code_; }
+  // May heal by itself: SQLITE_BUSY, SQLITE_LOCKED, SQLITE_IOERR, SQLITE_FULL, SQLITE_READONLY,
+  // SQLITE_CANTOPEN, SQLITE_PROTOCOL (each with its extended codes). Everything else is
+  // permanent for this file and this code.
+  bool transient() const;
 
  private:
   Kind kind_;
+  int sqlite_code_ = 0;
 };
+
+// SQLITE_READONLY_DBMOVED, used for a database file deleted, renamed or replaced while open
+// (Database::check_file_in_place()); equals SQLite's own code.
+constexpr int kSqliteReadonlyDbMoved = 8 | (4 << 8);
 
 struct OpenOptions {
   // Read-only never creates, migrates or writes a file (the CLI's history/status use it).
@@ -78,6 +95,11 @@ class Database {
   int64_t last_insert_id() const;
   // Runs `PRAGMA integrity_check`; returns "ok" on a sound file, else SQLite's report.
   std::string integrity_check();
+  // Throws a transient StorageError (SQLITE_READONLY_DBMOVED) when the file at path() is no
+  // longer the one this connection has open (deleted, renamed or replaced underneath). In WAL
+  // mode SQLite keeps committing into the unlinked file without an error, so a writer that
+  // must not lose data checks this before each commit (one stat; no-op for ":memory:").
+  void check_file_in_place();
 
   sqlite3* handle() const { return db_; }
 

@@ -16,7 +16,7 @@ namespace {
   std::string msg(context);
   msg += ": ";
   msg += db ? sqlite3_errmsg(db) : sqlite3_errstr(rc);
-  throw StorageError(kind, msg);
+  throw StorageError(kind, msg, rc);
 }
 
 }  // namespace

@@ -29,6 +29,9 @@ TEST_CASE("defaults are valid and match design.md", "[daemon_config]") {
   CHECK(c.service.whitelist.empty());
   CHECK(c.ingest.max_time_jump_s == 3600.0);
   CHECK(c.ingest.max_future_s == 300.0);
+  CHECK(c.storage.max_failure_s == 60.0);
+  CHECK(c.storage.max_pending_samples == 200000);
+  CHECK(c.storage.busy_timeout_ms == 5000);
 }
 
 TEST_CASE("the example config lists every key with exactly the defaults", "[daemon_config]") {
@@ -40,6 +43,9 @@ TEST_CASE("the example config lists every key with exactly the defaults", "[daem
   CHECK(c.lcm.publish_url == d.lcm.publish_url);
   CHECK(c.storage.commit_every_samples == d.storage.commit_every_samples);
   CHECK(c.storage.commit_every_ms == d.storage.commit_every_ms);
+  CHECK(c.storage.busy_timeout_ms == d.storage.busy_timeout_ms);
+  CHECK(c.storage.max_failure_s == d.storage.max_failure_s);
+  CHECK(c.storage.max_pending_samples == d.storage.max_pending_samples);
   CHECK(c.refit.robust == d.refit.robust);
   CHECK(c.ukf.filter.process_noise_per_sqrt_hour == d.ukf.filter.process_noise_per_sqrt_hour);
   CHECK(c.ukf.filter.alpha == d.ukf.filter.alpha);
@@ -132,6 +138,10 @@ TEST_CASE("unknown keys, bad types and bad values name the key", "[daemon_config
       {"[ingest]\nmax_time_jump_s = 0\n", "[ingest] max_time_jump_s"},
       {"[ingest]\nmax_future_s = -1\n", "[ingest] max_future_s"},
       {"[ingest]\nmax_future_s = inf\n", "[ingest] max_future_s"},
+      {"[storage]\nmax_failure_s = 0\n", "[storage] max_failure_s: must be > 0"},
+      {"[storage]\nbusy_timeout_ms = -1\n", "[storage] busy_timeout_ms: must be >= 0"},
+      {"[storage]\nmax_pending_samples = 100\n",
+       "[storage] max_pending_samples: must be >= commit_every_samples"},
       {"lcm = 3\n", "[lcm] must be a table"},
       {"[storage\n", "t.toml:1"},
   };

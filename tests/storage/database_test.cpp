@@ -236,3 +236,55 @@ TEST_CASE("a transaction rolls back unless committed, and nests as a savepoint")
   CHECK(meta.get("b") == "1");
   CHECK_FALSE(meta.get("c").has_value());
 }
+
+TEST_CASE("errors carry SQLite's result code: transient faults apart from permanent ones") {
+  TempDir tmp;
+  const OpenOptions no_wait{.busy_timeout_ms = 0};
+  Database writer(tmp.file("codes.db"), no_wait);
+  Database other(tmp.file("codes.db"), no_wait);
+  writer.exec("CREATE TABLE t (x INTEGER NOT NULL)");
+  {
+    // Another connection holds the write lock: BUSY, which a retry can heal.
+    Transaction held(other);
+    try {
+      Transaction tx(writer);
+      FAIL("a second writer got the write lock");
+    } catch (const StorageError& e) {
+      CHECK((e.sqlite_code() & 0xff) == 5);  // SQLITE_BUSY
+      CHECK(e.transient());
+    }
+  }
+  Transaction tx(writer);  // released: the same call now succeeds
+  tx.commit();
+  // A constraint violation is permanent: retrying the same row cannot succeed.
+  try {
+    writer.exec("INSERT INTO t VALUES (NULL)");
+    FAIL("NULL accepted in a NOT NULL column");
+  } catch (const StorageError& e) {
+    CHECK((e.sqlite_code() & 0xff) == 19);  // SQLITE_CONSTRAINT
+    CHECK_FALSE(e.transient());
+  }
+  // Not SQLite's failure at all: no code, not transient.
+  CHECK_FALSE(StorageError(StorageError::Kind::kNewerSchema, "x").transient());
+}
+
+TEST_CASE("a database file deleted or moved while open is reported, not written into") {
+  TempDir tmp;
+  const std::string path = tmp.file("moving.db");
+  Database db(path);
+  CHECK_NOTHROW(db.check_file_in_place());
+  fs::rename(path, tmp.file("elsewhere.db"));
+  try {
+    db.check_file_in_place();
+    FAIL("the move went unnoticed");
+  } catch (const StorageError& e) {
+    CHECK(e.sqlite_code() == kSqliteReadonlyDbMoved);
+    CHECK(e.transient());  // moved back, it works again
+  }
+  fs::rename(tmp.file("elsewhere.db"), path);
+  CHECK_NOTHROW(db.check_file_in_place());
+  fs::remove(path);
+  CHECK_THROWS_AS(db.check_file_in_place(), StorageError);
+  Database memory(":memory:");
+  CHECK_NOTHROW(memory.check_file_in_place());
+}
