@@ -3,7 +3,9 @@
 #include <cmath>
 
 namespace magcal {
+namespace {
 
+// Hysteresis signs s_k (per axis) from the calibrated vectors of p, in sample order.
 std::vector<Eigen::Vector3d> hysteresis_signs(const SampleSet& samples,
                                               const CalibrationParameters& p) {
   const std::size_t n = samples.size();
@@ -24,6 +26,8 @@ std::vector<Eigen::Vector3d> hysteresis_signs(const SampleSet& samples,
   return s;
 }
 
+}  // namespace
+
 std::vector<Vector6d> model_extension_regressors(const SampleSet& samples,
                                                  const CalibrationParameters& p) {
   const std::vector<Eigen::Vector3d> s = hysteresis_signs(samples, p);
@@ -33,11 +37,6 @@ std::vector<Vector6d> model_extension_regressors(const SampleSet& samples,
     phi[k] << 2.0 * y.cwiseAbs2().cwiseProduct(y), 2.0 * y.cwiseProduct(s[k]);
   }
   return phi;
-}
-
-Eigen::Vector3d apply_model_extension(const Eigen::Vector3d& y, const Vector6d& a,
-                                      const Eigen::Vector3d& hysteresis_sign) {
-  return y - a.head<3>().cwiseProduct(y.cwiseAbs2()) - a.tail<3>().cwiseProduct(hysteresis_sign);
 }
 
 bool bic_prefers_extension(double chi2_base, double chi2_extended, int n_samples) {

@@ -31,15 +31,6 @@ namespace magcal {
 std::vector<Vector6d> model_extension_regressors(const SampleSet& samples,
                                                  const CalibrationParameters& p);
 
-// The calibrated vector with the extension removed: y - k .* y.^2 - eta .* s
-// (s: the sample's hysteresis signs, the last three entries of phi / (2 y), recomputed).
-Eigen::Vector3d apply_model_extension(const Eigen::Vector3d& y, const Vector6d& a,
-                                      const Eigen::Vector3d& hysteresis_sign);
-
-// Hysteresis signs s_k (per axis) from the calibrated vectors of p, in sample order.
-std::vector<Eigen::Vector3d> hysteresis_signs(const SampleSet& samples,
-                                              const CalibrationParameters& p);
-
 // BIC prefers the 6 extra parameters when this is true.
 bool bic_prefers_extension(double chi2_base, double chi2_extended, int n_samples);
 
