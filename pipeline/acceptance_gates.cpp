@@ -4,7 +4,7 @@
 #include <cmath>
 #include <cstdio>
 
-#include <Eigen/Eigenvalues>
+#include <Eigen/Dense>
 
 namespace magcal {
 
@@ -109,6 +109,21 @@ void bounds_gate(const CalibrationResult& r, const GateOptions& o, GateVerdict& 
   }
 }
 
+// d^T (P1 + P2)^-1 d for one block of the parameter difference; NaN when P1 + P2 is not
+// positive definite (solved in the diagonally scaled form: nT and dimensionless D).
+template <int N>
+double change_chi_square(const Eigen::Matrix<double, N, 1>& d,
+                         const Eigen::Matrix<double, N, N>& P) {
+  const Eigen::Matrix<double, N, 1> diag = P.diagonal();
+  if (!(diag.minCoeff() > 0.0) || !P.allFinite()) return kNaN;
+  const Eigen::Matrix<double, N, 1> inv = diag.cwiseSqrt().cwiseInverse();
+  const Eigen::Matrix<double, N, N> Ps = inv.asDiagonal() * P * inv.asDiagonal();
+  const Eigen::LDLT<Eigen::Matrix<double, N, N>> ldlt(Ps);
+  if (ldlt.info() != Eigen::Success || !(ldlt.vectorD().minCoeff() > 1e-12)) return kNaN;
+  const Eigen::Matrix<double, N, 1> ds = inv.cwiseProduct(d);
+  return ds.dot(ldlt.solve(ds));
+}
+
 void change_gate(const CalibrationResult& r, const GateInputs& in, const GateOptions& o,
                  GateVerdict& v) {
   if (in.previous_accepted == nullptr) {
@@ -116,23 +131,32 @@ void change_gate(const CalibrationResult& r, const GateInputs& in, const GateOpt
     return;
   }
   const CalibrationResult& prev = *in.previous_accepted;
-  const Vector9d p = r.parameters.packed();
-  const Vector9d q = prev.parameters.packed();
-  for (int i = 0; i < 9; ++i) {
-    const double var = r.covariance(i, i) + prev.covariance(i, i);
-    const double sigma_comb = var > 0.0 ? std::sqrt(var) : 0.0;
-    const double floor = i < 3 ? o.bias_change_floor_nT : o.D_change_floor;
-    const double limit = std::max(o.max_change_sigma * sigma_comb, floor);
-    const double change = std::abs(p(i) - q(i));
-    if (!(change <= limit)) {
-      if (i < 3)
-        v.reasons.push_back(
-            format("bias_change %s %.1f nT > %.1f nT (%g sigma %.1f nT, floor %.1f nT)", kAxis[i],
-                   change, limit, o.max_change_sigma, sigma_comb, o.bias_change_floor_nT));
-      else
-        v.reasons.push_back(format("D_change %s %.5f > %.5f (%g sigma %.5f, floor %.5f)",
-                                   kDName[i - 3], change, limit, o.max_change_sigma, sigma_comb,
-                                   o.D_change_floor));
+  const Vector9d d = r.parameters.packed() - prev.parameters.packed();
+  const Matrix9d P = r.covariance + prev.covariance;
+  // Bias (3) and D (6) separately: a jump in either is a different physical event.
+  const Eigen::Vector3d db = d.head<3>();
+  const Vector6d dD = d.tail<6>();
+  const bool bias_below_floor = db.cwiseAbs().maxCoeff() <= o.bias_change_floor_nT;
+  const bool D_below_floor = dD.cwiseAbs().maxCoeff() <= o.D_change_floor;
+  if (!bias_below_floor) {
+    const double chi2 = change_chi_square<3>(db, P.topLeftCorner<3, 3>());
+    const double limit = chi_square_upper_quantile(3.0, o.change_tail_probability);
+    if (!(chi2 <= limit))
+      v.reasons.push_back(format(
+          "bias_change chi2 %.1f > %.1f (dof 3, p %g; change %.1f %.1f "
+          "%.1f nT, floor %.1f nT)",
+          chi2, limit, o.change_tail_probability, db(0), db(1), db(2), o.bias_change_floor_nT));
+  }
+  if (!D_below_floor) {
+    const double chi2 = change_chi_square<6>(dD, P.bottomRightCorner<6, 6>());
+    const double limit = chi_square_upper_quantile(6.0, o.change_tail_probability);
+    if (!(chi2 <= limit)) {
+      int worst = 0;
+      dD.cwiseAbs().maxCoeff(&worst);
+      v.reasons.push_back(format(
+          "D_change chi2 %.1f > %.1f (dof 6, p %g; largest %s %.5f, floor "
+          "%.5f)",
+          chi2, limit, o.change_tail_probability, kDName[worst], dD(worst), o.D_change_floor));
     }
   }
 }
@@ -150,8 +174,9 @@ std::string GateOptions::validate() const {
     return "gates min_coverage_eigenvalue must be in [0, 1/3]";
   if (!(max_bias_nT > 0.0) || !(max_scale > 0.0) || !(max_nonorthogonality > 0.0))
     return "gates parameter bounds must be > 0";
-  if (!(max_change_sigma > 0.0) || !(bias_change_floor_nT >= 0.0) || !(D_change_floor >= 0.0))
-    return "gates change thresholds must be > 0 (floors >= 0)";
+  if (!(change_tail_probability > 0.0 && change_tail_probability < 1.0) ||
+      !(bias_change_floor_nT >= 0.0) || !(D_change_floor >= 0.0))
+    return "gates change_tail_probability must be in (0, 1), floors >= 0";
   return {};
 }
 

@@ -3,7 +3,9 @@
 //
 //   validate input (count, NaN/Inf, |h| > 0, direction coverage)
 //   -> centered solution (estimation.md 2a, weights from B_k)
-//   -> [twostep] Levenberg–Marquardt refinement (2b, optional Huber IRLS)
+//   -> [twostep] Levenberg–Marquardt refinement (2b, optional Huber IRLS; from an algebraic
+//      ellipsoid fit when the centered solution is degenerate), HAC covariance, model
+//      extension when BIC prefers it (estimation.md section 7)
 //   -> recovery of b, D and their covariance (2c)
 //   -> residual rms of |B_cal| - |h|,  B_cal = (I + D) B - b  (|R^T v| = |v|)
 //   -> scaled Fisher condition number at the estimate (2d): unobservable above a limit
@@ -33,6 +35,9 @@ struct BatchCalibrationOptions {
   int max_iterations = 50;   // LM
   double tolerance = 1e-10;  // LM stop on dtheta^T F dtheta
   int min_samples = 20;
+  // twostep: also fit the sensor-model extension (per-axis nonlinearity and hysteresis,
+  // pipeline/model_extension.hpp) and keep it when BIC prefers it (off on white-noise data).
+  bool model_extension = true;
   // Hard geometry limits (beyond them no estimate is reported: kUnobservable). The acceptance
   // gates have their own, stricter, thresholds for "computed but not trusted".
   double min_coverage_eigenvalue = 1e-4;  // smallest eigenvalue of mean(d d^T), d = B/|B|

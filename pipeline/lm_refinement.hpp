@@ -8,7 +8,8 @@
 //   w_k = 1/sigma_k^2 at the current estimate: |y_k|^2 = |B_k|^2 - (L_k theta - |b|^2)
 //   LM step: (F + lambda diag F) dtheta = -sum w u J_k^T r_k,  F = sum w u J_k^T J_k
 //   stop when dtheta^T F dtheta < tolerance (chi-square units) or after max_iterations.
-//   Covariance: F^-1 (undamped, lambda = 0) with the weights at the solution.
+//   Covariance: F^-1 (undamped, lambda = 0) with the weights at the solution (white noise),
+//   and the HAC sandwich from the per-sample scores (pipeline/hac_covariance.hpp), reported.
 //
 // Robust mode (Huber IRLS): e_k = r_k sqrt(w_k) is the normalised residual, s = max(1, 1.4826
 // median |e_k|) a robust scale (1 when the model noise explains the residuals; larger when
@@ -18,6 +19,7 @@
 #pragma once
 
 #include <string>
+#include <vector>
 
 #include <Eigen/Core>
 
@@ -34,6 +36,9 @@ struct LmOptions {
   bool robust = false;
   double huber_k = 3.0;  // in units of the robust scale; 3: ~0.3 % of clean samples affected
   int min_samples = 10;
+  // Report the HAC (Newey–West) covariance, never below the white-noise one
+  // (pipeline/hac_covariance.hpp); false: the white-noise inverse information only.
+  bool hac = true;
   std::string validate() const;  // empty when valid
 };
 
@@ -51,8 +56,17 @@ struct LmResult {
   LmStatus status = LmStatus::kInvalidInput;
   std::string message;
   Vector9d theta = Vector9d::Zero();
-  Matrix9d theta_covariance = Matrix9d::Zero();  // F^-1 at the solution
-  int iterations = 0;                            // accepted or attempted outer iterations
+  // The covariance we stand behind: HAC sandwich, not below F^-1 (options.hac), else F^-1.
+  Matrix9d theta_covariance = Matrix9d::Zero();
+  Matrix9d theta_covariance_white = Matrix9d::Zero();  // F^-1 at the solution (statistical)
+  double noise_scale = 0.0;  // sqrt(chi2 / (n - 9)), chi2 = sum w u r^2 at the solution
+  double residual_autocorrelation = 0.0;  // lag 1, normalised residuals, sample order
+  int lag_window = 0;                     // HAC Bartlett lag window (samples)
+  std::vector<double> robust_weights;     // robust mode: u_k per sample (1 = kept unchanged)
+  int n_parameters = 9;                   // 9, or 15 with the model extension
+  Vector6d extension = Vector6d::Zero();  // refine_lm_extended: the coefficients a
+  Matrix6d extension_covariance = Matrix6d::Zero();  // white-noise, marginal
+  int iterations = 0;                                // accepted or attempted outer iterations
   bool converged = false;
   double cost = 0.0;       // J at the solution
   int n_downweighted = 0;  // robust mode: samples with u_k < 1
@@ -69,5 +83,13 @@ RowVector9d lm_residual_jacobian(const Vector9d& theta, const Eigen::Vector3d& b
 // Refines theta0 (e.g. the centered solution, or zero). When I + E is not positive definite at
 // theta0 the refinement starts from [c; 0].
 LmResult refine_lm(const SampleSet& samples, const Vector9d& theta0, const LmOptions& options = {});
+
+// The same refinement with 6 linear model-extension columns phi_k (fixed per sample, e.g. the
+// sensor nonlinearity and hysteresis terms of pipeline/model_extension.hpp):
+//   r_k = z_k - mu_k - L_k theta + |b(theta)|^2 - phi_k^T a,   unknowns [theta; a], a0 = 0.
+// theta_covariance(_white) are the marginal 9x9 blocks (a estimated jointly).
+LmResult refine_lm_extended(const SampleSet& samples, const Vector9d& theta0,
+                            const std::vector<Vector6d>& extension_regressors,
+                            const LmOptions& options = {});
 
 }  // namespace magcal

@@ -128,6 +128,9 @@ TimeOffsetResult estimate_time_offset(const SampleSet& samples, const ReferenceS
   BatchCalibrationOptions fit = options.fit;
   fit.alignment = false;  // only |h| is known here
   fit.gates = false;      // the profile needs the residual whatever the verdict
+  // One model at every offset: a BIC choice that flips between offsets would put steps into the
+  // residual profile the minimum is read from.
+  fit.model_extension = false;
 
   // Samples usable for every offset of the range: the whole interval [t + tau_min, t + tau_max]
   // inside the series and free of gaps (prefix count of gaps over the bracketing intervals).

@@ -1,5 +1,6 @@
 #include "service/calibration_record.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <cstring>
 #include <limits>
@@ -55,6 +56,15 @@ storage::CalibrationRecord record_from_result(const std::string& sat_id,
   rec.verdict = r.accepted ? "accepted" : "rejected";
   rec.rejection_reasons = r.rejection_reasons;
   rec.iterations = r.iterations;
+  rec.noise_scale = r.noise_scale;
+  rec.residual_autocorrelation = r.residual_autocorrelation;
+  // 0 is also "plain sandwich" for a batch result; filters never compute one (unknown).
+  rec.covariance_lag_window = std::isfinite(r.noise_scale) ? r.covariance_lag_window : -1;
+  rec.residual_rms_all_nT = r.residual_rms_all_nT;
+  if (storage::is_refit_method(r.method)) rec.has_nonlinearity = r.has_nonlinearity ? 1 : 0;
+  for (int i = 0; i < 3; ++i) rec.k3[static_cast<size_t>(i)] = r.nonlinearity_k3(i);
+  rec.nis_mean = r.nis_mean;
+  rec.measurement_noise_nT = r.measurement_noise_nT;
   return rec;
 }
 
@@ -85,6 +95,16 @@ CalibrationResult result_from_record(const storage::CalibrationRecord& rec) {
   r.rejection_reasons = rec.rejection_reasons;
   r.iterations = rec.iterations;
   r.converged = rec.status == 0;
+  r.noise_scale = rec.noise_scale;
+  r.residual_autocorrelation = rec.residual_autocorrelation;
+  r.covariance_lag_window = std::max(0, rec.covariance_lag_window);
+  r.residual_rms_all_nT = rec.residual_rms_all_nT;
+  r.has_nonlinearity = rec.has_nonlinearity == 1;
+  if (r.has_nonlinearity) {
+    for (int i = 0; i < 3; ++i) r.nonlinearity_k3(i) = rec.k3[static_cast<size_t>(i)];
+  }
+  r.nis_mean = rec.nis_mean;
+  r.measurement_noise_nT = rec.measurement_noise_nT;
   return r;
 }
 

@@ -272,6 +272,12 @@ int run_fit(const FitArgs& args) {
     parse_batch_method(args.method, &opt.method);
     opt.sigma_nT = args.sigma_nT;
     opt.robust = args.robust;
+    // The residual gate judges against what this sensor should leave: the stated
+    // --expected-residual-nT, else at least the stated noise (a 600 nT-noise sensor cannot
+    // leave the paper sensor's 7.5 nT).
+    opt.gate_options.expected_residual_nT =
+        args.expected_residual_nT ? *args.expected_residual_nT
+                                  : std::max(opt.gate_options.expected_residual_nT, args.sigma_nT);
     r = calibrate_batch(samples, opt);
   } else {
     BatchCalibrationOptions check;  // same input validation as the batch path

@@ -49,7 +49,9 @@ void print_csv(const std::vector<storage::CalibrationRecord>& rows) {
                "window_end_utime,n_samples,bias_x_nT,bias_y_nT,bias_z_nT,bias_sigma_x_nT,"
                "bias_sigma_y_nT,bias_sigma_z_nT,D11,D22,D33,D12,D13,D23,R11,R12,R13,R21,R22,R23,"
                "R31,R32,R33,residual_rms_nT,iterations,status,verdict,rejection_reasons,"
-               "software_version,id\n";
+               "software_version,id,noise_scale,residual_autocorrelation,covariance_lag_window,"
+               "residual_rms_all_nT,has_nonlinearity,k3_x,k3_y,k3_z,nis_mean,"
+               "measurement_noise_nT\n";
   for (const auto& r : rows) {
     std::string line = history_time(r.utime) + ',' + std::to_string(r.utime) + ',' +
                        csv_quoted(r.sat_id) + ',' + csv_quoted(r.method) + ',' +
@@ -68,6 +70,13 @@ void print_csv(const std::vector<storage::CalibrationRecord>& rows) {
     line += ',' + csv_number(r.residual_rms_nT) + ',' + std::to_string(r.iterations) + ',' +
             storage::status_name(r.status) + ',' + r.verdict + ',' + csv_quoted(reasons) + ',' +
             csv_quoted(r.software_version) + ',' + std::to_string(r.id);
+    // Issue 10 evidence, appended after the design.md columns (empty = unknown).
+    line += ',' + csv_number(r.noise_scale) + ',' + csv_number(r.residual_autocorrelation) + ',' +
+            (r.covariance_lag_window >= 0 ? std::to_string(r.covariance_lag_window) : "") + ',' +
+            csv_number(r.residual_rms_all_nT) + ',' +
+            (r.has_nonlinearity >= 0 ? std::to_string(r.has_nonlinearity) : "");
+    for (const double v : r.k3) line += ',' + (r.has_nonlinearity == 1 ? csv_number(v) : "");
+    line += ',' + csv_number(r.nis_mean) + ',' + csv_number(r.measurement_noise_nT);
     std::cout << line << '\n';
   }
 }

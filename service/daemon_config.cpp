@@ -172,7 +172,7 @@ std::map<std::string, Section> key_table(DaemonConfig& c) {
         {"max_scale", bind(g.max_scale)},
         {"max_nonorthogonality", bind(g.max_nonorthogonality)},
         {"change_enabled", bind(g.change_enabled)},
-        {"max_change_sigma", bind(g.max_change_sigma)},
+        {"change_tail_probability", bind(g.change_tail_probability)},
         {"bias_change_floor_nT", bind(g.bias_change_floor_nT)},
         {"D_change_floor", bind(g.D_change_floor)}}},
       {"sensor", {{"range_nT", bind(c.sensor.range_nT)}}},

@@ -16,8 +16,10 @@ int main(int argc, char** argv) {
   auto* field_cmd = app.add_subcommand("field", "IGRF field at a point");
   field_cmd->add_option("--time", field.time_iso, "UTC time, ISO 8601")->required();
   auto* r_opt = field_cmd->add_option("--r-km", field.r_km, "geocentric radius, km");
-  auto* colat_opt = field_cmd->add_option("--colat-deg", field.colat_deg, "geocentric colatitude, deg");
-  auto* lat_opt = field_cmd->add_option("--lat-deg", field.lat_deg, "geodetic (WGS-84) latitude, deg");
+  auto* colat_opt =
+      field_cmd->add_option("--colat-deg", field.colat_deg, "geocentric colatitude, deg");
+  auto* lat_opt =
+      field_cmd->add_option("--lat-deg", field.lat_deg, "geodetic (WGS-84) latitude, deg");
   auto* alt_opt = field_cmd->add_option("--alt-km", field.alt_km, "altitude above WGS-84, km");
   field_cmd->add_option("--lon-deg", field.lon_deg, "longitude, deg east")->required();
   field_cmd->add_option("--coefficients", field.coefficients_file,
@@ -45,7 +47,8 @@ int main(int argc, char** argv) {
   fit_cmd->add_option("--sigma-nT", fit.sigma_nT, "measurement noise, nT per axis (default 3)");
   fit_cmd->add_flag("--robust", fit.robust, "outlier-resistant weighting");
   fit_cmd->add_option("--sat", fit.sat, "spacecraft id (required when a log holds several)");
-  fit_cmd->add_option("--trace", fit.trace_file, "ekf/ukf: write state and 1-sigma per sample (CSV)");
+  fit_cmd->add_option("--trace", fit.trace_file,
+                      "ekf/ukf: write state and 1-sigma per sample (CSV)");
   fit_cmd->add_flag("--json", fit.json, "print JSON");
   fit_cmd->add_option("--field-unit", fit.field_unit, "recording CSV: field unit nT|uT|G|mG");
   fit_cmd->add_option("--alt-km", fit.alt_km, "recording CSV: assumed altitude (km) when absent");
@@ -60,8 +63,9 @@ int main(int argc, char** argv) {
                       "recording CSV: constant field magnitude, auto|VALUE_nT");
   fit_cmd->add_flag("--split-halves", fit.split_halves,
                     "recording CSV: also fit the two halves separately");
-  fit_cmd->add_option("--expected-residual-nT", fit.expected_residual_nT,
-                      "recording CSV: expected residual rms for the acceptance gate");
+  fit_cmd->add_option(
+      "--expected-residual-nT", fit.expected_residual_nT,
+      "expected residual rms for the acceptance gate (default max(7.5, --sigma-nT))");
 
   EvaluateArgs evaluate;
   auto* eval_cmd = app.add_subcommand("evaluate", "Monte-Carlo evaluation against the paper");

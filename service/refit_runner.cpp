@@ -7,6 +7,10 @@
 namespace magcal {
 namespace {
 
+// A refit whose window spans at least this fraction of window_hours is a full-window refit
+// (a 12 h window sampled every 10 s spans 99.98 %; the first refit, 8 h, spans 67 %).
+constexpr double kFullWindowFraction = 0.9;
+
 int64_t wall_utime() {
   return std::chrono::duration_cast<std::chrono::microseconds>(
              std::chrono::system_clock::now().time_since_epoch())
@@ -71,8 +75,14 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
     window_.reserve(rows_.size());
     for (const auto& r : rows_) window_.push_back(calibration_sample_from_stored(r));
 
+    // The change gate's reference: the last accepted *full-window* refit. A refit on a short
+    // window (the first hours of a spacecraft, or after a gap: span below 90 % of
+    // window_hours) has wider true errors and must not become the yardstick of later full
+    // refits; with none yet, the refit is judged on its own evidence (change gate skipped).
     std::optional<CalibrationResult> previous;
-    if (const auto rec = history_.latest_accepted_refit(sat_id)) {
+    if (const auto rec = history_.latest_accepted_refit(
+            sat_id, static_cast<int64_t>(kFullWindowFraction * config_.window_utime()),
+            config_.refit.min_samples)) {
       previous = result_from_record(*rec);
     }
     out.result = calibrate_batch(window_, options_, previous ? &*previous : nullptr);

@@ -66,6 +66,17 @@ nlohmann::json calibration_result_to_json(const CalibrationResult& result) {
   j["rejection_reasons"] = result.rejection_reasons;
   j["fisher_condition_number"] = json_number(result.fisher_condition_number);
   j["n_downweighted"] = result.n_downweighted;
+  // Uncertainty evidence (estimation.md section 7); null when unknown.
+  j["noise_scale"] = json_number(result.noise_scale);
+  j["residual_autocorrelation"] = json_number(result.residual_autocorrelation);
+  if (std::isfinite(result.noise_scale))
+    j["covariance_lag_window"] = result.covariance_lag_window;
+  else
+    j["covariance_lag_window"] = nullptr;
+  j["residual_rms_all_nT"] = json_number(result.residual_rms_all_nT);
+  if (result.has_nonlinearity) j["nonlinearity_k3"] = json_vector(result.nonlinearity_k3);
+  j["nis_mean"] = json_number(result.nis_mean);
+  j["measurement_noise_nT"] = json_number(result.measurement_noise_nT);
   j["message"] = result.message;
   return j;
 }

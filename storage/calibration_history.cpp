@@ -23,7 +23,9 @@ constexpr const char* kSelect =
     "bias_x_nT, bias_y_nT, bias_z_nT, bias_sigma_x_nT, bias_sigma_y_nT, bias_sigma_z_nT, "
     "D11, D22, D33, D12, D13, D23, cov, has_alignment, R11, R12, R13, R21, R22, R23, R31, R32, "
     "R33, residual_rms_nT, status, verdict, rejection_reasons, iterations, software_version, "
-    "created_utime FROM calibrations ";
+    "created_utime, noise_scale, residual_autocorrelation, covariance_lag_window, "
+    "residual_rms_all_nT, has_nonlinearity, k3_x, k3_y, k3_z, nis_mean, measurement_noise_nT "
+    "FROM calibrations ";
 constexpr const char* kRefitMethods = "method IN ('centered', 'twostep')";
 
 std::string sql(const std::string& tail) {
@@ -144,10 +146,12 @@ CalibrationHistory::CalibrationHistory(Database& db)
               "window_end_utime, n_samples, bias_x_nT, bias_y_nT, bias_z_nT, bias_sigma_x_nT, "
               "bias_sigma_y_nT, bias_sigma_z_nT, D11, D22, D33, D12, D13, D23, cov, "
               "has_alignment, R11, R12, R13, R21, R22, R23, R31, R32, R33, residual_rms_nT, "
-              "status, verdict, rejection_reasons, iterations, software_version, created_utime) "
+              "status, verdict, rejection_reasons, iterations, software_version, created_utime, "
+              "noise_scale, residual_autocorrelation, covariance_lag_window, residual_rms_all_nT, "
+              "has_nonlinearity, k3_x, k3_y, k3_z, nis_mean, measurement_noise_nT) "
               "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, "
               "?17, ?18, ?19, ?20, ?21, ?22, ?23, ?24, ?25, ?26, ?27, ?28, ?29, ?30, ?31, ?32, "
-              "?33, ?34, ?35, ?36)"),
+              "?33, ?34, ?35, ?36, ?37, ?38, ?39, ?40, ?41, ?42, ?43, ?44, ?45, ?46)"),
       query_all_(db, sql("WHERE sat_id = ?1 AND utime >= ?2 AND utime <= ?3 "
                          "ORDER BY utime DESC, id DESC LIMIT ?4")),
       query_method_(db, sql("WHERE sat_id = ?1 AND utime >= ?2 AND utime <= ?3 AND method = ?5 "
@@ -155,8 +159,10 @@ CalibrationHistory::CalibrationHistory(Database& db)
       latest_(db, sql("WHERE sat_id = ?1 AND method = ?2 ORDER BY utime DESC, id DESC LIMIT 1")),
       refits_(db, sql(std::string("WHERE sat_id = ?1 AND ") + kRefitMethods +
                       " ORDER BY utime DESC, id DESC LIMIT 2")),
-      accepted_refit_(db, sql(std::string("WHERE sat_id = ?1 AND ") + kRefitMethods +
-                              " AND verdict = 'accepted' ORDER BY utime DESC, id DESC LIMIT 1")),
+      accepted_refit_(
+          db, sql(std::string("WHERE sat_id = ?1 AND ") + kRefitMethods +
+                  " AND verdict = 'accepted' AND window_end_utime - window_start_utime >= ?2 "
+                  "AND n_samples >= ?3 ORDER BY utime DESC, id DESC LIMIT 1")),
       spacecraft_(db, "SELECT DISTINCT sat_id FROM calibrations ORDER BY sat_id"),
       reasons_(db, "SELECT value FROM json_each(?1)") {}
 
@@ -186,6 +192,24 @@ int64_t CalibrationHistory::append(const CalibrationRecord& r) {
   insert_.bind(35, r.software_version.empty() ? std::string_view(MAGCAL_VERSION)
                                               : std::string_view(r.software_version));
   insert_.bind(36, r.created_utime != 0 ? r.created_utime : now_utime());
+  // NaN binds as NULL; negative integer codes mean unknown.
+  insert_.bind(37, r.noise_scale).bind(38, r.residual_autocorrelation);
+  if (r.covariance_lag_window >= 0)
+    insert_.bind(39, r.covariance_lag_window);
+  else
+    insert_.bind_null(39);
+  insert_.bind(40, r.residual_rms_all_nT);
+  if (r.has_nonlinearity >= 0)
+    insert_.bind(41, r.has_nonlinearity != 0 ? 1 : 0);
+  else
+    insert_.bind_null(41);
+  for (int i = 0; i < 3; ++i) {
+    if (r.has_nonlinearity == 1)
+      insert_.bind(42 + i, r.k3[static_cast<size_t>(i)]);
+    else
+      insert_.bind_null(42 + i);
+  }
+  insert_.bind(45, r.nis_mean).bind(46, r.measurement_noise_nT);
   insert_.execute();
   return db_.last_insert_id();
 }
@@ -224,6 +248,14 @@ CalibrationRecord CalibrationHistory::read_row(Statement& st) {
   r.iterations = static_cast<int>(st.column_int64(34));
   r.software_version = st.column_text(35);
   r.created_utime = st.column_int64(36);
+  r.noise_scale = st.column_double(37);
+  r.residual_autocorrelation = st.column_double(38);
+  r.covariance_lag_window = st.is_null(39) ? -1 : static_cast<int>(st.column_int64(39));
+  r.residual_rms_all_nT = st.column_double(40);
+  r.has_nonlinearity = st.is_null(41) ? -1 : (st.column_int64(41) != 0 ? 1 : 0);
+  for (int i = 0; i < 3; ++i) r.k3[static_cast<size_t>(i)] = st.column_double(42 + i);
+  r.nis_mean = st.column_double(45);
+  r.measurement_noise_nT = st.column_double(46);
   return r;
 }
 
@@ -270,10 +302,15 @@ std::optional<CalibrationRecord> CalibrationHistory::previous_refit(std::string_
 }
 
 std::optional<CalibrationRecord> CalibrationHistory::latest_accepted_refit(
-    std::string_view sat_id) {
+    std::string_view sat_id, int64_t min_window_span_utime, int min_samples) {
   auto use = accepted_refit_.use();
-  accepted_refit_.bind(1, sat_id);
+  accepted_refit_.bind(1, sat_id).bind(2, min_window_span_utime).bind(3, int64_t{min_samples});
   return first(accepted_refit_);
+}
+
+std::optional<CalibrationRecord> CalibrationHistory::latest_accepted_refit(
+    std::string_view sat_id) {
+  return latest_accepted_refit(sat_id, std::numeric_limits<int64_t>::min(), 0);
 }
 
 std::vector<std::string> CalibrationHistory::spacecraft() {

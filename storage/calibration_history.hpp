@@ -8,6 +8,7 @@
 
 #include <array>
 #include <cstdint>
+#include <limits>
 #include <optional>
 #include <string>
 #include <string_view>
@@ -39,6 +40,17 @@ struct CalibrationRecord {
   std::string verdict = "accepted";  // "accepted" | "rejected"
   std::vector<std::string> rejection_reasons;
   int iterations = 0;
+  // Uncertainty evidence (schema 3; NaN / -1 = NULL = unknown; estimation.md section 7).
+  double noise_scale = std::numeric_limits<double>::quiet_NaN();
+  double residual_autocorrelation = std::numeric_limits<double>::quiet_NaN();
+  int covariance_lag_window = -1;  // -1: unknown
+  double residual_rms_all_nT = std::numeric_limits<double>::quiet_NaN();
+  int has_nonlinearity = -1;  // -1 unknown, 0 no, 1 yes (then k3 holds the coefficients)
+  std::array<double, 3> k3{std::numeric_limits<double>::quiet_NaN(),
+                           std::numeric_limits<double>::quiet_NaN(),
+                           std::numeric_limits<double>::quiet_NaN()};
+  double nis_mean = std::numeric_limits<double>::quiet_NaN();
+  double measurement_noise_nT = std::numeric_limits<double>::quiet_NaN();
   std::string software_version;  // empty: this build's MAGCAL_VERSION
   int64_t created_utime = 0;     // 0: wall-clock now
 };
@@ -77,6 +89,11 @@ class CalibrationHistory {
   // Newest refit (centered or twostep), any verdict / only accepted ones.
   std::optional<CalibrationRecord> latest_refit(std::string_view sat_id);
   std::optional<CalibrationRecord> latest_accepted_refit(std::string_view sat_id);
+  // Newest accepted refit whose window spans at least min_window_span_utime (end - start) and
+  // holds at least min_samples samples: the reference later full-window refits are judged by.
+  std::optional<CalibrationRecord> latest_accepted_refit(std::string_view sat_id,
+                                                         int64_t min_window_span_utime,
+                                                         int min_samples);
   // The refit before the newest one (any verdict).
   std::optional<CalibrationRecord> previous_refit(std::string_view sat_id);
   // Spacecraft with at least one stored result, sorted.

@@ -237,15 +237,18 @@ TEST_CASE("each gate fires when its condition is violated, and only that gate", 
   }
   SECTION("change since the last accepted result") {
     CalibrationResult r = h.result;
-    const double sigma_comb = std::sqrt(2.0) * h.result.bias_sigma_nT().z();
-    const double limit = std::max(opt.max_change_sigma * sigma_comb, opt.bias_change_floor_nT);
+    // A change along z alone: chi2 = dz^2 [(P + P)^-1]_zz against the chi2(3) quantile.
+    const Eigen::Matrix3d P_sum = 2.0 * h.result.covariance.topLeftCorner<3, 3>();
+    const double info_zz = P_sum.inverse()(2, 2);
+    const double q = chi_square_upper_quantile(3.0, opt.change_tail_probability);
+    const double limit = std::max(std::sqrt(q / info_zz), opt.bias_change_floor_nT);
     r.parameters.bias_nT.z() += 1.1 * limit;
-    expect_only(r, in, "bias_change z");
+    expect_only(r, in, "bias_change chi2");
     r.parameters.bias_nT.z() = h.result.parameters.bias_nT.z() + 0.9 * limit;
     CHECK(evaluate_gates(r, in, opt).accepted);
     r = h.result;
     r.parameters.D(0, 0) += 0.01;
-    expect_only(r, in, "D_change D11");
+    expect_only(r, in, "D_change chi2");
     // No previous result: the gate is skipped, and says so.
     GateInputs none = h.inputs;
     const GateVerdict v = evaluate_gates(r, none, opt);

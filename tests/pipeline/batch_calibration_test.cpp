@@ -181,3 +181,43 @@ TEST_CASE("robust batch refit: corrupt samples are down-weighted and reported") 
   CHECK(r.n_downweighted >= 6);
   CHECK((r.parameters.bias_nT - p.bias_nT).norm() < 5.0 * r.bias_sigma_nT().norm());
 }
+
+TEST_CASE("robust refit of a cheap sensor (600 nT noise, 28 spikes up to 3 G) is accepted") {
+  // Public-report case (issue 10): the bias was right but the residual rms over the spikes
+  // (~10 000 nT) got the fit rejected. The robust residual is over the kept samples; the raw one
+  // is reported beside it.
+  CalibrationParameters p;
+  p.bias_nT << 1500.0, -800.0, 2500.0;
+  p.D << 0.02, 0.005, 0, 0.005, -0.01, 0.003, 0, 0.003, 0.015;
+  SampleSet s = model_data(p, 3000, 600.0, 31);
+  std::mt19937_64 rng(77);
+  std::uniform_int_distribution<int> pick(0, 2999), axis(0, 2);
+  std::uniform_real_distribution<double> spike(5000.0, 50000.0);
+  for (int j = 0; j < 28; ++j) {
+    CalibrationSample& c = s[static_cast<std::size_t>(pick(rng))];
+    // Every fourth spike saturates at 3 G = 300 000 nT, the others are glitches of 5-50 uT.
+    c.b_sensor_nT(axis(rng)) = j % 4 == 0 ? 300000.0 : c.b_sensor_nT(axis(rng)) + spike(rng);
+  }
+  BatchCalibrationOptions o = options(BatchCalibrationOptions::Method::kTwoStep);
+  o.robust = true;
+  o.sigma_nT = 600.0;
+  o.gate_options.expected_residual_nT = 600.0;  // what the user states for this sensor
+  const CalibrationResult r = calibrate_batch(s, o);
+  INFO(r.message << " reasons " << (r.rejection_reasons.empty() ? "" : r.rejection_reasons[0]));
+  CHECK(r.status == CalibrationStatus::kOk);
+  CHECK(r.accepted);
+  // 600 nT noise, 3 000 samples: the CRLB sigma is ~20 nT per axis; the error stays within
+  // 4 reported sigmas (and the sigma is honest, not inflated by the spikes: < 30 nT).
+  const Eigen::Vector3d err = r.parameters.bias_nT - p.bias_nT;
+  INFO("bias error " << err.transpose() << " sigma " << r.bias_sigma_nT().transpose());
+  CHECK(err.cwiseQuotient(r.bias_sigma_nT()).cwiseAbs().maxCoeff() < 4.0);
+  CHECK(r.bias_sigma_nT().maxCoeff() < 30.0);
+  CHECK_FALSE(r.has_nonlinearity);  // no model extension in robust mode
+  CHECK(r.n_downweighted >= 20);
+  CHECK(r.residual_rms_nT < 1.5 * 600.0);
+  CHECK(r.residual_rms_all_nT > 5.0 * r.residual_rms_nT);  // the spikes, reported beside it
+  // Without --robust the spikes are inside the residual and the fit is rejected.
+  o.robust = false;
+  const CalibrationResult plain = calibrate_batch(s, o);
+  CHECK_FALSE(plain.accepted);
+}

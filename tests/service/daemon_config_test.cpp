@@ -72,7 +72,7 @@ TEST_CASE("the example config lists every key with exactly the defaults", "[daem
   CHECK(g.max_bias_nT == dg.max_bias_nT);
   CHECK(g.max_scale == dg.max_scale);
   CHECK(g.max_nonorthogonality == dg.max_nonorthogonality);
-  CHECK(g.max_change_sigma == dg.max_change_sigma);
+  CHECK(g.change_tail_probability == dg.change_tail_probability);
   CHECK(g.bias_change_floor_nT == dg.bias_change_floor_nT);
   CHECK(g.D_change_floor == dg.D_change_floor);
   CHECK(c.service.queue_capacity_samples == d.service.queue_capacity_samples);

@@ -170,11 +170,16 @@ TEST_CASE("ISS Astro Pi: halves' diag(D) differ by more than noise, less than 0.
   WARN("ISS halves at 480 s: diag(D) " << d1.transpose() << " vs " << d2.transpose());
   constexpr double kRegressionBound = 0.1;
   CHECK(max_abs_diff(d1, d2) < kRegressionBound);
-  // D22: the largest gap, compared with the combined formal 1-sigma of the two halves.
-  const double sigma_combined = std::sqrt(r1.covariance(4, 4) + r2.covariance(4, 4));
+  // D22: the largest gap, compared with the combined formal (white-noise) 1-sigma of the two
+  // halves: far beyond it. The reported (HAC, issue 10) covariance covers it: within 5 sigma.
+  const double sigma_combined =
+      std::sqrt(r1.covariance_white_noise(4, 4) + r2.covariance_white_noise(4, 4));
+  const double sigma_reported = std::sqrt(r1.covariance(4, 4) + r2.covariance(4, 4));
   WARN("D22 gap " << std::abs(d1(1) - d2(1)) << " = " << std::abs(d1(1) - d2(1)) / sigma_combined
-                  << " formal sigma");
+                  << " formal sigma, " << std::abs(d1(1) - d2(1)) / sigma_reported
+                  << " reported sigma");
   CHECK(std::abs(d1(1) - d2(1)) > 5.0 * sigma_combined);
+  CHECK(std::abs(d1(1) - d2(1)) < 5.0 * sigma_reported);
 }
 
 TEST_CASE("BROAD lab data: auto magnitude, residual ~0.8 uT, stage 2 against optical truth",

@@ -156,9 +156,50 @@ TEST_CASE("latest, latest refit, previous refit, latest accepted refit") {
   CHECK(latest->verdict == "rejected");
   CHECK(history.previous_refit("SAT1")->utime == kT0 + 2 * kHour);
   CHECK(history.latest_accepted_refit("SAT1")->utime == kT0 + 2 * kHour);
+  // The change-gate reference: only refits spanning a full window with enough samples.
+  CalibrationRecord short_refit = make_record("SAT1", "twostep", kT0 + 6 * kHour, 6);
+  short_refit.window_start_utime = short_refit.utime - 8 * kHour;  // an 8 h first window
+  history.append(short_refit);
+  CHECK(history.latest_accepted_refit("SAT1")->utime == kT0 + 6 * kHour);
+  CHECK(history.latest_accepted_refit("SAT1", 11 * kHour, 1000)->utime == kT0 + 2 * kHour);
+  CHECK_FALSE(history.latest_accepted_refit("SAT1", 11 * kHour, 5000).has_value());
   CHECK(is_refit_method("twostep"));
   CHECK(is_refit_method("centered"));
   CHECK_FALSE(is_refit_method("ukf"));
+}
+
+TEST_CASE("uncertainty evidence (schema 3) round-trips; unknown values stay NULL") {
+  Database db(":memory:");
+  CalibrationHistory history(db);
+  CalibrationRecord known = make_record("SAT1", "twostep", kT0, 1);
+  known.noise_scale = 1.21;
+  known.residual_autocorrelation = 0.031;
+  known.covariance_lag_window = 12;
+  known.residual_rms_all_nT = 3.62;
+  known.has_nonlinearity = 1;
+  known.k3 = {1e-9, -2e-9, 3e-10};
+  CalibrationRecord filter = make_record("SAT1", "ukf", kT0 + kHour, 2);
+  filter.nis_mean = 1.04;
+  filter.measurement_noise_nT = 3.3;
+  history.append(known);
+  history.append(filter);
+  const auto a = history.latest("SAT1", "twostep");
+  REQUIRE(a);
+  CHECK(a->noise_scale == known.noise_scale);
+  CHECK(a->residual_autocorrelation == known.residual_autocorrelation);
+  CHECK(a->covariance_lag_window == 12);
+  CHECK(a->residual_rms_all_nT == known.residual_rms_all_nT);
+  CHECK(a->has_nonlinearity == 1);
+  CHECK(a->k3 == known.k3);
+  CHECK(std::isnan(a->nis_mean));
+  const auto b = history.latest("SAT1", "ukf");
+  REQUIRE(b);
+  CHECK(b->nis_mean == 1.04);
+  CHECK(b->measurement_noise_nT == 3.3);
+  CHECK(std::isnan(b->noise_scale));
+  CHECK(b->covariance_lag_window == -1);
+  CHECK(b->has_nonlinearity == -1);
+  CHECK(std::isnan(b->k3[0]));
 }
 
 TEST_CASE("invalid records are refused") {

@@ -4,6 +4,8 @@
 
 #include <unistd.h>
 
+#include <cmath>
+
 #include <catch2/catch.hpp>
 #include <filesystem>
 #include <fstream>
@@ -114,12 +116,13 @@ TEST_CASE("a version-1 database is upgraded on open and keeps its data") {
     Database db(path, v1);
     REQUIRE(db.schema_version() == 1);
     CHECK(query_int(db, "SELECT count(*) FROM sqlite_schema WHERE name = 'meta'") == 0);
-    CalibrationHistory history(db);
-    CalibrationRecord r;
-    r.sat_id = "SAT1";
-    r.method = "twostep";
-    r.utime = 42;
-    history.append(r);
+    // A row as a version-1 magcal wrote it (today's CalibrationHistory writes newer columns).
+    db.exec(
+        "INSERT INTO calibrations (sat_id, method, utime, window_start_utime, window_end_utime, "
+        "n_samples, bias_x_nT, bias_y_nT, bias_z_nT, D11, D22, D33, D12, D13, D23, cov, "
+        "has_alignment, residual_rms_nT, status, verdict, software_version, created_utime) "
+        "VALUES ('SAT1', 'twostep', 42, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, zeroblob(360), 0, "
+        "0, 0, 'accepted', 'v1', 1)");
   }
   {
     // Read-only code does not migrate: it says what to do.
@@ -134,6 +137,11 @@ TEST_CASE("a version-1 database is upgraded on open and keeps its data") {
   const auto latest = history.latest("SAT1", "twostep");
   REQUIRE(latest.has_value());
   CHECK(latest->utime == 42);
+  // Columns added by later migrations read as unknown (NULL) for old rows.
+  CHECK(std::isnan(latest->noise_scale));
+  CHECK(latest->covariance_lag_window == -1);
+  CHECK(latest->has_nonlinearity == -1);
+  CHECK(std::isnan(latest->nis_mean));
   CHECK(db.integrity_check() == "ok");
 }
 

@@ -1,0 +1,69 @@
+// Heteroskedasticity- and autocorrelation-consistent (HAC) covariance of an M-estimate
+// (estimation.md section 7): the batch covariance derived from the residuals' actual structure
+// instead of the nominal white noise.
+//
+//   white:    C_w   = F^-1,                  F = sum_k w_k J_k^T J_k  (9x9, undamped)
+//   sandwich: C_hac = F^-1 Omega F^-1,       Omega = sum_{|l|<=L} k(l) sum_k u_k u_{k+l}^T
+//             u_k = w_k r_k J_k^T (per-sample score), Bartlett kernel k(l) = 1 - |l|/(L+1)
+//             (Newey & West 1987; positive semi-definite by construction).
+//   reported: C = F^-1/2 max(I, F^1/2 C_hac F^1/2) F^-1/2 (eigenvalues clamped at 1): never
+//             below the white-noise inverse information, so on data the model explains the
+//             reported sigma stays at the CRLB (the HAC's own sampling noise cannot make it
+//             over-confident), and above it whenever the residuals say the model leaves error.
+//
+// Lag window L from the residual autocorrelation: Andrews (1991) AR(1) plug-in for the Bartlett
+// kernel, L = ceil(1.1447 (alpha n)^(1/3)), alpha = 4 rho^2 / ((1 - rho)^2 (1 + rho)^2), rho the
+// lag-1 autocorrelation of the normalised residuals e_k = sqrt(w_k) r_k; L = 0 (plain
+// Huber–White sandwich) when |rho| is below 3 / sqrt(n) (not distinguishable from white noise).
+// Lags count samples in the caller's order (time order): unevenly spaced or gappy data are
+// treated as if evenly spaced, which mis-weights correlation across a gap but never drops a
+// sample; the window is capped at n / 4.
+//
+// Omega is computed exactly as (1/(L+1)) sum_t V_t V_t^T over the moving sums
+// V_t = sum_{j = t..t+L} u_j (t = -L .. n-1, partial windows at both ends): O(n) 9x9 outer
+// products for any L, instead of O(n L).
+#pragma once
+
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "pipeline/calibration_types.hpp"
+
+namespace magcal {
+
+// Lag-1 autocorrelation sum e_k e_{k+1} / sum e_k^2 of a (zero-mean) residual sequence; NaN
+// for fewer than 3 values or all-zero residuals.
+double lag1_autocorrelation(const std::vector<double>& residuals);
+
+// Andrews' AR(1) plug-in Bartlett lag window for n samples with lag-1 autocorrelation rho
+// (0 when |rho| < 3/sqrt(n); capped at n / 4; rho is clamped to [-0.97, 0.97]).
+int bartlett_lag_window(double rho, int n);
+
+// Omega = sum_{|l|<=L} (1 - |l|/(L+1)) sum_k u_k u_{k+l}^T for scores u (n x P, sample order).
+template <int P>
+Eigen::Matrix<double, P, P> newey_west_meat(const std::vector<Eigen::Matrix<double, P, 1>>& scores,
+                                            int lag_window) {
+  using V = Eigen::Matrix<double, P, 1>;
+  using M = Eigen::Matrix<double, P, P>;
+  const int n = static_cast<int>(scores.size());
+  const int L = lag_window > 0 ? lag_window : 0;
+  M omega = M::Zero();
+  if (L == 0) {
+    for (const V& u : scores) omega.noalias() += u * u.transpose();
+    return omega;
+  }
+  // Moving sum over [t, t + L], t = -L .. n - 1: add u_{t+L} entering, drop u_{t-1} leaving.
+  V window = V::Zero();
+  for (int t = -L; t < n; ++t) {
+    if (t + L < n) window += scores[static_cast<std::size_t>(t + L)];
+    if (t - 1 >= 0) window -= scores[static_cast<std::size_t>(t - 1)];
+    omega.noalias() += window * window.transpose();
+  }
+  return omega / static_cast<double>(L + 1);
+}
+
+// max(C_hac, F^-1) in the sense above, given F^-1 (symmetric positive definite) and C_hac.
+Matrix9d covariance_not_below(const Matrix9d& white_covariance, const Matrix9d& hac_covariance);
+
+}  // namespace magcal
