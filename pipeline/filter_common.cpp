@@ -94,30 +94,17 @@ const char* to_string(FilterUpdateStatus s) {
   return "rejected_invalid";
 }
 
-void cholesky_update(Matrix9d& S, Vector9d& u) {
-  for (int k = 0; k < 9; ++k) {
-    if (u(k) == 0.0) continue;  // identity rotation
-    const double Lkk = S(k, k);
-    const double r = std::sqrt(Lkk * Lkk + u(k) * u(k));
-    const double c = r / Lkk, s = u(k) / Lkk;
-    S(k, k) = r;
-    for (int i = k + 1; i < 9; ++i) {
-      S(i, k) = (S(i, k) + s * u(i)) / c;
-      u(i) = c * u(i) - s * S(i, k);
-    }
-  }
-}
-
 bool cholesky_downdate(Matrix9d& S, Vector9d& u) {
   for (int k = 0; k < 9; ++k) {
     const double Lkk = S(k, k);
     const double r2 = (Lkk - u(k)) * (Lkk + u(k));
     if (!(r2 > 0.0) || !(Lkk > 0.0)) return false;
     const double r = std::sqrt(r2);
-    const double c = r / Lkk, s = u(k) / Lkk;
+    const double inv_Lkk = 1.0 / Lkk;
+    const double c = r * inv_Lkk, s = u(k) * inv_Lkk, inv_c = Lkk / r;
     S(k, k) = r;
     for (int i = k + 1; i < 9; ++i) {
-      S(i, k) = (S(i, k) - s * u(i)) / c;
+      S(i, k) = (S(i, k) - s * u(i)) * inv_c;
       u(i) = c * u(i) - s * S(i, k);
     }
   }
@@ -344,11 +331,12 @@ bool ScalarFilterBase::begin_update(FilterUpdate& u, const Eigen::Vector3d& b_se
     if (state_.initialized) {
       const double dt_s = static_cast<double>(utime - state_.last_utime) / kMicrosecondsPerSecond;
       const Vector9d q = process_noise_diagonal(options_.process_noise_per_sqrt_hour, dt_s);
-      for (int i = 0; i < 9; ++i) {
-        if (!(q(i) > 0.0)) continue;
-        Vector9d col = Vector9d::Zero();
-        col(i) = std::sqrt(q(i));
-        cholesky_update(state_.S, col);  // P += q_i e_i e_i^T
+      if ((q.array() > 0.0).any()) {
+        // P + Q re-factorised (one 9x9 LLT is cheaper than nine serial rank-1 updates).
+        Matrix9d P = state_.S * state_.S.transpose();
+        P.diagonal() += q;
+        const Eigen::LLT<Matrix9d> llt(P);
+        if (llt.info() == Eigen::Success) state_.S = llt.matrixL();
       }
     }
     state_.last_utime = utime;
@@ -385,11 +373,10 @@ bool ScalarFilterBase::begin_update(FilterUpdate& u, const Eigen::Vector3d& b_se
 }
 
 void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_sensor_nT,
-                                     double h_norm_nT, double y_hat, double hph,
-                                     const Vector9d& Pxz) {
+                                     double h_norm_nT, const Eigen::Vector3d& b_cal, double y_hat,
+                                     double hph, const Vector9d& Pxz) {
   const double sigma = options_.sigma_nT;
   const double y = scalar_measurement(b_sensor_nT, h_norm_nT) - scalar_noise_mean(sigma);
-  const Eigen::Vector3d b_cal = parameters().apply(b_sensor_nT);
   const double R1 = scalar_noise_variance(b_cal, sigma);
   const double R_white = R1 * state_.noise_scale2;
   const double S_white = hph + R_white;
@@ -438,17 +425,22 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
     return;
   }
 
-  // Kalman update: x += K nu, P -= Pxz Pxz^T / S (rank-1 downdate of S).
-  const Vector9d x_new = state_.x + Pxz * (nu / S_gain);
-  Vector9d d = Pxz / std::sqrt(S_gain);
-  Matrix9d S_new = state_.S;
-  if (!x_new.allFinite() || !cholesky_downdate(S_new, d) || !S_new.allFinite()) {
+  // Kalman update: x += K nu, P -= Pxz Pxz^T / S (rank-1 downdate of S, in place). With
+  // R > 0 it cannot fail; if round-off ever made it, the covariance is re-opened to the prior
+  // (counted as a repair) rather than left indefinite.
+  const double inv_sqrt_S = 1.0 / std::sqrt(S_gain);
+  const Vector9d x_new = state_.x + Pxz * (nu * inv_sqrt_S * inv_sqrt_S);
+  if (!x_new.allFinite()) {
     ++state_.n_rejected_invalid;
     u.status = FilterUpdateStatus::kRejectedNumerical;
     return;
   }
+  Vector9d d = Pxz * inv_sqrt_S;
+  if (!cholesky_downdate(state_.S, d) || !state_.S.allFinite()) {
+    ++state_.n_covariance_repairs;
+    state_.S = options_.initial_covariance().diagonal().cwiseSqrt().asDiagonal();
+  }
   state_.x = x_new;
-  state_.S = S_new;
   ++state_.n_accepted;
   u.status = FilterUpdateStatus::kAccepted;
   state_.moments.add(b_sensor_nT, y, 1.0 / scalar_noise_variance(b_sensor_nT, sigma), false);

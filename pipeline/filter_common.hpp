@@ -11,8 +11,8 @@
 // Square root: the state keeps the lower Cholesky factor S of the covariance (P = S S^T). A
 // scalar update P - Pxz Pxz^T / S_y is a rank-1 Cholesky downdate of S by Pxz / sqrt(S_y)
 // (van der Merwe & Wan 2001), O(n^2), positive definite by construction (it fails only if
-// S_y < Pxz^T P^-1 Pxz, which R > 0 excludes for both filters); process noise is one rank-1
-// update per state with q_i > 0.
+// S_y < Pxz^T P^-1 Pxz, which R > 0 excludes for both filters); process noise is a
+// re-factorisation of S S^T + Q (one 9x9 LLT, cheaper than nine serial rank-1 updates).
 //
 // Start (estimation.md 7): by default (cold_start = kFromData) the filter does not start from
 // a prior. It accumulates the moments of the batch problem (filter_start.hpp) and, every
@@ -179,10 +179,9 @@ struct FilterUpdate {
 // diag(Q) for a step of dt_s: q_i^2 dt_s / 3600 (dt_s <= 0 gives 0).
 Vector9d process_noise_diagonal(const Vector9d& q_per_sqrt_hour, double dt_s);
 
-// Rank-1 Cholesky update / downdate of the lower factor S in place: S S^T +- u u^T (u is
-// destroyed). The downdate returns false (S then undefined) when the result would not be
-// positive definite. O(n^2), no allocation.
-void cholesky_update(Matrix9d& S, Vector9d& u);
+// Rank-1 Cholesky downdate of the lower factor S in place: S S^T - u u^T (u is destroyed).
+// Returns false (S then undefined) when the result would not be positive definite. O(n^2), no
+// allocation.
 bool cholesky_downdate(Matrix9d& S, Vector9d& u);
 
 // Makes P symmetric positive definite and returns its lower Cholesky factor in L (P = L L^T).
@@ -244,11 +243,11 @@ class ScalarFilterBase {
   // to utime. Returns true when the filter-specific update should run.
   bool begin_update(FilterUpdate& u, const Eigen::Vector3d& b_sensor_nT, double h_norm_nT,
                     int64_t utime);
-  // Shared second half, given the prior prediction y_hat, the state part of the innovation
-  // variance hph (H P H^T) and Pxz (P H^T): noise adaptation, gate, Kalman update with the
-  // square-root downdate, evidence, monitor.
+  // Shared second half, given b_cal = (I + D) B - b at the prior x, the prior prediction y_hat,
+  // the state part of the innovation variance hph (H P H^T) and Pxz (P H^T): noise adaptation,
+  // gate, Kalman update with the square-root downdate, evidence, monitor.
   void finish_update(FilterUpdate& u, const Eigen::Vector3d& b_sensor_nT, double h_norm_nT,
-                     double y_hat, double hph, const Vector9d& Pxz);
+                     const Eigen::Vector3d& b_cal, double y_hat, double hph, const Vector9d& Pxz);
 
   FilterOptions options_;
   FilterState state_;

@@ -144,13 +144,10 @@ void ScalarMoments::add(const Eigen::Vector3d& B, double y, double w, bool with_
   u << 2.0 * B(0), 2.0 * B(1), 2.0 * B(2), -B(0) * B(0), -B(1) * B(1), -B(2) * B(2),
       -2.0 * B(0) * B(1), -2.0 * B(0) * B(2), -2.0 * B(1) * B(2), 1.0, y;
   u *= std::sqrt(w);
-  int k = 0;
-  for (int i = 0; i < 11; ++i) {
-    for (int j = i; j < 11; ++j) m(k++) += u(i) * u(j);
-  }
+  for (int i = 0; i < 11; ++i) m.segment(packed_index(i, i), 11 - i) += u(i) * u.tail(11 - i);
   if (with_lag1) {
+    int k = 0;
     if (n > 0) {
-      k = 0;
       for (int i = 0; i < 11; ++i) {
         for (int j = i; j < 11; ++j) m_lag1(k++) += 0.5 * (u(i) * previous(j) + u(j) * previous(i));
       }

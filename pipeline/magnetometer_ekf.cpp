@@ -21,7 +21,8 @@ FilterUpdate MagnetometerEkf::update(const Eigen::Vector3d& b_sensor_nT, double 
   // f = S^T H^T, H P H^T = |f|^2, P H^T = S f.
   const Vector9d f = state_.S.triangularView<Eigen::Lower>().transpose() * H.transpose();
   const Vector9d PHt = state_.S.triangularView<Eigen::Lower>() * f;
-  finish_update(u, b_sensor_nT, h_norm_nT, predicted_scalar_measurement(x, b_sensor_nT),
+  const Eigen::Vector3d y = parameters().apply(b_sensor_nT);
+  finish_update(u, b_sensor_nT, h_norm_nT, y, b_sensor_nT.squaredNorm() - y.squaredNorm(),
                 f.squaredNorm(), PHt);
   return u;
 }

@@ -3,7 +3,7 @@
 //
 // State x = p = [b1 b2 b3 D11 D22 D33 D12 D13 D23] (nT, 1), static with optional random walk Q.
 // Per sample (B_k sensor frame nT, |h_k| nT, utime), with the Cholesky factor S (P = S S^T):
-//   predict   S <- rank-1 updates with Q(dt)                   (filter_common.hpp)
+//   predict   S <- chol(S S^T + Q(dt))                          (filter_common.hpp)
 //   y_k = |B|^2 - |h|^2 - 3 sigma^2,  y_hat = h(x, B)           (scalar_measurement.hpp)
 //   H   = dz/dp at the prior x (the CRLB row, estimation.md 2d)
 //   f = S^T H^T,  S_y = |f|^2 + R_k,  x += S f (y - y_hat) / S_y,

@@ -9,7 +9,7 @@
 // Defaults alpha = 1, beta = 2, kappa = 3 - n: lambda = -6, spread sqrt(3), W0m = -2, W0c = 0,
 // Wi = 1/6. W0c >= 0 is required: then S_y >= Pxz^T P^-1 Pxz + R and the downdate below is
 // positive definite without a guard.
-// Per sample: predict S (rank-1 updates with Q(dt)); Z_i = h(X_i, B) (exact and cheap: y(p) is
+// Per sample: predict S <- chol(S S^T + Q(dt)); Z_i = h(X_i, B) (exact and cheap: y(p) is
 // linear in p, see update()), y_hat = sum Wm Z_i,
 //   S_y = sum Wc (Z_i - y_hat)^2 + R_k,  Pxz = sum Wc (X_i - x)(Z_i - y_hat),
 //   x += Pxz (y - y_hat) / S_y,  S <- cholupdate(S, Pxz / sqrt(S_y), -)   (rank-1 downdate)
