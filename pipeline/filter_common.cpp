@@ -94,19 +94,29 @@ const char* to_string(FilterUpdateStatus s) {
   return "rejected_invalid";
 }
 
-bool cholesky_downdate(Matrix9d& S, Vector9d& u) {
+bool cholesky_downdate_whitened(Matrix9d& S, const Vector9d& p) {
+  // S' = S M with M M^T = I - p p^T lower triangular, in closed form (delta_0 = 1,
+  // delta_k = 1 - sum_{j<=k} p_j^2): M_kk = sqrt(delta_k / delta_{k-1}),
+  // M_ik = -p_i p_k / sqrt(delta_k delta_{k-1}) (i > k). All square roots and divisions are
+  // independent (no serial chain as in the textbook downdate); column k of S' is
+  // a_k S_k - b_k sum_{j>k} p_j S_j.
+  Vector9d delta;
+  double acc = 1.0;
   for (int k = 0; k < 9; ++k) {
-    const double Lkk = S(k, k);
-    const double r2 = (Lkk - u(k)) * (Lkk + u(k));
-    if (!(r2 > 0.0) || !(Lkk > 0.0)) return false;
-    const double r = std::sqrt(r2);
-    const double inv_Lkk = 1.0 / Lkk;
-    const double c = r * inv_Lkk, s = u(k) * inv_Lkk, inv_c = Lkk / r;
-    S(k, k) = r;
-    for (int i = k + 1; i < 9; ++i) {
-      S(i, k) = (S(i, k) - s * u(i)) * inv_c;
-      u(i) = c * u(i) - s * S(i, k);
-    }
+    acc -= p(k) * p(k);
+    delta(k) = acc;
+  }
+  if (!(delta(8) > 0.0)) return false;
+  Vector9d delta_prev;
+  delta_prev << 1.0, delta.head<8>();
+  const Vector9d inv = (delta.cwiseProduct(delta_prev)).cwiseSqrt().cwiseInverse();
+  const Vector9d a = delta.cwiseProduct(inv);  // sqrt(delta_k / delta_{k-1})
+  const Vector9d b = p.cwiseProduct(inv);      // p_k / sqrt(delta_k delta_{k-1})
+  Vector9d rest = S * p;                       // sum_j p_j S_j
+  for (int k = 0; k < 9; ++k) {
+    rest -= p(k) * S.col(k);  // now sum_{j>k} p_j S_j (zero above row k+1)
+    S.col(k) = a(k) * S.col(k) - b(k) * rest;
+    S.col(k).head(k).setZero();  // exact zeros above the diagonal despite round-off
   }
   return true;
 }
@@ -215,7 +225,7 @@ Matrix9d ScalarFilterBase::P() const {
 }
 
 Eigen::Vector3d ScalarFilterBase::bias_sigma_nT() const {
-  return Eigen::Vector3d(state_.S.row(0).norm(), state_.S.row(1).norm(), state_.S.row(2).norm());
+  return state_.S.topRows<3>().rowwise().norm();
 }
 
 bool ScalarFilterBase::converged() const {
@@ -374,8 +384,9 @@ bool ScalarFilterBase::begin_update(FilterUpdate& u, const Eigen::Vector3d& b_se
 
 void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_sensor_nT,
                                      double h_norm_nT, const Eigen::Vector3d& b_cal, double y_hat,
-                                     double hph, const Vector9d& Pxz) {
+                                     double hph, const Vector9d& Pxz_white) {
   const double sigma = options_.sigma_nT;
+  const Vector9d Pxz = state_.S * Pxz_white;
   const double y = scalar_measurement(b_sensor_nT, h_norm_nT) - scalar_noise_mean(sigma);
   const double R1 = scalar_noise_variance(b_cal, sigma);
   const double R_white = R1 * state_.noise_scale2;
@@ -425,20 +436,15 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
     return;
   }
 
-  // Kalman update: x += K nu, P -= Pxz Pxz^T / S (rank-1 downdate of S, in place). With
-  // R > 0 it cannot fail; if round-off ever made it, the covariance is re-opened to the prior
-  // (counted as a repair) rather than left indefinite.
+  // Kalman update: x += K nu, P -= Pxz Pxz^T / S, i.e. S S^T - (S p)(S p)^T with
+  // p = S^-1 Pxz / sqrt(S): a rank-1 downdate of S in place. With R > 0, |p| < 1 and it cannot
+  // fail; if round-off ever made it, the update is refused and S left untouched.
   const double inv_sqrt_S = 1.0 / std::sqrt(S_gain);
   const Vector9d x_new = state_.x + Pxz * (nu * inv_sqrt_S * inv_sqrt_S);
-  if (!x_new.allFinite()) {
+  if (!x_new.allFinite() || !cholesky_downdate_whitened(state_.S, Pxz_white * inv_sqrt_S)) {
     ++state_.n_rejected_invalid;
     u.status = FilterUpdateStatus::kRejectedNumerical;
     return;
-  }
-  Vector9d d = Pxz * inv_sqrt_S;
-  if (!cholesky_downdate(state_.S, d) || !state_.S.allFinite()) {
-    ++state_.n_covariance_repairs;
-    state_.S = options_.initial_covariance().diagonal().cwiseSqrt().asDiagonal();
   }
   state_.x = x_new;
   ++state_.n_accepted;

@@ -179,10 +179,10 @@ struct FilterUpdate {
 // diag(Q) for a step of dt_s: q_i^2 dt_s / 3600 (dt_s <= 0 gives 0).
 Vector9d process_noise_diagonal(const Vector9d& q_per_sqrt_hour, double dt_s);
 
-// Rank-1 Cholesky downdate of the lower factor S in place: S S^T - u u^T (u is destroyed).
-// Returns false (S then undefined) when the result would not be positive definite. O(n^2), no
-// allocation.
-bool cholesky_downdate(Matrix9d& S, Vector9d& u);
+// Rank-1 Cholesky downdate of the lower factor S in place, given the whitened vector
+// p = S^-1 u: S S^T - u u^T = S (I - p p^T) S^T. Returns false, S untouched, when |p| >= 1
+// (the result would not be positive definite). O(n^2), no allocation, no serial sqrt chain.
+bool cholesky_downdate_whitened(Matrix9d& S, const Vector9d& p);
 
 // Makes P symmetric positive definite and returns its lower Cholesky factor in L (P = L L^T).
 // Symmetrises P and tries LLT; if that fails, adds a small diagonal jitter (relative to each
@@ -244,10 +244,12 @@ class ScalarFilterBase {
   bool begin_update(FilterUpdate& u, const Eigen::Vector3d& b_sensor_nT, double h_norm_nT,
                     int64_t utime);
   // Shared second half, given b_cal = (I + D) B - b at the prior x, the prior prediction y_hat,
-  // the state part of the innovation variance hph (H P H^T) and Pxz (P H^T): noise adaptation,
-  // gate, Kalman update with the square-root downdate, evidence, monitor.
+  // the state part of the innovation variance hph (H P H^T) and Pxz_white = S^-1 Pxz (Pxz =
+  // P H^T; both filters have it before Pxz): noise adaptation, gate, Kalman update with the
+  // square-root downdate, evidence, monitor.
   void finish_update(FilterUpdate& u, const Eigen::Vector3d& b_sensor_nT, double h_norm_nT,
-                     const Eigen::Vector3d& b_cal, double y_hat, double hph, const Vector9d& Pxz);
+                     const Eigen::Vector3d& b_cal, double y_hat, double hph,
+                     const Vector9d& Pxz_white);
 
   FilterOptions options_;
   FilterState state_;

@@ -62,9 +62,9 @@ FilterUpdate MagnetometerUkf::update(const Eigen::Vector3d& b_sensor_nT, double 
   const Vector9d dzp = z_plus.array() - y_hat;
   const Vector9d dzm = z_minus.array() - y_hat;
   const double hph = w0c_ * dz0 * dz0 + wi_ * (dzp.squaredNorm() + dzm.squaredNorm());
-  // Pxz = sum_i Wi (X_i - x)(Z_i - y_hat); the centre point has X_0 - x = 0.
-  const Vector9d Pxz = S.triangularView<Eigen::Lower>() * ((wi_ * spread_) * (dzp - dzm));
-  finish_update(u, b_sensor_nT, h_norm_nT, y0, y_hat, hph, Pxz);
+  // Pxz = sum_i Wi (X_i - x)(Z_i - y_hat) = S v (the centre point has X_0 - x = 0).
+  const Vector9d v = (wi_ * spread_) * (dzp - dzm);
+  finish_update(u, b_sensor_nT, h_norm_nT, y0, y_hat, hph, v);
   return u;
 }
 

@@ -110,17 +110,18 @@ TEST_CASE("Rank-1 Cholesky downdate equals the covariance-form update") {
   // Downdate by K sqrt(S_y) with S_y = v^T P v + R, R > 0: P - P v v^T P / S_y stays PD.
   const Vector9d Pv = P * v;
   const double S_y = v.dot(Pv) + 0.01;
-  Vector9d u = Pv / std::sqrt(S_y);
+  const Vector9d u = Pv / std::sqrt(S_y);
   Matrix9d S = S0;
-  REQUIRE(cholesky_downdate(S, u));
+  REQUIRE(cholesky_downdate_whitened(S, S0.triangularView<Eigen::Lower>().solve(u)));
   CHECK(S.isLowerTriangular());
   const Matrix9d expected = P - Pv * Pv.transpose() / S_y;
   CHECK((S * S.transpose() - expected).norm() < 1e-9 * expected.norm());
   CHECK((S.diagonal().array() > 0.0).all());
   // A downdate that would make P indefinite is refused.
-  u = 2.0 * Pv / std::sqrt(v.dot(Pv));
   S = S0;
-  CHECK_FALSE(cholesky_downdate(S, u));
+  CHECK_FALSE(cholesky_downdate_whitened(
+      S, S0.triangularView<Eigen::Lower>().solve(2.0 * Pv / std::sqrt(v.dot(Pv)))));
+  CHECK(S == S0);
 }
 
 TEST_CASE("UKF options: defaults are the spec's weights, bad spreads are refused") {
