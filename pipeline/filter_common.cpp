@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
@@ -41,6 +42,15 @@ std::string FilterOptions::validate() const {
   if (!(inflation_factor >= 1.0) || !std::isfinite(inflation_factor))
     return "inflation_factor must be >= 1";
   if (!(converged_bias_sigma_nT > 0.0)) return "converged_bias_sigma_nT must be > 0";
+  if (start.min_samples < 11) return "start min_samples must be >= 11";
+  if (!(start.max_condition > 1.0)) return "start max_condition must be > 1";
+  if (!(start.max_correlation >= 0.0 && start.max_correlation < 1.0))
+    return "start max_correlation must be in [0, 1)";
+  if (start_attempt_every < 1) return "start_attempt_every must be >= 1";
+  if (!(noise_adaptation_samples >= 1.0) || !std::isfinite(noise_adaptation_samples))
+    return "noise_adaptation_samples must be >= 1";
+  if (!(max_fisher_condition > 1.0)) return "max_fisher_condition must be > 1";
+  if (fisher_every < 1) return "fisher_every must be >= 1";
   return {};
 }
 
@@ -52,13 +62,21 @@ Matrix9d FilterOptions::initial_covariance() const {
 }
 
 bool FilterState::operator==(const FilterState& o) const {
-  return x == o.x && P == o.P && initialized == o.initialized && has_time == o.has_time &&
+  return x == o.x && S == o.S && initialized == o.initialized && has_time == o.has_time &&
          consistent == o.consistent && first_utime == o.first_utime && last_utime == o.last_utime &&
          converged_since_utime == o.converged_since_utime && n_accepted == o.n_accepted &&
          n_rejected_invalid == o.n_rejected_invalid && n_rejected_gate == o.n_rejected_gate &&
          n_inconsistency_events == o.n_inconsistency_events &&
          n_covariance_repairs == o.n_covariance_repairs && nis_window_sum == o.nis_window_sum &&
-         nis_window_count == o.nis_window_count && last_window_mean_nis == o.last_window_mean_nis;
+         nis_window_count == o.nis_window_count && last_window_mean_nis == o.last_window_mean_nis &&
+         noise_scale2 == o.noise_scale2 && innovation_c0 == o.innovation_c0 &&
+         innovation_c1 == o.innovation_c1 &&
+         previous_normalised_innovation == o.previous_normalised_innovation &&
+         has_previous_innovation == o.has_previous_innovation && moments == o.moments &&
+         fisher_condition == o.fisher_condition && samples_since_fisher == o.samples_since_fisher &&
+         period_start_utime == o.period_start_utime && period_n == o.period_n &&
+         period_residual_sum2_nT2 == o.period_residual_sum2_nT2 &&
+         period_nis_sum == o.period_nis_sum;
 }
 
 const char* to_string(FilterUpdateStatus s) {
@@ -71,8 +89,37 @@ const char* to_string(FilterUpdateStatus s) {
       return "rejected_gate";
     case FilterUpdateStatus::kRejectedNumerical:
       return "rejected_numerical";
+    case FilterUpdateStatus::kCollecting:
+      return "collecting";
   }
   return "rejected_invalid";
+}
+
+bool cholesky_downdate_whitened(Matrix9d& S, const Vector9d& p) {
+  // S' = S M with M M^T = I - p p^T lower triangular, in closed form (delta_0 = 1,
+  // delta_k = 1 - sum_{j<=k} p_j^2): M_kk = sqrt(delta_k / delta_{k-1}),
+  // M_ik = -p_i p_k / sqrt(delta_k delta_{k-1}) (i > k). All square roots and divisions are
+  // independent (no serial chain as in the textbook downdate); column k of S' is
+  // a_k S_k - b_k sum_{j>k} p_j S_j.
+  Vector9d delta;
+  double acc = 1.0;
+  for (int k = 0; k < 9; ++k) {
+    acc -= p(k) * p(k);
+    delta(k) = acc;
+  }
+  if (!(delta(8) > 0.0)) return false;
+  Vector9d delta_prev;
+  delta_prev << 1.0, delta.head<8>();
+  const Vector9d inv = (delta.cwiseProduct(delta_prev)).cwiseSqrt().cwiseInverse();
+  const Vector9d a = delta.cwiseProduct(inv);  // sqrt(delta_k / delta_{k-1})
+  const Vector9d b = p.cwiseProduct(inv);      // p_k / sqrt(delta_k delta_{k-1})
+  Vector9d rest = S * p;                       // sum_j p_j S_j
+  for (int k = 0; k < 9; ++k) {
+    rest -= p(k) * S.col(k);  // now sum_{j>k} p_j S_j (zero above row k+1)
+    S.col(k) = a(k) * S.col(k) - b(k) * rest;
+    S.col(k).head(k).setZero();  // exact zeros above the diagonal despite round-off
+  }
+  return true;
 }
 
 Vector9d process_noise_diagonal(const Vector9d& q_per_sqrt_hour, double dt_s) {
@@ -118,32 +165,88 @@ CovarianceGuard guard_covariance(Matrix9d& P, Matrix9d& L) {
   return CovarianceGuard::kRepaired;
 }
 
+void ScalarFilterBase::set_covariance(const Matrix9d& P) {
+  Matrix9d Pc = P, L;
+  switch (guard_covariance(Pc, L)) {
+    case CovarianceGuard::kOk:
+      break;
+    case CovarianceGuard::kRepaired:
+      ++state_.n_covariance_repairs;
+      break;
+    case CovarianceGuard::kNonFinite:  // refuse a NaN covariance: fall back to the prior
+      ++state_.n_covariance_repairs;
+      L = options_.initial_covariance().diagonal().cwiseSqrt().asDiagonal();
+      break;
+  }
+  state_.S = L.triangularView<Eigen::Lower>();
+}
+
 void ScalarFilterBase::initialize(const Vector9d& x0, const Matrix9d& P0) {
   state_ = FilterState{};
   state_.x = x0;
-  state_.P = 0.5 * (P0 + P0.transpose());
+  set_covariance(P0);
   state_.initialized = true;
   update_convergence_time();
 }
 
 void ScalarFilterBase::reanchor(const Vector9d& x, const Matrix9d& P) {
   state_.x = x;
-  state_.P = 0.5 * (P + P.transpose());
+  set_covariance(P);
   state_.initialized = true;
   state_.consistent = true;
   state_.nis_window_sum = 0.0;
   state_.nis_window_count = 0;
   state_.converged_since_utime = -1;
+  if (state_.moments.n > 0) {
+    state_.fisher_condition = moments_fisher_condition(state_.moments.matrix(), state_.x);
+    state_.samples_since_fisher = 0;
+  }
   update_convergence_time();
+}
+
+void ScalarFilterBase::seed_noise(double measurement_noise_nT) {
+  if (!(measurement_noise_nT > 0.0) || !std::isfinite(measurement_noise_nT)) return;
+  const double ratio = measurement_noise_nT / options_.sigma_nT;
+  state_.noise_scale2 = std::max(1.0, ratio * ratio);
 }
 
 void ScalarFilterBase::reset() {
   state_ = FilterState{};
 }
 
+void ScalarFilterBase::reset_period() {
+  state_.period_start_utime = state_.last_utime;
+  state_.period_n = 0;
+  state_.period_residual_sum2_nT2 = 0.0;
+  state_.period_nis_sum = 0.0;
+}
+
+Matrix9d ScalarFilterBase::P() const {
+  return state_.S * state_.S.transpose();
+}
+
+Eigen::Vector3d ScalarFilterBase::bias_sigma_nT() const {
+  return state_.S.topRows<3>().rowwise().norm();
+}
+
 bool ScalarFilterBase::converged() const {
   return state_.initialized && state_.consistent &&
+         state_.fisher_condition <= options_.max_fisher_condition &&
          (bias_sigma_nT().array() < options_.converged_bias_sigma_nT).all();
+}
+
+double ScalarFilterBase::measurement_noise_nT() const {
+  return options_.sigma_nT * std::sqrt(state_.noise_scale2);
+}
+
+double ScalarFilterBase::innovation_autocorrelation() const {
+  return state_.innovation_c0 > 0.0 ? state_.innovation_c1 / state_.innovation_c0 : 0.0;
+}
+
+double ScalarFilterBase::correlation_inflation() const {
+  if (!options_.start.correlation_inflation) return 1.0;
+  const double rho = std::clamp(innovation_autocorrelation(), 0.0, options_.start.max_correlation);
+  return (1.0 + rho) / (1.0 - rho);
 }
 
 CalibrationResult ScalarFilterBase::snapshot() const {
@@ -152,94 +255,207 @@ CalibrationResult ScalarFilterBase::snapshot() const {
   r.utime = state_.last_utime;
   r.window_start_utime = state_.first_utime;
   r.window_end_utime = state_.last_utime;
-  r.n_samples = static_cast<int>(state_.n_accepted);
+  r.n_samples = static_cast<int>(state_.moments.n);
   r.parameters = parameters();
-  r.covariance = state_.P;
+  r.covariance = state_.initialized ? P() : options_.initial_covariance();
   r.iterations = static_cast<int>(state_.n_accepted);
   r.converged = converged();
-  if (!state_.initialized) {
+  if (state_.period_n > 0) {
+    r.residual_rms_nT =
+        std::sqrt(state_.period_residual_sum2_nT2 / static_cast<double>(state_.period_n));
+    r.nis_mean = state_.period_nis_sum / static_cast<double>(state_.period_n);
+  } else {
+    r.residual_rms_nT = std::numeric_limits<double>::quiet_NaN();
+  }
+  r.measurement_noise_nT = measurement_noise_nT();
+  r.noise_scale = std::sqrt(state_.noise_scale2);
+  r.residual_autocorrelation = innovation_autocorrelation();
+  r.fisher_condition_number = state_.initialized && state_.moments.n >= 10
+                                  ? moments_fisher_condition(state_.moments.matrix(), state_.x)
+                                  : state_.fisher_condition;
+  char buf[200];
+  if (!state_.has_time) {
     r.status = CalibrationStatus::kFailed;
     r.message = "no valid sample yet";
+  } else if (!state_.initialized) {
+    r.status = CalibrationStatus::kNotConverged;
+    std::snprintf(buf, sizeof buf,
+                  "collecting data for the start: %lld samples, scaled Fisher condition %.3g "
+                  "(start needs <= %.3g)",
+                  static_cast<long long>(state_.moments.n), state_.fisher_condition,
+                  options_.start.max_condition);
+    r.message = buf;
+  } else if (!(r.fisher_condition_number <= options_.max_fisher_condition)) {
+    r.status = CalibrationStatus::kUnobservable;
+    std::snprintf(buf, sizeof buf,
+                  "scaled Fisher condition %.3g > %.3g: the data seen do not observe every "
+                  "parameter",
+                  r.fisher_condition_number, options_.max_fisher_condition);
+    r.message = buf;
   } else if (!state_.consistent) {
     r.status = CalibrationStatus::kNotConverged;
-    r.message = "inconsistent innovations (mean NIS " +
-                std::to_string(state_.last_window_mean_nis) + "), covariance re-opened";
-  } else if (!r.converged) {
+    std::snprintf(buf, sizeof buf, "inconsistent innovations (mean NIS %.3g), covariance re-opened",
+                  state_.last_window_mean_nis);
+    r.message = buf;
+  } else if (!(bias_sigma_nT().array() < options_.converged_bias_sigma_nT).all()) {
     r.status = CalibrationStatus::kNotConverged;
-    r.message = "bias 1-sigma above " + std::to_string(options_.converged_bias_sigma_nT) + " nT";
+    std::snprintf(buf, sizeof buf, "bias 1-sigma above %.3g nT", options_.converged_bias_sigma_nT);
+    r.message = buf;
   } else {
     r.status = CalibrationStatus::kOk;
   }
   return r;
 }
 
-bool ScalarFilterBase::begin_update(const Eigen::Vector3d& b_sensor_nT, double h_norm_nT,
-                                    int64_t utime) {
+CalibrationResult ScalarFilterBase::snapshot_and_reset_period() {
+  CalibrationResult r = snapshot();
+  reset_period();
+  return r;
+}
+
+void ScalarFilterBase::start_from(const FilterStartResult& start) {
+  state_.x = start.p;
+  set_covariance(start.covariance);
+  state_.initialized = true;
+  state_.noise_scale2 = std::max(state_.noise_scale2, start.noise_scale2);
+  state_.innovation_c0 = 1.0;
+  state_.innovation_c1 = start.residual_autocorrelation;
+  state_.has_previous_innovation = false;
+  state_.fisher_condition = start.fisher_condition;
+  state_.samples_since_fisher = 0;
+  update_convergence_time();
+}
+
+bool ScalarFilterBase::begin_update(FilterUpdate& u, const Eigen::Vector3d& b_sensor_nT,
+                                    double h_norm_nT, int64_t utime) {
+  u.status = FilterUpdateStatus::kRejectedInvalid;
   if (!is_finite(b_sensor_nT) || !std::isfinite(h_norm_nT) || !(h_norm_nT > 0.0)) {
     ++state_.n_rejected_invalid;
     return false;
   }
-  if (!state_.initialized) {
-    state_.x.setZero();
-    if (options_.cold_start == FilterOptions::ColdStart::kFirstSampleScale &&
-        b_sensor_nT.norm() > 0.0) {
-      state_.x.segment<3>(3).setConstant(h_norm_nT / b_sensor_nT.norm() - 1.0);
+  if (!state_.has_time) {  // first valid sample: no prediction before it
+    state_.has_time = true;
+    state_.first_utime = utime;
+    state_.last_utime = utime;
+    state_.period_start_utime = utime;
+  } else if (utime > state_.last_utime) {
+    if (state_.initialized) {
+      const double dt_s =
+          static_cast<double>(saturating_sub(utime, state_.last_utime)) / kMicrosecondsPerSecond;
+      const Vector9d q = process_noise_diagonal(options_.process_noise_per_sqrt_hour, dt_s);
+      if ((q.array() > 0.0).any()) {
+        // P + Q re-factorised (one 9x9 LLT is cheaper than nine serial rank-1 updates).
+        Matrix9d P = state_.S * state_.S.transpose();
+        P.diagonal() += q;
+        const Eigen::LLT<Matrix9d> llt(P);
+        if (llt.info() == Eigen::Success) state_.S = llt.matrixL();
+      }
     }
-    state_.P = options_.initial_covariance();
-    state_.initialized = true;
-    state_.has_time = true;
-    state_.first_utime = utime;
-    state_.last_utime = utime;
-    return true;
-  }
-  if (!state_.has_time) {  // first sample after initialize(): no prediction
-    state_.has_time = true;
-    state_.first_utime = utime;
-    state_.last_utime = utime;
-    return true;
-  }
-  if (utime > state_.last_utime) {
-    const double dt_s =
-        static_cast<double>(saturating_sub(utime, state_.last_utime)) / kMicrosecondsPerSecond;
-    state_.P.diagonal() += process_noise_diagonal(options_.process_noise_per_sqrt_hour, dt_s);
     state_.last_utime = utime;
   }
+  if (state_.initialized) return true;
+
+  if (options_.cold_start == FilterOptions::ColdStart::kFromData) {
+    const double y =
+        scalar_measurement(b_sensor_nT, h_norm_nT) - scalar_noise_mean(options_.sigma_nT);
+    state_.moments.add(b_sensor_nT, y, 1.0 / scalar_noise_variance(b_sensor_nT, options_.sigma_nT),
+                       true);
+    u.status = FilterUpdateStatus::kCollecting;
+    if (state_.moments.n >= options_.start.min_samples &&
+        state_.moments.n % options_.start_attempt_every == 0) {
+      const FilterStartResult start = solve_filter_start(state_.moments, options_.start);
+      if (start.status != FilterStartStatus::kTooFewSamples)
+        state_.fisher_condition = start.fisher_condition;
+      if (start.status == FilterStartStatus::kOk) {
+        start_from(start);
+        u.started = true;
+      }
+    }
+    return false;
+  }
+  // Prior start (estimation.md 3): the first valid sample is also the first update.
+  state_.x.setZero();
+  if (options_.cold_start == FilterOptions::ColdStart::kFirstSampleScale &&
+      b_sensor_nT.norm() > 0.0) {
+    state_.x.segment<3>(3).setConstant(h_norm_nT / b_sensor_nT.norm() - 1.0);
+  }
+  state_.S = options_.initial_covariance().diagonal().cwiseSqrt().asDiagonal();
+  state_.initialized = true;
   return true;
 }
 
-void ScalarFilterBase::measurement(const Eigen::Vector3d& b_sensor_nT, double h_norm_nT, double& y,
-                                   double& R) const {
-  y = scalar_measurement(b_sensor_nT, h_norm_nT) - scalar_noise_mean(options_.sigma_nT);
-  R = scalar_noise_variance(parameters().apply(b_sensor_nT), options_.sigma_nT);
-}
+void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_sensor_nT,
+                                     double h_norm_nT, const Eigen::Vector3d& b_cal, double y_hat,
+                                     double hph, const Vector9d& Pxz_white) {
+  const double sigma = options_.sigma_nT;
+  const Vector9d Pxz = state_.S * Pxz_white;
+  const double y = scalar_measurement(b_sensor_nT, h_norm_nT) - scalar_noise_mean(sigma);
+  const double R1 = scalar_noise_variance(b_cal, sigma);
+  const double R_white = R1 * state_.noise_scale2;
+  const double S_white = hph + R_white;
+  const double S_gain = hph + R_white * correlation_inflation();
+  const double nu = y - y_hat;
+  u.innovation_nT2 = nu;
+  u.innovation_variance_nT4 = S_white;
+  if (!(S_white > 0.0) || !std::isfinite(S_white) || !std::isfinite(nu) || !Pxz.allFinite()) {
+    ++state_.n_rejected_invalid;
+    u.status = FilterUpdateStatus::kRejectedNumerical;
+    return;
+  }
+  u.nis = nu * nu / S_white;
+  const bool gating = options_.gate_nis > 0.0;
 
-bool ScalarFilterBase::gate(FilterUpdate& u) {
-  u.nis = u.innovation_nT2 * u.innovation_nT2 / u.innovation_variance_nT4;
-  if (options_.gate_nis > 0.0 && u.nis > options_.gate_nis) {
+  // Evidence over the snapshot period (prior estimate, every valid sample).
+  const double residual_nT = b_cal.norm() - h_norm_nT;
+  state_.period_residual_sum2_nT2 += residual_nT * residual_nT;
+  state_.period_nis_sum += gating ? std::min(u.nis, options_.gate_nis) : u.nis;
+  ++state_.period_n;
+
+  if (options_.adaptive_noise) {
+    // Gated samples enter clipped to the gate: a real noise increase still raises a, a spike
+    // moves it by at most gate / N.
+    const double nu2 = gating ? std::min(nu * nu, options_.gate_nis * S_white) : nu * nu;
+    const double lambda = 1.0 / options_.noise_adaptation_samples;
+    state_.noise_scale2 += lambda * ((nu2 - hph) / R1 - state_.noise_scale2);
+    state_.noise_scale2 = std::max(1.0, state_.noise_scale2);
+    double e = nu / std::sqrt(S_white);
+    if (gating) {
+      const double lim = std::sqrt(options_.gate_nis);
+      e = std::clamp(e, -lim, lim);
+    }
+    state_.innovation_c0 += lambda * (e * e - state_.innovation_c0);
+    if (state_.has_previous_innovation)
+      state_.innovation_c1 +=
+          lambda * (e * state_.previous_normalised_innovation - state_.innovation_c1);
+    state_.previous_normalised_innovation = e;
+    state_.has_previous_innovation = true;
+  }
+
+  if (gating && u.nis > options_.gate_nis) {
     ++state_.n_rejected_gate;
     u.status = FilterUpdateStatus::kRejectedGate;
     monitor(u);
-    return false;
+    return;
   }
-  return true;
-}
 
-void ScalarFilterBase::commit_posterior(FilterUpdate& u, const Vector9d& x_new,
-                                        const Matrix9d& P_new) {
-  if (!x_new.allFinite() || !P_new.allFinite()) {
+  // Kalman update: x += K nu, P -= Pxz Pxz^T / S, i.e. S S^T - (S p)(S p)^T with
+  // p = S^-1 Pxz / sqrt(S): a rank-1 downdate of S in place. With R > 0, |p| < 1 and it cannot
+  // fail; if round-off ever made it, the update is refused and S left untouched.
+  const double inv_sqrt_S = 1.0 / std::sqrt(S_gain);
+  const Vector9d x_new = state_.x + Pxz * (nu * inv_sqrt_S * inv_sqrt_S);
+  if (!x_new.allFinite() || !cholesky_downdate_whitened(state_.S, Pxz_white * inv_sqrt_S)) {
     ++state_.n_rejected_invalid;
     u.status = FilterUpdateStatus::kRejectedNumerical;
     return;
   }
   state_.x = x_new;
-  state_.P = P_new;
-  finish_accepted(u);
-}
-
-void ScalarFilterBase::finish_accepted(FilterUpdate& u) {
-  state_.P = 0.5 * (state_.P + state_.P.transpose()).eval();
   ++state_.n_accepted;
   u.status = FilterUpdateStatus::kAccepted;
+  state_.moments.add(b_sensor_nT, y, 1.0 / scalar_noise_variance(b_sensor_nT, sigma), false);
+  if (++state_.samples_since_fisher >= options_.fisher_every) {
+    state_.fisher_condition = moments_fisher_condition(state_.moments.matrix(), state_.x);
+    state_.samples_since_fisher = 0;
+  }
   monitor(u);
   update_convergence_time();
 }
@@ -260,16 +476,16 @@ void ScalarFilterBase::monitor(FilterUpdate& u) {
 
   ++state_.n_inconsistency_events;
   u.inconsistency_event = true;
-  const Matrix9d P0 = options_.initial_covariance();
+  const Vector9d p0 = options_.initial_covariance().diagonal();
   if (options_.consistency_action == FilterOptions::ConsistencyAction::kReseed) {
-    state_.P = P0;
+    state_.S = p0.cwiseSqrt().asDiagonal();
   } else {
-    state_.P *= options_.inflation_factor;
-    // Cap each variance at its cold-start value with a congruence (keeps P positive definite).
-    Vector9d scale;
-    for (int i = 0; i < 9; ++i)
-      scale(i) = state_.P(i, i) > P0(i, i) ? std::sqrt(P0(i, i) / state_.P(i, i)) : 1.0;
-    state_.P = scale.asDiagonal() * state_.P * scale.asDiagonal();
+    state_.S *= std::sqrt(options_.inflation_factor);
+    // Cap each variance at its prior value by scaling its row of S (keeps S lower triangular).
+    for (int i = 0; i < 9; ++i) {
+      const double var = state_.S.row(i).squaredNorm();
+      if (var > p0(i)) state_.S.row(i) *= std::sqrt(p0(i) / var);
+    }
   }
   update_convergence_time();
 }

@@ -1,36 +1,67 @@
 // What the online stage-1 filters (magnetometer_ekf, magnetometer_ukf) share: options, the
-// serialisable state, process-noise scaling, the covariance guard and the consistency monitor
-// (estimation.md sections 3 and 3a). One copy, used by both filters.
+// serialisable state, the square-root covariance algebra, the start from data, the adaptive
+// measurement noise, the consistency monitor and the evidence every snapshot carries
+// (estimation.md sections 3, 3a and 7). One copy, used by both filters.
 //
 // Model (estimation.md 3): static state x = p = [b1 b2 b3 D11 D22 D33 D12 D13 D23]
 // (nT, nT, nT, 1, 1, 1, 1, 1, 1), x_{k+1} = x_k + w_k, w_k ~ N(0, Q_k),
 //   Q_k = diag(q_i^2) * dt_s / 3600       (q_i: 1-sigma random walk per sqrt(hour), per state)
-// Scalar measurement y_k = z_k - mu_k = h(x, B_k) + v_k, z_k = |B_k|^2 - |h_k|^2,
-//   mu_k = 3 sigma^2, Var v_k = R_k = scalar_noise_variance((I + D_hat) B_k - b_hat, sigma)
-// (pipeline/scalar_measurement.hpp).
+// Scalar measurement y_k = z_k - mu_k = h(x, B_k) + v_k, z_k = |B_k|^2 - |h_k|^2, mu_k = 3 sigma^2.
 //
-// Innovation gate: an innovation nu with NIS = nu^2 / S > gate_nis (default: chi2(1) upper
-// 1e-6 tail, 23.93) is rejected and counted; the state is not touched.
+// Square root: the state keeps the lower Cholesky factor S of the covariance (P = S S^T). A
+// scalar update P - Pxz Pxz^T / S_y is a rank-1 Cholesky downdate of S by Pxz / sqrt(S_y)
+// (van der Merwe & Wan 2001), O(n^2), positive definite by construction (it fails only if
+// S_y < Pxz^T P^-1 Pxz, which R > 0 excludes for both filters); process noise is a
+// re-factorisation of S S^T + Q (one 9x9 LLT, cheaper than nine serial rank-1 updates).
 //
-// Consistency policy (estimation.md 3a: a wrong estimate must not claim a small sigma):
-// the NIS of every valid sample (accepted or gated; gated ones enter clipped to gate_nis so a
-// single spike cannot trigger it) is averaged over consecutive, non-overlapping windows of
-// nis_window samples. For a consistent filter the mean is ~1 (std ~ sqrt(2/window)). When a
-// window's mean exceeds nis_inconsistent_mean the filter declares an inconsistency event:
-// the state is kept and the covariance is re-opened (kInflate: P *= inflation_factor, each
-// variance capped at the initial one; kReseed: P = initial covariance), the event is counted,
-// and `consistent` is false until a later window's mean NIS is back below the threshold.
-// A snapshot is only `ok` when the filter is consistent and the bias 1-sigma is below
-// converged_bias_sigma_nT on all three axes; otherwise it is `not_converged`.
+// Start (estimation.md 7): by default (cold_start = kFromData) the filter does not start from
+// a prior. It accumulates the moments of the batch problem (filter_start.hpp) and, every
+// start_attempt_every samples once it has start.min_samples, solves the batch problem; it starts
+// when the solution exists and its scaled Fisher condition is <= start.max_condition. x and P
+// come from that solution (P scaled by the residual noise and the lag-1 correlation inflation),
+// the noise estimate is seeded from it. Until then update() returns kCollecting and snapshots are
+// not_converged. kZero / kFirstSampleScale keep the old cold prior (estimation.md 3).
+//
+// Adaptive measurement noise (Mehra 1970 / Sage-Husa, estimation.md 7): the white-equivalent
+// noise variance is sigma^2 a, a >= 1 (bounded below by the configured sigma_nT), with
+//   a <- a + (q_k - a) / noise_adaptation_samples,  q_k = (min(nu^2, gate S) - H P H^T) / R1_k
+// (R1_k: Var v_k at sigma_nT, scalar_measurement.hpp); E[nu^2] = S makes E[q_k] = a.
+// Correlated errors (unmodelled effects: lag-1 ~0.8 at 10 s on the paper scenario) make a filter
+// that treats them as white over-confident by about (1 + rho) / (1 - rho) in variance; rho, the
+// lag-1 autocorrelation of the normalised innovations, is estimated the same way (exponentially
+// weighted) and the gain uses R = R1 a (1 + rho) / (1 - rho) (rho clipped to
+// [0, start.max_correlation]); this changes the covariance, not the estimate. The NIS, the gate
+// and the monitor use S_white = H P H^T + R1 a, the variance the innovation actually has.
+//
+// Innovation gate: NIS = nu^2 / S_white > gate_nis (default: chi2(1) upper 1e-6 tail, 23.93)
+// rejects the sample (counted; predicted only).
+//
+// Consistency monitor (estimation.md 3a): the NIS of every valid sample (gated ones clipped to
+// gate_nis) is averaged over consecutive windows of nis_window samples; a window mean above
+// nis_inconsistent_mean is an inconsistency event: P is re-opened (kInflate: P *= factor,
+// variances capped at the prior ones; kReseed: P = prior) and `consistent` is false until a
+// later window is back below.
+//
+// Evidence (estimation.md 7, "online results carry evidence"): over the snapshot period (since
+// the filter started or reset_period()) the rms of |B_cal| - |h| (prior estimate, valid samples),
+// the mean NIS; the effective noise; and the scaled Fisher condition number of the information
+// accumulated since the filter first saw data (from the moments, at the current estimate).
+// snapshot() status: failed before any valid sample; not_converged while collecting for the
+// start, while inconsistent or while a bias 1-sigma is >= converged_bias_sigma_nT; unobservable
+// when the Fisher condition is above max_fisher_condition; ok otherwise. A caller gates the
+// snapshot with evaluate_gates() (acceptance_gates.hpp): residual_rms_nT, n_samples and
+// fisher_condition_number are in the result.
 #pragma once
 
 #include <cstdint>
+#include <limits>
 #include <string>
 
 #include <Eigen/Core>
 
 #include "pipeline/calibration_result.hpp"
 #include "pipeline/calibration_types.hpp"
+#include "pipeline/filter_start.hpp"
 
 namespace magcal {
 
@@ -38,21 +69,28 @@ namespace magcal {
 inline constexpr double kChi2OneDofTail1e6 = 23.928;
 
 struct FilterOptions {
-  double sigma_nT = 3.0;  // magnetometer white noise, 1-sigma per axis
+  double sigma_nT = 3.0;  // magnetometer white noise, 1-sigma per axis (lower bound of the noise)
 
   // Process noise: 1-sigma random walk per sqrt(hour), per state (nT for b, 1 for D). 0 = static.
   Vector9d process_noise_per_sqrt_hour = Vector9d::Zero();
 
-  // Prior used on the first sample when initialize() was not called (cold start).
+  // How the filter starts when initialize() / reanchor() was not called.
   enum class ColdStart : int8_t {
-    kZero,              // x0 = 0
-    kFirstSampleScale,  // b = 0, D = (|h|/|B| - 1) I from the first valid sample
+    kFromData,          // batch solution of the first samples once they observe p (default)
+    kZero,              // prior x0 = 0, covariance initial_covariance()
+    kFirstSampleScale,  // prior b = 0, D = (|h|/|B| - 1) I from the first valid sample
   };
-  ColdStart cold_start = ColdStart::kZero;
+  ColdStart cold_start = ColdStart::kFromData;
+  FilterStartOptions start;      // kFromData: sample count, observability, correlation inflation
+  int start_attempt_every = 30;  // samples between start attempts (each ~10-50 us)
+  // Prior (kZero / kFirstSampleScale) and the cap of the consistency monitor's inflation.
   double initial_bias_sigma_nT = 2000.0;
   double initial_D_sigma = 0.05;
 
   double gate_nis = kChi2OneDofTail1e6;  // innovation gate on nu^2 / S; <= 0 disables gating
+
+  bool adaptive_noise = true;               // estimate the noise scale from the innovations
+  double noise_adaptation_samples = 500.0;  // time constant of the exponential weighting
 
   // Consistency monitor (policy in the file comment).
   int nis_window = 100;                // samples per window
@@ -61,36 +99,60 @@ struct FilterOptions {
   ConsistencyAction consistency_action = ConsistencyAction::kInflate;
   double inflation_factor = 100.0;  // kInflate: P *= factor (variances capped at the initial)
 
-  // Snapshot status: ok once every bias 1-sigma is below this (and the filter is consistent).
+  // Snapshot status: ok once every bias 1-sigma is below this (and the filter is consistent
+  // and observable).
   double converged_bias_sigma_nT = 10.0;
+  // Observability: scaled Fisher condition above this is `unobservable` (the acceptance gates'
+  // max_fisher_condition default).
+  double max_fisher_condition = 1e4;
+  int fisher_every = 360;  // samples between refreshes of the cached condition number
 
   // Empty when valid, else what is wrong.
   std::string validate() const;
 
-  // The cold-start covariance diag(initial_bias_sigma^2 x3, initial_D_sigma^2 x6).
+  // The prior covariance diag(initial_bias_sigma^2 x3, initial_D_sigma^2 x6).
   Matrix9d initial_covariance() const;
 };
 
 // Everything a filter needs to resume exactly (the daemon stores it in SQLite). Restoring a
-// state obtained from state() gives a bit-exact continuation.
+// state obtained from state() gives a bit-exact continuation. ~2 KB.
 struct FilterState {
   Vector9d x = Vector9d::Zero();  // p = [b (nT); D11 D22 D33 D12 D13 D23]
-  Matrix9d P = Matrix9d::Zero();  // covariance of x (nT^2, nT, 1)
-  bool initialized = false;       // false: the next valid sample starts the filter (cold start)
+  Matrix9d S = Matrix9d::Zero();  // lower Cholesky factor of the covariance of x (P = S S^T)
+  bool initialized = false;       // started (from data, a prior, initialize() or reanchor())
   bool consistent = true;         // last completed NIS window was consistent
   bool has_time = false;          // a valid sample was seen: first_utime/last_utime are set
   int64_t first_utime = 0;        // first valid sample
   int64_t last_utime = 0;         // time x and P refer to (latest valid sample)
-  // Time since which every bias 1-sigma has stayed below converged_bias_sigma_nT; -1 if not now.
+  // Time since which the filter has been converged() (ok); -1 if not now.
   int64_t converged_since_utime = -1;
   int64_t n_accepted = 0;          // measurement updates applied
   int64_t n_rejected_invalid = 0;  // NaN/Inf, |h| <= 0, numerical failure
   int64_t n_rejected_gate = 0;     // innovation outside the gate
   int64_t n_inconsistency_events = 0;
-  int64_t n_covariance_repairs = 0;  // covariance guard had to add jitter / clamp eigenvalues
+  int64_t n_covariance_repairs = 0;  // initialize()/reanchor() got a P that needed repair
   double nis_window_sum = 0.0;       // current (incomplete) window
   int32_t nis_window_count = 0;
   double last_window_mean_nis = 0.0;  // mean NIS of the last completed window (0: none yet)
+
+  // Adaptive noise: a = (effective white noise / sigma_nT)^2 >= 1, and the exponentially
+  // weighted second moment and lag-1 product of the normalised innovations (rho = c1 / c0).
+  double noise_scale2 = 1.0;
+  double innovation_c0 = 1.0;
+  double innovation_c1 = 0.0;
+  double previous_normalised_innovation = 0.0;
+  bool has_previous_innovation = false;
+
+  // Moments of the batch problem since the first valid sample (start and observability).
+  ScalarMoments moments;
+  double fisher_condition = std::numeric_limits<double>::infinity();  // cached, see options
+  int32_t samples_since_fisher = 0;
+
+  // Snapshot period (since the start or reset_period()).
+  int64_t period_start_utime = 0;
+  int64_t period_n = 0;
+  double period_residual_sum2_nT2 = 0.0;
+  double period_nis_sum = 0.0;
 
   bool operator==(const FilterState& o) const;
 };
@@ -101,43 +163,56 @@ enum class FilterUpdateStatus : int8_t {
   kRejectedInvalid = 1,    // NaN/Inf input or |h| <= 0: state untouched (not even predicted)
   kRejectedGate = 2,       // innovation outside the gate: predicted only, no measurement update
   kRejectedNumerical = 3,  // S not positive or non-finite numbers: predicted only, no update
+  kCollecting = 4,         // not started yet: the sample went into the start's moments
 };
 const char* to_string(FilterUpdateStatus s);
 
 struct FilterUpdate {
   FilterUpdateStatus status = FilterUpdateStatus::kRejectedInvalid;
   double innovation_nT2 = 0.0;           // y - y_hat
-  double innovation_variance_nT4 = 0.0;  // S
-  double nis = 0.0;                      // innovation^2 / S
+  double innovation_variance_nT4 = 0.0;  // S_white = H P H^T + R1 a (what nu^2 is compared to)
+  double nis = 0.0;                      // innovation^2 / S_white
   bool inconsistency_event = false;      // this sample closed an inconsistent NIS window
+  bool started = false;                  // this sample completed the start from data
 };
 
 // diag(Q) for a step of dt_s: q_i^2 dt_s / 3600 (dt_s <= 0 gives 0).
 Vector9d process_noise_diagonal(const Vector9d& q_per_sqrt_hour, double dt_s);
 
+// Rank-1 Cholesky downdate of the lower factor S in place, given the whitened vector
+// p = S^-1 u: S S^T - u u^T = S (I - p p^T) S^T. Returns false, S untouched, when |p| >= 1
+// (the result would not be positive definite). O(n^2), no allocation, no serial sqrt chain.
+bool cholesky_downdate_whitened(Matrix9d& S, const Vector9d& p);
+
 // Makes P symmetric positive definite and returns its lower Cholesky factor in L (P = L L^T).
 // Symmetrises P and tries LLT; if that fails, adds a small diagonal jitter (relative to each
 // variance), then falls back to clamping eigenvalues of the diagonally scaled P at a floor.
 // kOk: P was fine (only symmetrised); kRepaired: P was modified; kNonFinite: P has NaN/Inf,
-// P is left unchanged and L is undefined.
+// P is left unchanged and L is undefined. Used on covariances handed in from outside.
 enum class CovarianceGuard : int8_t { kOk, kRepaired, kNonFinite };
 CovarianceGuard guard_covariance(Matrix9d& P, Matrix9d& L);
 
 // The part of the EKF and UKF that does not depend on how the innovation statistics are
-// computed: validation, prediction, gating, the consistency monitor, state I/O and snapshots.
-// Not polymorphic (no vtable); the filters derive from it and add update().
+// computed. Not polymorphic (no vtable); the filters derive from it and add update().
 class ScalarFilterBase {
  public:
   const FilterOptions& filter_options() const { return options_; }
 
-  // Start from a given prior (e.g. a batch refit) with all counters reset; the next valid
-  // sample is the first one (no prediction before it).
+  // Start from a given prior with all counters and the evidence reset; the next valid sample is
+  // the first one (no prediction before it). The moments start empty: the Fisher condition (and
+  // with it `ok`) needs the filter's own data.
   void initialize(const Vector9d& x0, const Matrix9d& P0);
-  // After an accepted batch refit: replace x and P, keep time and counters, reset the NIS window
-  // and the consistency flag (the refit is trusted).
+  // After an accepted batch refit: replace x and P, keep time, counters, the noise estimate and
+  // the accumulated information; reset the NIS window and the consistency flag (the refit is
+  // trusted). On a filter that has not started yet this starts it (keeping its moments).
   void reanchor(const Vector9d& x, const Matrix9d& P);
-  // Forget everything (cold start on the next valid sample).
+  // Sets the noise estimate from a refit's effective noise (per axis, nT; e.g. sigma_nT x the
+  // refit's noise_scale, or its residual rms). Bounded below by sigma_nT. Ignored if not > 0.
+  void seed_noise(double measurement_noise_nT);
+  // Forget everything (the next valid sample starts over).
   void reset();
+  // Starts a new snapshot period (residual rms and mean NIS restart from here).
+  void reset_period();
 
   const FilterState& state() const { return state_; }
   void restore(const FilterState& s) { state_ = s; }
@@ -145,40 +220,47 @@ class ScalarFilterBase {
   bool initialized() const { return state_.initialized; }
   bool consistent() const { return state_.consistent; }
   const Vector9d& x() const { return state_.x; }
-  const Matrix9d& P() const { return state_.P; }
+  Matrix9d P() const;  // S S^T
   CalibrationParameters parameters() const { return CalibrationParameters::from_packed(state_.x); }
-  Eigen::Vector3d bias_sigma_nT() const { return state_.P.diagonal().head<3>().cwiseSqrt(); }
-  bool converged() const;  // consistent and all bias 1-sigma < converged_bias_sigma_nT
+  Eigen::Vector3d bias_sigma_nT() const;
+  // Started, consistent, observable (cached condition) and all bias 1-sigma below the threshold.
+  bool converged() const;
+  // Current effective white-equivalent noise per axis (nT) and innovation lag-1 correlation.
+  double measurement_noise_nT() const;
+  double innovation_autocorrelation() const;
 
-  // The current estimate as a result (method "ekf"/"ukf"; status ok when converged(), else
-  // not_converged; failed before the first sample).
+  // The current estimate with its evidence (file comment). method "ekf"/"ukf".
   CalibrationResult snapshot() const;
+  // snapshot(), then reset_period().
+  CalibrationResult snapshot_and_reset_period();
 
  protected:
   ScalarFilterBase(const FilterOptions& options, const char* method)
       : options_(options), method_(method) {}
 
-  // Shared first half of update(): rejects invalid input (counted, state untouched), starts a
-  // cold filter, predicts to utime (P += Q). Returns false if the sample is invalid.
-  bool begin_update(const Eigen::Vector3d& b_sensor_nT, double h_norm_nT, int64_t utime);
-  // y = z - mu for the sample and the noise variance R at the current (prior) estimate.
-  void measurement(const Eigen::Vector3d& b_sensor_nT, double h_norm_nT, double& y,
-                   double& R) const;
-  // Fills u.nis; if outside the gate counts the rejection, runs the monitor and returns false.
-  bool gate(FilterUpdate& u);
-  // After a measurement update: guard P, count, convergence time, run the monitor.
-  // Commits the posterior (then symmetrises, guards, counts) unless it is not finite, in which
-  // case the state is left untouched and the update reported as rejected (numerical).
-  void commit_posterior(FilterUpdate& u, const Vector9d& x_new, const Matrix9d& P_new);
-  void finish_accepted(FilterUpdate& u);
+  // Shared first half of update(): rejects invalid input (counted, state untouched), collects
+  // for the start (returns false with u.status = kCollecting), starts a prior filter, predicts
+  // to utime. Returns true when the filter-specific update should run.
+  bool begin_update(FilterUpdate& u, const Eigen::Vector3d& b_sensor_nT, double h_norm_nT,
+                    int64_t utime);
+  // Shared second half, given b_cal = (I + D) B - b at the prior x, the prior prediction y_hat,
+  // the state part of the innovation variance hph (H P H^T) and Pxz_white = S^-1 Pxz (Pxz =
+  // P H^T; both filters have it before Pxz): noise adaptation, gate, Kalman update with the
+  // square-root downdate, evidence, monitor.
+  void finish_update(FilterUpdate& u, const Eigen::Vector3d& b_sensor_nT, double h_norm_nT,
+                     const Eigen::Vector3d& b_cal, double y_hat, double hph,
+                     const Vector9d& Pxz_white);
 
   FilterOptions options_;
   FilterState state_;
   const char* method_;
 
  private:
+  void start_from(const FilterStartResult& start);
+  void set_covariance(const Matrix9d& P);
   void monitor(FilterUpdate& u);
   void update_convergence_time();
+  double correlation_inflation() const;
 };
 
 }  // namespace magcal

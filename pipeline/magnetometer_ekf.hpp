@@ -1,14 +1,14 @@
-// Online stage-1 calibration: extended Kalman filter on the scalar measurement
-// (estimation.md section 3; Crassidis, Lai & Harman 2005).
+// Online stage-1 calibration: extended Kalman filter on the scalar measurement, square-root
+// form (estimation.md section 3; Crassidis, Lai & Harman 2005).
 //
 // State x = p = [b1 b2 b3 D11 D22 D33 D12 D13 D23] (nT, 1), static with optional random walk Q.
-// Per sample (B_k sensor frame nT, |h_k| nT, utime):
-//   predict   P += Q(dt)                                       (filter_common.hpp)
+// Per sample (B_k sensor frame nT, |h_k| nT, utime), with the Cholesky factor S (P = S S^T):
+//   predict   S <- chol(S S^T + Q(dt))                          (filter_common.hpp)
 //   y_k = |B|^2 - |h|^2 - 3 sigma^2,  y_hat = h(x, B)           (scalar_measurement.hpp)
 //   H   = dz/dp at the prior x (the CRLB row, estimation.md 2d)
-//   S   = H P H^T + R_k,  K = P H^T / S,  x += K (y - y_hat)
-//   P   = (I - K H) P (I - K H)^T + K R_k K^T   (Joseph form, evaluated in O(n^2)), symmetrised.
-// Gating and the consistency monitor as documented in filter_common.hpp.
+//   f = S^T H^T,  S_y = |f|^2 + R_k,  x += S f (y - y_hat) / S_y,
+//   S <- cholupdate(S, S f / sqrt(S_y), -)   (P - K S_y K^T as a rank-1 downdate; always PD)
+// Start from data, adaptive R, gating, monitor and evidence as documented in filter_common.hpp.
 // Fixed-size Eigen only: update() does not allocate.
 #pragma once
 

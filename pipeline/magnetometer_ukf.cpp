@@ -18,6 +18,8 @@ std::string UkfOptions::validate() const {
   if (!std::isfinite(beta) || !std::isfinite(kappa)) return "ukf beta and kappa must be finite";
   const double lambda = alpha * alpha * (kN + kappa) - kN;
   if (!(kN + lambda > 0.0)) return "ukf requires n + lambda = alpha^2 (n + kappa) > 0";
+  const double w0c = lambda / (kN + lambda) + 1.0 - alpha * alpha + beta;
+  if (w0c < 0.0) return "ukf requires W0c = lambda / (n + lambda) + 1 - alpha^2 + beta >= 0";
   return {};
 }
 
@@ -34,52 +36,35 @@ MagnetometerUkf::MagnetometerUkf(const Options& options)
 FilterUpdate MagnetometerUkf::update(const Eigen::Vector3d& b_sensor_nT, double h_norm_nT,
                                      int64_t utime) {
   FilterUpdate u;
-  if (!begin_update(b_sensor_nT, h_norm_nT, utime)) return u;
+  if (!begin_update(u, b_sensor_nT, h_norm_nT, utime)) return u;
 
-  double y = 0.0, R = 0.0;
-  measurement(b_sensor_nT, h_norm_nT, y, R);
-  Matrix9d L;
-  switch (guard_covariance(state_.P, L)) {
-    case CovarianceGuard::kOk:
-      break;
-    case CovarianceGuard::kRepaired:
-      ++state_.n_covariance_repairs;
-      break;
-    case CovarianceGuard::kNonFinite:
-      ++state_.n_rejected_invalid;
-      u.status = FilterUpdateStatus::kRejectedNumerical;
-      return u;
-  }
-
-  // Sigma points x +- spread L_i; the state is static, so propagation is just h().
-  const Vector9d& x = state_.x;
-  const double z0 = predicted_scalar_measurement(x, b_sensor_nT);
-  Vector9d z_plus, z_minus;
+  // Sigma points X_{+-i} = x +- spread S_i. The state is static, so propagation is h() only, and
+  // y(p) = (I + D) B - b is linear in p: y(X_{+-i}) = y0 +- spread m_i, m_i = (dy/dp) S_i, so
+  //   Z_{+-i} = |B|^2 - |y0|^2 -+ 2 spread y0.m_i - spread^2 |m_i|^2   (exact, no approximation).
+  const Eigen::Vector3d& B = b_sensor_nT;
+  const Matrix9d& S = state_.S;
+  const Eigen::Vector3d y0 = parameters().apply(B);
+  const double z0 = B.squaredNorm() - y0.squaredNorm();
+  Vector9d a, q;
   for (int i = 0; i < kN; ++i) {
-    const Vector9d d = spread_ * L.col(i);
-    z_plus(i) = predicted_scalar_measurement(x + d, b_sensor_nT);
-    z_minus(i) = predicted_scalar_measurement(x - d, b_sensor_nT);
+    const auto c = S.col(i);
+    const Eigen::Vector3d m(-c(0) + B(0) * c(3) + B(1) * c(6) + B(2) * c(7),
+                            -c(1) + B(1) * c(4) + B(0) * c(6) + B(2) * c(8),
+                            -c(2) + B(2) * c(5) + B(0) * c(7) + B(1) * c(8));
+    a(i) = y0.dot(m);
+    q(i) = m.squaredNorm();
   }
+  const double s2 = spread_ * spread_;
+  const Vector9d z_plus = (z0 - 2.0 * spread_ * a.array() - s2 * q.array()).matrix();
+  const Vector9d z_minus = (z0 + 2.0 * spread_ * a.array() - s2 * q.array()).matrix();
   const double y_hat = w0m_ * z0 + wi_ * (z_plus.sum() + z_minus.sum());
   const double dz0 = z0 - y_hat;
   const Vector9d dzp = z_plus.array() - y_hat;
   const Vector9d dzm = z_minus.array() - y_hat;
-  u.innovation_nT2 = y - y_hat;
-  u.innovation_variance_nT4 = w0c_ * dz0 * dz0 + wi_ * (dzp.squaredNorm() + dzm.squaredNorm()) + R;
-  if (!(u.innovation_variance_nT4 > 0.0) || !std::isfinite(u.innovation_variance_nT4) ||
-      !std::isfinite(u.innovation_nT2)) {
-    ++state_.n_rejected_invalid;
-    u.status = FilterUpdateStatus::kRejectedNumerical;
-    return u;
-  }
-  if (!gate(u)) return u;
-
-  // Pxz = sum_i Wi (X_i - x)(Z_i - y_hat); the centre point has X_0 - x = 0.
-  const Vector9d Pxz = (wi_ * spread_) * (L * (dzp - dzm));
-  const Vector9d K = Pxz / u.innovation_variance_nT4;
-  const Vector9d x_new = x + K * u.innovation_nT2;
-  const Matrix9d P_new = state_.P - K * Pxz.transpose();  // = P - K S K^T
-  commit_posterior(u, x_new, P_new);
+  const double hph = w0c_ * dz0 * dz0 + wi_ * (dzp.squaredNorm() + dzm.squaredNorm());
+  // Pxz = sum_i Wi (X_i - x)(Z_i - y_hat) = S v (the centre point has X_0 - x = 0).
+  const Vector9d v = (wi_ * spread_) * (dzp - dzm);
+  finish_update(u, b_sensor_nT, h_norm_nT, y0, y_hat, hph, v);
   return u;
 }
 

@@ -1,17 +1,19 @@
-// Online stage-1 calibration: unscented Kalman filter on the scalar measurement
-// (estimation.md section 3; Crassidis, Lai & Harman 2005).
+// Online stage-1 calibration: square-root unscented Kalman filter on the scalar measurement
+// (estimation.md sections 3 and 7; Crassidis, Lai & Harman 2005; van der Merwe & Wan 2001).
 //
 // State x = p = [b1 b2 b3 D11 D22 D33 D12 D13 D23] (nT, 1), static with optional random walk Q.
-// Scaled unscented transform with n = 9, lambda = alpha^2 (n + kappa) - n:
-//   L = chol(P) (guarded, filter_common.hpp), X_0 = x, X_{+-i} = x +- sqrt(n + lambda) L_i
+// Scaled unscented transform with n = 9, lambda = alpha^2 (n + kappa) - n, on the Cholesky
+// factor S kept by the state (P = S S^T, filter_common.hpp):
+//   X_0 = x, X_{+-i} = x +- sqrt(n + lambda) S_i
 //   W0m = lambda / (n + lambda), W0c = W0m + 1 - alpha^2 + beta, Wi = 1 / (2 (n + lambda))
 // Defaults alpha = 1, beta = 2, kappa = 3 - n: lambda = -6, spread sqrt(3), W0m = -2, W0c = 0,
-// Wi = 1/6 (the negative centre weight is why the covariance guard is needed).
-// Per sample: predict P += Q(dt); Z_i = h(X_i, B) (scalar_measurement.hpp, the only
-// propagation: the state is static), y_hat = sum Wm Z_i,
-//   S = sum Wc (Z_i - y_hat)^2 + R_k,  Pxz = sum Wc (X_i - x)(Z_i - y_hat),
-//   K = Pxz / S,  x += K (y - y_hat),  P -= K S K^T, then symmetrised and guarded.
-// Gating and the consistency monitor as documented in filter_common.hpp.
+// Wi = 1/6. W0c >= 0 is required: then S_y >= Pxz^T P^-1 Pxz + R and the downdate below is
+// positive definite without a guard.
+// Per sample: predict S <- chol(S S^T + Q(dt)); Z_i = h(X_i, B) (exact and cheap: y(p) is
+// linear in p, see update()), y_hat = sum Wm Z_i,
+//   S_y = sum Wc (Z_i - y_hat)^2 + R_k,  Pxz = sum Wc (X_i - x)(Z_i - y_hat),
+//   x += Pxz (y - y_hat) / S_y,  S <- cholupdate(S, Pxz / sqrt(S_y), -)   (rank-1 downdate)
+// Start from data, adaptive R, gating, monitor and evidence as documented in filter_common.hpp.
 // Fixed-size Eigen only: update() does not allocate.
 #pragma once
 

@@ -5,11 +5,15 @@
 #include <cstring>
 #include <limits>
 
+#include <Eigen/Cholesky>
+
 namespace magcal {
 namespace {
 
-// Counters blob layout (version 1): fixed-order int64/double fields, native little-endian.
-constexpr uint32_t kFilterBlobMagic = 0x4D434631;  // "MCF1"
+// Counters blob layout: fixed-order int64/double fields, native little-endian. Version 2 adds
+// the square-root factor, the noise estimate, the moments and the snapshot period.
+constexpr uint32_t kFilterBlobMagic = 0x4D434631;    // "MCF1": P blob = covariance
+constexpr uint32_t kFilterBlobMagicV2 = 0x4D434632;  // "MCF2": P blob = Cholesky factor
 
 template <typename T>
 void put(std::vector<uint8_t>& out, const T& v) {
@@ -167,13 +171,15 @@ storage::FilterState stored_filter_state(const std::string& sat_id, const std::s
   out.sat_id = sat_id;
   out.method = method;
   for (int i = 0; i < 9; ++i) out.x[static_cast<size_t>(i)] = st.x(i);
+  // MCF2: the P blob holds the lower Cholesky factor S (P = S S^T), row-major, so a restore is
+  // bit-exact for the square-root filters.
   for (int i = 0; i < 9; ++i) {
-    for (int j = 0; j < 9; ++j) out.P[static_cast<size_t>(9 * i + j)] = st.P(i, j);
+    for (int j = 0; j < 9; ++j) out.P[static_cast<size_t>(9 * i + j)] = st.S(i, j);
   }
   out.last_utime = st.last_utime;
   out.n_samples = st.n_accepted;
   auto& b = out.counters;
-  put(b, kFilterBlobMagic);
+  put(b, kFilterBlobMagicV2);
   put(b, static_cast<uint8_t>(st.initialized));
   put(b, static_cast<uint8_t>(st.consistent));
   put(b, st.first_utime);
@@ -185,14 +191,31 @@ storage::FilterState stored_filter_state(const std::string& sat_id, const std::s
   put(b, st.nis_window_sum);
   put(b, st.nis_window_count);
   put(b, st.last_window_mean_nis);
+  put(b, static_cast<uint8_t>(st.has_time));
+  put(b, st.noise_scale2);
+  put(b, st.innovation_c0);
+  put(b, st.innovation_c1);
+  put(b, st.previous_normalised_innovation);
+  put(b, static_cast<uint8_t>(st.has_previous_innovation));
+  for (int i = 0; i < st.moments.m.size(); ++i) put(b, st.moments.m(i));
+  for (int i = 0; i < st.moments.m_lag1.size(); ++i) put(b, st.moments.m_lag1(i));
+  for (int i = 0; i < st.moments.previous.size(); ++i) put(b, st.moments.previous(i));
+  put(b, st.moments.n);
+  put(b, st.fisher_condition);
+  put(b, st.samples_since_fisher);
+  put(b, st.period_start_utime);
+  put(b, st.period_n);
+  put(b, st.period_residual_sum2_nT2);
+  put(b, st.period_nis_sum);
   return out;
 }
 
 bool filter_state_from_stored(const storage::FilterState& in, FilterState& out) {
   FilterState st;
   for (int i = 0; i < 9; ++i) st.x(i) = in.x[static_cast<size_t>(i)];
+  Matrix9d blob;
   for (int i = 0; i < 9; ++i) {
-    for (int j = 0; j < 9; ++j) st.P(i, j) = in.P[static_cast<size_t>(9 * i + j)];
+    for (int j = 0; j < 9; ++j) blob(i, j) = in.P[static_cast<size_t>(9 * i + j)];
   }
   st.last_utime = in.last_utime;
   st.n_accepted = in.n_samples;
@@ -200,8 +223,8 @@ bool filter_state_from_stored(const storage::FilterState& in, FilterState& out) 
   uint32_t magic = 0;
   uint8_t initialized = 0, consistent = 0;
   const auto& b = in.counters;
-  if (!get(b, pos, magic) || magic != kFilterBlobMagic || !get(b, pos, initialized) ||
-      !get(b, pos, consistent) || !get(b, pos, st.first_utime) ||
+  if (!get(b, pos, magic) || (magic != kFilterBlobMagic && magic != kFilterBlobMagicV2) ||
+      !get(b, pos, initialized) || !get(b, pos, consistent) || !get(b, pos, st.first_utime) ||
       !get(b, pos, st.converged_since_utime) || !get(b, pos, st.n_rejected_invalid) ||
       !get(b, pos, st.n_rejected_gate) || !get(b, pos, st.n_inconsistency_events) ||
       !get(b, pos, st.n_covariance_repairs) || !get(b, pos, st.nis_window_sum) ||
@@ -210,7 +233,36 @@ bool filter_state_from_stored(const storage::FilterState& in, FilterState& out) 
   }
   st.initialized = initialized != 0;
   st.consistent = consistent != 0;
-  if (!st.x.allFinite() || !st.P.allFinite()) return false;
+  if (!st.x.allFinite() || !blob.allFinite()) return false;
+  if (magic == kFilterBlobMagic) {  // MCF1 (before the square-root filters): P itself
+    st.has_time = st.initialized;
+    if (!st.initialized) {
+      st.S.setZero();
+    } else {
+      const Eigen::LLT<Matrix9d> llt(0.5 * (blob + blob.transpose()));
+      if (llt.info() != Eigen::Success) return false;
+      st.S = llt.matrixL();
+    }
+    st.fisher_condition = std::numeric_limits<double>::infinity();
+    out = st;
+    return true;
+  }
+  st.S = blob;
+  uint8_t has_time = 0, has_prev = 0;
+  bool ok = get(b, pos, has_time) && get(b, pos, st.noise_scale2) &&
+            get(b, pos, st.innovation_c0) && get(b, pos, st.innovation_c1) &&
+            get(b, pos, st.previous_normalised_innovation) && get(b, pos, has_prev);
+  for (int i = 0; ok && i < st.moments.m.size(); ++i) ok = get(b, pos, st.moments.m(i));
+  for (int i = 0; ok && i < st.moments.m_lag1.size(); ++i) ok = get(b, pos, st.moments.m_lag1(i));
+  for (int i = 0; ok && i < st.moments.previous.size(); ++i)
+    ok = get(b, pos, st.moments.previous(i));
+  ok = ok && get(b, pos, st.moments.n) && get(b, pos, st.fisher_condition) &&
+       get(b, pos, st.samples_since_fisher) && get(b, pos, st.period_start_utime) &&
+       get(b, pos, st.period_n) && get(b, pos, st.period_residual_sum2_nT2) &&
+       get(b, pos, st.period_nis_sum);
+  if (!ok) return false;
+  st.has_time = has_time != 0;
+  st.has_previous_innovation = has_prev != 0;
   out = st;
   return true;
 }

@@ -14,6 +14,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
@@ -141,12 +142,15 @@ FilterRun run_filter(Filter& filter, const SampleSet& samples, std::FILE* trace)
   for (const CalibrationSample& s : samples) {
     filter.update(s.b_sensor_nT, s.h_body_nT.norm(), s.utime);
     if (trace) {
-      const Vector9d& x = filter.x();
-      const Vector9d sd = filter.P().diagonal().cwiseMax(0.0).cwiseSqrt();
+      // Per sample: what a snapshot taken now would say (status and evidence).
+      const CalibrationResult snap = filter.snapshot();
+      const Vector9d x = snap.parameters.packed();
+      const Vector9d sd = snap.covariance.diagonal().cwiseMax(0.0).cwiseSqrt();
       std::fprintf(trace, "%.6f", static_cast<double>(s.utime) * 1e-6);
       for (int i = 0; i < 9; ++i) std::fprintf(trace, ",%.10g", x(i));
       for (int i = 0; i < 9; ++i) std::fprintf(trace, ",%.10g", sd(i));
-      std::fputc('\n', trace);
+      std::fprintf(trace, ",%s,%.4g,%.4g,%.4g\n", to_string(snap.status), snap.measurement_noise_nT,
+                   snap.residual_autocorrelation, snap.fisher_condition_number);
     }
   }
   run.result = filter.snapshot();
@@ -313,7 +317,8 @@ int run_fit(const FitArgs& args) {
       }
       std::fputs(
           "t_s,b1_nT,b2_nT,b3_nT,D11,D22,D33,D12,D13,D23,sigma_b1_nT,sigma_b2_nT,"
-          "sigma_b3_nT,sigma_D11,sigma_D22,sigma_D33,sigma_D12,sigma_D13,sigma_D23\n",
+          "sigma_b3_nT,sigma_D11,sigma_D22,sigma_D33,sigma_D12,sigma_D13,sigma_D23,status,"
+          "noise_nT,innovation_rho,fisher_condition\n",
           trace);
     }
     FilterRun run;

@@ -139,6 +139,7 @@ std::map<std::string, Section> key_table(DaemonConfig& c) {
         {"cold_start",
          bind_enum(f.cold_start,
                    std::map<std::string, FilterOptions::ColdStart>{
+                       {"data", FilterOptions::ColdStart::kFromData},
                        {"zero", FilterOptions::ColdStart::kZero},
                        {"first_sample_scale", FilterOptions::ColdStart::kFirstSampleScale}})},
         {"initial_bias_sigma_nT", bind(f.initial_bias_sigma_nT)},

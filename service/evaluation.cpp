@@ -7,6 +7,7 @@
 
 #include <fmt/format.h>
 
+#include "pipeline/acceptance_gates.hpp"
 #include "pipeline/alignment.hpp"
 #include "pipeline/batch_calibration.hpp"
 #include "pipeline/crlb.hpp"
@@ -140,7 +141,9 @@ void run_filter(Filter& filter, const SampleSet& samples, std::size_t begin, Acc
   acc.compute += ms_since(t0);
   const CalibrationResult snap = filter.snapshot();
   acc.add_estimate(snap.parameters, snap.covariance, truth, crlb);
-  if (snap.status != CalibrationStatus::kOk) ++acc.stats.runs_rejected;
+  // Same verdict as any result: status ok and the default acceptance gates.
+  if (snap.status != CalibrationStatus::kOk || !evaluate_gates(snap, GateInputs{}).accepted)
+    ++acc.stats.runs_rejected;
   const FilterState& st = filter.state();
   if (st.converged_since_utime >= 0 && begin < samples.size()) {
     // From the first sample this filter saw (a warm start converges at its first sample).
@@ -177,10 +180,13 @@ EvaluationReport run_evaluation(const EvaluationOptions& options) {
   label(2, "align Procrustes", off, {});
   label(3, "align small-angle LS", off, paper_align_ls());
   if (options.online) {
-    label(4, "EKF cold", on, paper_ekf());
-    label(5, "EKF warm", warm, paper_ekf());
-    label(6, "UKF cold", on, paper_ukf());
-    label(7, "UKF warm", warm, paper_ukf());
+    // Default settings: start from data, adaptive noise from sigma = the scenario's white noise.
+    // The old hand-tuned variant (sigma = the refit's residual rms) is labelled as such.
+    const bool tuned = options.filter_sigma_from_residual;
+    label(4, tuned ? "EKF data start (sigma=refit rms)" : "EKF data start", on, paper_ekf());
+    label(5, tuned ? "EKF warm (sigma=refit rms)" : "EKF warm", warm, paper_ekf());
+    label(6, tuned ? "UKF data start (sigma=refit rms)" : "UKF data start", on, paper_ukf());
+    label(7, tuned ? "UKF warm (sigma=refit rms)" : "UKF warm", warm, paper_ukf());
   }
 
   for (int run = 0; run < options.runs; ++run) {
@@ -246,8 +252,8 @@ EvaluationReport run_evaluation(const EvaluationOptions& options) {
     const bool have_warm = lm_result.status == CalibrationStatus::kOk ||
                            lm_result.status == CalibrationStatus::kRejected ||
                            lm_result.status == CalibrationStatus::kNotConverged;
-    // The filters' noise: the scenario's white noise, or (filter_sigma_from_residual) the
-    // residual rms of the offline refit, which also covers the unmodelled effects.
+    // The filters' noise: the scenario's white noise (default: the filters adapt from there), or
+    // (filter_sigma_from_residual, the old hand-tuning) the residual rms of the offline refit.
     const double filter_sigma = options.filter_sigma_from_residual &&
                                         std::isfinite(lm_result.residual_rms_nT) &&
                                         lm_result.residual_rms_nT > sigma
@@ -261,6 +267,7 @@ EvaluationReport run_evaluation(const EvaluationOptions& options) {
       if (have_warm) {
         MagnetometerEkf w(o);
         w.initialize(lm_result.parameters.packed(), lm_result.covariance);
+        w.seed_noise(lm_result.residual_rms_nT);  // what the daemon does on a re-anchor
         run_filter(w, all, n_off, acc[5], truth, crlb_on);
       }
     }
@@ -272,6 +279,7 @@ EvaluationReport run_evaluation(const EvaluationOptions& options) {
       if (have_warm) {
         MagnetometerUkf w(o);
         w.initialize(lm_result.parameters.packed(), lm_result.covariance);
+        w.seed_noise(lm_result.residual_rms_nT);
         run_filter(w, all, n_off, acc[7], truth, crlb_on);
       }
     }

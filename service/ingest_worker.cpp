@@ -277,8 +277,10 @@ void IngestWorker::maybe_snapshot(const std::string& sat_id, SpacecraftTracker& 
     t.next_snapshot_utime = saturating_add(utime, period);
     return;
   }
-  if (utime < t.next_snapshot_utime || !t.ukf.initialized()) return;
-  CalibrationResult snap = t.ukf.snapshot();
+  // Every period once the filter has seen data: before its start from data the snapshot says
+  // not_converged (collecting); each snapshot carries the evidence of its own period.
+  if (utime < t.next_snapshot_utime || !t.ukf.state().has_time) return;
+  CalibrationResult snap = t.ukf.snapshot_and_reset_period();
   snap.utime = utime;
   if (snap.window_end_utime == 0) snap.window_end_utime = utime;
   if (snap.window_start_utime == 0) snap.window_start_utime = t.ukf.state().first_utime;

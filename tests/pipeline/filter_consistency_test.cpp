@@ -1,6 +1,7 @@
-// Consistency of the online filters (estimation.md 3a): normalised estimation errors ~ chi2,
-// the NIS monitor, cold starts in weakly observed (nadir-like) geometry, and where the EKF fails
-// and the UKF does not. Truth: simulated from the estimation model with known parameters.
+// Consistency of the online filters (estimation.md 3a and 7): normalised estimation errors ~
+// chi2, the NIS monitor, noise adaptation, the data start in weakly observed (nadir-like)
+// geometry, efficiency against the CRLB, unobservable captures, the snapshot evidence.
+// Truth: simulated from the estimation model with known parameters.
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -8,6 +9,8 @@
 #include <Eigen/Cholesky>
 #include <catch2/catch.hpp>
 
+#include "pipeline/acceptance_gates.hpp"
+#include "pipeline/crlb.hpp"
 #include "pipeline/magnetometer_ekf.hpp"
 #include "pipeline/magnetometer_ukf.hpp"
 #include "tests/pipeline/filter_test_support.hpp"
@@ -90,15 +93,22 @@ TEST_CASE("Consistent data: the NIS monitor stays quiet") {
   CHECK(f.state().last_window_mean_nis == Approx(1.0).margin(0.5));
 }
 
-TEST_CASE("Mis-stated noise (15 nT data, 3 nT assumed): inconsistency flagged, no ok status") {
+TEST_CASE("Mis-stated noise (15 nT data, 3 nT configured): the filter adapts and stays honest") {
+  // Adaptive noise (filter_common.hpp): the effective noise is estimated from the innovations,
+  // so the NIS monitor tests consistency, not a mis-set sigma.
   const Vector9d p_true = paper_parameters();
   const auto data = simulate(Geometry::kTumbling, p_true, 6.0, 5.0 * kSigma_nT, 22);
   MagnetometerUkf f;
-  f.initialize(p_true, warm_covariance());
-  run(f, data, p_true);
-  CHECK(f.state().n_inconsistency_events > 0);
-  CHECK_FALSE(f.consistent());
-  CHECK(f.snapshot().status == CalibrationStatus::kNotConverged);
+  const RunSummary s = run(f, data, p_true);
+  const CalibrationResult r = f.snapshot();
+  WARN("estimated noise " << r.measurement_noise_nT << " nT (truth 15), events "
+                          << f.state().n_inconsistency_events);
+  CHECK(r.measurement_noise_nT == Approx(5.0 * kSigma_nT).epsilon(0.15));
+  CHECK(f.consistent());
+  CHECK(r.nis_mean == Approx(1.0).margin(0.3));
+  CHECK(s.worst_claimed_ok < kMaxErrorOverSigma);
+  CHECK(s.final_bias_error_over_sigma < kMaxErrorOverSigma);
+  CHECK(r.status == CalibrationStatus::kOk);
 }
 
 TEST_CASE("Overconfident wrong prior: gated samples trip the monitor, which re-opens P") {
@@ -129,30 +139,132 @@ TEST_CASE("Overconfident wrong prior: gated samples trip the monitor, which re-o
   }
 }
 
-TEST_CASE("Cold start on nadir-like geometry: no small sigma while wrong after a day") {
-  // Measured (paper parameters, seeds 1-10, 24 h, defaults): final |error| / sigma UKF <= 4.4,
-  // EKF <= 5.4; with 0.3 nT/sqrt(h) process noise the UKF ends <= 1.3 (early linearisation
-  // errors are forgotten instead of locked in).
-  // Known limitation (estimation.md 3a, reproduced): during the first hours of a cold start the
-  // filters can claim convergence while the weakly observed orbit-normal bias is still wrong
-  // (seen: 378 nT off with 6.7 nT sigma at 6 h, seed 3); the innovations are consistent there,
-  // so the NIS monitor cannot see it. The remedy is the daemon's re-anchoring on a batch refit:
-  // from a warm start the claimed sigma holds throughout (next test).
+TEST_CASE("Data start on nadir-like geometry: not_converged until observed, then honest") {
+  // estimation.md 7: no cold prior. Before the start the snapshot is not_converged; after it
+  // no check that claims convergence is more than 5 sigma off.
   const Vector9d p_true = paper_parameters();
   for (uint64_t seed : {1, 2, 3}) {
     const auto data = simulate(Geometry::kNadir, p_true, 24.0, kSigma_nT, seed);
-    MagnetometerUkf f;
-    const RunSummary s = run(f, data, p_true);
-    CHECK(s.final_bias_error_over_sigma < kMaxErrorOverSigma);
-    CHECK(s.converged_after_s > 0.0);  // converges within the day
-    CHECK(f.snapshot().status == CalibrationStatus::kOk);
-
-    MagnetometerUkf::Options o;
-    o.process_noise_per_sqrt_hour << 0.3, 0.3, 0.3, 1e-6, 1e-6, 1e-6, 1e-6, 1e-6, 1e-6;
-    MagnetometerUkf fq(o);
-    const RunSummary sq = run(fq, data, p_true);
-    CHECK(sq.final_bias_error_over_sigma < 2.5);
+    MagnetometerEkf ekf;
+    MagnetometerUkf ukf;
+    for (size_t k = 0; k < 30; ++k)
+      ukf.update(data[k].b_sensor_nT, data[k].h_norm_nT, data[k].utime);
+    CHECK_FALSE(ukf.initialized());
+    CHECK(ukf.snapshot().status == CalibrationStatus::kNotConverged);
+    ukf.reset();
+    const RunSummary se = run(ekf, data, p_true);
+    const RunSummary su = run(ukf, data, p_true);
+    for (const RunSummary* s : {&se, &su}) {
+      CHECK(s->worst_claimed_ok < kMaxErrorOverSigma);
+      CHECK(s->final_bias_error_over_sigma < kMaxErrorOverSigma);
+      CHECK(s->converged_after_s > 0.0);
+    }
+    CHECK(ekf.snapshot().status == CalibrationStatus::kOk);
+    CHECK(ukf.snapshot().status == CalibrationStatus::kOk);
   }
+}
+
+TEST_CASE("Data start: efficiency against the CRLB (tumbling <= 1.5x, nadir <= 3x)") {
+  // Pooled RMS over runs and axes of (b_hat - b) / sigma_CRLB (estimation.md 6), CRLB at the
+  // truth on the same samples. Measured: see the closing figures in the report.
+  const Vector9d p_true = paper_parameters();
+  struct Case {
+    Geometry g;
+    double hours;
+    int runs;
+    double max_ratio;
+  };
+  for (const Case c :
+       {Case{Geometry::kTumbling, 6.0, 20, 1.5}, Case{Geometry::kNadir, 24.0, 4, 3.0}}) {
+    double sum_ukf = 0.0, sum_ekf = 0.0;
+    for (int r = 0; r < c.runs; ++r) {
+      const auto data = simulate(c.g, p_true, c.hours, kSigma_nT, 500 + r);
+      SampleSet set;
+      for (const SimSample& s : data)
+        set.push_back({s.utime, s.b_sensor_nT, Eigen::Vector3d(s.h_norm_nT, 0.0, 0.0), false});
+      const CrlbResult crlb =
+          compute_crlb(set, CalibrationParameters::from_packed(p_true), kSigma_nT);
+      REQUIRE(crlb.ok);
+      MagnetometerUkf ukf;
+      MagnetometerEkf ekf;
+      const RunSummary su = run(ukf, data, p_true);
+      const RunSummary se = run(ekf, data, p_true);
+      sum_ukf += su.error.head<3>().cwiseQuotient(crlb.sigma.head<3>()).squaredNorm();
+      sum_ekf += se.error.head<3>().cwiseQuotient(crlb.sigma.head<3>()).squaredNorm();
+      CHECK(su.final_bias_error_over_sigma < kMaxErrorOverSigma);
+      CHECK(se.final_bias_error_over_sigma < kMaxErrorOverSigma);
+    }
+    const double ukf_ratio = std::sqrt(sum_ukf / (3.0 * c.runs));
+    const double ekf_ratio = std::sqrt(sum_ekf / (3.0 * c.runs));
+    WARN((c.g == Geometry::kNadir ? "nadir" : "tumbling")
+         << " RMS error / CRLB over " << c.runs << " runs: UKF " << ukf_ratio << ", EKF "
+         << ekf_ratio);
+    CHECK(ukf_ratio < c.max_ratio);
+    CHECK(ekf_ratio < 3.0);
+  }
+}
+
+TEST_CASE("Constant-field captures: yaw-only is never ok nor accepted, a 22 uT full one is") {
+  // The public-report cases of issue 10: a planar (yaw-only) capture does not observe b3 (its
+  // field z component never changes); a low-field capture through all orientations does.
+  Vector9d p_true;
+  p_true << -1500.0, 2500.0, 3200.0, 0.02, -0.01, 0.015, 0.005, -0.004, 0.003;
+  GateOptions gates;
+  gates.expected_residual_nT = 30.0;  // the captures' noise level (a lab setting)
+  for (bool yaw_only : {true, false}) {
+    const double field = yaw_only ? 48000.0 : 22000.0;
+    const auto data = simulate_capture(p_true, field, yaw_only, 2000, 30.0, 31);
+    MagnetometerEkf::Options o;
+    o.sigma_nT = 30.0;
+    MagnetometerEkf ekf(o);
+    MagnetometerUkf::Options ou;
+    ou.sigma_nT = 30.0;
+    MagnetometerUkf ukf(ou);
+    run(ekf, data, p_true);
+    run(ukf, data, p_true);
+    for (const CalibrationResult& r : {ekf.snapshot(), ukf.snapshot()}) {
+      const GateVerdict v = evaluate_gates(r, GateInputs{}, gates);
+      INFO(r.method << (yaw_only ? " yaw-only" : " 22 uT") << ": " << to_string(r.status) << " "
+                    << r.message << ", condition " << r.fisher_condition_number << ", bias "
+                    << r.parameters.bias_nT.transpose());
+      if (yaw_only) {
+        CHECK(r.status != CalibrationStatus::kOk);
+        CHECK_FALSE(v.accepted);
+      } else {
+        CHECK(r.status == CalibrationStatus::kOk);
+        CHECK(v.accepted);
+        const Eigen::Vector3d e = r.parameters.bias_nT - p_true.head<3>();
+        CHECK((e.cwiseQuotient(r.bias_sigma_nT()).cwiseAbs().array() < kMaxErrorOverSigma).all());
+      }
+    }
+  }
+}
+
+TEST_CASE("Snapshot evidence: residual rms and NIS over the period, reset by the caller") {
+  const Vector9d p_true = paper_parameters();
+  const auto data = simulate(Geometry::kTumbling, p_true, 4.0, kSigma_nT, 41);
+  MagnetometerUkf f;
+  const size_t half = data.size() / 2;
+  for (size_t k = 0; k < half; ++k) f.update(data[k].b_sensor_nT, data[k].h_norm_nT, data[k].utime);
+  REQUIRE(f.initialized());
+  f.snapshot_and_reset_period();
+  // Independent: rms of |B_cal| - |h| with the estimate before each sample.
+  double sum2 = 0.0;
+  int n = 0;
+  for (size_t k = half; k < data.size(); ++k) {
+    const double e = f.parameters().apply(data[k].b_sensor_nT).norm() - data[k].h_norm_nT;
+    sum2 += e * e;
+    ++n;
+    f.update(data[k].b_sensor_nT, data[k].h_norm_nT, data[k].utime);
+  }
+  const CalibrationResult r = f.snapshot();
+  CHECK(r.residual_rms_nT == Approx(std::sqrt(sum2 / n)).epsilon(1e-9));
+  CHECK(r.residual_rms_nT == Approx(kSigma_nT).epsilon(0.1));  // |B_cal| - |h| ~ N(0, sigma^2)
+  CHECK(r.nis_mean == Approx(1.0).margin(0.15));
+  CHECK(r.measurement_noise_nT == Approx(kSigma_nT).epsilon(0.1));
+  CHECK(r.fisher_condition_number > 1.0);
+  CHECK(r.fisher_condition_number < 100.0);
+  CHECK(r.status == CalibrationStatus::kOk);
 }
 
 TEST_CASE("Warm start (re-anchored) on nadir-like geometry: the claimed sigma holds throughout") {
@@ -177,34 +289,28 @@ TEST_CASE("Warm start (re-anchored) on nadir-like geometry: the claimed sigma ho
   }
 }
 
-TEST_CASE("Harsh parameters (3000 nT, D 0.05): the EKF fails where the UKF converges") {
-  // estimation.md 3a. Whatever the EKF does, it must not end claiming convergence while wrong.
+TEST_CASE("Harsh parameters (3000 nT, D 0.05): a data start converges for both filters") {
+  // estimation.md 3a: from a cold prior the textbook EKF locks in; from a data start (the batch
+  // solution of the first samples) neither filter does. From a prior at 2.8x the truth the EKF
+  // may still fail, but it must not claim convergence while wrong.
   const Vector9d p_true = harsh_parameters();
-  int ekf_failures = 0;
-  int runs = 0;
-  for (uint64_t seed : {1, 2, 3, 4, 5}) {
-    const auto data = simulate(Geometry::kTumbling, p_true, 24.0, kSigma_nT, seed);
-    for (bool from_2p8 : {false, true}) {
-      MagnetometerEkf ekf;
-      MagnetometerUkf ukf;
-      if (from_2p8) {
-        ekf.initialize(2.8 * p_true, ekf.options().initial_covariance());
-        ukf.initialize(2.8 * p_true, ukf.options().initial_covariance());
-      }
-      const RunSummary se = run(ekf, data, p_true);
-      const RunSummary su = run(ukf, data, p_true);
-      ++runs;
-      const bool ekf_failed = se.error.head<3>().cwiseAbs().maxCoeff() > 100.0;
-      if (ekf_failed) {
-        ++ekf_failures;
-        CHECK_FALSE(ekf.converged());  // failed, and says so
-      }
-      CHECK(su.error.head<3>().cwiseAbs().maxCoeff() < 1.0);  // UKF: converged, every run
-      CHECK(su.final_bias_error_over_sigma < kMaxErrorOverSigma);
-      CHECK(ukf.converged());
+  for (uint64_t seed : {1, 2, 3}) {
+    const auto data = simulate(Geometry::kTumbling, p_true, 12.0, kSigma_nT, seed);
+    MagnetometerEkf ekf;
+    MagnetometerUkf ukf;
+    const RunSummary se = run(ekf, data, p_true);
+    const RunSummary su = run(ukf, data, p_true);
+    for (const RunSummary* s : {&se, &su}) {
+      CHECK(s->error.head<3>().cwiseAbs().maxCoeff() < 1.0);
+      CHECK(s->final_bias_error_over_sigma < kMaxErrorOverSigma);
+      CHECK(s->worst_claimed_ok < kMaxErrorOverSigma);
     }
+    CHECK(ekf.converged());
+    CHECK(ukf.converged());
+
+    MagnetometerEkf ekf_prior;
+    ekf_prior.initialize(2.8 * p_true, ekf_prior.options().initial_covariance());
+    const RunSummary sp = run(ekf_prior, data, p_true);
+    if (sp.error.head<3>().cwiseAbs().maxCoeff() > 100.0) CHECK_FALSE(ekf_prior.converged());
   }
-  WARN("EKF failed (bias error > 100 nT after 24 h) in " << ekf_failures << " of " << runs
-                                                         << " harsh tumbling runs");
-  CHECK(ekf_failures >= 3);
 }

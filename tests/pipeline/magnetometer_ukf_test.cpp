@@ -1,6 +1,7 @@
 // MagnetometerUkf: unscented-transform moments against the exact Gaussian moments of the
-// quadratic measurement, recovery of known parameters, the covariance guard, input validation,
-// save/restore, no allocation per update. Consistency studies: filter_consistency_test.cpp.
+// quadratic measurement, the square-root downdate against the covariance form, recovery of known
+// parameters, the covariance guard, input validation, save/restore, no allocation per update.
+// Consistency studies: filter_consistency_test.cpp.
 #include "pipeline/magnetometer_ukf.hpp"
 
 #include <cmath>
@@ -58,8 +59,8 @@ TEST_CASE("UKF predicted measurement and cross-covariance equal the exact Gaussi
   const double h_norm = 40000.0;
   MagnetometerUkf::Options o;
   o.gate_nis = 0.0;
-  for (double alpha : {1.0, 0.5}) {
-    o.alpha = alpha;
+  for (double kappa : {-6.0, 0.0}) {  // W0c = 0 (default) and W0c = 2
+    o.kappa = kappa;
     MagnetometerUkf f(o);
     f.initialize(x, P);
     const FilterUpdate u = f.update(B, h_norm, kSimStartUtime);
@@ -99,6 +100,32 @@ TEST_CASE("UKF recovers known parameters from a warm start on noise-free data") 
   }
 }
 
+TEST_CASE("Rank-1 Cholesky downdate equals the covariance-form update") {
+  std::mt19937_64 rng(17);
+  std::normal_distribution<double> n(0.0, 1.0);
+  Matrix9d A;
+  for (int i = 0; i < 81; ++i) A(i) = n(rng);
+  const Matrix9d P = A * A.transpose() + Matrix9d::Identity();
+  const Matrix9d S0 = Eigen::LLT<Matrix9d>(P).matrixL();
+  Vector9d v;
+  for (int i = 0; i < 9; ++i) v(i) = n(rng);
+  // Downdate by K sqrt(S_y) with S_y = v^T P v + R, R > 0: P - P v v^T P / S_y stays PD.
+  const Vector9d Pv = P * v;
+  const double S_y = v.dot(Pv) + 0.01;
+  const Vector9d u = Pv / std::sqrt(S_y);
+  Matrix9d S = S0;
+  REQUIRE(cholesky_downdate_whitened(S, S0.triangularView<Eigen::Lower>().solve(u)));
+  CHECK(S.isLowerTriangular());
+  const Matrix9d expected = P - Pv * Pv.transpose() / S_y;
+  CHECK((S * S.transpose() - expected).norm() < 1e-9 * expected.norm());
+  CHECK((S.diagonal().array() > 0.0).all());
+  // A downdate that would make P indefinite is refused.
+  S = S0;
+  CHECK_FALSE(cholesky_downdate_whitened(
+      S, S0.triangularView<Eigen::Lower>().solve(2.0 * Pv / std::sqrt(v.dot(Pv)))));
+  CHECK(S == S0);
+}
+
 TEST_CASE("UKF options: defaults are the spec's weights, bad spreads are refused") {
   const MagnetometerUkf::Options o;
   CHECK(o.validate().empty());
@@ -110,6 +137,9 @@ TEST_CASE("UKF options: defaults are the spec's weights, bad spreads are refused
   CHECK_FALSE(bad.validate().empty());
   bad = {};
   bad.alpha = 0.0;
+  CHECK_FALSE(bad.validate().empty());
+  bad = {};
+  bad.alpha = 0.5;  // W0c = -8.25 < 0: the square-root downdate is no longer guaranteed PD
   CHECK_FALSE(bad.validate().empty());
   bad = {};
   bad.sigma_nT = -1.0;  // base options are validated too
@@ -189,7 +219,7 @@ TEST_CASE("UKF state save/restore is a bit-exact continuation, reanchor keeps co
   const FilterState s = a.state();
   a.reanchor(paper_parameters(), warm_covariance());
   CHECK(a.x() == paper_parameters());
-  CHECK(a.P() == warm_covariance());
+  CHECK(a.P().isApprox(warm_covariance(), 1e-14));
   CHECK(a.state().n_accepted == s.n_accepted);
   CHECK(a.state().last_utime == s.last_utime);
   CHECK(a.state().nis_window_count == 0);

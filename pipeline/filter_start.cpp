@@ -1,0 +1,303 @@
+#include "pipeline/filter_start.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+#include <Eigen/Cholesky>
+#include <Eigen/Eigenvalues>
+
+#include "pipeline/lm_refinement.hpp"
+#include "pipeline/parameter_recovery.hpp"
+
+namespace magcal {
+
+namespace {
+
+constexpr int kMaxLmIterations = 100;
+constexpr int kMaxLambdaIncreases = 12;
+constexpr double kStepTolerance = 1e-8;       // dtheta^T F dtheta, chi-square units
+constexpr double kDecrementTolerance = 1e-6;  // g^T F^-1 g when no step lowers the cost
+constexpr double kDegenerateRatio = 1e-3;     // smallest / next scaled eigenvalue
+constexpr double kSingularRatio = 1e-14;      // smallest / largest scaled eigenvalue
+constexpr int kMaxLineIterations = 30;
+
+int packed_index(int i, int j) {  // i <= j
+  return i * 11 - i * (i - 1) / 2 + (j - i);
+}
+
+bool is_positive_definite(const Vector9d& theta) {
+  const Eigen::Matrix3d I_E = Eigen::Matrix3d::Identity() + unpack_symmetric(theta.tail<6>());
+  return Eigen::LLT<Eigen::Matrix3d>(I_E).info() == Eigen::Success;
+}
+
+// Inverse of a symmetric positive semi-definite matrix in the diagonally scaled form, and its
+// scaled condition number. False when singular.
+template <int N>
+bool scaled_inverse(const Eigen::Matrix<double, N, N>& F, Eigen::Matrix<double, N, N>* inverse,
+                    double* condition) {
+  using Vec = Eigen::Matrix<double, N, 1>;
+  using Mat = Eigen::Matrix<double, N, N>;
+  const Vec d = F.diagonal();
+  if (!(d.minCoeff() > 0.0) || !d.allFinite()) {
+    if (condition) *condition = std::numeric_limits<double>::infinity();
+    return false;
+  }
+  const Vec s_inv = d.cwiseSqrt().cwiseInverse();
+  const Mat Fs = s_inv.asDiagonal() * F * s_inv.asDiagonal();
+  const Eigen::SelfAdjointEigenSolver<Mat> eig(Fs);
+  const double lmin = eig.eigenvalues()(0), lmax = eig.eigenvalues()(N - 1);
+  const bool ok = lmin > kSingularRatio * lmax;
+  if (condition) *condition = lmin > 0.0 ? lmax / lmin : std::numeric_limits<double>::infinity();
+  if (!ok) return false;
+  if (inverse) {
+    *inverse = s_inv.asDiagonal() * eig.eigenvectors() *
+               eig.eigenvalues().cwiseInverse().asDiagonal() * eig.eigenvectors().transpose() *
+               s_inv.asDiagonal();
+  }
+  return true;
+}
+
+// Levenberg-Marquardt on the moments from theta (must make I + E positive definite).
+bool refine_on_moments(const Matrix11d& M, Vector9d& theta, double& cost, int& iterations) {
+  Matrix9d F;
+  Vector9d g;
+  if (!moments_cost(M, theta, &cost, &F, &g)) return false;
+  double lambda = 1e-3;
+  for (int it = 0; it < kMaxLmIterations; ++it) {
+    ++iterations;
+    bool accepted = false;
+    double step_chi2 = 0.0;
+    for (int trial = 0; trial < kMaxLambdaIncreases; ++trial) {
+      Matrix9d A = F;
+      A.diagonal() *= 1.0 + lambda;  // LM damping: F + lambda diag(F)
+      Matrix9d A_inv;
+      if (!scaled_inverse<9>(A, &A_inv, nullptr)) {
+        lambda = std::max(lambda * 10.0, 1e-6);
+        continue;
+      }
+      const Vector9d step = -(A_inv * g);
+      const Vector9d candidate = theta + step;
+      double c2 = 0.0;
+      Matrix9d F2;
+      Vector9d g2;
+      if (step.allFinite() && is_positive_definite(candidate) &&
+          moments_cost(M, candidate, &c2, &F2, &g2) && c2 <= cost) {
+        step_chi2 = step.dot(F * step);
+        theta = candidate;
+        cost = c2;
+        F = F2;
+        g = g2;
+        lambda = std::max(lambda * 0.1, 1e-12);
+        accepted = true;
+        break;
+      }
+      lambda = std::max(lambda * 10.0, 1e-6);
+    }
+    if (!accepted) {
+      Matrix9d Finv;
+      return scaled_inverse<9>(F, &Finv, nullptr) && g.dot(Finv * g) < kDecrementTolerance;
+    }
+    if (step_chi2 < kStepTolerance) return true;
+  }
+  return false;
+}
+
+// Degenerate linear system (constant reference magnitude): the point on the near-null line
+// u_p + t d where the intercept equals |b(theta)|^2 (secant iterations inside the region where
+// I + E is positive definite; the function is linear in t for noise-free data).
+bool line_start(const Eigen::Matrix<double, 10, 1>& u_p, const Eigen::Matrix<double, 10, 1>& d,
+                Vector9d* theta) {
+  auto h = [&](double t, double* value) {
+    const Eigen::Matrix<double, 10, 1> u = u_p + t * d;
+    const Vector9d th = u.head<9>();
+    double bsq = 0.0;
+    if (!is_positive_definite(th) || !bias_norm_squared(th, &bsq, nullptr)) return false;
+    *value = u(9) - bsq;
+    return std::isfinite(*value);
+  };
+  const Vector6d Ep = u_p.segment<6>(3), Ed = d.segment<6>(3);
+  if (!(Ed.squaredNorm() > 0.0)) return false;
+  double t0 = -Ep.dot(Ed) / Ed.squaredNorm();  // E closest to 0
+  double t1 = t0 + 1e-3 / Ed.norm();
+  double h0 = 0.0, h1 = 0.0;
+  if (!h(t0, &h0) || !h(t1, &h1)) return false;
+  for (int it = 0; it < kMaxLineIterations; ++it) {
+    if (h1 == h0) break;
+    const double t2 = t1 - h1 * (t1 - t0) / (h1 - h0);
+    double h2 = 0.0;
+    if (!std::isfinite(t2) || !h(t2, &h2)) return false;
+    t0 = t1;
+    h0 = h1;
+    t1 = t2;
+    h1 = h2;
+    if (std::abs(t1 - t0) <= 1e-12 * (1.0 + std::abs(t1))) break;
+  }
+  *theta = (u_p + t1 * d).head<9>();
+  return theta->allFinite();
+}
+
+}  // namespace
+
+void ScalarMoments::add(const Eigen::Vector3d& B, double y, double w, bool with_lag1) {
+  Vector11d u;
+  u << 2.0 * B(0), 2.0 * B(1), 2.0 * B(2), -B(0) * B(0), -B(1) * B(1), -B(2) * B(2),
+      -2.0 * B(0) * B(1), -2.0 * B(0) * B(2), -2.0 * B(1) * B(2), 1.0, y;
+  u *= std::sqrt(w);
+  for (int i = 0; i < 11; ++i) m.segment(packed_index(i, i), 11 - i) += u(i) * u.tail(11 - i);
+  if (with_lag1) {
+    int k = 0;
+    if (n > 0) {
+      for (int i = 0; i < 11; ++i) {
+        for (int j = i; j < 11; ++j) m_lag1(k++) += 0.5 * (u(i) * previous(j) + u(j) * previous(i));
+      }
+    }
+    previous = u;
+  }
+  ++n;
+}
+
+namespace {
+Matrix11d unpack(const PackedSymmetric11& p) {
+  Matrix11d M;
+  for (int i = 0; i < 11; ++i) {
+    for (int j = i; j < 11; ++j) M(i, j) = M(j, i) = p(packed_index(i, j));
+  }
+  return M;
+}
+}  // namespace
+
+Matrix11d ScalarMoments::matrix() const {
+  return unpack(m);
+}
+Matrix11d ScalarMoments::lag1_matrix() const {
+  return unpack(m_lag1);
+}
+
+bool ScalarMoments::operator==(const ScalarMoments& o) const {
+  return m == o.m && m_lag1 == o.m_lag1 && previous == o.previous && n == o.n;
+}
+
+bool moments_cost(const Matrix11d& M, const Vector9d& theta, double* cost, Matrix9d* info_theta,
+                  Vector9d* gradient) {
+  double bsq = 0.0;
+  Vector9d gb;
+  if (!bias_norm_squared(theta, &bsq, &gb)) return false;
+  Vector11d c;
+  c << -theta, bsq, 1.0;
+  const Vector11d Mc = M * c;
+  if (cost) *cost = c.dot(Mc);
+  Eigen::Matrix<double, 11, 9> G = Eigen::Matrix<double, 11, 9>::Zero();
+  G.topRows<9>() = -Matrix9d::Identity();
+  G.row(9) = gb.transpose();
+  if (info_theta) *info_theta = G.transpose() * M * G;
+  if (gradient) *gradient = G.transpose() * Mc;
+  return true;
+}
+
+double moments_fisher_condition(const Matrix11d& M, const Vector9d& p) {
+  const CalibrationParameters params = CalibrationParameters::from_packed(p);
+  Matrix9d info;
+  if (!moments_cost(M, theta_from_parameters(params), nullptr, &info, nullptr))
+    return std::numeric_limits<double>::infinity();
+  const Matrix9d J = theta_jacobian(params);
+  double condition = std::numeric_limits<double>::infinity();
+  scaled_inverse<9>(Matrix9d(J.transpose() * info * J), nullptr, &condition);
+  return condition;
+}
+
+FilterStartResult solve_filter_start(const ScalarMoments& moments,
+                                     const FilterStartOptions& options) {
+  FilterStartResult r;
+  if (moments.n < std::max(options.min_samples, 11)) return r;
+  const Matrix11d M = moments.matrix();
+
+  // Linear system y = [L, -1] u, u = [theta; |b|^2], in the diagonally scaled form.
+  Eigen::Matrix<double, 10, 1> sign = Eigen::Matrix<double, 10, 1>::Ones();
+  sign(9) = -1.0;
+  const Eigen::Matrix<double, 10, 10> A =
+      sign.asDiagonal() * M.topLeftCorner<10, 10>() * sign.asDiagonal();
+  const Eigen::Matrix<double, 10, 1> rhs = sign.asDiagonal() * M.block<10, 1>(0, 10);
+  Vector9d candidates[3];
+  int n_candidates = 0;
+  const Eigen::Matrix<double, 10, 1> dA = A.diagonal();
+  if (dA.minCoeff() > 0.0 && dA.allFinite()) {
+    const Eigen::Matrix<double, 10, 1> s_inv = dA.cwiseSqrt().cwiseInverse();
+    const Eigen::Matrix<double, 10, 10> As = s_inv.asDiagonal() * A * s_inv.asDiagonal();
+    const Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 10, 10>> eig(As);
+    const auto& lam = eig.eigenvalues();
+    const auto& V = eig.eigenvectors();
+    const Eigen::Matrix<double, 10, 1> bs = s_inv.asDiagonal() * rhs;
+    if (lam(0) > kSingularRatio * lam(9)) {
+      const Eigen::Matrix<double, 10, 1> us = V * (V.transpose() * bs).cwiseQuotient(lam).eval();
+      candidates[n_candidates++] = (s_inv.asDiagonal() * us).head<9>();
+    }
+    if (lam(0) < kDegenerateRatio * lam(1) && lam(1) > kSingularRatio * lam(9)) {
+      Eigen::Matrix<double, 10, 1> coef = V.transpose() * bs;
+      coef(0) = 0.0;
+      for (int i = 1; i < 10; ++i) coef(i) /= lam(i);
+      const Eigen::Matrix<double, 10, 1> u_p = s_inv.asDiagonal() * (V * coef);
+      const Eigen::Matrix<double, 10, 1> d = s_inv.asDiagonal() * V.col(0);
+      Vector9d theta;
+      if (line_start(u_p, d, &theta)) candidates[n_candidates++] = theta;
+    }
+  }
+  candidates[n_candidates++] = Vector9d::Zero();
+
+  double best_cost = std::numeric_limits<double>::infinity();
+  Vector9d best = Vector9d::Zero();
+  for (int i = 0; i < n_candidates; ++i) {
+    Vector9d theta = candidates[i];
+    if (!theta.allFinite()) continue;
+    if (!is_positive_definite(theta)) theta.tail<6>().setZero();
+    double cost = 0.0;
+    if (refine_on_moments(M, theta, cost, r.iterations) && cost < best_cost) {
+      best_cost = cost;
+      best = theta;
+    }
+  }
+  if (!std::isfinite(best_cost)) {  // no estimate, hence no information at one
+    r.status = FilterStartStatus::kNoSolution;
+    r.fisher_condition = std::numeric_limits<double>::infinity();
+    return r;
+  }
+
+  Matrix9d info;
+  moments_cost(M, best, nullptr, &info, nullptr);
+  Matrix9d cov_theta;
+  double condition_theta = 0.0;
+  if (!scaled_inverse<9>(info, &cov_theta, &condition_theta) || !is_positive_definite(best)) {
+    r.status = FilterStartStatus::kUnobservable;
+    r.fisher_condition = std::numeric_limits<double>::infinity();
+    return r;
+  }
+  const RecoveryResult rec = recover_parameters(best, &cov_theta);
+  if (!rec.ok()) {
+    r.status = FilterStartStatus::kNoSolution;
+    r.fisher_condition = std::numeric_limits<double>::infinity();
+    return r;
+  }
+  r.p = rec.parameters.packed();
+  r.fisher_condition = moments_fisher_condition(M, r.p);
+  if (!(r.fisher_condition <= options.max_condition)) {
+    r.status = FilterStartStatus::kUnobservable;
+    return r;
+  }
+  const double dof = static_cast<double>(moments.n - 9);
+  r.noise_scale2 = std::max(1.0, best_cost / dof);
+  double bsq = 0.0;
+  bias_norm_squared(best, &bsq, nullptr);
+  Vector11d c;
+  c << -best, bsq, 1.0;
+  const double rho = best_cost > 0.0 ? c.dot(moments.lag1_matrix() * c) / best_cost : 0.0;
+  r.residual_autocorrelation = rho;
+  if (options.correlation_inflation) {
+    const double rc = std::clamp(rho, 0.0, options.max_correlation);
+    r.inflation = (1.0 + rc) / (1.0 - rc);
+  }
+  r.covariance = rec.covariance * (r.noise_scale2 * r.inflation);
+  r.status = FilterStartStatus::kOk;
+  return r;
+}
+
+}  // namespace magcal
