@@ -79,9 +79,8 @@ int64_t stored_count(const std::string& db, const std::string& sat) {
 
 void write_config(const std::string& path, const std::string& extra) {
   std::ofstream out(path);
-  out << "[refit]\nclock = \"data\"\nevery_hours = 6\nmin_samples = 4000\n"
-      << "[ukf]\nsigma_nT = 7.5\n"
-      << extra;
+  // Embedded defaults except what a replay needs (the data clock) and full 12 h windows only.
+  out << "[refit]\nclock = \"data\"\nevery_hours = 6\nmin_samples = 4000\n" << extra;
 }
 
 std::string simulate_day(const TempDir& tmp) {
