@@ -220,7 +220,11 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
       const RecoveryResult base = recover_parameters(lm.theta, &lm.theta_covariance);
       if (base.ok()) {
         const std::vector<Vector6d> phi = model_extension_regressors(samples, base.parameters);
-        LmResult ext = refine_lm_extended(samples, lm.theta, phi, lopt);
+        // From the converged theta and a = 0 (linear in a) plain Gauss-Newton converges in ~3
+        // iterations instead of ~5 with the default damping (measured on the paper scenario).
+        LmOptions ext_options = lopt;
+        ext_options.initial_lambda = 0.0;
+        LmResult ext = refine_lm_extended(samples, lm.theta, phi, ext_options);
         const RecoveryResult extended = recover_parameters(ext.theta);
         const Eigen::Vector3d shift =
             extended.ok() ? Eigen::Vector3d(extended.parameters.bias_nT - base.parameters.bias_nT)

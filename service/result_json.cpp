@@ -74,7 +74,10 @@ nlohmann::json calibration_result_to_json(const CalibrationResult& result) {
   else
     j["covariance_lag_window"] = nullptr;
   j["residual_rms_all_nT"] = json_number(result.residual_rms_all_nT);
-  if (result.has_nonlinearity) j["nonlinearity_k3"] = json_vector(result.nonlinearity_k3);
+  if (result.has_nonlinearity) {
+    j["nonlinearity_k3"] = json_vector(result.nonlinearity_k3);  // of k_i y_i^2, 1/nT
+    j["hysteresis_nT"] = json_vector(result.hysteresis_nT);
+  }
   j["nis_mean"] = json_number(result.nis_mean);
   j["measurement_noise_nT"] = json_number(result.measurement_noise_nT);
   j["message"] = result.message;
