@@ -8,6 +8,7 @@
 #include <random>
 
 #include "pipeline/rotation.hpp"
+#include "service/calibration_record.hpp"
 #include "service/ingest_worker.hpp"
 #include "storage/calibration_history.hpp"
 #include "storage/sample_window_store.hpp"
@@ -447,4 +448,25 @@ TEST_CASE("sequence numbers at the int64 limits do not overflow", "[ingest_worke
   CHECK(t.observe_seq(kMin + 4) == 2);
   CHECK(t.observe_seq(kMin) == 0);  // older: the edge stays
   CHECK(t.last_seq == kMin + 4);
+}
+
+TEST_CASE("stored filter state round trip is bit-exact, collecting and started",
+          "[ingest_worker]") {
+  // service/calibration_record.cpp (MCF2 blob): what the daemon saves and restores.
+  std::mt19937_64 rng(9);
+  std::normal_distribution<double> n(0.0, 1.0);
+  MagnetometerUkf ukf;
+  const Eigen::Vector3d b(1000.0, 800.0, 900.0);
+  for (int k = 0; k < 400; ++k) {
+    const Eigen::Vector3d h = 40000.0 * Eigen::Vector3d(n(rng), n(rng), n(rng)).normalized();
+    ukf.update(h + b + 3.0 * Eigen::Vector3d(n(rng), n(rng), n(rng)), 40000.0,
+               kT0 + k * 10'000'000LL);
+    if (k == 20 || k == 399) {
+      INFO("sample " << k << ", started " << ukf.initialized());
+      FilterState back;
+      REQUIRE(filter_state_from_stored(stored_filter_state("SAT-1", "ukf", ukf.state()), back));
+      CHECK(back == ukf.state());
+    }
+  }
+  CHECK(ukf.initialized());
 }
