@@ -204,7 +204,11 @@ void ScalarFilterBase::reanchor(const Vector9d& x, const Matrix9d& P) {
   update_convergence_time();
 }
 
-void ScalarFilterBase::seed_noise(double measurement_noise_nT) {
+void ScalarFilterBase::seed_noise(double measurement_noise_nT, double residual_autocorrelation) {
+  if (std::isfinite(residual_autocorrelation)) {
+    state_.innovation_c0 = 1.0;
+    state_.innovation_c1 = std::clamp(residual_autocorrelation, -1.0, 1.0);
+  }
   if (!(measurement_noise_nT > 0.0) || !std::isfinite(measurement_noise_nT)) return;
   const double ratio = measurement_noise_nT / options_.sigma_nT;
   state_.noise_scale2 = std::max(1.0, ratio * ratio);

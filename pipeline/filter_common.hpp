@@ -208,7 +208,10 @@ class ScalarFilterBase {
   void reanchor(const Vector9d& x, const Matrix9d& P);
   // Sets the noise estimate from a refit's effective noise (per axis, nT; e.g. sigma_nT x the
   // refit's noise_scale, or its residual rms). Bounded below by sigma_nT. Ignored if not > 0.
-  void seed_noise(double measurement_noise_nT);
+  // residual_autocorrelation (the refit's lag-1 value, if finite) seeds the correlation
+  // estimate behind the covariance inflation.
+  void seed_noise(double measurement_noise_nT,
+                  double residual_autocorrelation = std::numeric_limits<double>::quiet_NaN());
   // Forget everything (the next valid sample starts over).
   void reset();
   // Starts a new snapshot period (residual rms and mean NIS restart from here).

@@ -267,7 +267,8 @@ EvaluationReport run_evaluation(const EvaluationOptions& options) {
       if (have_warm) {
         MagnetometerEkf w(o);
         w.initialize(lm_result.parameters.packed(), lm_result.covariance);
-        w.seed_noise(lm_result.residual_rms_nT);  // what the daemon does on a re-anchor
+        w.seed_noise(lm_result.residual_rms_nT,  // what the daemon does on a re-anchor
+                     lm_result.residual_autocorrelation);
         run_filter(w, all, n_off, acc[5], truth, crlb_on);
       }
     }
@@ -279,7 +280,7 @@ EvaluationReport run_evaluation(const EvaluationOptions& options) {
       if (have_warm) {
         MagnetometerUkf w(o);
         w.initialize(lm_result.parameters.packed(), lm_result.covariance);
-        w.seed_noise(lm_result.residual_rms_nT);
+        w.seed_noise(lm_result.residual_rms_nT, lm_result.residual_autocorrelation);
         run_filter(w, all, n_off, acc[7], truth, crlb_on);
       }
     }

@@ -314,3 +314,15 @@ TEST_CASE("Harsh parameters (3000 nT, D 0.05): a data start converges for both f
     if (sp.error.head<3>().cwiseAbs().maxCoeff() > 100.0) CHECK_FALSE(ekf_prior.converged());
   }
 }
+
+TEST_CASE("seed_noise: a refit's effective noise and correlation, bounded below by sigma_nT") {
+  MagnetometerUkf f;
+  f.seed_noise(7.5, 0.8);
+  CHECK(f.measurement_noise_nT() == Approx(7.5));
+  CHECK(f.innovation_autocorrelation() == Approx(0.8));
+  f.seed_noise(1.0);  // below the configured 3 nT: the floor holds
+  CHECK(f.measurement_noise_nT() == Approx(kSigma_nT));
+  CHECK(f.innovation_autocorrelation() == Approx(0.8));
+  f.seed_noise(std::numeric_limits<double>::quiet_NaN());  // ignored
+  CHECK(f.measurement_noise_nT() == Approx(kSigma_nT));
+}
