@@ -23,18 +23,16 @@ sat=PAPER-1
 echo "== 1. simulate 24 h of the paper scenario (one spacecraft, 10 s samples, 200 per packet)"
 "$bin/magcal" sim --scenario paper --hours 24 --seed 1 --out day.lcm --truth truth.json --batch 200
 
-# Refits every 6 h of data time; only full 12 h windows (4320 samples at 10 s) are refitted, so
-# the 02:00 and 08:00 slots of the first day are skipped and 14:00 and 20:00 run.
-# sigma_nT = 7.5: the paper sensor's white noise is 3 nT, but quantisation, hysteresis and
-# nonlinearity leave ~7.5 nT of residual; a filter told 3 nT finds itself inconsistent
-# (normalised innovations ~6x too large) and keeps re-opening its covariance.
+# Everything else is magcald's embedded default: the only setting is what a replay needs, the
+# data clock (refits scheduled by sample time), here every 6 h of data. The 02:00 slot of the
+# first day has too few samples ([refit] min_samples) and is skipped; 08:00 (an 8 h window),
+# 14:00 and 20:00 run. The UKF starts from a batch solution of its first samples once they
+# observe the parameters, adapts its noise to what the data show, and is re-anchored on every
+# accepted refit.
 cat > magcald.toml <<'TOML'
 [refit]
 clock = "data"
 every_hours = 6
-min_samples = 4000
-[ukf]
-sigma_nT = 7.5
 TOML
 
 echo

@@ -267,8 +267,10 @@ EvaluationReport run_evaluation(const EvaluationOptions& options) {
       if (have_warm) {
         MagnetometerEkf w(o);
         w.initialize(lm_result.parameters.packed(), lm_result.covariance);
-        w.seed_noise(lm_result.residual_rms_nT,  // what the daemon does on a re-anchor
-                     lm_result.residual_autocorrelation);
+        // What the daemon does on a re-anchor (service/ingest_worker.cpp): the noise from the
+        // refit's 9-parameter residual; not its autocorrelation, which describes the extended
+        // model's (whitened) residual when the refit used the model extension.
+        w.seed_noise(lm_result.residual_rms_nT);
         run_filter(w, all, n_off, acc[5], truth, crlb_on);
       }
     }
@@ -280,7 +282,7 @@ EvaluationReport run_evaluation(const EvaluationOptions& options) {
       if (have_warm) {
         MagnetometerUkf w(o);
         w.initialize(lm_result.parameters.packed(), lm_result.covariance);
-        w.seed_noise(lm_result.residual_rms_nT, lm_result.residual_autocorrelation);
+        w.seed_noise(lm_result.residual_rms_nT);  // as above
         run_filter(w, all, n_off, acc[7], truth, crlb_on);
       }
     }
