@@ -1,7 +1,6 @@
 #include "service/lcm_ingest.hpp"
 
 #include <chrono>
-#include <stdexcept>
 
 #include "schemas/magcal_messages.hpp"
 
@@ -29,24 +28,45 @@ int32_t read_int32_be(const uint8_t* b) {
   return static_cast<int32_t>(v);
 }
 
-// The smallest encoded mag_sample_t: utime, sat_id (int32 length + one NUL), seq, the fixed
-// doubles, booleans and the float.
-constexpr int64_t kMinEncodedSampleBytes =
-    8 + 4 + 1 + 8 + 3 * 8 + 1 + 3 * 8 + 1 + 4 * 8 + 1 + 3 * 8 + 4;
+// Bytes of an encoded mag_sample_t after its sat_id: seq, b_sensor_nT, has_position,
+// r_ecef_m, has_attitude, q_body_from_eci, has_reference, h_body_nT, temperature_C.
+constexpr int64_t kSampleTailBytes = 8 + 3 * 8 + 1 + 3 * 8 + 1 + 4 * 8 + 1 + 3 * 8 + 4;
+constexpr int64_t kMinEncodedSampleBytes = 8 + 4 + 1 + kSampleTailBytes;  // sat_id ""
 
-// lcmgen's mag_batch_t decoder resizes `samples` to the frame's n before reading them: a
-// corrupt n of 2^31 - 1 would allocate hundreds of GB. n must fit in the bytes that follow.
-bool plausible_batch_header(const uint8_t* b, int size) {
-  int64_t pos = 8;  // fingerprint
-  if (size < pos + 4) return false;
-  const int32_t sat_len = read_int32_be(b + pos);
+// An LCM string at pos (int32 length including the NUL, then the bytes) that fits.
+bool skip_string(const uint8_t* b, int64_t size, int64_t& pos) {
+  if (size - pos < 4) return false;
+  const int32_t len = read_int32_be(b + pos);
   pos += 4;
-  if (sat_len < 1 || sat_len > size - pos) return false;
-  pos += sat_len;
-  if (size < pos + 4) return false;
+  if (len < 1 || len > size - pos) return false;
+  pos += len;
+  return true;
+}
+
+bool skip_sample(const uint8_t* b, int64_t size, int64_t& pos) {
+  if (size - pos < 8) return false;
+  pos += 8;  // utime
+  if (!skip_string(b, size, pos) || size - pos < kSampleTailBytes) return false;
+  pos += kSampleTailBytes;
+  return true;
+}
+
+// lcmgen's decoders trust the lengths inside the frame: a string length <= 0 overflows
+// `length - 1` (undefined behaviour) and std::string::assign throws; a batch's n is used to
+// size `samples` before any sample is read (2^31 - 1 would ask for hundreds of GB). So the
+// frame's layout is walked first; only a frame whose every length fits the bytes is decoded.
+bool well_formed_frame(const void* data, int size, bool batch) {
+  const auto* b = static_cast<const uint8_t*>(data);
+  int64_t pos = 8;  // fingerprint, checked by the caller
+  if (!batch) return skip_sample(b, size, pos) && pos == size;
+  if (!skip_string(b, size, pos) || size - pos < 4) return false;
   const int32_t n = read_int32_be(b + pos);
   pos += 4;
-  return n >= 0 && n <= (size - pos) / kMinEncodedSampleBytes;
+  if (n < 0 || n > (size - pos) / kMinEncodedSampleBytes) return false;
+  for (int32_t i = 0; i < n; ++i) {
+    if (!skip_sample(b, size, pos)) return false;
+  }
+  return pos == size;
 }
 
 }  // namespace
@@ -60,32 +80,22 @@ DecodeOutcome decode_frame(const void* data, int size, bool expect_batch, Ingest
   out.from_batch = expect_batch;
   out.samples.clear();
   out.batch_sat_id.clear();
-  // lcmgen's decoders call std::string::assign(p, length - 1) with an unchecked string length
-  // of 0 or less, which throws std::length_error: a corrupt frame, not a daemon failure.
-  try {
-    if (expect_batch) {
-      if (!has_fingerprint(data, size, mag_batch_t::getHash())) return DecodeOutcome::kWrongType;
-      if (!plausible_batch_header(static_cast<const uint8_t*>(data), size)) {
-        return DecodeOutcome::kDecodeError;
-      }
-      mag_batch_t batch;
-      if (batch.decode(data, 0, size) != size) return DecodeOutcome::kDecodeError;
-      out.batch_sat_id = std::move(batch.sat_id);
-      out.samples = std::move(batch.samples);
-      return DecodeOutcome::kOk;
-    }
-    if (!has_fingerprint(data, size, mag_sample_t::getHash())) return DecodeOutcome::kWrongType;
-    out.samples.resize(1);
-    if (out.samples[0].decode(data, 0, size) != size) {
-      out.samples.clear();
-      return DecodeOutcome::kDecodeError;
-    }
+  const int64_t hash = expect_batch ? mag_batch_t::getHash() : mag_sample_t::getHash();
+  if (!has_fingerprint(data, size, hash)) return DecodeOutcome::kWrongType;
+  if (!well_formed_frame(data, size, expect_batch)) return DecodeOutcome::kDecodeError;
+  if (expect_batch) {
+    mag_batch_t batch;
+    if (batch.decode(data, 0, size) != size) return DecodeOutcome::kDecodeError;
+    out.batch_sat_id = std::move(batch.sat_id);
+    out.samples = std::move(batch.samples);
     return DecodeOutcome::kOk;
-  } catch (const std::length_error&) {
+  }
+  out.samples.resize(1);
+  if (out.samples[0].decode(data, 0, size) != size) {
     out.samples.clear();
-    out.batch_sat_id.clear();
     return DecodeOutcome::kDecodeError;
   }
+  return DecodeOutcome::kOk;
 }
 
 LcmIngest::LcmIngest(lcm::LCM& lcm, const std::string& samples_channel,

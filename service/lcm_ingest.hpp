@@ -23,7 +23,8 @@ enum class DecodeOutcome { kOk, kWrongType, kDecodeError };
 // Decodes one frame of the samples channel (expect_batch = false: a mag_sample_t) or of the
 // batch channel (a mag_batch_t) into `out`. kWrongType: the fingerprint is not the expected
 // type's; kDecodeError: right fingerprint but truncated/corrupt (or shorter than a fingerprint,
-// or a batch whose sample count n cannot fit in the frame). Never throws.
+// or any string length or batch count that does not fit the frame: checked before lcmgen's
+// decoder, which trusts them). Never throws.
 DecodeOutcome decode_frame(const void* data, int size, bool expect_batch, IngestItem& out);
 
 class LcmIngest {
