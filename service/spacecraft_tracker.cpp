@@ -32,8 +32,7 @@ int64_t SpacecraftTracker::corroborated_utime(int64_t max_time_jump_utime) const
     several_frames = several_frames || h.frame != latest.frame;
     newest = std::max(newest, h.sample.utime);
   }
-  const bool full = held.size() >= static_cast<size_t>(kHeldCapacity);
-  if (members < kCorroborating + 1 || !(several_frames || full)) return kNoTime;
+  if (members < kCorroborating + 1 || !several_frames) return kNoTime;
   return newest;
 }
 

@@ -15,8 +15,8 @@
 // Held samples are resolved by what comes next:
 //   corroborated  the newest held sample has kCorroborating others (distinct times) within
 //                 max_time_jump of it, and they came in more than one frame (so one frame, even
-//                 a batch, cannot set the time alone; exception: a full hold, kHeldCapacity
-//                 consistent samples of one batch, is accepted rather than dropped). The base
+//                 a whole mag_batch_t of consistently shifted samples, cannot set the time
+//                 alone: a downlink packet with a corrupted time base is one frame). The base
 //                 moves to the newest of them and every held sample is re-examined in arrival
 //                 order (stored, rejected older_than_window, or held on).
 //   contradicted  kCorroborating accepted samples advanced the old base after it was held:
@@ -52,7 +52,9 @@ struct SpacecraftTracker {
 
   static constexpr int64_t kNoTime = std::numeric_limits<int64_t>::min();
   static constexpr int kCorroborating = 3;  // further samples that confirm or refute a time
-  static constexpr int kHeldCapacity = 32;  // per spacecraft
+  // Per spacecraft: room for a whole downlink packet (mag_batch_t stays under ~400 samples,
+  // toolchain.md) and the frames that corroborate it; ~200 KB only while samples are held.
+  static constexpr int kHeldCapacity = 1024;
 
   MagnetometerUkf ukf;
   int64_t newest_utime = kNoTime;  // newest accepted sample (the time base); none yet

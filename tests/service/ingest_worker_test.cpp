@@ -363,6 +363,29 @@ TEST_CASE("the first samples of a spacecraft need corroboration too", "[ingest_w
   }
 }
 
+TEST_CASE("a whole downlink packet with a shifted time base cannot move the time",
+          "[ingest_worker][time]") {
+  // One mag_batch_t of 200 samples, all consistently 20 h ahead (a corrupted packet time base):
+  // one frame, however many samples, never corroborates itself.
+  const auto s = simulate(1000, 17);
+  TempDb tmp("packet");
+  DaemonCounters counters;
+  auto w = make_worker(test_config(tmp.path()), counters);
+  feed(*w, s, 0, 400);
+  auto shifted = batch(s, 400, 600);
+  for (auto& x : shifted.samples) x.utime += 20 * kHour;
+  w->process(shifted);
+  CHECK(w->held_samples() == 200);
+  CHECK(w->fleet().find("SAT-1")->newest_utime == s[399].utime);
+  for (size_t k = 400; k < s.size(); k += 200) w->process(batch(s, k, k + 200));
+  w->reject_held();
+  w->commit();
+  CHECK(counters.stored == 1000);
+  CHECK(counters.rejected_count(RejectReason::kTimeJump) == 200);
+  CHECK(stored_rows(tmp.path()) == 1000);
+  CHECK(w->fleet().find("SAT-1")->newest_utime == s.back().utime);
+}
+
 TEST_CASE("a shifted batch frame cannot move the time; the hold stays bounded",
           "[ingest_worker][time]") {
   const auto s = simulate(400, 15);
