@@ -300,8 +300,8 @@ LmResult refine(const SampleSet& samples, const Vector9d& theta0,
     // Converged when even the full Gauss-Newton step would gain less than the tolerance
     // (g^T F^-1 g = its step^T F step): checked before trying steps, because at the minimum no
     // trial lowers the cost (rounding) and each failed trial costs a pass over the samples.
-    if (typename T::Vector gn; iter > 0 && solve_scaled<P>(acc.F, 0.0, acc.g, &gn) &&
-                               acc.g.dot(gn) < options.tolerance) {
+    if (typename T::Vector gn;
+        iter > 0 && solve_scaled<P>(acc.F, 0.0, acc.g, &gn) && acc.g.dot(gn) < options.tolerance) {
       res.converged = true;
       break;
     }

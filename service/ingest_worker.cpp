@@ -291,9 +291,9 @@ void IngestWorker::maybe_snapshot(const std::string& sat_id, SpacecraftTracker& 
   GateVerdict verdict = evaluate_gates(snap, GateInputs{}, config_.gates);
   if (snap.status != CalibrationStatus::kOk) {
     verdict.accepted = false;
-    verdict.reasons.insert(verdict.reasons.begin(),
-                           std::string(to_string(snap.status)) +
-                               (snap.message.empty() ? "" : ": " + snap.message));
+    verdict.reasons.insert(
+        verdict.reasons.begin(),
+        std::string(to_string(snap.status)) + (snap.message.empty() ? "" : ": " + snap.message));
   }
   apply_verdict(snap, verdict);
   pending_snapshots_.emplace_back(sat_id, std::move(snap));

@@ -1,5 +1,7 @@
 #include "service/refit_runner.hpp"
 
+#include "pipeline/time_utc.hpp"
+
 #include <chrono>
 
 #include "service/calibration_record.hpp"
@@ -38,6 +40,46 @@ RefitRunner::RefitRunner(const DaemonConfig& config, storage::Database& db)
 
 std::vector<std::string> RefitRunner::spacecraft() {
   return samples_.spacecraft();
+}
+
+bool RefitRunner::accept_corroborated_change(const std::string& sat_id,
+                                             const CalibrationResult& reference,
+                                             CalibrationResult& result) {
+  // A real change of the sensor (a drift, a new bias after a thermal or magnetic event) fails
+  // the change gate against the old reference every time: accepting nothing from then on would
+  // lock the spacecraft out for good. When the only reasons are the change gate's and the
+  // previous full-window refit, newer than the reference, failed on the same gate only and
+  // agrees with this one (the same chi-square test between the two), the change is
+  // corroborated by two independent windows: accept it, and say so.
+  if (result.accepted || result.rejection_reasons.empty()) return false;
+  const auto is_change = [](const std::string& r) {
+    return r.rfind("bias_change", 0) == 0 || r.rfind("D_change", 0) == 0;
+  };
+  for (const auto& r : result.rejection_reasons)
+    if (!is_change(r)) return false;
+  const auto last = history_.latest_refit(sat_id);
+  if (!last || last->utime <= reference.utime || last->utime >= result.utime) return false;
+  if (last->window_end_utime - last->window_start_utime <
+          static_cast<int64_t>(kFullWindowFraction * config_.window_utime()) ||
+      last->n_samples < config_.refit.min_samples || last->rejection_reasons.empty()) {
+    return false;
+  }
+  for (const auto& r : last->rejection_reasons)
+    if (!is_change(r)) return false;
+  const CalibrationResult corroborating = result_from_record(*last);
+  GateOptions only_change = options_.gate_options;
+  only_change.residual_enabled = only_change.observability_enabled = false;
+  only_change.coverage_enabled = only_change.bounds_enabled = false;
+  GateInputs in;
+  in.previous_accepted = &corroborating;
+  if (!evaluate_gates(result, in, only_change).accepted) return false;
+  result.accepted = true;
+  result.rejection_reasons.clear();
+  if (result.status == CalibrationStatus::kRejected)
+    result.status = result.converged ? CalibrationStatus::kOk : CalibrationStatus::kNotConverged;
+  result.message = "change since the refit of " + format_iso8601_utc(reference.utime) +
+                   " corroborated by the refit of " + format_iso8601_utc(corroborating.utime);
+  return true;
 }
 
 RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> t_ref_utime,
@@ -87,6 +129,7 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
     }
     out.result = calibrate_batch(window_, options_, previous ? &*previous : nullptr);
     out.result.utime = t_ref;  // the time the refit refers to: its scheduled window end
+    if (previous) accept_corroborated_change(sat_id, *previous, out.result);
     out.calibration_id = history_.append(record_from_result(sat_id, out.result));
     out.kind = RefitOutcome::Kind::kComputed;
     if (out.result.accepted && out.result.status == CalibrationStatus::kOk) {

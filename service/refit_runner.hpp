@@ -62,6 +62,12 @@ class RefitRunner {
   std::vector<std::string> spacecraft();  // with stored samples
 
  private:
+  // Accepts `result` when it failed only the change gate against `reference` and the previous
+  // full-window refit (newer than the reference) failed only that gate too and agrees with it
+  // (a real change seen by two windows). True when it changed the verdict.
+  bool accept_corroborated_change(const std::string& sat_id, const CalibrationResult& reference,
+                                  CalibrationResult& result);
+
   const DaemonConfig config_;  // a copy: callers may pass a temporary
   BatchCalibrationOptions options_;
   storage::SampleWindowStore samples_;
