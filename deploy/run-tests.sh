@@ -6,16 +6,18 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 deploy/setup-deps.sh
+# A compiler cache makes the second build (and the next run) cheap on 2 cores.
+launcher=(-DCMAKE_CXX_COMPILER_LAUNCHER=ccache)
 
 echo "== Release build and tests"
-cmake -S . -B build -DCMAKE_BUILD_TYPE=Release >/dev/null
+cmake -S . -B build -DCMAKE_BUILD_TYPE=Release "${launcher[@]}" >/dev/null
 cmake --build build -j2
 ctest --test-dir build --output-on-failure -j2
 
 if [ "${MAGCAL_SKIP_SANITIZE:-0}" != 1 ]; then
   echo "== AddressSanitizer + UndefinedBehaviorSanitizer build and tests"
   cmake -S . -B build-asan -DCMAKE_BUILD_TYPE=RelWithDebInfo -DMAGCAL_SANITIZE=ON \
-    -DMAGCAL_BUILD_BENCH=OFF >/dev/null
+    -DMAGCAL_BUILD_BENCH=OFF "${launcher[@]}" >/dev/null
   cmake --build build-asan -j2
   ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1 \
     ctest --test-dir build-asan --output-on-failure -j2

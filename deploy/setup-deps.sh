@@ -4,7 +4,7 @@
 set -euo pipefail
 
 packages=(
-  build-essential cmake pkg-config
+  build-essential cmake pkg-config ccache
   libeigen3-dev
   liblcm-dev liblcm-bin
   libsqlite3-dev sqlite3

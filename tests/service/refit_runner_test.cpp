@@ -13,6 +13,34 @@
 
 using namespace magcal;
 
+namespace {
+
+// Simulates `sc` and stores every sample as the daemon would (reference direction and |h|);
+// returns the simulator's truth. `seq` continues across calls.
+TruthParameters store_simulation(storage::Database& db, const Scenario& sc, const std::string& sat,
+                                 int64_t* seq) {
+  Simulator sim(sc);
+  std::vector<storage::StoredSample> rows;
+  SimulatedSample s;
+  while (sim.next(&s)) {
+    const CalibrationSample c = s.calibration_sample();
+    storage::StoredSample r;
+    r.sat_id = sat;
+    r.utime = c.utime;
+    r.seq = (*seq)++;
+    r.receive_utime = c.utime;
+    r.b_sensor_nT = {c.b_sensor_nT.x(), c.b_sensor_nT.y(), c.b_sensor_nT.z()};
+    r.has_direction = true;
+    r.h_body_nT = {c.h_body_nT.x(), c.h_body_nT.y(), c.h_body_nT.z()};
+    r.h_norm_nT = c.h_body_nT.norm();
+    rows.push_back(r);
+  }
+  storage::SampleWindowStore(db).insert_batch(rows);
+  return sim.truth();
+}
+
+}  // namespace
+
 TEST_CASE("refits: the short first window is no reference, every full-window refit is accepted") {
   test::TempDir dir("magcal_refit_runner");
   DaemonConfig config;  // embedded defaults: 12 h window, min_samples 1000
@@ -22,25 +50,8 @@ TEST_CASE("refits: the short first window is no reference, every full-window ref
   Scenario sc = *scenario_preset("paper");
   sc.seed = 11;
   sc.duration_s = 24.0 * 3600.0;
-  Simulator sim(sc);
-  const TruthParameters truth = sim.truth();
-  std::vector<storage::StoredSample> rows;
-  SimulatedSample s;
   int64_t seq = 0;
-  while (sim.next(&s)) {
-    const CalibrationSample c = s.calibration_sample();
-    storage::StoredSample r;
-    r.sat_id = "PAPER-1";
-    r.utime = c.utime;
-    r.seq = seq++;
-    r.receive_utime = c.utime;
-    r.b_sensor_nT = {c.b_sensor_nT.x(), c.b_sensor_nT.y(), c.b_sensor_nT.z()};
-    r.has_direction = true;
-    r.h_body_nT = {c.h_body_nT.x(), c.h_body_nT.y(), c.h_body_nT.z()};
-    r.h_norm_nT = c.h_body_nT.norm();
-    rows.push_back(r);
-  }
-  storage::SampleWindowStore(db).insert_batch(rows);
+  const TruthParameters truth = store_simulation(db, sc, "PAPER-1", &seq);
 
   RefitRunner runner(config, db);
   const int64_t t0 = sc.epoch_utime;
@@ -106,24 +117,8 @@ TEST_CASE("refits: a real bias change is accepted once two windows corroborate i
     d.seed = 5 + day;
     d.epoch_utime = t0 + day * 24 * hour;
     if (day == 1) d.sensor.bias_nT += step_nT;
-    Simulator sim(d);
-    if (day == 0) b0 = sim.truth().bias_nT;
-    std::vector<storage::StoredSample> rows;
-    SimulatedSample s;
-    while (sim.next(&s)) {
-      const CalibrationSample c = s.calibration_sample();
-      storage::StoredSample r;
-      r.sat_id = "STEP-1";
-      r.utime = c.utime;
-      r.seq = seq++;
-      r.receive_utime = c.utime;
-      r.b_sensor_nT = {c.b_sensor_nT.x(), c.b_sensor_nT.y(), c.b_sensor_nT.z()};
-      r.has_direction = true;
-      r.h_body_nT = {c.h_body_nT.x(), c.h_body_nT.y(), c.h_body_nT.z()};
-      r.h_norm_nT = c.h_body_nT.norm();
-      rows.push_back(r);
-    }
-    storage::SampleWindowStore(db).insert_batch(rows);
+    const TruthParameters truth = store_simulation(db, d, "STEP-1", &seq);
+    if (day == 0) b0 = truth.bias_nT;
   }
 
   RefitRunner runner(config, db);
