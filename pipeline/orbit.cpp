@@ -1,5 +1,6 @@
 #include "pipeline/orbit.hpp"
 
+#include <numbers>
 #include <cassert>
 #include <cmath>
 
@@ -10,13 +11,12 @@ namespace magcal {
 
 namespace {
 constexpr double kTwoPi = 6.283185307179586476925286766559;
-constexpr double kPi = 3.141592653589793238462643383279;
 }  // namespace
 
 double eccentric_anomaly(double mean_anomaly_rad, double eccentricity) {
   const double M = std::remainder(mean_anomaly_rad, kTwoPi);  // [-pi, pi]
   // Starting guess E = pi for high e avoids the slow start near M ~ 0 (Vallado).
-  double E = eccentricity > 0.8 ? (M < 0 ? -kPi : kPi) : M;
+  double E = eccentricity > 0.8 ? (M < 0 ? -std::numbers::pi : std::numbers::pi) : M;
   for (int i = 0; i < 50; ++i) {
     const double f = E - eccentricity * std::sin(E) - M;
     const double step = f / (1.0 - eccentricity * std::cos(E));
@@ -33,7 +33,7 @@ std::string Orbit::Options::validate(const KeplerianElements& el) const {
     return "eccentricity: must be in [0, 1)";
   if (el.semi_major_axis_m * (1.0 - el.eccentricity) < kEarthEquatorialRadius_m)
     return "semi_major_axis/eccentricity: perigee below the Earth's surface";
-  if (!std::isfinite(el.inclination_rad) || el.inclination_rad < 0.0 || el.inclination_rad > kPi)
+  if (!std::isfinite(el.inclination_rad) || el.inclination_rad < 0.0 || el.inclination_rad > std::numbers::pi)
     return "inclination: must be in [0, 180] deg";
   if (!std::isfinite(el.raan_rad)) return "raan: not finite";
   if (!std::isfinite(el.arg_perigee_rad)) return "arg_perigee: not finite";

@@ -7,10 +7,16 @@
 // Rz(yaw) with Rx(a) = [[1,0,0],[0,c,s],[0,-s,c]] etc., so R ≈ I - [theta x] for small angles.
 #pragma once
 
+#include <numbers>
+
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 
 namespace magcal {
+
+// Angle unit conversions (the one definition; use these, not local copies).
+inline constexpr double kDegToRad = std::numbers::pi / 180.0;
+inline constexpr double kRadToDeg = 180.0 / std::numbers::pi;
 
 // Quaternion as a plain 4-vector (w, x, y, z), so no library's storage order leaks through.
 using QuaternionWxyz = Eigen::Vector4d;

@@ -4,11 +4,11 @@
 
 #include "pipeline/igrf.hpp"
 #include "pipeline/time_utc.hpp"
+#include "pipeline/rotation.hpp"
 
 namespace magcal {
 
 namespace {
-constexpr double kDegToRad = 3.141592653589793238462643383279 / 180.0;
 
 // paper.md table + estimation.md section 5.
 Scenario paper_preset() {

@@ -1,5 +1,6 @@
 #include "pipeline/sensor_model.hpp"
 
+#include <numbers>
 #include <algorithm>
 #include <cassert>
 #include <cmath>
@@ -12,8 +13,6 @@
 namespace magcal {
 
 namespace {
-constexpr double kPi = 3.141592653589793238462643383279;
-constexpr double kDegToRad = kPi / 180.0;
 }  // namespace
 
 double NormalSampler::next() {
@@ -25,7 +24,7 @@ double NormalSampler::next() {
   const double u1 = static_cast<double>((engine_() >> 11) + 1) * 0x1.0p-53;
   const double u2 = static_cast<double>(engine_() >> 11) * 0x1.0p-53;
   const double r = std::sqrt(-2.0 * std::log(u1));
-  const double a = 2.0 * kPi * u2;
+  const double a = 2.0 * std::numbers::pi * u2;
   spare_ = r * std::sin(a);
   has_spare_ = true;
   return r * std::cos(a);
@@ -99,7 +98,7 @@ double SensorModel::temperature_C(double t_s) const {
   if (p_.temperature_amplitude_C == 0.0 || p_.temperature_period_s <= 0.0)
     return p_.temperature_mean_C;
   return p_.temperature_mean_C +
-         p_.temperature_amplitude_C * std::sin(2.0 * kPi * t_s / p_.temperature_period_s +
+         p_.temperature_amplitude_C * std::sin(2.0 * std::numbers::pi * t_s / p_.temperature_period_s +
                                                p_.temperature_phase_deg * kDegToRad);
 }
 

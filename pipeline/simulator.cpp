@@ -4,11 +4,11 @@
 #include <cmath>
 
 #include "pipeline/time_utc.hpp"
+#include "pipeline/rotation.hpp"
 
 namespace magcal {
 
 namespace {
-constexpr double kDegToRad = 3.141592653589793238462643383279 / 180.0;
 
 SensorModelParameters with_thermal_period(SensorModelParameters p, double orbital_period_s) {
   if (p.temperature_period_s <= 0.0) p.temperature_period_s = orbital_period_s;

@@ -17,10 +17,10 @@
 #include <filesystem>
 #include <random>
 
-#include "service/ingest_worker.hpp"
-#include "service/lcm_ingest.hpp"
-#include "service/reference_field.hpp"
-#include "service/spacecraft_tracker.hpp"
+#include "service/daemon/ingest_worker.hpp"
+#include "service/daemon/lcm_ingest.hpp"
+#include "service/io/reference_field.hpp"
+#include "service/daemon/spacecraft_tracker.hpp"
 
 using namespace magcal;
 

@@ -9,7 +9,7 @@
 #include "pipeline/frames.hpp"
 #include "pipeline/igrf.hpp"
 #include "pipeline/time_utc.hpp"
-#include "service/reference_field.hpp"
+#include "service/io/reference_field.hpp"
 
 namespace {
 

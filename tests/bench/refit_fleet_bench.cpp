@@ -15,7 +15,7 @@
 
 #include <Eigen/LU>
 
-#include "service/refit_runner.hpp"
+#include "service/daemon/refit_runner.hpp"
 
 using namespace magcal;
 

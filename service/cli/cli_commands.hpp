@@ -1,0 +1,99 @@
+// The `magcal` subcommands. magcal_main.cpp parses the command line (CLI11 stays in that one
+// translation unit) into these argument structs and calls run_*; each run_* lives in its own
+// cli_<command>.cpp. Every run_* returns an exit code (below) and, on error, has printed one
+// clear line on stderr and written nothing half.
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <string>
+
+#include "service/io/exit_codes.hpp"
+
+namespace magcal::cli {
+
+using magcal::kExitData;  // data, file or database error
+using magcal::kExitOk;
+using magcal::kExitUsage;  // bad arguments
+
+struct FieldArgs {
+  std::string time_iso;
+  // Geocentric input...
+  std::optional<double> r_km, colat_deg;
+  // ...or geodetic input (WGS-84); lon_deg is shared.
+  std::optional<double> lat_deg, alt_km;
+  std::optional<double> lon_deg;
+  std::string coefficients_file;  // empty: built-in IGRF-14
+  bool json = false;
+};
+int run_field(const FieldArgs& args);
+
+struct SimArgs {
+  std::string scenario = "paper";  // preset name or FILE.toml
+  std::optional<double> hours;
+  std::optional<uint64_t> seed;
+  std::string out;     // FILE.lcm or FILE.csv
+  std::string truth;   // FILE.json, optional
+  std::string sat_id;  // overrides the scenario's
+  int batch_size = 0;  // > 0: mag_batch_t packets of this many samples on MAGCAL_BATCH
+};
+int run_sim(const SimArgs& args);
+
+struct FitArgs {
+  std::string input;  // FILE.csv or FILE.lcm
+  std::string method = "twostep";
+  double sigma_nT = 3.0;
+  bool robust = false;
+  std::string sat;
+  bool json = false;
+  std::string trace_file;  // ekf/ukf: state and 1-sigma after every sample
+  // Real recordings in foreign CSV layouts (service/analysis/real_data_fit.hpp, issue 7).
+  bool sigma_given = false;      // --sigma-nT given explicitly (else estimated)
+  std::string field_unit;        // nT|uT|G|mG; empty: from the column name
+  std::optional<double> alt_km;  // assumed altitude when the file has none
+  int skip_first = 0;            // start-up rows dropped
+  bool estimate_time_offset = false;
+  std::string offset_range_s;  // "MIN:MAX" (default -1000:1000)
+  std::optional<double> time_offset_s;
+  std::string reference_magnitude;  // "auto" | value in nT (constant field); empty: IGRF
+  bool split_halves = false;
+  std::optional<double> expected_residual_nT;  // residual gate's expected rms
+};
+int run_fit(const FitArgs& args);
+// Dispatched from run_fit when the CSV is not the design's sample format.
+int run_recording_fit(const FitArgs& args);
+
+struct EvaluateArgs {
+  std::string scenario = "paper";
+  int runs = 10;
+  uint64_t seed = 1;
+  bool json = false;
+};
+int run_evaluate(const EvaluateArgs& args);
+
+struct RefitArgs {
+  std::string db;
+  std::string sat;
+  std::string config;  // optional magcald config (gates, sigma, window)
+  bool json = false;
+};
+int run_refit(const RefitArgs& args);
+
+struct HistoryArgs {
+  std::string db;
+  std::string sat;
+  std::string method;
+  std::string since, until;  // ISO 8601
+  std::optional<int> limit;
+  std::string order = "asc";
+  std::string format = "table";
+};
+int run_history(const HistoryArgs& args);
+
+struct StatusArgs {
+  std::string db;
+  bool json = false;
+};
+int run_status(const StatusArgs& args);
+
+}  // namespace magcal::cli

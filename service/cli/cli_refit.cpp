@@ -1,0 +1,83 @@
+// `magcal refit --db FILE --sat ID [--config FILE.toml] [--json]`: the daemon's refit
+// (refit_runner.hpp) run now, in this process, on the stored window ending at the spacecraft's
+// newest sample. Safe while magcald runs (own connection; SQLite WAL + busy timeout). Writes the
+// result to the history and a 'manual' job row, prints the result. The config supplies the
+// window length, min_samples, sigma and the gates (the daemon's defaults without one).
+// Exit: 0 a result was computed and stored (accepted or rejected), 2 missing database, no or
+// too few samples, failed fit, database error; 1 bad config.
+#include <chrono>
+#include <filesystem>
+#include <iostream>
+
+#include <fmt/format.h>
+
+#include "pipeline/time_utc.hpp"
+#include "service/cli/cli_commands.hpp"
+#include "service/daemon/daemon_config.hpp"
+#include "service/daemon/refit_runner.hpp"
+#include "service/io/result_json.hpp"
+
+namespace magcal::cli {
+
+int run_refit(const RefitArgs& args) {
+  auto load = load_daemon_config(args.config);
+  if (!load.ok()) {
+    std::cerr << "magcal refit: " << load.error << "\n";
+    return kExitUsage;
+  }
+  const DaemonConfig& config = load.config;
+  if (!std::filesystem::exists(args.db)) {
+    std::cerr << "magcal refit: database " << args.db << " does not exist\n";
+    return kExitData;
+  }
+  RefitOutcome out;
+  try {
+    storage::Database db(args.db);
+    RefitRunner runner(config, db);
+    const auto now = std::chrono::duration_cast<std::chrono::microseconds>(
+                         std::chrono::system_clock::now().time_since_epoch())
+                         .count();
+    out = runner.run(args.sat, std::nullopt, "manual", now);
+  } catch (const storage::StorageError& e) {
+    std::cerr << "magcal refit: database " << args.db << ": " << e.what() << "\n";
+    return kExitData;
+  }
+  if (out.kind != RefitOutcome::Kind::kComputed) {
+    std::cerr << "magcal refit: " << args.sat << ": " << out.message << "\n";
+    return kExitData;
+  }
+  const CalibrationResult& r = out.result;
+  if (args.json) {
+    auto j = calibration_result_to_json(r);
+    j["sat_id"] = args.sat;
+    j["time"] = format_iso8601_utc(r.utime);
+    j["window_start"] = format_iso8601_utc(r.window_start_utime);
+    j["window_end"] = format_iso8601_utc(r.window_end_utime);
+    j["calibration_id"] = out.calibration_id;
+    j["job_id"] = out.job_id;
+    std::cout << j.dump(2) << "\n";
+  } else {
+    const Eigen::Vector3d b = r.parameters.bias_nT;
+    const Eigen::Vector3d s = r.bias_sigma_nT();
+    const Eigen::Matrix3d& D = r.parameters.D;
+    std::cout << fmt::format(
+        "refit {} ({}), window {} .. {}, {} samples\n"
+        "  status {}, verdict {}{}\n"
+        "  bias_nT  [{:.2f}, {:.2f}, {:.2f}] +- [{:.2f}, {:.2f}, {:.2f}]\n"
+        "  D        [[{:.5f}, {:.5f}, {:.5f}], [{:.5f}, {:.5f}], [{:.5f}]] (upper)\n"
+        "  residual {:.2f} nT rms, {} iterations{}\n",
+        args.sat, r.method, format_iso8601_utc(r.window_start_utime),
+        format_iso8601_utc(r.window_end_utime), r.n_samples, to_string(r.status),
+        r.accepted ? "accepted" : "rejected",
+        r.rejection_reasons.empty()
+            ? ""
+            : " (" + fmt::format("{}", fmt::join(r.rejection_reasons, "; ")) + ")",
+        b.x(), b.y(), b.z(), s.x(), s.y(), s.z(), D(0, 0), D(0, 1), D(0, 2), D(1, 1), D(1, 2),
+        D(2, 2), r.residual_rms_nT, r.iterations, r.has_alignment ? ", alignment estimated" : "");
+  }
+  return (r.status == CalibrationStatus::kOk || r.status == CalibrationStatus::kRejected)
+             ? kExitOk
+             : kExitData;
+}
+
+}  // namespace magcal::cli

@@ -1,0 +1,126 @@
+// magcal: the operator's command-line tool. Parses arguments (the only CLI11 translation unit)
+// and dispatches to the subcommands in cli_*.cpp. Exit codes: 0 ok, 1 usage, 2 data/database.
+#include <iostream>
+
+#include <CLI/CLI.hpp>
+
+#include "service/cli/cli_commands.hpp"
+
+int main(int argc, char** argv) {
+  using namespace magcal::cli;
+  CLI::App app{"magcal - spacecraft magnetometer calibration (version " MAGCAL_VERSION ")"};
+  app.require_subcommand(1);
+  app.set_version_flag("--version", MAGCAL_VERSION);
+
+  FieldArgs field;
+  auto* field_cmd = app.add_subcommand("field", "IGRF field at a point");
+  field_cmd->add_option("--time", field.time_iso, "UTC time, ISO 8601")->required();
+  auto* r_opt = field_cmd->add_option("--r-km", field.r_km, "geocentric radius, km");
+  auto* colat_opt =
+      field_cmd->add_option("--colat-deg", field.colat_deg, "geocentric colatitude, deg");
+  auto* lat_opt =
+      field_cmd->add_option("--lat-deg", field.lat_deg, "geodetic (WGS-84) latitude, deg");
+  auto* alt_opt = field_cmd->add_option("--alt-km", field.alt_km, "altitude above WGS-84, km");
+  field_cmd->add_option("--lon-deg", field.lon_deg, "longitude, deg east")->required();
+  field_cmd->add_option("--coefficients", field.coefficients_file,
+                        "IGRF coefficient file (official .txt or .shc); default built-in IGRF-14");
+  field_cmd->add_flag("--json", field.json, "print JSON");
+  r_opt->excludes(lat_opt)->excludes(alt_opt);
+  colat_opt->excludes(lat_opt)->excludes(alt_opt);
+
+  SimArgs sim;
+  auto* sim_cmd = app.add_subcommand("sim", "simulate a spacecraft magnetometer");
+  sim_cmd->add_option("--scenario", sim.scenario, "preset name (paper) or scenario FILE.toml");
+  sim_cmd->add_option("--hours", sim.hours, "duration, hours (overrides the scenario)");
+  sim_cmd->add_option("--seed", sim.seed, "random seed (overrides the scenario)");
+  sim_cmd->add_option("--out", sim.out, "output FILE.lcm (LCM log) or FILE.csv")->required();
+  sim_cmd->add_option("--truth", sim.truth, "write the true parameters to FILE.json");
+  sim_cmd->add_option("--sat-id", sim.sat_id, "spacecraft id (overrides the scenario)");
+  sim_cmd->add_option("--batch", sim.batch_size,
+                      "LCM output: mag_batch_t packets of N samples on MAGCAL_BATCH");
+
+  FitArgs fit;
+  auto* fit_cmd = app.add_subcommand("fit", "calibrate from a file");
+  fit_cmd->add_option("--input", fit.input, "FILE.csv or FILE.lcm")->required();
+  fit_cmd->add_option("--method", fit.method, "centered|twostep|ekf|ukf")
+      ->check(CLI::IsMember({"centered", "twostep", "ekf", "ukf"}));
+  fit_cmd->add_option("--sigma-nT", fit.sigma_nT, "measurement noise, nT per axis (default 3)");
+  fit_cmd->add_flag("--robust", fit.robust, "outlier-resistant weighting");
+  fit_cmd->add_option("--sat", fit.sat, "spacecraft id (required when a log holds several)");
+  fit_cmd->add_option("--trace", fit.trace_file,
+                      "ekf/ukf: write state and 1-sigma per sample (CSV)");
+  fit_cmd->add_flag("--json", fit.json, "print JSON");
+  fit_cmd->add_option("--field-unit", fit.field_unit, "recording CSV: field unit nT|uT|G|mG");
+  fit_cmd->add_option("--alt-km", fit.alt_km, "recording CSV: assumed altitude (km) when absent");
+  fit_cmd->add_option("--skip-first", fit.skip_first, "recording CSV: drop the first N rows");
+  fit_cmd->add_flag("--estimate-time-offset", fit.estimate_time_offset,
+                    "recording CSV: estimate the time-tag offset of the position stream");
+  fit_cmd->add_option("--offset-range-s", fit.offset_range_s,
+                      "MIN:MAX search range of the offset (default -1000:1000)");
+  fit_cmd->add_option("--time-offset-s", fit.time_offset_s,
+                      "recording CSV: apply this offset (reference at t + tau)");
+  fit_cmd->add_option("--reference-magnitude", fit.reference_magnitude,
+                      "recording CSV: constant field magnitude, auto|VALUE_nT");
+  fit_cmd->add_flag("--split-halves", fit.split_halves,
+                    "recording CSV: also fit the two halves separately");
+  fit_cmd->add_option(
+      "--expected-residual-nT", fit.expected_residual_nT,
+      "expected residual rms for the acceptance gate (default max(7.5, --sigma-nT))");
+
+  EvaluateArgs evaluate;
+  auto* eval_cmd = app.add_subcommand("evaluate", "Monte-Carlo evaluation against the paper");
+  eval_cmd->add_option("--scenario", evaluate.scenario, "preset name (paper, pure) or FILE.toml");
+  eval_cmd->add_option("--runs", evaluate.runs, "Monte-Carlo runs")->check(CLI::PositiveNumber);
+  eval_cmd->add_option("--seed", evaluate.seed, "first random seed");
+  eval_cmd->add_flag("--json", evaluate.json, "print JSON");
+
+  RefitArgs refit;
+  auto* refit_cmd = app.add_subcommand("refit", "run an offline refit of a stored window now");
+  refit_cmd->add_option("--db", refit.db, "database file")->required();
+  refit_cmd->add_option("--sat", refit.sat, "spacecraft id")->required();
+  refit_cmd->add_option("--config", refit.config, "magcald config (gates, sigma, window)");
+  refit_cmd->add_flag("--json", refit.json, "print JSON");
+
+  HistoryArgs history;
+  auto* hist_cmd = app.add_subcommand("history", "query stored calibration results");
+  hist_cmd->add_option("--db", history.db, "database file")->required();
+  hist_cmd->add_option("--sat", history.sat, "spacecraft id")->required();
+  hist_cmd->add_option("--method", history.method, "ukf|ekf|centered|twostep");
+  hist_cmd->add_option("--since", history.since, "ISO 8601 UTC, inclusive");
+  hist_cmd->add_option("--until", history.until, "ISO 8601 UTC, inclusive");
+  hist_cmd->add_option("--limit", history.limit, "only the N newest")->check(CLI::PositiveNumber);
+  hist_cmd->add_option("--order", history.order, "asc|desc (default asc)")
+      ->check(CLI::IsMember({"asc", "desc"}));
+  hist_cmd->add_option("--format", history.format, "table|csv|json")
+      ->check(CLI::IsMember({"table", "csv", "json"}));
+
+  StatusArgs status;
+  auto* status_cmd = app.add_subcommand("status", "per-spacecraft summary");
+  status_cmd->add_option("--db", status.db, "database file")->required();
+  status_cmd->add_flag("--json", status.json, "print JSON");
+
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::CallForHelp& e) {
+    return app.exit(e);
+  } catch (const CLI::CallForAllHelp& e) {
+    return app.exit(e);
+  } catch (const CLI::CallForVersion& e) {
+    return app.exit(e);
+  } catch (const CLI::ParseError& e) {
+    std::cerr << "magcal: " << e.what() << " (see magcal --help)\n";
+    return kExitUsage;
+  }
+
+  if (*field_cmd) return run_field(field);
+  if (*sim_cmd) return run_sim(sim);
+  if (*fit_cmd) {
+    fit.sigma_given = fit_cmd->get_option("--sigma-nT")->count() > 0;
+    return run_fit(fit);
+  }
+  if (*eval_cmd) return run_evaluate(evaluate);
+  if (*refit_cmd) return run_refit(refit);
+  if (*hist_cmd) return run_history(history);
+  if (*status_cmd) return run_status(status);
+  return kExitUsage;
+}

@@ -1,0 +1,406 @@
+#include "service/daemon/daemon.hpp"
+
+#include <chrono>
+#include <condition_variable>
+#include <deque>
+#include <mutex>
+#include <optional>
+#include <set>
+#include <thread>
+
+#include <spdlog/spdlog.h>
+#include <lcm/lcm-cpp.hpp>
+
+#include "pipeline/time_utc.hpp"
+#include "service/daemon/ingest_queue.hpp"
+#include "service/daemon/ingest_worker.hpp"
+#include "service/daemon/lcm_ingest.hpp"
+#include "service/daemon/lcm_publisher.hpp"
+#include "service/daemon/refit_runner.hpp"
+#include "service/daemon/refit_scheduler.hpp"
+#include "service/daemon/storage_retry.hpp"
+#include "service/io/calibration_record.hpp"
+#include "storage/refit_job_log.hpp"
+
+namespace magcal {
+namespace {
+
+constexpr double kFilterStateEvery_s = 30.0;
+
+int64_t wall_utime() {
+  return std::chrono::duration_cast<std::chrono::microseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+struct RefitRequest {
+  std::optional<int64_t> t_ref_utime;  // nullopt: each spacecraft's newest sample (wall clock)
+  int64_t scheduled_utime = 0;
+};
+
+}  // namespace
+
+struct Daemon::Impl {
+  DaemonConfig config;
+  DaemonCounters counters;
+  std::chrono::steady_clock::time_point start_time = std::chrono::steady_clock::now();
+  bool replay = false;
+
+  std::unique_ptr<lcm::LCM> lcm;
+  std::unique_ptr<LcmPublisher> publisher;
+  std::unique_ptr<IngestQueue> queue;
+  std::unique_ptr<IngestWorker> worker;
+  std::unique_ptr<storage::Database> refit_db;
+  std::unique_ptr<RefitRunner> refits;
+
+  // Refit requests (worker -> refit thread) and the retention floor they imply.
+  std::mutex refit_mutex;
+  std::condition_variable refit_cv;
+  std::deque<RefitRequest> refit_queue;
+  std::multiset<int64_t> floors;  // window starts of due, unfinished refits
+  std::condition_variable refit_idle_cv;
+  bool refit_busy = false;
+  bool refit_stop = false;
+  bool refit_drain = false;  // finish queued requests before stopping (replay)
+
+  // A fatal failure (storage broken for max_failure_s, a thread died): the first one wins.
+  std::atomic<bool> fatal{false};
+  std::mutex fatal_mutex;
+  int fatal_exit = 0;
+  std::string fatal_reason;
+
+  // From any thread: log why, stop receiving, stop the worker and the refit thread; run() then
+  // returns `exit_code`. Never half-alive: nothing keeps receiving what cannot be stored.
+  void fail(int exit_code, const std::string& why) {
+    {
+      std::lock_guard lock(fatal_mutex);
+      if (fatal_exit != 0) return;
+      fatal_exit = exit_code;
+      fatal_reason = why;
+    }
+    spdlog::critical("{}: stopping magcald (exit code {})", why, exit_code);
+    fatal.store(true);
+    queue->close();  // the receive side stops; a blocked replay push returns
+    {
+      std::lock_guard lock(refit_mutex);
+      refit_stop = true;
+      refit_drain = false;
+    }
+    refit_cv.notify_all();
+    refit_idle_cv.notify_all();
+  }
+
+  // Runs a thread's body; whatever escapes it ends the process (non-zero), never the thread
+  // alone.
+  template <typename Body>
+  void guarded(const char* thread, Body&& body) {
+    try {
+      body();
+    } catch (const StorageOutage& e) {
+      fail(kExitStorageFailed, fmt::format("storage failed ({} thread): {}", thread, e.what()));
+    } catch (const std::exception& e) {
+      fail(kExitThreadDied, fmt::format("{} thread died: {}", thread, e.what()));
+    } catch (...) {
+      fail(kExitThreadDied, fmt::format("{} thread died: unknown exception", thread));
+    }
+  }
+
+  // Worker thread, or the main thread after the join.
+  daemon_status_t status() {
+    // Samples the worker holds uncommitted; after a fatal stop they are counted as
+    // storage_error instead.
+    counters.storage_pending.store(fatal.load() ? 0 : worker->pending_samples(),
+                                   std::memory_order_relaxed);
+    const QueueGauge g{queue->depth_samples(), queue->capacity_samples(),
+                       queue->overflow_samples()};
+    const auto uptime = std::chrono::duration_cast<std::chrono::seconds>(
+                            std::chrono::steady_clock::now() - start_time)
+                            .count();
+    return make_status_message(counters, g, wall_utime(), uptime);
+  }
+
+  void update_floor_locked() {
+    worker->set_retention_floor(floors.empty() ? std::numeric_limits<int64_t>::max()
+                                               : *floors.begin());
+  }
+
+  // Worker thread (data clock): t_ref passed and is committed.
+  void on_refit_due(int64_t t_ref) {
+    std::unique_lock lock(refit_mutex);
+    floors.insert(t_ref - config.window_utime() + 1);
+    update_floor_locked();
+    refit_queue.push_back({t_ref, t_ref});
+    refit_cv.notify_one();
+    if (replay) {
+      // A replay has no live source to fall behind: wait for the refit so its re-anchoring
+      // lands at the same point of the data every time (deterministic backfill). Live
+      // ingestion never waits for refits.
+      refit_idle_cv.wait(lock,
+                         [this] { return (refit_queue.empty() && !refit_busy) || refit_stop; });
+    }
+  }
+
+  void on_snapshot(const std::string& sat, const CalibrationResult& snap) {
+    publisher->publish(message_from_result(sat, snap));
+  }
+
+  // Refit thread: one refit, its storage errors retried with backoff (each attempt has its job
+  // row); StorageOutage once storage stays broken.
+  RefitOutcome run_refit(StorageRetry& retry, const std::string& sat, const RefitRequest& req) {
+    return retry.run_blocking([&] {
+      RefitOutcome out = refits->run(sat, req.t_ref_utime, "scheduled", req.scheduled_utime);
+      if (out.kind == RefitOutcome::Kind::kError && out.transient_error) {
+        throw storage::StorageError(storage::StorageError::Kind::kSqlite, out.message,
+                                    out.sqlite_code);
+      }
+      return out;
+    });
+  }
+
+  void refit_all(const RefitRequest& req) {
+    StorageRetry retry("refit", config.storage.max_failure_s, counters);
+    const auto sats = retry.run_blocking([&] { return refits->spacecraft(); });
+    for (const auto& sat : sats) {
+      const auto out = run_refit(retry, sat, req);
+      if (out.kind == RefitOutcome::Kind::kSkipped) {
+        spdlog::info("refit {} at {}: skipped ({})", sat, format_iso8601_utc(req.scheduled_utime),
+                     out.message);
+        continue;
+      }
+      counters.refits_run.fetch_add(1);
+      if (out.kind == RefitOutcome::Kind::kError) {
+        counters.refits_failed.fetch_add(1);
+        spdlog::error("refit {}: {}", sat, out.message);
+        continue;
+      }
+      const auto& r = out.result;
+      if (r.status == CalibrationStatus::kFailed || r.status == CalibrationStatus::kUnobservable) {
+        counters.refits_failed.fetch_add(1);
+      }
+      counters.set_last_refit(sat, r.utime);
+      publisher->publish(message_from_result(sat, r));
+      const Eigen::Vector3d sb = r.bias_sigma_nT();
+      spdlog::info(
+          "refit {} window {} .. {} ({} samples): {}, bias [{:.1f} {:.1f} {:.1f}] +- "
+          "[{:.1f} {:.1f} {:.1f}] nT, residual {:.2f} nT{}{}",
+          sat, format_iso8601_utc(r.window_start_utime), format_iso8601_utc(r.window_end_utime),
+          r.n_samples, r.accepted ? to_string(r.status) : "rejected", r.parameters.bias_nT.x(),
+          r.parameters.bias_nT.y(), r.parameters.bias_nT.z(), sb.x(), sb.y(), sb.z(),
+          r.residual_rms_nT, r.rejection_reasons.empty() ? "" : ": ",
+          fmt::format("{}", fmt::join(r.rejection_reasons, "; ")));
+      if (out.accepted()) {
+        counters.refits_accepted.fetch_add(1);
+        worker->post_reanchor(sat, r);
+      }
+    }
+  }
+
+  void refit_thread() {
+    guarded("refit", [this] { refit_loop(); });
+  }
+
+  void refit_loop() {
+    const bool wall = !config.data_clock();
+    const RefitSchedule schedule{parse_daily_time_utc(config.refit.daily_at_utc).value_or(120),
+                                 config.refit.every_hours};
+    int64_t next_wall = next_scheduled_utime(schedule, wall_utime());
+    if (wall) spdlog::info("next scheduled refit {}", format_iso8601_utc(next_wall));
+    std::unique_lock lock(refit_mutex);
+    while (true) {
+      if (!refit_queue.empty() && !(refit_stop && !refit_drain)) {
+        const RefitRequest req = refit_queue.front();
+        refit_queue.pop_front();
+        refit_busy = true;
+        lock.unlock();
+        refit_all(req);
+        lock.lock();
+        refit_busy = false;
+        if (req.t_ref_utime) {
+          const auto it = floors.find(*req.t_ref_utime - config.window_utime() + 1);
+          if (it != floors.end()) floors.erase(it);
+          update_floor_locked();
+        }
+        refit_idle_cv.notify_all();
+        continue;
+      }
+      if (refit_stop) break;
+      if (wall && wall_utime() >= next_wall) {
+        refit_queue.push_back({std::nullopt, next_wall});
+        next_wall = next_scheduled_utime(schedule, wall_utime());
+        continue;
+      }
+      const auto wait_ms =
+          wall ? std::clamp<int64_t>((next_wall - wall_utime()) / 1000, 1, 1000) : int64_t{1000};
+      refit_cv.wait_for(lock, std::chrono::milliseconds(wait_ms));
+    }
+    if (!refit_queue.empty()) {
+      spdlog::warn("{} scheduled refit(s) not run: shutting down", refit_queue.size());
+    }
+  }
+
+  void worker_thread() {
+    guarded("worker", [this] { worker_loop(); });
+  }
+
+  void worker_loop() {
+    using clock = std::chrono::steady_clock;
+    auto last_status = clock::now();
+    auto last_log = clock::now();
+    auto last_states = clock::now();
+    std::vector<IngestItem> items;
+    size_t next = 0;  // items[next..] are popped but not processed yet
+    while (!fatal.load()) {
+      if (next == items.size() && !worker->backlogged()) {
+        items.clear();
+        next = 0;
+        if (!queue->pop_all(items, 100)) break;
+      }
+      while (next < items.size() && !worker->backlogged() && !fatal.load()) {
+        worker->process(items[next++]);
+      }
+      if (worker->backlogged()) {
+        // Back-pressure: take no more frames (a live queue then overflows, counted; a replay
+        // waits) until the pending batch is committed.
+        if (worker->commit_failing()) {
+          std::this_thread::sleep_until(std::min(worker->next_commit_attempt(),
+                                                 clock::now() + std::chrono::milliseconds(100)));
+        }
+        worker->commit();
+      }
+      worker->commit_if_due();
+      const auto now = clock::now();
+      if (std::chrono::duration<double>(now - last_status).count() >=
+          config.service.status_every_s) {
+        last_status = now;
+        publisher->publish(status());
+      }
+      if (std::chrono::duration<double>(now - last_log).count() >= config.log.status_every_s) {
+        last_log = now;
+        spdlog::info("{}", format_status_line(status()));
+      }
+      if (std::chrono::duration<double>(now - last_states).count() >= kFilterStateEvery_s) {
+        last_states = now;
+        worker->save_filter_states();
+      }
+    }
+    if (fatal.load()) return;
+    // Drained (end of log or stop): store everything, retrying until max_failure_s.
+    worker->flush();
+  }
+};
+
+Daemon::Daemon(DaemonConfig config) : impl_(std::make_unique<Impl>()) {
+  impl_->config = std::move(config);
+}
+
+Daemon::~Daemon() = default;
+
+const DaemonCounters& Daemon::counters() const {
+  return impl_->counters;
+}
+
+std::string Daemon::open() {
+  auto& d = *impl_;
+  const auto& c = d.config;
+  d.replay = is_file_url(c.lcm.url);
+  std::string error;
+  auto field = ReferenceField::from_file(c.igrf.coefficients_file, &error);
+  if (!field) return "[igrf] coefficients_file: " + error;
+  d.queue = std::make_unique<IngestQueue>(c.service.queue_capacity_samples, d.replay);
+  try {
+    d.worker = std::make_unique<IngestWorker>(
+        c, d.counters, std::move(field),
+        IngestWorker::Hooks{
+            [&d](const std::string& sat, const CalibrationResult& r) { d.on_snapshot(sat, r); },
+            [&d](int64_t t) { d.on_refit_due(t); }});
+    d.refit_db = std::make_unique<storage::Database>(
+        c.storage.db_path, storage::OpenOptions{.busy_timeout_ms = c.storage.busy_timeout_ms});
+    d.refits = std::make_unique<RefitRunner>(d.config, *d.refit_db);
+    storage::RefitJobLog jobs(*d.refit_db);
+    if (const int n = jobs.mark_running_interrupted(wall_utime())) {
+      spdlog::warn("{} refit job(s) were running when the daemon last stopped: interrupted", n);
+    }
+    d.worker->restore();
+  } catch (const storage::StorageError& e) {
+    return "database " + c.storage.db_path + ": " + e.what();
+  }
+  d.lcm = std::make_unique<lcm::LCM>(c.lcm.url);
+  if (!d.lcm->good()) {
+    return "cannot open LCM URL '" + c.lcm.url + "'" +
+           (d.replay ? " (does the log exist?)" : " (multicast route? see toolchain.md)");
+  }
+  const std::string pub_url = !c.lcm.publish_url.empty() ? c.lcm.publish_url
+                              : d.replay                 ? std::string()
+                                                         : c.lcm.url;
+  if (!c.lcm.publish_url.empty() || !d.replay) {
+    d.publisher =
+        std::make_unique<LcmPublisher>(pub_url, c.lcm.calibration_channel, c.lcm.status_channel);
+    if (!d.publisher->ok()) return "cannot open LCM publish URL '" + pub_url + "'";
+  } else {
+    d.publisher = std::make_unique<LcmPublisher>();  // replay without publish_url: no output
+  }
+  return "";
+}
+
+int Daemon::run(const std::atomic<bool>& stop) {
+  auto& d = *impl_;
+  const auto& c = d.config;
+  spdlog::info("magcald {} up: db {}, lcm '{}' ({}), refits {} clock at {} UTC{}", MAGCAL_VERSION,
+               c.storage.db_path, c.lcm.url, d.replay ? "replay" : "live", c.refit.clock,
+               c.refit.daily_at_utc,
+               c.refit.every_hours > 0 ? fmt::format(" + every {} h", c.refit.every_hours) : "");
+  std::thread worker([&d] { d.worker_thread(); });
+  std::thread refitter([&d] { d.refit_thread(); });
+
+  LcmIngest ingest(*d.lcm, c.lcm.samples_channel, c.lcm.batch_channel, *d.queue, d.counters);
+  const auto end = ingest.run(stop, d.replay, &d.fatal);
+  spdlog::info("{}; draining {} queued samples",
+               d.fatal.load()                     ? "stopped on a fatal error"
+               : end == LcmIngest::End::kEndOfLog ? "end of log"
+               : end == LcmIngest::End::kStopped  ? "stop requested"
+                                                  : "LCM receive failed",
+               d.queue->depth_samples());
+  d.queue->close();
+  worker.join();
+  {
+    std::lock_guard lock(d.refit_mutex);
+    d.refit_stop = true;
+    // A replay finishes its refits (unless storage failed).
+    d.refit_drain = end == LcmIngest::End::kEndOfLog && !d.fatal.load();
+  }
+  d.refit_cv.notify_all();
+  refitter.join();
+  if (!d.fatal.load()) {
+    d.guarded("main", [&d] {
+      d.worker->commit_if_due();  // applies re-anchors posted by the last refits
+      d.worker->reject_held();    // uncorroborated times: counted, never dropped silently
+      d.worker->flush();
+      d.worker->save_filter_states();
+    });
+  }
+  if (d.fatal.load()) {
+    // Everything received and neither stored nor counted yet was never committed: the pending
+    // batch, the frames popped or still queued. Counted, so the books balance.
+    const int64_t not_committed = d.counters.received.load() - d.counters.stored.load() -
+                                  d.counters.rejected_total() - d.queue->overflow_samples();
+    if (not_committed > 0) {
+      d.counters.reject(RejectReason::kStorageError, not_committed);
+      spdlog::error(
+          "{} received samples were not committed (counted as storage_error; never stored, so "
+          "re-running the replay or recorder dump fills them, stored ones come back as counted "
+          "duplicates)",
+          not_committed);
+    }
+  }
+  const auto st = d.status();
+  d.publisher->publish(st);
+  spdlog::info("final {}", format_status_line(st));
+  if (d.fatal.load()) {
+    std::lock_guard lock(d.fatal_mutex);
+    spdlog::critical("magcald stopped: {} (exit code {})", d.fatal_reason, d.fatal_exit);
+    return d.fatal_exit;
+  }
+  return end == LcmIngest::End::kError ? kExitData : kExitOk;
+}
+
+}  // namespace magcal

@@ -1,0 +1,52 @@
+// magcald's threads and their wiring (design.md "Daemon data flow"):
+//
+//   caller's thread : LCM receive loop (LcmIngest) -> IngestQueue
+//   worker thread   : IngestQueue -> IngestWorker (validate, UKF, SQLite, snapshots);
+//                     daemon_status_t every [service] status_every_s, counters in the log every
+//                     [log] status_every_s, filter states every 30 s
+//   refit thread    : scheduled refits (wall clock: its own timer; data clock: requests from
+//                     the worker) on its own connection; publishes results and posts accepted
+//                     ones back to the worker for re-anchoring. Never blocks ingestion.
+//
+// run() ends when `stop` is set (SIGINT/SIGTERM) or, for a file:// URL, at the end of the log:
+// stop receiving, drain the queue, commit, finish due refits (replay) or the running one
+// (signal), write filter states, publish a last status. Exit codes as in cli_commands.hpp, and
+// the two below.
+//
+// Never half-alive: storage that stays broken for [storage] max_failure_s (each failed
+// operation kept and retried, service/daemon/storage_retry.hpp), or a worker or refit thread that
+// dies for any reason, stops receiving and ends run() with a non-zero exit code and the reason in
+// the log; every received sample that was not committed is counted as storage_error and logged
+// (re-running a replay fills them: stored samples come back as counted duplicates).
+#pragma once
+
+#include <atomic>
+#include <memory>
+#include <string>
+
+#include "service/daemon/daemon_config.hpp"
+#include "service/daemon/health.hpp"
+#include "service/io/exit_codes.hpp"
+
+namespace magcal {
+
+class Daemon {
+ public:
+  explicit Daemon(DaemonConfig config);
+  ~Daemon();
+  Daemon(const Daemon&) = delete;
+  Daemon& operator=(const Daemon&) = delete;
+
+  // Opens the database, IGRF and LCM; empty on success, else one line (the caller exits 2).
+  std::string open();
+  // Runs until `stop` or the end of a replayed log; returns the process exit code.
+  int run(const std::atomic<bool>& stop);
+
+  const DaemonCounters& counters() const;
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace magcal

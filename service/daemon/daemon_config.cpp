@@ -1,0 +1,318 @@
+#include "service/daemon/daemon_config.hpp"
+
+#include <cmath>
+#include <fstream>
+#include <functional>
+#include <map>
+#include <sstream>
+
+#include <toml++/toml.h>
+
+#include "service/daemon/refit_scheduler.hpp"
+
+namespace magcal {
+namespace {
+
+// A setter reads one TOML value into the config; returns an error ("expected ...") or "".
+using Setter = std::function<std::string(const toml::node&)>;
+using Section = std::map<std::string, Setter>;
+
+Setter bind(std::string& out) {
+  return [&out](const toml::node& n) -> std::string {
+    auto v = n.value_exact<std::string>();
+    if (!v) return "expected a string";
+    out = *v;
+    return "";
+  };
+}
+Setter bind(double& out) {
+  return [&out](const toml::node& n) -> std::string {
+    auto v = n.value<double>();  // integers are accepted for floats
+    if (!v || !n.is_number()) return "expected a number";
+    if (!std::isfinite(*v)) return "expected a finite number";
+    out = *v;
+    return "";
+  };
+}
+Setter bind(int& out) {
+  return [&out](const toml::node& n) -> std::string {
+    auto v = n.value_exact<int64_t>();
+    if (!v) return "expected an integer";
+    if (*v < INT32_MIN || *v > INT32_MAX) return "integer out of range";
+    out = static_cast<int>(*v);
+    return "";
+  };
+}
+Setter bind(int64_t& out) {
+  return [&out](const toml::node& n) -> std::string {
+    auto v = n.value_exact<int64_t>();
+    if (!v) return "expected an integer";
+    out = *v;
+    return "";
+  };
+}
+Setter bind(bool& out) {
+  return [&out](const toml::node& n) -> std::string {
+    auto v = n.value_exact<bool>();
+    if (!v) return "expected true or false";
+    out = *v;
+    return "";
+  };
+}
+template <typename E>
+Setter bind_enum(E& out, std::map<std::string, E> names) {
+  return [&out, names](const toml::node& n) -> std::string {
+    auto v = n.value_exact<std::string>();
+    std::string all;
+    for (const auto& [k, e] : names) all += (all.empty() ? "" : ", ") + ("\"" + k + "\"");
+    if (!v || !names.count(*v)) return "expected one of " + all;
+    out = names.at(*v);
+    return "";
+  };
+}
+Setter bind_string_list(std::vector<std::string>& out) {
+  return [&out](const toml::node& n) -> std::string {
+    const auto* arr = n.as_array();
+    if (!arr) return "expected an array of strings";
+    std::vector<std::string> values;
+    for (const auto& e : *arr) {
+      auto v = e.value_exact<std::string>();
+      if (!v || v->empty()) return "expected an array of non-empty strings";
+      values.push_back(*v);
+    }
+    out = std::move(values);
+    return "";
+  };
+}
+Setter bind_vector9(Vector9d& out) {
+  return [&out](const toml::node& n) -> std::string {
+    const auto* arr = n.as_array();
+    if (!arr || arr->size() != 9) {
+      return "expected an array of 9 numbers [b1 b2 b3 D11 D22 D33 D12 D13 D23]";
+    }
+    Vector9d v;
+    for (size_t i = 0; i < 9; ++i) {
+      auto x = (*arr)[i].value<double>();
+      if (!x || !(*arr)[i].is_number() || !std::isfinite(*x) || *x < 0.0) {
+        return "expected 9 finite numbers >= 0";
+      }
+      v(static_cast<int>(i)) = *x;
+    }
+    out = v;
+    return "";
+  };
+}
+
+std::map<std::string, Section> key_table(DaemonConfig& c) {
+  auto& f = c.ukf.filter;
+  auto& g = c.gates;
+  return {
+      {"lcm",
+       {{"url", bind(c.lcm.url)},
+        {"publish_url", bind(c.lcm.publish_url)},
+        {"samples_channel", bind(c.lcm.samples_channel)},
+        {"batch_channel", bind(c.lcm.batch_channel)},
+        {"calibration_channel", bind(c.lcm.calibration_channel)},
+        {"status_channel", bind(c.lcm.status_channel)}}},
+      {"storage",
+       {{"db_path", bind(c.storage.db_path)},
+        {"window_hours", bind(c.storage.window_hours)},
+        {"retention_margin_hours", bind(c.storage.retention_margin_hours)},
+        {"commit_every_samples", bind(c.storage.commit_every_samples)},
+        {"commit_every_ms", bind(c.storage.commit_every_ms)},
+        {"busy_timeout_ms", bind(c.storage.busy_timeout_ms)},
+        {"max_failure_s", bind(c.storage.max_failure_s)},
+        {"max_pending_samples", bind(c.storage.max_pending_samples)}}},
+      {"refit",
+       {{"daily_at_utc", bind(c.refit.daily_at_utc)},
+        {"every_hours", bind(c.refit.every_hours)},
+        {"clock", bind(c.refit.clock)},
+        {"min_samples", bind(c.refit.min_samples)},
+        {"robust", bind(c.refit.robust)}}},
+      {"ukf",
+       {{"sigma_nT", bind(f.sigma_nT)},
+        {"snapshot_every_s", bind(c.ukf.snapshot_every_s)},
+        {"process_noise", bind_vector9(f.process_noise_per_sqrt_hour)},
+        {"alpha", bind(f.alpha)},
+        {"beta", bind(f.beta)},
+        {"kappa", bind(f.kappa)},
+        {"cold_start",
+         bind_enum(f.cold_start,
+                   std::map<std::string, FilterOptions::ColdStart>{
+                       {"data", FilterOptions::ColdStart::kFromData},
+                       {"zero", FilterOptions::ColdStart::kZero},
+                       {"first_sample_scale", FilterOptions::ColdStart::kFirstSampleScale}})},
+        {"initial_bias_sigma_nT", bind(f.initial_bias_sigma_nT)},
+        {"initial_D_sigma", bind(f.initial_D_sigma)},
+        {"gate_nis", bind(f.gate_nis)},
+        {"nis_window", bind(f.nis_window)},
+        {"nis_inconsistent_mean", bind(f.nis_inconsistent_mean)},
+        {"consistency_action",
+         bind_enum(f.consistency_action,
+                   std::map<std::string, FilterOptions::ConsistencyAction>{
+                       {"inflate", FilterOptions::ConsistencyAction::kInflate},
+                       {"reseed", FilterOptions::ConsistencyAction::kReseed}})},
+        {"inflation_factor", bind(f.inflation_factor)},
+        {"converged_bias_sigma_nT", bind(f.converged_bias_sigma_nT)}}},
+      {"gates",
+       {{"residual_enabled", bind(g.residual_enabled)},
+        {"expected_residual_nT", bind(g.expected_residual_nT)},
+        {"residual_test", bind_enum(g.residual_test,
+                                    std::map<std::string, GateOptions::ResidualTest>{
+                                        {"factor", GateOptions::ResidualTest::kFactor},
+                                        {"chi_square", GateOptions::ResidualTest::kChiSquare}})},
+        {"residual_factor", bind(g.residual_factor)},
+        {"residual_tail_probability", bind(g.residual_tail_probability)},
+        {"observability_enabled", bind(g.observability_enabled)},
+        {"max_fisher_condition", bind(g.max_fisher_condition)},
+        {"min_fisher_eigenvalue", bind(g.min_fisher_eigenvalue)},
+        {"coverage_enabled", bind(g.coverage_enabled)},
+        {"min_coverage_eigenvalue", bind(g.min_coverage_eigenvalue)},
+        {"bounds_enabled", bind(g.bounds_enabled)},
+        {"max_bias_nT", bind(g.max_bias_nT)},
+        {"max_scale", bind(g.max_scale)},
+        {"max_nonorthogonality", bind(g.max_nonorthogonality)},
+        {"change_enabled", bind(g.change_enabled)},
+        {"change_tail_probability", bind(g.change_tail_probability)},
+        {"bias_change_floor_nT", bind(g.bias_change_floor_nT)},
+        {"D_change_floor", bind(g.D_change_floor)}}},
+      {"sensor", {{"range_nT", bind(c.sensor.range_nT)}}},
+      {"igrf", {{"coefficients_file", bind(c.igrf.coefficients_file)}}},
+      {"log", {{"level", bind(c.log.level)}, {"status_every_s", bind(c.log.status_every_s)}}},
+      {"ingest",
+       {{"max_time_jump_s", bind(c.ingest.max_time_jump_s)},
+        {"max_future_s", bind(c.ingest.max_future_s)}}},
+      {"service",
+       {{"whitelist", bind_string_list(c.service.whitelist)},
+        {"queue_capacity_samples", bind(c.service.queue_capacity_samples)},
+        {"status_every_s", bind(c.service.status_every_s)},
+        {"min_position_km", bind(c.service.min_position_km)},
+        {"max_position_km", bind(c.service.max_position_km)}}},
+  };
+}
+
+std::string check_channel(const std::string& key, const std::string& name) {
+  if (name.empty() || name.size() > 63) return key + ": channel name must be 1-63 characters";
+  return "";
+}
+
+}  // namespace
+
+std::string DaemonConfig::validate() const {
+  for (const auto& [key, name] : {std::pair{"[lcm] samples_channel", lcm.samples_channel},
+                                  {"[lcm] batch_channel", lcm.batch_channel},
+                                  {"[lcm] calibration_channel", lcm.calibration_channel},
+                                  {"[lcm] status_channel", lcm.status_channel}}) {
+    if (auto e = check_channel(key, name); !e.empty()) return e;
+  }
+  if (storage.db_path.empty()) return "[storage] db_path: must not be empty";
+  if (!(storage.window_hours > 0.0)) return "[storage] window_hours: must be > 0";
+  if (!(storage.retention_margin_hours >= 0.0)) {
+    return "[storage] retention_margin_hours: must be >= 0";
+  }
+  if (storage.commit_every_samples < 1) return "[storage] commit_every_samples: must be >= 1";
+  if (storage.commit_every_ms < 1) return "[storage] commit_every_ms: must be >= 1";
+  if (storage.busy_timeout_ms < 0) return "[storage] busy_timeout_ms: must be >= 0";
+  if (!(storage.max_failure_s > 0.0)) return "[storage] max_failure_s: must be > 0";
+  if (storage.max_pending_samples < storage.commit_every_samples) {
+    return "[storage] max_pending_samples: must be >= commit_every_samples";
+  }
+  if (!parse_daily_time_utc(refit.daily_at_utc)) {
+    return "[refit] daily_at_utc: expected \"HH:MM\" (UTC), got \"" + refit.daily_at_utc + "\"";
+  }
+  if (!(refit.every_hours >= 0.0)) return "[refit] every_hours: must be >= 0 (0 = off)";
+  if (refit.every_hours > 0.0 && refit.every_hours < 1.0 / 60.0) {
+    return "[refit] every_hours: must be 0 (off) or at least one minute";
+  }
+  if (refit.clock != "wall" && refit.clock != "data") {
+    return "[refit] clock: expected \"wall\" or \"data\", got \"" + refit.clock + "\"";
+  }
+  if (refit.min_samples < 10) return "[refit] min_samples: must be >= 10";
+  if (auto e = ukf.filter.validate(); !e.empty()) return "[ukf] " + e;
+  if (!(ukf.snapshot_every_s > 0.0)) return "[ukf] snapshot_every_s: must be > 0";
+  if (auto e = gates.validate(); !e.empty()) return "[gates] " + e;
+  if (!(sensor.range_nT > 0.0)) return "[sensor] range_nT: must be > 0";
+  static const char* kLevels[] = {"trace", "debug", "info", "warn", "error", "critical", "off"};
+  bool level_ok = false;
+  for (const char* l : kLevels) level_ok = level_ok || log.level == l;
+  if (!level_ok) {
+    return "[log] level: expected trace|debug|info|warn|error|critical|off, got \"" + log.level +
+           "\"";
+  }
+  if (!(log.status_every_s > 0.0)) return "[log] status_every_s: must be > 0";
+  // Bounded so that the microsecond conversions stay far from the int64 limits.
+  if (!(ingest.max_time_jump_s >= 1.0 && ingest.max_time_jump_s <= 1e6)) {
+    return "[ingest] max_time_jump_s: must be within [1, 1e6] s";
+  }
+  if (!(ingest.max_future_s >= 0.0 && ingest.max_future_s <= 1e6)) {
+    return "[ingest] max_future_s: must be within [0, 1e6] s";
+  }
+  if (service.queue_capacity_samples < 1000) {
+    return "[service] queue_capacity_samples: must be >= 1000";
+  }
+  if (!(service.status_every_s > 0.0)) return "[service] status_every_s: must be > 0";
+  if (!(service.min_position_km > 0.0 && service.max_position_km > service.min_position_km)) {
+    return "[service] min_position_km/max_position_km: need 0 < min < max";
+  }
+  return "";
+}
+
+ConfigLoad parse_daemon_config(const std::string& toml_text, const std::string& origin) {
+  ConfigLoad out;
+  toml::table root;
+  try {
+    root = toml::parse(toml_text, origin);
+  } catch (const toml::parse_error& e) {
+    std::ostringstream msg;
+    msg << origin << ":" << e.source().begin.line << ": " << e.description();
+    out.error = msg.str();
+    return out;
+  }
+  auto table = key_table(out.config);
+  for (auto&& [section_key, section_node] : root) {
+    const std::string section(section_key.str());
+    const auto sit = table.find(section);
+    if (sit == table.end()) {
+      out.error = origin + ": unknown section [" + section + "]";
+      return out;
+    }
+    const auto* section_table = section_node.as_table();
+    if (!section_table) {
+      out.error = origin + ": [" + section + "] must be a table";
+      return out;
+    }
+    for (auto&& [key, node] : *section_table) {
+      const std::string name(key.str());
+      const auto kit = sit->second.find(name);
+      if (kit == sit->second.end()) {
+        out.error = origin + ": unknown key [" + section + "] " + name;
+        return out;
+      }
+      if (auto e = kit->second(node); !e.empty()) {
+        out.error = origin + ": [" + section + "] " + name + ": " + e;
+        return out;
+      }
+    }
+  }
+  if (auto e = out.config.validate(); !e.empty()) out.error = origin + ": " + e;
+  return out;
+}
+
+ConfigLoad load_daemon_config(const std::string& path) {
+  if (path.empty()) {
+    ConfigLoad out;
+    out.error = out.config.validate();
+    return out;
+  }
+  std::ifstream in(path);
+  if (!in) {
+    ConfigLoad out;
+    out.error = "config " + path + ": cannot open";
+    return out;
+  }
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return parse_daemon_config(ss.str(), path);
+}
+
+}  // namespace magcal

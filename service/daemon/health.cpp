@@ -1,0 +1,117 @@
+#include "service/daemon/health.hpp"
+
+#include <fmt/format.h>
+
+namespace magcal {
+
+const char* to_string(RejectReason r) {
+  switch (r) {
+    case RejectReason::kDecodeError:
+      return "decode_error";
+    case RejectReason::kWrongType:
+      return "wrong_type";
+    case RejectReason::kNonFinite:
+      return "non_finite";
+    case RejectReason::kBadAttitude:
+      return "bad_attitude";
+    case RejectReason::kBatchSatMismatch:
+      return "batch_sat_mismatch";
+    case RejectReason::kInvalidSatId:
+      return "invalid_sat_id";
+    case RejectReason::kUnknownSpacecraft:
+      return "unknown_spacecraft";
+    case RejectReason::kOutOfRange:
+      return "out_of_range";
+    case RejectReason::kAbsurdPosition:
+      return "absurd_position";
+    case RejectReason::kNoReference:
+      return "no_reference";
+    case RejectReason::kReferenceFailed:
+      return "reference_failed";
+    case RejectReason::kOlderThanWindow:
+      return "older_than_window";
+    case RejectReason::kDuplicate:
+      return "duplicate";
+    case RejectReason::kFutureTime:
+      return "future_time";
+    case RejectReason::kTimeOutOfRange:
+      return "time_out_of_range";
+    case RejectReason::kTimeJump:
+      return "time_jump";
+    case RejectReason::kJumpUnconfirmed:
+      return "time_jump_unconfirmed";
+    case RejectReason::kStorageError:
+      return "storage_error";
+    case RejectReason::kCount:
+      break;
+  }
+  return "unknown";
+}
+
+int64_t DaemonCounters::rejected_total() const {
+  int64_t sum = 0;
+  for (const auto& r : rejected) sum += r.load(std::memory_order_relaxed);
+  return sum;
+}
+
+void DaemonCounters::set_last_refit(const std::string& sat_id, int64_t utime) {
+  std::lock_guard lock(sat_mutex_);
+  last_refit_sat_id_ = sat_id;
+  last_refit_utime.store(utime, std::memory_order_relaxed);
+}
+
+std::string DaemonCounters::last_refit_sat_id() const {
+  std::lock_guard lock(sat_mutex_);
+  return last_refit_sat_id_;
+}
+
+daemon_status_t make_status_message(const DaemonCounters& c, const QueueGauge& q, int64_t now_utime,
+                                    int64_t uptime_s) {
+  daemon_status_t s{};
+  s.utime = now_utime;
+  s.version = MAGCAL_VERSION;
+  s.uptime_s = uptime_s;
+  s.received = c.received.load(std::memory_order_relaxed);
+  s.stored = c.stored.load(std::memory_order_relaxed);
+  // Every reason is listed, zeros included, so a reader sees the full vocabulary.
+  for (int i = 0; i < kRejectReasonCount; ++i) {
+    s.rejected_reason.emplace_back(to_string(static_cast<RejectReason>(i)));
+    s.rejected_count.push_back(c.rejected_count(static_cast<RejectReason>(i)));
+  }
+  s.n_reasons = static_cast<int32_t>(s.rejected_reason.size());
+  s.rejected = c.rejected_total();
+  s.missing_by_seq = c.missing_by_seq.load(std::memory_order_relaxed);
+  s.queue_overflow = q.overflow;
+  s.queue_depth = static_cast<int32_t>(q.depth);
+  s.queue_capacity = static_cast<int32_t>(q.capacity);
+  s.n_spacecraft = c.n_spacecraft.load(std::memory_order_relaxed);
+  s.refits_run = c.refits_run.load(std::memory_order_relaxed);
+  s.refits_failed = c.refits_failed.load(std::memory_order_relaxed);
+  s.last_refit_utime = c.last_refit_utime.load(std::memory_order_relaxed);
+  s.last_refit_sat_id = c.last_refit_sat_id();
+  s.storage_healthy = c.storage_healthy();
+  s.storage_pending = c.storage_pending.load(std::memory_order_relaxed);
+  s.storage_failures = c.storage_failures.load(std::memory_order_relaxed);
+  s.storage_retries = c.storage_retries.load(std::memory_order_relaxed);
+  return s;
+}
+
+std::string format_status_line(const daemon_status_t& s) {
+  std::string reasons;
+  for (int i = 0; i < s.n_reasons; ++i) {
+    if (s.rejected_count[static_cast<size_t>(i)] == 0) continue;
+    reasons += fmt::format(" {}={}", s.rejected_reason[static_cast<size_t>(i)],
+                           s.rejected_count[static_cast<size_t>(i)]);
+  }
+  return fmt::format(
+      "status: received={} stored={} rejected={}{}{} missing_by_seq={} queue={}/{} "
+      "overflow={} spacecraft={} refits={} (failed {}) storage={} (pending {}, failures {}, "
+      "retries {})",
+      s.received, s.stored, s.rejected, reasons.empty() ? "" : " (",
+      reasons.empty() ? "" : reasons.substr(1) + ")", s.missing_by_seq, s.queue_depth,
+      s.queue_capacity, s.queue_overflow, s.n_spacecraft, s.refits_run, s.refits_failed,
+      s.storage_healthy ? "healthy" : "FAILING", s.storage_pending, s.storage_failures,
+      s.storage_retries);
+}
+
+}  // namespace magcal

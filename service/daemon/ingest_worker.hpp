@@ -1,0 +1,158 @@
+// The daemon's worker (design.md "Daemon data flow"): for every decoded sample
+//   validate (sample_validator.hpp, then older_than_window / duplicate against the spacecraft's
+//   tracker and store) -> reference field -> that spacecraft's UKF update -> pending row;
+// UKF snapshots every `snapshot_every_s` of DATA time (history row + calibration_t);
+// pending rows and snapshot rows are committed together, one transaction per batch
+// (commit_every_samples or commit_every_ms, whichever first); retention runs in small
+// transactions after commits. With the data clock it also decides when refits are due.
+//
+// Storage faults (service/daemon/storage_retry.hpp): a failed commit keeps its samples and
+// snapshots pending and is retried with backoff (snapshots are published only once stored); the
+// caller stops feeding process() while backlogged() (pending at [storage] max_pending_samples). The
+// duplicate check retries in place. Storage broken for [storage] max_failure_s (or a permanent
+// error) throws StorageOutage out of process() / commit_if_due() / commit() / flush().
+//
+// Owns its own database connection and everything it touches, so it runs on one thread; the
+// only cross-thread entry points are post_reanchor() and the retention floor.
+//
+// Restart (restore()): trackers come back from the stored windows; each UKF from its stored
+// state; if that state is older than the newest stored sample, the filter is re-run over the
+// newer stored samples (from their stored reference field, no IGRF).
+#pragma once
+
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "pipeline/calibration_result.hpp"
+#include "service/daemon/daemon_config.hpp"
+#include "service/daemon/health.hpp"
+#include "service/daemon/ingest_queue.hpp"
+#include "service/daemon/refit_scheduler.hpp"
+#include "service/daemon/sample_validator.hpp"
+#include "service/daemon/spacecraft_tracker.hpp"
+#include "service/daemon/storage_retry.hpp"
+#include "service/daemon/throttled_log.hpp"
+#include "service/io/reference_field.hpp"
+#include "storage/calibration_history.hpp"
+#include "storage/database.hpp"
+#include "storage/filter_state_store.hpp"
+#include "storage/sample_window_store.hpp"
+
+namespace magcal {
+
+class IngestWorker {
+ public:
+  struct Hooks {
+    // A UKF snapshot was committed (publish it).
+    std::function<void(const std::string& sat_id, const CalibrationResult&)> on_snapshot;
+    // Data clock: scheduled time t_ref passed and the samples up to it are committed.
+    std::function<void(int64_t t_ref_utime)> on_refit_due;
+  };
+
+  // Opens its own connection to config.storage.db_path (throws storage::StorageError).
+  IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
+               std::unique_ptr<ReferenceField> field, Hooks hooks);
+  ~IngestWorker();
+
+  // Rebuilds trackers from the database (see file comment). Call once before process().
+  void restore();
+
+  // Validates and ingests every sample of a decoded frame.
+  void process(const IngestItem& item);
+  // Commits when the pending batch is full or old enough; call regularly.
+  void commit_if_due();
+  // Commits pending samples and snapshots now (one transaction), then runs retention. After a
+  // failure, a no-op until the retry backoff has elapsed.
+  void commit();
+  // Commits everything pending, retrying through the backoff until it is stored; throws
+  // StorageOutage when storage stays broken (shutdown, and before a data-clock refit).
+  void flush();
+  // Pending at [storage] max_pending_samples: take no more frames until a commit succeeds.
+  bool backlogged() const {
+    return static_cast<int64_t>(pending_.size()) >= config_.storage.max_pending_samples;
+  }
+  // A failed commit is waiting for its retry.
+  bool commit_failing() const { return commit_retry_.failing(); }
+  std::chrono::steady_clock::time_point next_commit_attempt() const {
+    return commit_retry_.next_attempt();
+  }
+  // Commits, then writes the filter state of every spacecraft whose filter changed since the
+  // last write (not while samples it has used are uncommitted). A failure is logged and counted;
+  // the states are written next time.
+  void save_filter_states();
+  // At shutdown, before the last commit: every sample still held for corroboration of its time
+  // (spacecraft_tracker.hpp) is rejected as time_jump_unconfirmed, so it is counted.
+  void reject_held();
+  // Samples currently held, all spacecraft (in flight, like the pending batch).
+  int64_t held_samples();
+
+  // From any thread: re-anchor sat_id's UKF on an accepted refit (applied by the worker thread
+  // at its next process()/commit_if_due()).
+  void post_reanchor(const std::string& sat_id, const CalibrationResult& refit);
+  // From any thread: retention never deletes samples at or after this time (the oldest window
+  // start of a refit that is due but not finished). INT64_MAX = no floor.
+  void set_retention_floor(int64_t utime) { retention_floor_.store(utime); }
+
+  int64_t data_clock_utime() const { return data_clock_utime_; }
+  size_t n_spacecraft() const { return fleet_.size(); }
+  int64_t pending_samples() const { return static_cast<int64_t>(pending_.size()); }
+  int64_t pending_snapshots() const { return static_cast<int64_t>(pending_snapshots_.size()); }
+  SpacecraftFleet& fleet() { return fleet_; }
+
+ private:
+  void ingest_sample(const mag_sample_t& s, const std::string& batch_sat_id, int64_t receive_utime);
+  // The per-spacecraft checks and the store of a sample on its spacecraft's time base.
+  void accept_sample(const std::string& sat, SpacecraftTracker& t, const mag_sample_t& s,
+                     int64_t receive_utime);
+  void hold_sample(const std::string& sat, SpacecraftTracker& t, const mag_sample_t& s,
+                   int64_t receive_utime);
+  // Re-examines t's held samples after its time base moved (see spacecraft_tracker.hpp).
+  void resolve_held(const std::string& sat, SpacecraftTracker& t);
+  void reject_sample(RejectReason r, const std::string& sat, const mag_sample_t& s);
+  bool is_duplicate(const std::string& sat_id, int64_t utime);
+  void maybe_snapshot(const std::string& sat_id, SpacecraftTracker& t, int64_t utime);
+  void apply_reanchors();
+  void run_retention();
+  void check_data_clock();
+  void commit_pending();
+
+  const DaemonConfig config_;  // a copy: callers may pass a temporary
+  DaemonCounters& counters_;
+  std::unique_ptr<ReferenceField> field_;
+  Hooks hooks_;
+  ValidatorOptions validator_;
+  storage::Database db_;
+  storage::SampleWindowStore samples_;
+  storage::CalibrationHistory history_;
+  storage::FilterStateStore filter_states_;
+  SpacecraftFleet fleet_;
+  ThrottledLog warnings_;
+  std::optional<RefitScheduler> data_scheduler_;
+  StorageRetry commit_retry_;
+  StorageRetry read_retry_;
+
+  std::vector<storage::StoredSample> pending_;
+  std::vector<std::pair<std::string, CalibrationResult>> pending_snapshots_;
+  std::chrono::steady_clock::time_point first_pending_time_{};
+  std::chrono::steady_clock::time_point last_retention_time_{};
+  std::vector<std::string> retention_dirty_;
+  int64_t last_retention_data_utime_ = std::numeric_limits<int64_t>::min() / 2;
+  int64_t data_clock_utime_ = std::numeric_limits<int64_t>::min();
+  int64_t frame_counter_ = 0;    // frames processed (a hold needs more than one to resolve)
+  bool resolving_held_ = false;  // resolve_held() is running (no re-entry)
+  int64_t refits_skipped_logged_ = 0;
+  std::atomic<int64_t> retention_floor_{std::numeric_limits<int64_t>::max()};
+
+  std::mutex reanchor_mutex_;
+  std::vector<std::pair<std::string, CalibrationResult>> reanchors_;
+  std::atomic<bool> have_reanchors_{false};
+};
+
+}  // namespace magcal

@@ -1,0 +1,162 @@
+#include "service/daemon/lcm_ingest.hpp"
+
+#include <chrono>
+
+#include "schemas/magcal_messages.hpp"
+
+namespace magcal {
+namespace {
+
+int64_t wall_utime() {
+  return std::chrono::duration_cast<std::chrono::microseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+// The fingerprint LCM writes in front of every encoded message (big-endian int64).
+bool has_fingerprint(const void* data, int size, int64_t hash) {
+  if (size < 8) return false;
+  const auto* b = static_cast<const uint8_t*>(data);
+  uint64_t v = 0;
+  for (int i = 0; i < 8; ++i) v = (v << 8) | b[i];
+  return static_cast<int64_t>(v) == hash;
+}
+
+int32_t read_int32_be(const uint8_t* b) {
+  uint32_t v = 0;
+  for (int i = 0; i < 4; ++i) v = (v << 8) | b[i];
+  return static_cast<int32_t>(v);
+}
+
+// Bytes of an encoded mag_sample_t after its sat_id: seq, b_sensor_nT, has_position,
+// r_ecef_m, has_attitude, q_body_from_eci, has_reference, h_body_nT, temperature_C.
+constexpr int64_t kSampleTailBytes = 8 + 3 * 8 + 1 + 3 * 8 + 1 + 4 * 8 + 1 + 3 * 8 + 4;
+constexpr int64_t kMinEncodedSampleBytes = 8 + 4 + 1 + kSampleTailBytes;  // sat_id ""
+
+// An LCM string at pos (int32 length including the NUL, then the bytes) that fits.
+bool skip_string(const uint8_t* b, int64_t size, int64_t& pos) {
+  if (size - pos < 4) return false;
+  const int32_t len = read_int32_be(b + pos);
+  pos += 4;
+  if (len < 1 || len > size - pos) return false;
+  pos += len;
+  return true;
+}
+
+bool skip_sample(const uint8_t* b, int64_t size, int64_t& pos) {
+  if (size - pos < 8) return false;
+  pos += 8;  // utime
+  if (!skip_string(b, size, pos) || size - pos < kSampleTailBytes) return false;
+  pos += kSampleTailBytes;
+  return true;
+}
+
+// lcmgen's decoders trust the lengths inside the frame: a string length <= 0 overflows
+// `length - 1` (undefined behaviour) and std::string::assign throws; a batch's n is used to
+// size `samples` before any sample is read (2^31 - 1 would ask for hundreds of GB). So the
+// frame's layout is walked first; only a frame whose every length fits the bytes is decoded.
+bool well_formed_frame(const void* data, int size, bool batch) {
+  const auto* b = static_cast<const uint8_t*>(data);
+  int64_t pos = 8;  // fingerprint, checked by the caller
+  if (!batch) return skip_sample(b, size, pos) && pos == size;
+  if (!skip_string(b, size, pos) || size - pos < 4) return false;
+  const int32_t n = read_int32_be(b + pos);
+  pos += 4;
+  if (n < 0 || n > (size - pos) / kMinEncodedSampleBytes) return false;
+  for (int32_t i = 0; i < n; ++i) {
+    if (!skip_sample(b, size, pos)) return false;
+  }
+  return pos == size;
+}
+
+}  // namespace
+
+bool is_file_url(const std::string& url) {
+  return url.rfind("file://", 0) == 0;
+}
+
+DecodeOutcome decode_frame(const void* data, int size, bool expect_batch, IngestItem& out) {
+  if (size < 8) return DecodeOutcome::kDecodeError;
+  out.from_batch = expect_batch;
+  out.samples.clear();
+  out.batch_sat_id.clear();
+  const int64_t hash = expect_batch ? mag_batch_t::getHash() : mag_sample_t::getHash();
+  if (!has_fingerprint(data, size, hash)) return DecodeOutcome::kWrongType;
+  if (!well_formed_frame(data, size, expect_batch)) return DecodeOutcome::kDecodeError;
+  if (expect_batch) {
+    mag_batch_t batch;
+    if (batch.decode(data, 0, size) != size) return DecodeOutcome::kDecodeError;
+    out.batch_sat_id = std::move(batch.sat_id);
+    out.samples = std::move(batch.samples);
+    return DecodeOutcome::kOk;
+  }
+  out.samples.resize(1);
+  if (out.samples[0].decode(data, 0, size) != size) {
+    out.samples.clear();
+    return DecodeOutcome::kDecodeError;
+  }
+  return DecodeOutcome::kOk;
+}
+
+LcmIngest::LcmIngest(lcm::LCM& lcm, const std::string& samples_channel,
+                     const std::string& batch_channel, IngestQueue& queue, DaemonCounters& counters)
+    : lcm_(lcm), queue_(queue), counters_(counters) {
+  samples_sub_ = lcm_.subscribeFunction(samples_channel, &LcmIngest::on_samples, this);
+  batch_sub_ = lcm_.subscribeFunction(batch_channel, &LcmIngest::on_batch, this);
+  // Unbounded inside LCM (its default of 30 drops silently); IngestQueue is the bound.
+  samples_sub_->setQueueCapacity(0);
+  batch_sub_->setQueueCapacity(0);
+}
+
+LcmIngest::~LcmIngest() {
+  lcm_.unsubscribe(samples_sub_);
+  lcm_.unsubscribe(batch_sub_);
+}
+
+void LcmIngest::on_samples(const lcm::ReceiveBuffer* rbuf, const std::string&, LcmIngest* self) {
+  self->on_frame(rbuf, false);
+}
+void LcmIngest::on_batch(const lcm::ReceiveBuffer* rbuf, const std::string&, LcmIngest* self) {
+  self->on_frame(rbuf, true);
+}
+
+void LcmIngest::on_frame(const lcm::ReceiveBuffer* rbuf, bool batch) {
+  IngestItem item;
+  const auto outcome = decode_frame(rbuf->data, static_cast<int>(rbuf->data_size), batch, item);
+  if (outcome != DecodeOutcome::kOk) {
+    // One undecodable frame = one received, one rejected (its sample count is unknowable).
+    counters_.received.fetch_add(1, std::memory_order_relaxed);
+    counters_.reject(outcome == DecodeOutcome::kWrongType ? RejectReason::kWrongType
+                                                          : RejectReason::kDecodeError);
+    return;
+  }
+  counters_.received.fetch_add(static_cast<int64_t>(item.samples.size()),
+                               std::memory_order_relaxed);
+  if (item.samples.empty()) return;
+  item.receive_utime = wall_utime();
+  queue_.push(std::move(item));  // overflow is counted by the queue
+}
+
+LcmIngest::End LcmIngest::run(const std::atomic<bool>& stop, bool is_file_provider,
+                              const std::atomic<bool>* abort) {
+  auto stopped = [&] {
+    return stop.load(std::memory_order_relaxed) ||
+           (abort && abort->load(std::memory_order_relaxed));
+  };
+  int failures = 0;
+  while (!stopped()) {
+    const int rc = lcm_.handleTimeout(100);
+    if (rc >= 0) {
+      failures = 0;
+      continue;
+    }
+    if (stopped()) break;  // a signal interrupted the wait
+    if (is_file_provider) return End::kEndOfLog;
+    // Live provider: an interrupted wait (EINTR) is harmless; a provider that keeps failing
+    // is not.
+    if (++failures >= 10) return End::kError;
+  }
+  return End::kStopped;
+}
+
+}  // namespace magcal

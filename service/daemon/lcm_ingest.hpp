@@ -1,0 +1,62 @@
+// The LCM receive side of magcald (design.md "Daemon data flow", toolchain.md "LCM 1.3.1").
+//
+// Subscribes RAW (no typed subscribe: a typed handler that fails to decode only prints to
+// stderr) to the samples and batch channels, with setQueueCapacity(0) so LCM itself never
+// drops (its default keeps 30 messages and silently discards the rest); the bound is our
+// IngestQueue, whose overflow is counted. The handler only decodes and hands off. The loop is
+// handleTimeout() with a stop flag (set from SIGINT/SIGTERM). With a file:// URL the provider
+// reports the end of the log, which ends run() with kEndOfLog (replay mode).
+#pragma once
+
+#include <atomic>
+#include <string>
+
+#include <lcm/lcm-cpp.hpp>
+
+#include "service/daemon/health.hpp"
+#include "service/daemon/ingest_queue.hpp"
+
+namespace magcal {
+
+enum class DecodeOutcome { kOk, kWrongType, kDecodeError };
+
+// Decodes one frame of the samples channel (expect_batch = false: a mag_sample_t) or of the
+// batch channel (a mag_batch_t) into `out`. kWrongType: the fingerprint is not the expected
+// type's; kDecodeError: right fingerprint but truncated/corrupt (or shorter than a fingerprint,
+// or any string length or batch count that does not fit the frame: checked before lcmgen's
+// decoder, which trusts them). Never throws.
+DecodeOutcome decode_frame(const void* data, int size, bool expect_batch, IngestItem& out);
+
+class LcmIngest {
+ public:
+  enum class End { kStopped, kEndOfLog, kError };
+
+  // Subscribes immediately; `lcm` must be good() and outlive this object.
+  LcmIngest(lcm::LCM& lcm, const std::string& samples_channel, const std::string& batch_channel,
+            IngestQueue& queue, DaemonCounters& counters);
+  ~LcmIngest();
+  LcmIngest(const LcmIngest&) = delete;
+  LcmIngest& operator=(const LcmIngest&) = delete;
+
+  // Receives until `stop` or `*abort` is set (kStopped), the log ends (kEndOfLog: file://
+  // only) or the provider fails (kError).
+  End run(const std::atomic<bool>& stop, bool is_file_provider,
+          const std::atomic<bool>* abort = nullptr);
+
+ private:
+  static void on_samples(const lcm::ReceiveBuffer* rbuf, const std::string& channel,
+                         LcmIngest* self);
+  static void on_batch(const lcm::ReceiveBuffer* rbuf, const std::string& channel, LcmIngest* self);
+  void on_frame(const lcm::ReceiveBuffer* rbuf, bool batch);
+
+  lcm::LCM& lcm_;
+  IngestQueue& queue_;
+  DaemonCounters& counters_;
+  lcm::Subscription* samples_sub_ = nullptr;
+  lcm::Subscription* batch_sub_ = nullptr;
+};
+
+// True for file:// URLs (replay mode).
+bool is_file_url(const std::string& url);
+
+}  // namespace magcal

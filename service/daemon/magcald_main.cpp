@@ -1,0 +1,68 @@
+// magcald: the calibration daemon's composition root (design.md "The daemon's command line and
+// config"). Flags override the config file, which overrides the built-in defaults.
+//   magcald [--config FILE.toml] [--db FILE] [--lcm-url URL] [--log-level LEVEL]
+// Exit codes: 0 ok (stopped by SIGINT/SIGTERM or end of a replayed log), 1 usage or bad
+// config, 2 database / LCM / data error at start, 3 storage failed for [storage] max_failure_s
+// while running, 4 a worker or refit thread died (service/daemon/daemon.hpp).
+#include <atomic>
+#include <csignal>
+#include <iostream>
+
+#include <spdlog/spdlog.h>
+#include <CLI/CLI.hpp>
+
+#include "service/daemon/daemon.hpp"
+#include "service/daemon/daemon_config.hpp"
+
+namespace {
+
+std::atomic<bool> g_stop{false};
+extern "C" void on_signal(int) {
+  g_stop.store(true);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  using magcal::kExitData;
+  using magcal::kExitUsage;
+  CLI::App app{"magcald: magnetometer calibration daemon (LCM in, SQLite + LCM out)"};
+  std::string config_path, db_path, lcm_url, log_level;
+  app.add_option("--config", config_path, "TOML config (deploy/magcald.example.toml lists keys)");
+  app.add_option("--db", db_path, "SQLite database (overrides [storage] db_path)");
+  app.add_option("--lcm-url", lcm_url,
+                 "LCM URL (overrides [lcm] url); file://LOG?speed=0 replays a log and exits");
+  app.add_option("--log-level", log_level, "trace|debug|info|warn|error|critical|off");
+  app.set_version_flag("--version", MAGCAL_VERSION);
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    if (e.get_exit_code() == 0) return app.exit(e);
+    std::cerr << "magcald: " << e.what() << " (see magcald --help)\n";
+    return kExitUsage;
+  }
+
+  auto load = magcal::load_daemon_config(config_path);
+  if (!load.ok()) {
+    std::cerr << "magcald: " << load.error << "\n";
+    return kExitUsage;
+  }
+  magcal::DaemonConfig config = std::move(load.config);
+  if (!db_path.empty()) config.storage.db_path = db_path;
+  if (!lcm_url.empty()) config.lcm.url = lcm_url;
+  if (!log_level.empty()) config.log.level = log_level;
+  if (const auto error = config.validate(); !error.empty()) {
+    std::cerr << "magcald: " << (log_level.empty() ? "" : "--log-level / ") << error << "\n";
+    return kExitUsage;
+  }
+  spdlog::set_level(spdlog::level::from_str(config.log.level));
+
+  magcal::Daemon daemon(std::move(config));
+  if (const auto error = daemon.open(); !error.empty()) {
+    std::cerr << "magcald: " << error << "\n";
+    return kExitData;
+  }
+  std::signal(SIGINT, on_signal);
+  std::signal(SIGTERM, on_signal);
+  return daemon.run(g_stop);
+}

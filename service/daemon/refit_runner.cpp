@@ -1,0 +1,159 @@
+#include "service/daemon/refit_runner.hpp"
+
+#include "pipeline/time_utc.hpp"
+
+#include <chrono>
+
+#include "service/io/calibration_record.hpp"
+
+namespace magcal {
+namespace {
+
+// A refit whose window spans at least this fraction of window_hours is a full-window refit
+// (a 12 h window sampled every 10 s spans 99.98 %; the first refit, 8 h, spans 67 %).
+constexpr double kFullWindowFraction = 0.9;
+
+int64_t wall_utime() {
+  return std::chrono::duration_cast<std::chrono::microseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+}  // namespace
+
+BatchCalibrationOptions batch_options_from_config(const DaemonConfig& config) {
+  BatchCalibrationOptions o;
+  o.method = BatchCalibrationOptions::Method::kTwoStep;
+  o.sigma_nT = config.ukf.filter.sigma_nT;
+  o.robust = config.refit.robust;
+  o.gates = true;
+  o.gate_options = config.gates;
+  return o;
+}
+
+RefitRunner::RefitRunner(const DaemonConfig& config, storage::Database& db)
+    : config_(config),
+      options_(batch_options_from_config(config)),
+      samples_(db),
+      history_(db),
+      jobs_(db) {}
+
+std::vector<std::string> RefitRunner::spacecraft() {
+  return samples_.spacecraft();
+}
+
+bool RefitRunner::accept_corroborated_change(const std::string& sat_id,
+                                             const CalibrationResult& reference,
+                                             CalibrationResult& result) {
+  // A real change of the sensor (a drift, a new bias after a thermal or magnetic event) fails
+  // the change gate against the old reference every time: accepting nothing from then on would
+  // lock the spacecraft out for good. When the only reasons are the change gate's and the
+  // previous full-window refit, newer than the reference, failed on the same gate only and
+  // agrees with this one (the same chi-square test between the two), the change is
+  // corroborated by two independent windows: accept it, and say so.
+  if (result.accepted || result.rejection_reasons.empty()) return false;
+  const auto is_change = [](const std::string& r) {
+    return r.rfind("bias_change", 0) == 0 || r.rfind("D_change", 0) == 0;
+  };
+  for (const auto& r : result.rejection_reasons)
+    if (!is_change(r)) return false;
+  const auto last = history_.latest_refit(sat_id);
+  if (!last || last->utime <= reference.utime || last->utime >= result.utime) return false;
+  if (last->window_end_utime - last->window_start_utime <
+          static_cast<int64_t>(kFullWindowFraction * config_.window_utime()) ||
+      last->n_samples < config_.refit.min_samples || last->rejection_reasons.empty()) {
+    return false;
+  }
+  for (const auto& r : last->rejection_reasons)
+    if (!is_change(r)) return false;
+  const CalibrationResult corroborating = result_from_record(*last);
+  GateOptions only_change = options_.gate_options;
+  only_change.residual_enabled = only_change.observability_enabled = false;
+  only_change.coverage_enabled = only_change.bounds_enabled = false;
+  GateInputs in;
+  in.previous_accepted = &corroborating;
+  if (!evaluate_gates(result, in, only_change).accepted) return false;
+  result.accepted = true;
+  result.rejection_reasons.clear();
+  if (result.status == CalibrationStatus::kRejected)
+    result.status = result.converged ? CalibrationStatus::kOk : CalibrationStatus::kNotConverged;
+  result.message = "change since the refit of " + format_iso8601_utc(reference.utime) +
+                   " corroborated by the refit of " + format_iso8601_utc(corroborating.utime);
+  return true;
+}
+
+RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> t_ref_utime,
+                              const std::string& trigger, int64_t scheduled_utime) {
+  RefitOutcome out;
+  try {
+    out.job_id = jobs_.start(sat_id, trigger, scheduled_utime, wall_utime());
+  } catch (const storage::StorageError& e) {
+    out.message = std::string("cannot write the job row: ") + e.what();
+    out.sqlite_code = e.sqlite_code();
+    out.transient_error = e.transient();
+    return out;
+  }
+  try {
+    if (!t_ref_utime) t_ref_utime = samples_.newest_utime(sat_id);
+    if (!t_ref_utime) {
+      out.kind = RefitOutcome::Kind::kSkipped;
+      out.job_outcome = storage::job_outcome::kSkipped;
+      out.message = "no stored samples for '" + sat_id + "'";
+      jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message);
+      return out;
+    }
+    const int64_t t_ref = *t_ref_utime;
+    samples_.read_window(sat_id, t_ref - config_.window_utime() + 1, t_ref + 1, rows_);
+    out.n_window_samples = static_cast<int>(rows_.size());
+    if (out.n_window_samples < config_.refit.min_samples) {
+      out.kind = RefitOutcome::Kind::kSkipped;
+      out.job_outcome = storage::job_outcome::kSkipped;
+      out.message = std::to_string(out.n_window_samples) + " samples in the window, " +
+                    std::to_string(config_.refit.min_samples) + " needed ([refit] min_samples)";
+      jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message);
+      return out;
+    }
+    window_.clear();
+    window_.reserve(rows_.size());
+    for (const auto& r : rows_) window_.push_back(calibration_sample_from_stored(r));
+
+    // The change gate's reference: the last accepted *full-window* refit. A refit on a short
+    // window (the first hours of a spacecraft, or after a gap: span below 90 % of
+    // window_hours) has wider true errors and must not become the yardstick of later full
+    // refits; with none yet, the refit is judged on its own evidence (change gate skipped).
+    std::optional<CalibrationResult> previous;
+    if (const auto rec = history_.latest_accepted_refit(
+            sat_id, static_cast<int64_t>(kFullWindowFraction * config_.window_utime()),
+            config_.refit.min_samples)) {
+      previous = result_from_record(*rec);
+    }
+    out.result = calibrate_batch(window_, options_, previous ? &*previous : nullptr);
+    out.result.utime = t_ref;  // the time the refit refers to: its scheduled window end
+    if (previous) accept_corroborated_change(sat_id, *previous, out.result);
+    out.calibration_id = history_.append(record_from_result(sat_id, out.result));
+    out.kind = RefitOutcome::Kind::kComputed;
+    if (out.result.accepted && out.result.status == CalibrationStatus::kOk) {
+      out.job_outcome = storage::job_outcome::kOk;
+    } else if (out.result.status == CalibrationStatus::kRejected) {
+      out.job_outcome = storage::job_outcome::kRejected;
+    } else {
+      out.job_outcome = storage::job_outcome::kFailed;
+      out.message = out.result.message.empty() ? to_string(out.result.status) : out.result.message;
+    }
+    jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message, out.calibration_id);
+  } catch (const storage::StorageError& e) {
+    out.kind = RefitOutcome::Kind::kError;
+    out.job_outcome = storage::job_outcome::kFailed;
+    out.message = e.what();
+    out.sqlite_code = e.sqlite_code();
+    out.transient_error = e.transient();
+    try {
+      jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message);
+    } catch (const storage::StorageError&) {
+      // The database is unusable; the caller reports out.message.
+    }
+  }
+  return out;
+}
+
+}  // namespace magcal

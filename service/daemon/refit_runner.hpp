@@ -1,0 +1,80 @@
+// One offline refit of a spacecraft's stored window (design.md "Daemon data flow", issue 6):
+//   job row 'running' -> window (t_ref - window_hours, t_ref] from the store
+//   -> calibrate_batch (centered -> LM -> alignment when the samples carry reference
+//      directions -> acceptance gates; the change gate compares with the previous accepted
+//      refit from the history) -> history row -> job row finished (ok | rejected | failed |
+//      skipped when fewer than [refit] min_samples).
+// The same code runs in the daemon's refit thread and in `magcal refit` (its own process and
+// connection: SQLite WAL lets it run while the daemon writes). Publishing and re-anchoring the
+// UKF are the caller's business.
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "pipeline/batch_calibration.hpp"
+#include "pipeline/calibration_result.hpp"
+#include "service/daemon/daemon_config.hpp"
+#include "storage/calibration_history.hpp"
+#include "storage/database.hpp"
+#include "storage/refit_job_log.hpp"
+#include "storage/sample_window_store.hpp"
+
+namespace magcal {
+
+struct RefitOutcome {
+  enum class Kind {
+    kComputed,  // a result was computed and stored (accepted or rejected, or a failed fit)
+    kSkipped,   // too few samples in the window: job row only
+    kError,     // database error: job row marked failed if it could be written
+  };
+  Kind kind = Kind::kError;
+  CalibrationResult result;  // valid for kComputed
+  std::string job_outcome;   // storage job_outcome::k*
+  std::string message;       // why skipped / error text
+  int64_t job_id = 0;
+  int64_t calibration_id = 0;
+  int n_window_samples = 0;
+  // kError: SQLite's extended result code and whether a retry may heal it
+  // (storage::StorageError::transient()); the daemon's refit thread retries those.
+  int sqlite_code = 0;
+  bool transient_error = false;
+  // Accepted by the gates and a valid estimate: the UKF may re-anchor on it.
+  bool accepted() const {
+    return kind == Kind::kComputed && result.accepted && result.status == CalibrationStatus::kOk;
+  }
+};
+
+BatchCalibrationOptions batch_options_from_config(const DaemonConfig& config);
+
+class RefitRunner {
+ public:
+  // Uses `db` (one thread's connection) for the window, the history and the job log.
+  RefitRunner(const DaemonConfig& config, storage::Database& db);
+
+  // t_ref: end of the window (data clock: the scheduled time); nullopt = the newest stored
+  // sample of the spacecraft. trigger: "scheduled" | "manual". Never throws.
+  RefitOutcome run(const std::string& sat_id, std::optional<int64_t> t_ref_utime,
+                   const std::string& trigger, int64_t scheduled_utime);
+
+  std::vector<std::string> spacecraft();  // with stored samples
+
+ private:
+  // Accepts `result` when it failed only the change gate against `reference` and the previous
+  // full-window refit (newer than the reference) failed only that gate too and agrees with it
+  // (a real change seen by two windows). True when it changed the verdict.
+  bool accept_corroborated_change(const std::string& sat_id, const CalibrationResult& reference,
+                                  CalibrationResult& result);
+
+  const DaemonConfig config_;  // a copy: callers may pass a temporary
+  BatchCalibrationOptions options_;
+  storage::SampleWindowStore samples_;
+  storage::CalibrationHistory history_;
+  storage::RefitJobLog jobs_;
+  std::vector<storage::StoredSample> rows_;  // reused between refits
+  SampleSet window_;
+};
+
+}  // namespace magcal

@@ -1,0 +1,82 @@
+#include "service/daemon/spacecraft_tracker.hpp"
+
+#include "pipeline/time_utc.hpp"
+
+namespace magcal {
+
+int64_t SpacecraftTracker::observe_seq(int64_t seq) {
+  const bool first = last_seq == std::numeric_limits<int64_t>::min();
+  // Saturating: seq is untrusted and may sit at either int64 limit.
+  const int64_t ahead = saturating_sub(seq, last_seq);
+  int64_t missing = 0;
+  if (!first && ahead > 1 && ahead - 1 <= kMaxSeqGap) missing = ahead - 1;
+  // Out-of-order (older) numbers do not move the edge back: recorder playback interleaves.
+  if (first || ahead > 0 || ahead < -kMaxSeqGap) last_seq = seq;
+  return missing;
+}
+
+bool SpacecraftTracker::on_time_base(int64_t utime, int64_t max_time_jump_utime) const {
+  return newest_utime != kNoTime && utime <= saturating_add(newest_utime, max_time_jump_utime);
+}
+
+int64_t SpacecraftTracker::corroborated_utime(int64_t max_time_jump_utime) const {
+  if (held.size() < static_cast<size_t>(kCorroborating) + 1) return kNoTime;
+  const HeldSample& latest = held.back();
+  int members = 0;
+  bool several_frames = false;
+  int64_t newest = kNoTime;
+  for (const auto& h : held) {
+    const int64_t d = saturating_sub(h.sample.utime, latest.sample.utime);
+    if (d > max_time_jump_utime || d < -max_time_jump_utime) continue;
+    ++members;  // distinct times: a repeated time is rejected as a duplicate before holding
+    several_frames = several_frames || h.frame != latest.frame;
+    newest = std::max(newest, h.sample.utime);
+  }
+  if (members < kCorroborating + 1 || !several_frames) return kNoTime;
+  return newest;
+}
+
+void SpacecraftTracker::hold(const mag_sample_t& s, int64_t receive_utime, int64_t frame) {
+  HeldSample& h = held.emplace_back();
+  // Field by field: the sat_id (possibly long) is the tracker's and is not copied.
+  h.sample.utime = s.utime;
+  h.sample.seq = s.seq;
+  for (int i = 0; i < 3; ++i) h.sample.b_sensor_nT[i] = s.b_sensor_nT[i];
+  h.sample.has_position = s.has_position;
+  for (int i = 0; i < 3; ++i) h.sample.r_ecef_m[i] = s.r_ecef_m[i];
+  h.sample.has_attitude = s.has_attitude;
+  for (int i = 0; i < 4; ++i) h.sample.q_body_from_eci[i] = s.q_body_from_eci[i];
+  h.sample.has_reference = s.has_reference;
+  for (int i = 0; i < 3; ++i) h.sample.h_body_nT[i] = s.h_body_nT[i];
+  h.sample.temperature_C = s.temperature_C;
+  h.receive_utime = receive_utime;
+  h.frame = frame;
+  h.advances_at_hold = advances;
+}
+
+bool SpacecraftTracker::holds_utime(int64_t utime) const {
+  for (const auto& h : held) {
+    if (h.sample.utime == utime) return true;
+  }
+  return false;
+}
+
+SpacecraftTracker* SpacecraftFleet::find(const std::string& sat_id) {
+  const auto it = trackers_.find(sat_id);
+  return it == trackers_.end() ? nullptr : &it->second;
+}
+
+SpacecraftTracker& SpacecraftFleet::get(const std::string& sat_id, bool* created) {
+  auto [it, inserted] = trackers_.try_emplace(sat_id, options_);
+  if (created) *created = inserted;
+  return it->second;
+}
+
+size_t SpacecraftFleet::approx_bytes_per_spacecraft() {
+  // libstdc++ node: next pointer + cached hash + pair<const string, tracker>; one bucket
+  // pointer per element at load factor 1.
+  return sizeof(void*) + sizeof(size_t) + sizeof(std::pair<const std::string, SpacecraftTracker>) +
+         sizeof(void*);
+}
+
+}  // namespace magcal

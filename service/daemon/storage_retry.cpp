@@ -1,0 +1,70 @@
+#include "service/daemon/storage_retry.hpp"
+
+#include <algorithm>
+#include <thread>
+
+#include <fmt/format.h>
+#include <spdlog/spdlog.h>
+
+namespace magcal {
+
+StorageRetry::StorageRetry(std::string what, double max_failure_s, DaemonCounters& counters)
+    : what_(std::move(what)), max_failure_s_(max_failure_s), counters_(counters) {}
+
+StorageRetry::~StorageRetry() {
+  if (failing_) counters_.storage_failing_paths.fetch_sub(1);
+}
+
+void StorageRetry::sleep_until(Clock::time_point t) {
+  std::this_thread::sleep_until(t);
+}
+
+void StorageRetry::attempting() {
+  if (failing_) counters_.storage_retries.fetch_add(1, std::memory_order_relaxed);
+}
+
+void StorageRetry::failed(const storage::StorageError& e) {
+  const auto now = Clock::now();
+  counters_.storage_failures.fetch_add(1, std::memory_order_relaxed);
+  if (!failing_) {
+    failing_ = true;
+    since_ = now;
+    backoff_s_ = kFirstBackoff_s;
+    attempts_failed_ = 0;
+    counters_.storage_failing_paths.fetch_add(1);
+  }
+  ++attempts_failed_;
+  const double failing_s = std::chrono::duration<double>(now - since_).count();
+  if (!e.transient()) {
+    throw StorageOutage(fmt::format("database {}: permanent error (SQLite code {}): {}", what_,
+                                    e.sqlite_code(), e.what()));
+  }
+  if (failing_s >= max_failure_s_) {
+    throw StorageOutage(fmt::format(
+        "database {} failed for {:.1f} s ([storage] max_failure_s = {}; {} attempts), last "
+        "error (SQLite code {}): {}",
+        what_, failing_s, max_failure_s_, attempts_failed_, e.sqlite_code(), e.what()));
+  }
+  // One line per doubling of the backoff, then one every 5 attempts (10 s): a live outage stays
+  // visible in the log without flooding it.
+  if (backoff_s_ < kMaxBackoff_s || attempts_failed_ % 5 == 0) {
+    spdlog::error(
+        "database {} failed (SQLite code {}; failing for {:.1f} s of max_failure_s {}), kept in "
+        "memory, retry in {:.2f} s: {}",
+        what_, e.sqlite_code(), failing_s, max_failure_s_, backoff_s_, e.what());
+  }
+  // Never retry later than the give-up time, so an outage ends on time.
+  const double wait_s = std::min(backoff_s_, std::max(0.0, max_failure_s_ - failing_s));
+  next_ = now + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(wait_s));
+  backoff_s_ = std::min(2.0 * backoff_s_, kMaxBackoff_s);
+}
+
+void StorageRetry::succeeded() {
+  if (!failing_) return;
+  failing_ = false;
+  counters_.storage_failing_paths.fetch_sub(1);
+  spdlog::warn("database {} works again after {:.1f} s ({} failed attempts)", what_,
+               std::chrono::duration<double>(Clock::now() - since_).count(), attempts_failed_);
+}
+
+}  // namespace magcal

@@ -1,0 +1,93 @@
+// How the daemon rides out storage faults (issue 11): a failed storage operation is never
+// dropped. Each storage path of the daemon (the worker's commit, its duplicate check, the
+// refit thread) owns one StorageRetry: after a transient failure (StorageError::transient():
+// lock past the busy timeout, I/O error, full disk, file deleted / moved / read-only) the
+// operation is retried with bounded exponential backoff (50 ms doubling to 2 s); while it fails,
+// DaemonCounters::storage_healthy() is false and every failed attempt and retry is counted.
+// When the path has failed continuously for [storage] max_failure_s, or on a permanent error
+// (corrupt or foreign file, constraint), StorageOutage is thrown: the daemon stops receiving,
+// logs why and exits with kExitStorageFailed, so systemd restarts it and an operator is alerted.
+#pragma once
+
+#include <chrono>
+#include <stdexcept>
+#include <string>
+#include <type_traits>
+
+#include "service/daemon/health.hpp"
+#include "storage/database.hpp"
+
+namespace magcal {
+
+// Storage stayed broken past [storage] max_failure_s, or failed permanently. Fatal for the
+// daemon (exit code kExitStorageFailed).
+class StorageOutage : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+// One storage path's retry state; used by one thread (the worker's commit, its duplicate
+// check, the refit thread each have their own). The health flag is shared through counters.
+class StorageRetry {
+ public:
+  using Clock = std::chrono::steady_clock;
+  static constexpr double kFirstBackoff_s = 0.05;
+  static constexpr double kMaxBackoff_s = 2.0;
+
+  // `what` names the path in the log ("commit", "duplicate check", "refit").
+  StorageRetry(std::string what, double max_failure_s, DaemonCounters& counters);
+  ~StorageRetry();
+  StorageRetry(const StorageRetry&) = delete;
+  StorageRetry& operator=(const StorageRetry&) = delete;
+
+  // Records a failed attempt (logged, counted) and schedules the next one. Throws
+  // StorageOutage when `e` is permanent or the path has now failed for max_failure_s.
+  void failed(const storage::StorageError& e);
+  // Records a successful attempt: ends the outage (logged with its length).
+  void succeeded();
+  // Call before each attempt: counted as a retry when the path is failing.
+  void attempting();
+
+  bool failing() const { return failing_; }
+  // No failure pending, or its backoff has elapsed.
+  bool due(Clock::time_point now = Clock::now()) const { return !failing_ || now >= next_; }
+  Clock::time_point next_attempt() const { return next_; }
+
+  // Runs `op` until it succeeds, sleeping through the backoff; throws StorageOutage as above.
+  template <typename Op>
+  auto run_blocking(Op&& op) {
+    for (;;) {
+      if (failing_) {
+        sleep_until(next_);
+        attempting();
+      }
+      try {
+        if constexpr (std::is_void_v<decltype(op())>) {
+          op();
+          succeeded();
+          return;
+        } else {
+          auto result = op();
+          succeeded();
+          return result;
+        }
+      } catch (const storage::StorageError& e) {
+        failed(e);
+      }
+    }
+  }
+
+ private:
+  static void sleep_until(Clock::time_point t);
+
+  std::string what_;
+  double max_failure_s_;
+  DaemonCounters& counters_;
+  bool failing_ = false;
+  Clock::time_point since_{};
+  Clock::time_point next_{};
+  double backoff_s_ = kFirstBackoff_s;
+  int64_t attempts_failed_ = 0;
+};
+
+}  // namespace magcal

@@ -1,0 +1,108 @@
+#include "service/io/result_json.hpp"
+
+#include <cmath>
+
+#include "pipeline/rotation.hpp"
+#include "pipeline/time_utc.hpp"
+#include "service/io/calibration_record.hpp"
+
+namespace magcal {
+
+nlohmann::json json_number(double value) {
+  if (std::isfinite(value)) return value;
+  return nullptr;
+}
+
+namespace {
+
+template <typename Vec>
+nlohmann::json json_vector(const Vec& v) {
+  nlohmann::json a = nlohmann::json::array();
+  for (Eigen::Index i = 0; i < v.size(); ++i) a.push_back(json_number(v(i)));
+  return a;
+}
+
+template <typename Mat>
+nlohmann::json json_matrix(const Mat& m) {
+  nlohmann::json rows = nlohmann::json::array();
+  for (Eigen::Index r = 0; r < m.rows(); ++r) rows.push_back(json_vector(m.row(r)));
+  return rows;
+}
+
+}  // namespace
+
+nlohmann::json calibration_result_to_json(const CalibrationResult& result) {
+  nlohmann::json j;
+  j["method"] = result.method;
+  j["utime"] = result.utime;
+  j["window_start_utime"] = result.window_start_utime;
+  j["window_end_utime"] = result.window_end_utime;
+  j["n_samples"] = result.n_samples;
+  j["bias_nT"] = json_vector(result.parameters.bias_nT);
+  j["D"] = json_matrix(result.parameters.D);
+  const Vector9d sigma = result.covariance.diagonal().cwiseMax(0.0).cwiseSqrt();
+  j["bias_sigma_nT"] = json_vector(sigma.head<3>());
+  j["D_sigma"] = json_vector(sigma.tail<6>());
+  j["covariance"] = json_matrix(result.covariance);
+  if (result.has_alignment) {
+    const Eigen::Matrix3d& R = result.alignment.R_sensor_from_body;
+    j["R_sensor_from_body"] = json_matrix(R);
+    const RollPitchYaw rpy = roll_pitch_yaw_from_dcm(R);
+    j["alignment_deg"] = {{"roll", json_number(rpy.roll_rad * kRadToDeg)},
+                          {"pitch", json_number(rpy.pitch_rad * kRadToDeg)},
+                          {"yaw", json_number(rpy.yaw_rad * kRadToDeg)}};
+    const Eigen::Vector3d s =
+        result.alignment.angle_covariance_rad2.diagonal().cwiseMax(0.0).cwiseSqrt() * kRadToDeg;
+    j["alignment_sigma_deg"] = {
+        {"roll", json_number(s(0))}, {"pitch", json_number(s(1))}, {"yaw", json_number(s(2))}};
+  }
+  j["residual_rms_nT"] = json_number(result.residual_rms_nT);
+  j["iterations"] = result.iterations;
+  j["converged"] = result.converged;
+  j["status"] = to_string(result.status);
+  j["verdict"] = result.accepted ? "accepted" : "rejected";
+  j["rejection_reasons"] = result.rejection_reasons;
+  j["fisher_condition_number"] = json_number(result.fisher_condition_number);
+  j["n_downweighted"] = result.n_downweighted;
+  // Uncertainty evidence (estimation.md section 7); null when unknown.
+  j["noise_scale"] = json_number(result.noise_scale);
+  j["residual_autocorrelation"] = json_number(result.residual_autocorrelation);
+  if (std::isfinite(result.noise_scale))
+    j["covariance_lag_window"] = result.covariance_lag_window;
+  else
+    j["covariance_lag_window"] = nullptr;
+  j["residual_rms_all_nT"] = json_number(result.residual_rms_all_nT);
+  if (result.has_nonlinearity) {
+    j["nonlinearity_k3"] = json_vector(result.nonlinearity_k3);  // of k_i y_i^2, 1/nT
+    j["hysteresis_nT"] = json_vector(result.hysteresis_nT);
+  }
+  j["nis_mean"] = json_number(result.nis_mean);
+  j["measurement_noise_nT"] = json_number(result.measurement_noise_nT);
+  j["message"] = result.message;
+  return j;
+}
+
+// Lossless ISO 8601: whole seconds print without a fraction, anything else with microseconds.
+std::string history_time(int64_t utime) {
+  return format_iso8601_utc(utime, utime % kMicrosPerSecond == 0 ? 0 : 6);
+}
+
+// One stored result as the JSON object of `history --format json` (also used by `status`).
+nlohmann::json history_record_json(const storage::CalibrationRecord& rec) {
+  nlohmann::json j = calibration_result_to_json(result_from_record(rec));
+  // Not stored in the database: leave them out rather than print defaults as if measured.
+  for (const char* key : {"alignment_sigma_deg", "fisher_condition_number", "n_downweighted",
+                          "message", "converged"}) {
+    j.erase(key);
+  }
+  j["id"] = rec.id;
+  j["sat_id"] = rec.sat_id;
+  j["time"] = history_time(rec.utime);
+  j["window_start"] = history_time(rec.window_start_utime);
+  j["window_end"] = history_time(rec.window_end_utime);
+  j["software_version"] = rec.software_version;
+  j["created_time"] = history_time(rec.created_utime);
+  return j;
+}
+
+}  // namespace magcal

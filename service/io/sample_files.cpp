@@ -1,0 +1,334 @@
+#include "service/io/sample_files.hpp"
+
+#include <algorithm>
+#include <array>
+#include <charconv>
+#include <cmath>
+#include <fstream>
+#include <memory>
+#include <set>
+
+#include <lcm/lcm-cpp.hpp>
+
+#include "pipeline/time_utc.hpp"
+
+namespace magcal {
+
+namespace {
+
+std::vector<std::string_view> split_commas(std::string_view line) {
+  std::vector<std::string_view> out;
+  size_t start = 0;
+  while (true) {
+    const size_t comma = line.find(',', start);
+    std::string_view f = line.substr(
+        start, comma == std::string_view::npos ? std::string_view::npos : comma - start);
+    while (!f.empty() && (f.front() == ' ' || f.front() == '\t')) f.remove_prefix(1);
+    while (!f.empty() && (f.back() == ' ' || f.back() == '\t' || f.back() == '\r'))
+      f.remove_suffix(1);
+    out.push_back(f);
+    if (comma == std::string_view::npos) break;
+    start = comma + 1;
+  }
+  return out;
+}
+
+bool parse_double(std::string_view text, double* value) {
+  if (text.empty()) return false;
+  if (text.front() == '+') text.remove_prefix(1);
+  const auto [ptr, ec] = std::from_chars(text.data(), text.data() + text.size(), *value);
+  return ec == std::errc() && ptr == text.data() + text.size() && std::isfinite(*value);
+}
+
+// Shortest round-trip representation.
+void append_number(std::string& out, double v) {
+  std::array<char, 32> buf{};
+  const auto [ptr, ec] = std::to_chars(buf.data(), buf.data() + buf.size(), v);
+  out.append(buf.data(), ec == std::errc() ? ptr : buf.data());
+}
+
+constexpr std::array<const char*, 7> kRequired = {"t_s",   "bx_nT", "by_nT", "bz_nT",
+                                                  "hx_nT", "hy_nT", "hz_nT"};
+constexpr std::array<const char*, 4> kQuat = {"qw", "qx", "qy", "qz"};
+constexpr std::array<const char*, 3> kPos = {"r_ecef_x_m", "r_ecef_y_m", "r_ecef_z_m"};
+
+}  // namespace
+
+CsvReadResult read_sample_csv(const std::string& path) {
+  CsvReadResult result;
+  std::ifstream in(path);
+  if (!in) {
+    result.error = path + ": cannot open";
+    return result;
+  }
+  std::string line;
+  int line_no = 0;
+  // Header: first non-blank line.
+  std::vector<std::string> header;
+  while (std::getline(in, line)) {
+    ++line_no;
+    if (line.find_first_not_of(" \t\r") == std::string::npos) continue;
+    for (auto f : split_commas(line)) header.emplace_back(f);
+    break;
+  }
+  if (header.empty()) {
+    result.error = path + ": empty file (header t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT required)";
+    return result;
+  }
+  auto column = [&](const char* name) -> int {
+    const auto it = std::find(header.begin(), header.end(), name);
+    return it == header.end() ? -1 : static_cast<int>(it - header.begin());
+  };
+  std::array<int, 7> req{};
+  for (size_t i = 0; i < kRequired.size(); ++i) {
+    req[i] = column(kRequired[i]);
+    if (req[i] < 0) {
+      result.error =
+          path + " line " + std::to_string(line_no) + ": header lacks column " + kRequired[i];
+      return result;
+    }
+  }
+  std::array<int, 4> q{};
+  std::array<int, 3> r{};
+  bool has_q = true, has_r = true;
+  for (size_t i = 0; i < 4; ++i) has_q = (q[i] = column(kQuat[i])) >= 0 && has_q;
+  for (size_t i = 0; i < 3; ++i) has_r = (r[i] = column(kPos[i])) >= 0 && has_r;
+  const int temp = column("temperature_C");
+
+  while (std::getline(in, line)) {
+    ++line_no;
+    if (line.find_first_not_of(" \t\r") == std::string::npos) continue;
+    const auto fields = split_commas(line);
+    auto fail = [&](const std::string& what) {
+      result.rows.clear();
+      result.error = path + " line " + std::to_string(line_no) + ": " + what;
+      return result;
+    };
+    auto field = [&](int col, double* v) {
+      return col < static_cast<int>(fields.size()) &&
+             parse_double(fields[static_cast<size_t>(col)], v);
+    };
+    std::array<double, 7> v{};
+    for (size_t i = 0; i < 7; ++i) {
+      if (req[i] >= static_cast<int>(fields.size())) return fail("too few fields");
+      if (!field(req[i], &v[i]))
+        return fail(std::string("column ") + kRequired[i] + ": not a finite number");
+    }
+    if (std::abs(v[0]) > 1e11) return fail("column t_s: out of range");
+    CsvSampleRow row;
+    row.sample.utime = utime_from_seconds(v[0]);
+    row.sample.b_sensor_nT = Eigen::Vector3d(v[1], v[2], v[3]);
+    row.sample.h_body_nT = Eigen::Vector3d(v[4], v[5], v[6]);
+    row.sample.has_reference_direction = true;
+    // Extras are optional per row too: an empty or bad field leaves the extra unset.
+    if (has_q) {
+      Eigen::Vector4d qq;
+      bool ok = true;
+      for (int i = 0; i < 4; ++i) ok = field(q[static_cast<size_t>(i)], &qq(i)) && ok;
+      if (ok) row.extras.q_body_from_eci = qq;
+    }
+    if (has_r) {
+      Eigen::Vector3d rr;
+      bool ok = true;
+      for (int i = 0; i < 3; ++i) ok = field(r[static_cast<size_t>(i)], &rr(i)) && ok;
+      if (ok) row.extras.r_ecef_m = rr;
+    }
+    double tc = 0.0;
+    if (temp >= 0 && field(temp, &tc)) row.extras.temperature_C = tc;
+    result.rows.push_back(std::move(row));
+  }
+  if (in.bad()) {
+    result.rows.clear();
+    result.error = path + ": read error";
+  }
+  return result;
+}
+
+SampleCsvWriter::~SampleCsvWriter() {
+  if (file_ != nullptr) std::fclose(file_);
+}
+
+std::string SampleCsvWriter::open(const std::string& path) {
+  if (file_ != nullptr) return path + ": writer already open";
+  path_ = path;
+  file_ = std::fopen(path.c_str(), "w");
+  if (file_ == nullptr) return path + ": cannot open for writing";
+  std::fputs(
+      "t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT,qw,qx,qy,qz,r_ecef_x_m,r_ecef_y_m,r_ecef_z_m,"
+      "temperature_C\n",
+      file_);
+  return "";
+}
+
+void SampleCsvWriter::write(const CalibrationSample& s, const CsvSampleExtras& extras) {
+  if (file_ == nullptr) return;
+  std::string line;
+  line.reserve(400);
+  append_number(line, seconds_from_utime(s.utime));
+  for (int i = 0; i < 3; ++i) line += ',', append_number(line, s.b_sensor_nT(i));
+  for (int i = 0; i < 3; ++i) line += ',', append_number(line, s.h_body_nT(i));
+  for (int i = 0; i < 4; ++i) {
+    line += ',';
+    if (extras.q_body_from_eci) append_number(line, (*extras.q_body_from_eci)(i));
+  }
+  for (int i = 0; i < 3; ++i) {
+    line += ',';
+    if (extras.r_ecef_m) append_number(line, (*extras.r_ecef_m)(i));
+  }
+  line += ',';
+  if (extras.temperature_C) append_number(line, *extras.temperature_C);
+  line += '\n';
+  std::fwrite(line.data(), 1, line.size(), file_);
+}
+
+std::string SampleCsvWriter::close() {
+  if (file_ == nullptr) return "";
+  const bool write_error = std::ferror(file_) != 0;
+  const bool close_error = std::fclose(file_) != 0;
+  file_ = nullptr;
+  if (write_error || close_error) return path_ + ": write error";
+  return "";
+}
+
+std::string write_sample_csv(const std::string& path, const SampleSet& samples) {
+  SampleCsvWriter w;
+  if (std::string e = w.open(path); !e.empty()) return e;
+  for (const auto& s : samples) w.write(s);
+  return w.close();
+}
+
+// ---------------------------------------------------------------- LCM log
+
+struct SampleLcmLogWriter::Impl {
+  std::unique_ptr<lcm::LogFile> log;
+  std::string path;
+  int batch_size = 0;
+  mag_batch_t batch;
+  int64_t event_number = 0;
+  std::vector<uint8_t> buffer;
+  bool failed = false;
+
+  template <typename T>
+  std::string write_event(const T& msg, int64_t utime, const char* channel) {
+    const int size = msg.getEncodedSize();
+    buffer.resize(static_cast<size_t>(size));
+    if (msg.encode(buffer.data(), 0, size) != size) return path + ": encoding failed";
+    lcm::LogEvent ev;
+    ev.eventnum = event_number++;
+    ev.timestamp = utime;
+    ev.channel = channel;
+    ev.datalen = size;
+    ev.data = buffer.data();
+    if (log->writeEvent(&ev) != 0) {
+      failed = true;
+      return path + ": write error";
+    }
+    return "";
+  }
+  std::string flush_batch() {
+    if (batch.samples.empty()) return "";
+    batch.n = static_cast<int32_t>(batch.samples.size());  // n must match before encoding
+    batch.sat_id = batch.samples.front().sat_id;
+    std::string e = write_event(batch, batch.samples.front().utime, kBatchChannel);
+    batch.samples.clear();
+    batch.n = 0;
+    return e;
+  }
+};
+
+SampleLcmLogWriter::SampleLcmLogWriter() : impl_(new Impl) {}
+SampleLcmLogWriter::~SampleLcmLogWriter() {
+  delete impl_;
+}
+
+std::string SampleLcmLogWriter::open(const std::string& path, int batch_size) {
+  if (batch_size < 0) return "batch size must be >= 0";
+  impl_->path = path;
+  impl_->batch_size = batch_size;
+  impl_->log = std::make_unique<lcm::LogFile>(path, "w");
+  if (!impl_->log->good()) {
+    impl_->log.reset();
+    return path + ": cannot open for writing";
+  }
+  return "";
+}
+
+std::string SampleLcmLogWriter::write(const mag_sample_t& sample) {
+  if (!impl_->log) return "log not open";
+  if (impl_->batch_size == 0) return impl_->write_event(sample, sample.utime, kSamplesChannel);
+  if (!impl_->batch.samples.empty() && impl_->batch.samples.front().sat_id != sample.sat_id) {
+    if (std::string e = impl_->flush_batch(); !e.empty()) return e;
+  }
+  impl_->batch.samples.push_back(sample);
+  if (static_cast<int>(impl_->batch.samples.size()) >= impl_->batch_size)
+    return impl_->flush_batch();
+  return "";
+}
+
+std::string SampleLcmLogWriter::close() {
+  if (!impl_->log) return "";
+  std::string e = impl_->flush_batch();
+  // lcm::LogFile flushes and closes in its destructor; fflush first to see errors.
+  if (std::fflush(impl_->log->getFilePtr()) != 0 || std::ferror(impl_->log->getFilePtr()) != 0)
+    impl_->failed = true;
+  impl_->log.reset();
+  if (e.empty() && impl_->failed) e = impl_->path + ": write error";
+  return e;
+}
+
+LcmReadResult read_sample_lcm_log(const std::string& path, const LcmReadOptions& options) {
+  LcmReadResult result;
+  {
+    std::ifstream probe(path, std::ios::binary);
+    if (!probe) {
+      result.error = path + ": cannot open";
+      return result;
+    }
+  }
+  lcm::LogFile log(path, "r");
+  if (!log.good()) {
+    result.error = path + ": cannot open as an LCM log";
+    return result;
+  }
+  std::set<std::string> ids;
+  auto keep = [&](mag_sample_t&& s) {
+    ids.insert(s.sat_id);
+    if (!options.sat_id || *options.sat_id == s.sat_id) result.samples.push_back(std::move(s));
+  };
+  while (const lcm::LogEvent* ev = log.readNextEvent()) {
+    if (ev->channel == kSamplesChannel) {
+      ++result.events;
+      mag_sample_t s;
+      if (s.decode(ev->data, 0, ev->datalen) != ev->datalen) {
+        ++result.undecodable;
+        continue;
+      }
+      keep(std::move(s));
+    } else if (ev->channel == kBatchChannel) {
+      ++result.events;
+      mag_batch_t b;
+      if (b.decode(ev->data, 0, ev->datalen) != ev->datalen) {
+        ++result.undecodable;
+        continue;
+      }
+      for (auto& s : b.samples) keep(std::move(s));
+    }
+  }
+  result.sat_ids.assign(ids.begin(), ids.end());
+  return result;
+}
+
+CalibrationSample to_calibration_sample(const mag_sample_t& msg) {
+  CalibrationSample s;
+  s.utime = msg.utime;
+  s.b_sensor_nT = Eigen::Vector3d(msg.b_sensor_nT[0], msg.b_sensor_nT[1], msg.b_sensor_nT[2]);
+  if (msg.has_reference) {
+    s.h_body_nT = Eigen::Vector3d(msg.h_body_nT[0], msg.h_body_nT[1], msg.h_body_nT[2]);
+    s.has_reference_direction = true;
+  } else {
+    s.has_reference_direction = false;
+  }
+  return s;
+}
+
+}  // namespace magcal

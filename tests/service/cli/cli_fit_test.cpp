@@ -1,0 +1,234 @@
+// `magcal fit`, run as the real binary (popen): design.md JSON keys, recovery of known
+// parameters from CSV and LCM (reference in the sample, or IGRF from position), --sat handling,
+// ekf/ukf with --trace, and one-line errors with the documented exit codes.
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <array>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <random>
+#include <string>
+
+#include <catch2/catch.hpp>
+#include <nlohmann/json.hpp>
+
+#include "pipeline/rotation.hpp"
+#include "service/io/sample_files.hpp"
+
+using namespace magcal;
+
+namespace {
+
+constexpr double kBiasTolNt = 2.0;  // 600 tumbling samples at 3 nT: bias sigma ~0.3 nT
+
+struct Run {
+  int exit_code = -1;
+  std::string out, err;
+};
+
+std::filesystem::path temp_path(const std::string& name) {
+  return std::filesystem::temp_directory_path() /
+         ("magcal_cli_fit_test_" + std::to_string(::getpid()) + "_" + name);
+}
+
+Run run_magcal(const std::string& args) {
+  const std::string err_path = temp_path("stderr").string();
+  const std::string cmd = std::string(MAGCAL_BIN_DIR) + "/magcal " + args + " 2>" + err_path;
+  Run r;
+  FILE* p = ::popen(cmd.c_str(), "r");
+  REQUIRE(p != nullptr);
+  std::array<char, 4096> buf;
+  size_t n;
+  while ((n = std::fread(buf.data(), 1, buf.size(), p)) > 0) r.out.append(buf.data(), n);
+  const int status = ::pclose(p);
+  r.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  std::ifstream e(err_path);
+  r.err.assign(std::istreambuf_iterator<char>(e), std::istreambuf_iterator<char>());
+  std::filesystem::remove(err_path);
+  return r;
+}
+
+void require_one_line_error(const Run& r, int exit_code, const std::string& contains) {
+  INFO("stdout: " << r.out << "\nstderr: " << r.err);
+  CHECK(r.exit_code == exit_code);
+  CHECK(r.out.empty());
+  CHECK(std::count(r.err.begin(), r.err.end(), '\n') == 1);
+  CHECK(r.err.find(contains) != std::string::npos);
+}
+
+const Eigen::Vector3d kBias(1000, 800, 900);
+Eigen::Matrix3d truth_D() {
+  Eigen::Matrix3d D;
+  D << 0.01, 0.01, 0.01, 0.01, 0.02, 0.01, 0.01, 0.01, 0.01;
+  return D;
+}
+const Eigen::Matrix3d& truth_R() {
+  static const Eigen::Matrix3d R = dcm_from_roll_pitch_yaw({0.017, 0.035, 0.017});
+  return R;
+}
+
+// Estimation-model samples, random field directions.
+SampleSet model_data(int n, double sigma, uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<double> g(0.0, 1.0);
+  std::uniform_real_distribution<double> mag(20000.0, 50000.0);
+  const Eigen::Matrix3d inv = (Eigen::Matrix3d::Identity() + truth_D()).inverse();
+  SampleSet s(n);
+  for (int k = 0; k < n; ++k) {
+    s[k].utime = 1'700'000'000'000'000LL + k * 10'000'000LL;
+    s[k].h_body_nT = Eigen::Vector3d(g(rng), g(rng), g(rng)).normalized() * mag(rng);
+    s[k].b_sensor_nT = inv * (truth_R() * s[k].h_body_nT + kBias +
+                              sigma * Eigen::Vector3d(g(rng), g(rng), g(rng)));
+  }
+  return s;
+}
+
+mag_sample_t to_msg(const CalibrationSample& s, const std::string& sat, int64_t seq) {
+  mag_sample_t m{};
+  m.utime = s.utime;
+  m.sat_id = sat;
+  m.seq = seq;
+  for (int i = 0; i < 3; ++i) {
+    m.b_sensor_nT[i] = s.b_sensor_nT(i);
+    m.h_body_nT[i] = s.h_body_nT(i);
+  }
+  m.has_reference = true;
+  m.q_body_from_eci[0] = 1.0;
+  return m;
+}
+
+void check_bias(const nlohmann::json& j) {
+  for (int i = 0; i < 3; ++i)
+    CHECK(std::abs(j["bias_nT"][i].get<double>() - kBias(i)) < kBiasTolNt);
+}
+
+}  // namespace
+
+TEST_CASE("fit --json on a CSV prints design.md's keys and recovers the parameters", "[cli][fit]") {
+  const auto csv = temp_path("model.csv");
+  REQUIRE(write_sample_csv(csv.string(), model_data(600, 3.0, 1)).empty());
+  for (const char* method : {"twostep", "centered"}) {
+    const Run r =
+        run_magcal(std::string("fit --input ") + csv.string() + " --method " + method + " --json");
+    INFO(r.err);
+    REQUIRE(r.exit_code == 0);
+    const nlohmann::json j = nlohmann::json::parse(r.out);
+    for (const char* key : {"method", "n_samples", "bias_nT", "D", "bias_sigma_nT",
+                            "R_sensor_from_body", "alignment_deg", "residual_rms_nT", "iterations",
+                            "converged", "compute_ms", "status", "verdict", "rejection_reasons"}) {
+      CHECK(j.contains(key));
+    }
+    CHECK(j["method"] == method);
+    CHECK(j["n_samples"] == 600);
+    CHECK(j["status"] == "ok");
+    check_bias(j);
+    CHECK(std::abs(j["D"][1][1].get<double>() - 0.02) < 1e-3);
+    CHECK(std::abs(j["alignment_deg"]["pitch"].get<double>() - 0.035 * 180 / M_PI) < 0.01);
+    CHECK(j["residual_rms_nT"].get<double>() < 4.0);
+  }
+  // Human-readable output.
+  const Run t = run_magcal("fit --input " + csv.string() + " --method twostep");
+  CHECK(t.exit_code == 0);
+  CHECK(t.out.find("bias_nT") != std::string::npos);
+  CHECK(t.out.find("alignment_deg") != std::string::npos);
+  std::filesystem::remove(csv);
+}
+
+TEST_CASE("fit --robust reports down-weighted samples", "[cli][fit]") {
+  SampleSet s = model_data(600, 3.0, 2);
+  for (int k = 0; k < 600; k += 100) s[k].b_sensor_nT(0) += 5000.0;
+  const auto csv = temp_path("spikes.csv");
+  REQUIRE(write_sample_csv(csv.string(), s).empty());
+  const Run r = run_magcal("fit --input " + csv.string() + " --method twostep --robust --json");
+  REQUIRE(r.exit_code == 0);
+  const nlohmann::json j = nlohmann::json::parse(r.out);
+  CHECK(j["n_downweighted"].get<int>() >= 6);
+  check_bias(j);
+  std::filesystem::remove(csv);
+}
+
+TEST_CASE("fit on an LCM log: --sat required with several spacecraft", "[cli][fit]") {
+  const auto log = temp_path("two.lcm");
+  {
+    SampleLcmLogWriter w;
+    REQUIRE(w.open(log.string(), 0).empty());
+    const SampleSet a = model_data(400, 3.0, 3), b = model_data(400, 3.0, 4);
+    for (int k = 0; k < 400; ++k) {
+      REQUIRE(w.write(to_msg(a[k], "SAT-A", k)).empty());
+      REQUIRE(w.write(to_msg(b[k], "SAT-B", k)).empty());
+    }
+    REQUIRE(w.close().empty());
+  }
+  const Run none = run_magcal("fit --input " + log.string() + " --method twostep --json");
+  require_one_line_error(none, 1, "SAT-A, SAT-B");
+  const Run one =
+      run_magcal("fit --input " + log.string() + " --method twostep --sat SAT-B --json");
+  REQUIRE(one.exit_code == 0);
+  const nlohmann::json j = nlohmann::json::parse(one.out);
+  CHECK(j["n_samples"] == 400);
+  check_bias(j);
+  const Run missing = run_magcal("fit --input " + log.string() + " --method twostep --sat SAT-Z");
+  require_one_line_error(missing, 2, "SAT-Z");
+  std::filesystem::remove(log);
+}
+
+TEST_CASE("fit --method ukf|ekf with --trace writes state and 1-sigma per sample", "[cli][fit]") {
+  const auto csv = temp_path("filter.csv");
+  const auto trace = temp_path("trace.csv");
+  REQUIRE(write_sample_csv(csv.string(), model_data(800, 3.0, 5)).empty());
+  for (const char* method : {"ukf", "ekf"}) {
+    const Run r = run_magcal("fit --input " + csv.string() + " --method " + method + " --trace " +
+                             trace.string() + " --json");
+    INFO(r.err);
+    REQUIRE(r.exit_code == 0);
+    const nlohmann::json j = nlohmann::json::parse(r.out);
+    CHECK(j["method"] == method);
+    CHECK(j.contains("convergence_time_s"));
+    std::ifstream in(trace);
+    std::string header, line;
+    std::getline(in, header);
+    CHECK(header.rfind("t_s,b1_nT", 0) == 0);
+    int rows = 0;
+    while (std::getline(in, line)) ++rows;
+    CHECK(rows == 800);
+  }
+  std::filesystem::remove(csv);
+  std::filesystem::remove(trace);
+}
+
+TEST_CASE("fit errors: one line on stderr, exit 1 usage / 2 data", "[cli][fit]") {
+  const auto csv = temp_path("err.csv");
+  REQUIRE(write_sample_csv(csv.string(), model_data(600, 3.0, 6)).empty());
+  require_one_line_error(run_magcal("fit --input " + csv.string() + " --method magic"), 1,
+                         "--method");
+  require_one_line_error(run_magcal("fit --input /nonexistent/x.csv --method twostep"), 2,
+                         "does not exist");
+
+  REQUIRE(write_sample_csv(csv.string(), model_data(12, 3.0, 7)).empty());
+  require_one_line_error(run_magcal("fit --input " + csv.string() + " --method twostep"), 2,
+                         "too few samples");
+
+  SampleSet line = model_data(300, 3.0, 8);
+  for (auto& s : line) {
+    s.h_body_nT = Eigen::Vector3d(0, 0, 1) * s.h_body_nT.norm();
+    s.b_sensor_nT =
+        (Eigen::Matrix3d::Identity() + truth_D()).inverse() * (truth_R() * s.h_body_nT + kBias);
+  }
+  REQUIRE(write_sample_csv(csv.string(), line).empty());
+  require_one_line_error(run_magcal("fit --input " + csv.string() + " --method twostep"), 2,
+                         "geometry");
+  require_one_line_error(run_magcal("fit --input " + csv.string() + " --method ukf"), 2,
+                         "geometry");
+
+  {
+    std::ofstream f(csv);
+    f << "t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT\n1,2,3,nan,4,5,6\n";
+  }
+  const Run nan_run = run_magcal("fit --input " + csv.string() + " --method twostep");
+  CHECK(nan_run.exit_code == 2);
+  CHECK(nan_run.out.empty());
+  std::filesystem::remove(csv);
+}

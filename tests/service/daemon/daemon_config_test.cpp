@@ -1,0 +1,160 @@
+// magcald configuration: defaults, the example file, and clear errors for unknown keys and bad
+// values (design.md "The daemon's command line and config").
+#include <catch2/catch.hpp>
+
+#include "service/daemon/daemon_config.hpp"
+
+using magcal::parse_daemon_config;
+
+TEST_CASE("defaults are valid and match design.md", "[daemon_config]") {
+  const auto load = parse_daemon_config("", "empty");
+  REQUIRE(load.ok());
+  const auto& c = load.config;
+  CHECK(c.storage.db_path == "magcal.db");
+  CHECK(c.storage.window_hours == 12.0);
+  CHECK(c.storage.retention_margin_hours == 1.0);
+  CHECK(c.refit.daily_at_utc == "02:00");
+  CHECK(c.refit.every_hours == 0.0);
+  CHECK(c.refit.clock == "wall");
+  CHECK(c.refit.min_samples == 1000);
+  CHECK(c.ukf.filter.sigma_nT == 3.0);
+  CHECK(c.ukf.snapshot_every_s == 60.0);
+  CHECK(c.sensor.range_nT == 100000.0);
+  CHECK(c.igrf.coefficients_file.empty());
+  CHECK(c.log.level == "info");
+  CHECK(c.lcm.samples_channel == "MAGCAL_SAMPLES");
+  CHECK(c.lcm.batch_channel == "MAGCAL_BATCH");
+  CHECK(c.lcm.calibration_channel == "MAGCAL_CALIBRATION");
+  CHECK(c.lcm.status_channel == "MAGCAL_STATUS");
+  CHECK(c.service.whitelist.empty());
+  CHECK(c.ingest.max_time_jump_s == 3600.0);
+  CHECK(c.ingest.max_future_s == 300.0);
+  CHECK(c.storage.max_failure_s == 60.0);
+  CHECK(c.storage.max_pending_samples == 200000);
+  CHECK(c.storage.busy_timeout_ms == 5000);
+}
+
+TEST_CASE("the example config lists every key with exactly the defaults", "[daemon_config]") {
+  const auto load = magcal::load_daemon_config(MAGCAL_SOURCE_DIR "/deploy/magcald.example.toml");
+  REQUIRE(load.error == "");
+  const magcal::DaemonConfig d;
+  const auto& c = load.config;
+  CHECK(c.lcm.url == d.lcm.url);
+  CHECK(c.lcm.publish_url == d.lcm.publish_url);
+  CHECK(c.storage.commit_every_samples == d.storage.commit_every_samples);
+  CHECK(c.storage.commit_every_ms == d.storage.commit_every_ms);
+  CHECK(c.storage.busy_timeout_ms == d.storage.busy_timeout_ms);
+  CHECK(c.storage.max_failure_s == d.storage.max_failure_s);
+  CHECK(c.storage.max_pending_samples == d.storage.max_pending_samples);
+  CHECK(c.refit.robust == d.refit.robust);
+  CHECK(c.ukf.filter.process_noise_per_sqrt_hour == d.ukf.filter.process_noise_per_sqrt_hour);
+  CHECK(c.ukf.filter.alpha == d.ukf.filter.alpha);
+  CHECK(c.ukf.filter.beta == d.ukf.filter.beta);
+  CHECK(c.ukf.filter.kappa == d.ukf.filter.kappa);
+  CHECK(c.ukf.filter.initial_bias_sigma_nT == d.ukf.filter.initial_bias_sigma_nT);
+  CHECK(c.ukf.filter.initial_D_sigma == d.ukf.filter.initial_D_sigma);
+  CHECK(c.ukf.filter.gate_nis == Approx(d.ukf.filter.gate_nis));
+  CHECK(c.ukf.filter.nis_window == d.ukf.filter.nis_window);
+  CHECK(c.ukf.filter.nis_inconsistent_mean == d.ukf.filter.nis_inconsistent_mean);
+  CHECK(c.ukf.filter.inflation_factor == d.ukf.filter.inflation_factor);
+  CHECK(c.ukf.filter.converged_bias_sigma_nT == d.ukf.filter.converged_bias_sigma_nT);
+  CHECK(c.ukf.filter.cold_start == d.ukf.filter.cold_start);
+  CHECK(c.ukf.filter.consistency_action == d.ukf.filter.consistency_action);
+  const auto& g = c.gates;
+  const auto& dg = d.gates;
+  CHECK(g.expected_residual_nT == dg.expected_residual_nT);
+  CHECK(g.residual_test == dg.residual_test);
+  CHECK(g.residual_factor == dg.residual_factor);
+  CHECK(g.residual_tail_probability == dg.residual_tail_probability);
+  CHECK(g.max_fisher_condition == dg.max_fisher_condition);
+  CHECK(g.min_fisher_eigenvalue == dg.min_fisher_eigenvalue);
+  CHECK(g.min_coverage_eigenvalue == dg.min_coverage_eigenvalue);
+  CHECK(g.max_bias_nT == dg.max_bias_nT);
+  CHECK(g.max_scale == dg.max_scale);
+  CHECK(g.max_nonorthogonality == dg.max_nonorthogonality);
+  CHECK(g.change_tail_probability == dg.change_tail_probability);
+  CHECK(g.bias_change_floor_nT == dg.bias_change_floor_nT);
+  CHECK(g.D_change_floor == dg.D_change_floor);
+  CHECK(c.service.queue_capacity_samples == d.service.queue_capacity_samples);
+  CHECK(c.service.status_every_s == d.service.status_every_s);
+  CHECK(c.service.min_position_km == d.service.min_position_km);
+  CHECK(c.service.max_position_km == d.service.max_position_km);
+  CHECK(c.log.status_every_s == d.log.status_every_s);
+  CHECK(c.ingest.max_time_jump_s == d.ingest.max_time_jump_s);
+  CHECK(c.ingest.max_future_s == d.ingest.max_future_s);
+}
+
+TEST_CASE("values are read, integers accepted for floats", "[daemon_config]") {
+  const auto load = parse_daemon_config(R"(
+[lcm]
+url = "file:///tmp/x.lcm?speed=0"
+[storage]
+window_hours = 6
+[refit]
+clock = "data"
+every_hours = 6
+daily_at_utc = "23:59"
+[ukf]
+sigma_nT = 7.5
+process_noise = [0.1, 0.1, 0.1, 0, 0, 0, 0, 0, 0]
+consistency_action = "reseed"
+[gates]
+residual_test = "chi_square"
+[service]
+whitelist = ["SAT-B", "SAT-A"]
+)",
+                                        "t.toml");
+  REQUIRE(load.error == "");
+  CHECK(load.config.storage.window_hours == 6.0);
+  CHECK(load.config.window_utime() == 6LL * 3600 * 1000000);
+  CHECK(load.config.data_clock());
+  CHECK(load.config.ukf.filter.sigma_nT == 7.5);
+  CHECK(load.config.ukf.filter.process_noise_per_sqrt_hour(0) == 0.1);
+  CHECK(load.config.gates.residual_test == magcal::GateOptions::ResidualTest::kChiSquare);
+  CHECK(load.config.service.whitelist.size() == 2);
+}
+
+TEST_CASE("unknown keys, bad types and bad values name the key", "[daemon_config]") {
+  struct Case {
+    const char* toml;
+    const char* expect;  // substring of the error
+  };
+  const Case cases[] = {
+      {"[storage]\nwindow_hour = 12\n", "unknown key [storage] window_hour"},
+      {"[stroage]\ndb_path = \"x\"\n", "unknown section [stroage]"},
+      {"[storage]\nwindow_hours = \"12\"\n", "[storage] window_hours: expected a number"},
+      {"[storage]\nwindow_hours = -1\n", "[storage] window_hours: must be > 0"},
+      {"[refit]\nclock = \"sundial\"\n", "[refit] clock"},
+      {"[refit]\ndaily_at_utc = \"2:00\"\n", "[refit] daily_at_utc"},
+      {"[refit]\ndaily_at_utc = \"24:00\"\n", "[refit] daily_at_utc"},
+      {"[refit]\nmin_samples = 1.5\n", "[refit] min_samples: expected an integer"},
+      {"[ukf]\nsigma_nT = 0\n", "[ukf]"},
+      {"[ukf]\nprocess_noise = [1, 2]\n", "[ukf] process_noise"},
+      {"[ukf]\ncold_start = \"warm\"\n", "[ukf] cold_start: expected one of"},
+      {"[log]\nlevel = \"loud\"\n", "[log] level"},
+      {"[lcm]\nstatus_channel = \"\"\n", "[lcm] status_channel"},
+      {"[service]\nwhitelist = \"SAT\"\n", "[service] whitelist"},
+      {"[sensor]\nrange_nT = nan\n", "[sensor] range_nT"},
+      {"[ingest]\nmax_time_jump_s = 0\n", "[ingest] max_time_jump_s"},
+      {"[ingest]\nmax_future_s = -1\n", "[ingest] max_future_s"},
+      {"[ingest]\nmax_future_s = inf\n", "[ingest] max_future_s"},
+      {"[storage]\nmax_failure_s = 0\n", "[storage] max_failure_s: must be > 0"},
+      {"[storage]\nbusy_timeout_ms = -1\n", "[storage] busy_timeout_ms: must be >= 0"},
+      {"[storage]\nmax_pending_samples = 100\n",
+       "[storage] max_pending_samples: must be >= commit_every_samples"},
+      {"lcm = 3\n", "[lcm] must be a table"},
+      {"[storage\n", "t.toml:1"},
+  };
+  for (const auto& c : cases) {
+    const auto load = parse_daemon_config(c.toml, "t.toml");
+    INFO(c.toml);
+    CHECK_FALSE(load.ok());
+    CHECK_THAT(load.error, Catch::Contains(c.expect));
+  }
+}
+
+TEST_CASE("a missing config file is an error", "[daemon_config]") {
+  const auto load = magcal::load_daemon_config("/nonexistent/magcald.toml");
+  CHECK_FALSE(load.ok());
+  CHECK_THAT(load.error, Catch::Contains("/nonexistent/magcald.toml"));
+}

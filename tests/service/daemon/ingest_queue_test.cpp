@@ -1,0 +1,72 @@
+// The receive -> worker queue: bounded in samples, overflow counted (live) or blocking (replay),
+// close() drains.
+#include <catch2/catch.hpp>
+
+#include <thread>
+
+#include "service/daemon/ingest_queue.hpp"
+
+using magcal::IngestItem;
+using magcal::IngestQueue;
+
+namespace {
+IngestItem item(int n) {
+  IngestItem it;
+  it.samples.resize(static_cast<size_t>(n));
+  return it;
+}
+}  // namespace
+
+TEST_CASE("a full live queue drops and counts every sample", "[ingest_queue]") {
+  IngestQueue q(1000, false);
+  CHECK(q.push(item(600)));
+  CHECK(q.push(item(400)));
+  CHECK(q.depth_samples() == 1000);
+  CHECK_FALSE(q.push(item(200)));
+  CHECK(q.overflow_samples() == 200);
+  std::vector<IngestItem> out;
+  REQUIRE(q.pop_all(out, 0));
+  CHECK(out.size() == 2);
+  CHECK(q.depth_samples() == 0);
+  CHECK(q.push(item(200)));
+  CHECK(q.overflow_samples() == 200);
+}
+
+TEST_CASE("an item larger than the capacity still enters an empty queue", "[ingest_queue]") {
+  IngestQueue q(1000, false);
+  CHECK(q.push(item(1500)));
+  CHECK_FALSE(q.push(item(1)));
+  CHECK(q.overflow_samples() == 1);
+}
+
+TEST_CASE("a replay queue blocks instead of dropping", "[ingest_queue]") {
+  IngestQueue q(1000, true);
+  REQUIRE(q.push(item(1000)));
+  std::thread producer([&] {
+    for (int i = 0; i < 10; ++i) q.push(item(500));
+    q.close();
+  });
+  int64_t received = 0;
+  std::vector<IngestItem> out;
+  while (q.pop_all(out, 1000)) {
+    for (const auto& it : out) received += static_cast<int64_t>(it.samples.size());
+    out.clear();
+  }
+  producer.join();
+  CHECK(received == 6000);
+  CHECK(q.overflow_samples() == 0);
+}
+
+TEST_CASE("close drains, then pop_all reports the end, and later pushes count",
+          "[ingest_queue]") {
+  IngestQueue q(1000, false);
+  q.push(item(3));
+  q.close();
+  std::vector<IngestItem> out;
+  CHECK(q.pop_all(out, 0));
+  CHECK(out.size() == 1);
+  out.clear();
+  CHECK_FALSE(q.pop_all(out, 0));
+  CHECK_FALSE(q.push(item(2)));
+  CHECK(q.overflow_samples() == 2);
+}

@@ -1,0 +1,495 @@
+// The daemon's worker in-process: storage of valid samples, rejection counts, sequence gaps,
+// snapshot cadence in data time, and restart continuity (restored or re-run filter state gives
+// the same estimate as an uninterrupted run).
+#include <catch2/catch.hpp>
+
+#include <unistd.h>
+#include <filesystem>
+#include <random>
+
+#include "pipeline/rotation.hpp"
+#include "service/io/calibration_record.hpp"
+#include "service/daemon/ingest_worker.hpp"
+#include "storage/calibration_history.hpp"
+#include "storage/sample_window_store.hpp"
+
+using namespace magcal;
+
+namespace {
+
+constexpr int64_t kT0 = 1704067200000000;  // 2024-01-01T00:00:00Z
+constexpr int64_t kStep = 10'000'000;      // 10 s
+constexpr double kNoise_nT = 3.0;
+constexpr double kStateTol = 1e-9;  // relative; restore is meant to be bit-exact
+
+struct TempDb {
+  std::filesystem::path dir;
+  explicit TempDb(const std::string& name) {
+    static int counter = 0;
+    dir = std::filesystem::temp_directory_path() /
+          ("magcal_worker_test_" + std::to_string(::getpid()) + "_" + std::to_string(counter++) +
+           "_" + name);
+    std::filesystem::remove_all(dir);
+    std::filesystem::create_directories(dir);
+  }
+  ~TempDb() { std::filesystem::remove_all(dir); }
+  std::string path() const { return (dir / "m.db").string(); }
+};
+
+// Truth: B = (I + D)^-1 (h + b) + noise, h a tumbling 30 000 nT field in the body frame.
+std::vector<mag_sample_t> simulate(int n, uint32_t seed, const std::string& sat = "SAT-1") {
+  std::mt19937 rng(seed);
+  std::normal_distribution<double> noise(0.0, kNoise_nT);
+  const Eigen::Vector3d b(1000.0, -800.0, 900.0);
+  Eigen::Matrix3d D;
+  D << 0.01, 0.002, -0.001, 0.002, 0.02, 0.003, -0.001, 0.003, -0.01;
+  const Eigen::Matrix3d inv = (Eigen::Matrix3d::Identity() + D).inverse();
+  std::vector<mag_sample_t> out;
+  for (int k = 0; k < n; ++k) {
+    const double a = 0.0021 * k, c = 0.0013 * k;
+    const Eigen::Vector3d h = 30000.0 * Eigen::Vector3d(std::cos(a) * std::cos(c),
+                                                        std::sin(a) * std::cos(c), std::sin(c));
+    const Eigen::Vector3d B = inv * (h + b) + Eigen::Vector3d(noise(rng), noise(rng), noise(rng));
+    mag_sample_t s{};
+    s.utime = kT0 + k * kStep;
+    s.sat_id = sat;
+    s.seq = k;
+    for (int i = 0; i < 3; ++i) {
+      s.b_sensor_nT[i] = B(i);
+      s.h_body_nT[i] = h(i);
+    }
+    s.has_reference = true;
+    s.temperature_C = std::nanf("");
+    out.push_back(s);
+  }
+  return out;
+}
+
+DaemonConfig test_config(const std::string& db) {
+  DaemonConfig c;
+  c.storage.db_path = db;
+  c.ukf.filter.sigma_nT = kNoise_nT;
+  return c;
+}
+
+IngestItem batch(const std::vector<mag_sample_t>& all, size_t from, size_t to) {
+  IngestItem it;
+  it.from_batch = true;
+  it.batch_sat_id = all.front().sat_id;
+  it.samples.assign(all.begin() + static_cast<long>(from), all.begin() + static_cast<long>(to));
+  it.receive_utime = kT0 + 365LL * 86400 * 1000000;
+  return it;
+}
+
+void feed(IngestWorker& w, const std::vector<mag_sample_t>& all, size_t from, size_t to) {
+  for (size_t i = from; i < to; i += 200) w.process(batch(all, i, std::min(to, i + 200)));
+  w.commit();
+}
+
+std::unique_ptr<IngestWorker> make_worker(const DaemonConfig& c, DaemonCounters& counters) {
+  return std::make_unique<IngestWorker>(c, counters, std::make_unique<ReferenceField>(),
+                                        IngestWorker::Hooks{});
+}
+
+}  // namespace
+
+TEST_CASE("valid samples are stored, bad ones counted per reason", "[ingest_worker]") {
+  TempDb tmp("counts");
+  const auto c = test_config(tmp.path());
+  DaemonCounters counters;
+  auto w = make_worker(c, counters);
+  auto s = simulate(300, 1);
+  // seq 50..52 never arrive: 3 missing.
+  std::vector<mag_sample_t> stream(s.begin(), s.begin() + 50);
+  stream.insert(stream.end(), s.begin() + 53, s.end());
+  feed(*w, stream, 0, stream.size());
+  CHECK(counters.stored == 297);
+  CHECK(counters.missing_by_seq == 3);
+
+  IngestItem bad;
+  bad.batch_sat_id = "SAT-1";
+  bad.from_batch = true;
+  bad.samples.push_back(s[10]);  // duplicate
+  auto older = s[299];
+  older.utime -= 13LL * 3600 * 1000000;  // older than the 12 h window
+  bad.samples.push_back(older);
+  auto nan = s[299];
+  nan.utime += kStep;
+  nan.b_sensor_nT[0] = std::nan("");
+  bad.samples.push_back(nan);
+  auto mismatch = s[299];
+  mismatch.sat_id = "SAT-9";
+  bad.samples.push_back(mismatch);
+  bad.samples.push_back(s[51]);  // late, out of order, inside the window: stored
+  auto future = s[299];
+  future.utime = kT0 + 10LL * 365 * 86400 * 1000000;
+  bad.samples.push_back(future);
+  w->process(bad);
+  w->commit();
+  CHECK(counters.rejected_count(RejectReason::kDuplicate) == 1);
+  CHECK(counters.rejected_count(RejectReason::kOlderThanWindow) == 1);
+  CHECK(counters.rejected_count(RejectReason::kNonFinite) == 1);
+  CHECK(counters.rejected_count(RejectReason::kBatchSatMismatch) == 1);
+  CHECK(counters.rejected_count(RejectReason::kFutureTime) == 1);
+  CHECK(counters.rejected_total() == 5);
+  CHECK(counters.stored == 298);
+
+  storage::Database db(tmp.path());
+  storage::SampleWindowStore store(db);
+  CHECK(store.count("SAT-1") == 298);
+  CHECK(store.count_in_window("SAT-1", s[51].utime, s[51].utime + 1) == 1);
+}
+
+TEST_CASE("UKF snapshots follow the data clock", "[ingest_worker]") {
+  TempDb tmp("snap");
+  auto c = test_config(tmp.path());
+  c.ukf.snapshot_every_s = 600.0;
+  DaemonCounters counters;
+  int published = 0;
+  auto w = std::make_unique<IngestWorker>(
+      c, counters, std::make_unique<ReferenceField>(),
+      IngestWorker::Hooks{[&](const std::string&, const CalibrationResult&) { ++published; }, {}});
+  const auto s = simulate(361, 2);  // exactly one hour at 10 s
+  feed(*w, s, 0, s.size());
+  // First sample starts the clock; one snapshot per 600 s of data after it: 6 in an hour.
+  CHECK(counters.snapshots == 6);
+  CHECK(published == 6);
+  storage::Database db(tmp.path());
+  storage::CalibrationHistory history(db);
+  storage::HistoryQuery q;
+  q.sat_id = "SAT-1";
+  q.method = "ukf";
+  const auto rows = history.query(q);
+  REQUIRE(rows.size() == 6);
+  CHECK(rows.front().utime == kT0 + 600LL * 1000000);
+  CHECK(rows.back().utime == kT0 + 3600LL * 1000000);
+}
+
+TEST_CASE("restart resumes the filter without a jump", "[ingest_worker]") {
+  const auto s = simulate(2000, 3);
+  Vector9d reference_x;
+  Matrix9d reference_P;
+  {
+    TempDb tmp("ref");
+    DaemonCounters counters;
+    auto w = make_worker(test_config(tmp.path()), counters);
+    feed(*w, s, 0, s.size());
+    reference_x = w->fleet().find("SAT-1")->ukf.x();
+    reference_P = w->fleet().find("SAT-1")->ukf.P();
+  }
+  for (const bool saved_state : {true, false}) {
+    DYNAMIC_SECTION((saved_state ? "from the stored filter state" : "re-run over stored samples")) {
+      TempDb tmp(saved_state ? "saved" : "rerun");
+      const auto c = test_config(tmp.path());
+      DaemonCounters counters;
+      {
+        auto w = make_worker(c, counters);
+        feed(*w, s, 0, 1000);
+        if (saved_state) w->save_filter_states();  // else: a crash after the commit
+      }
+      auto w = make_worker(c, counters);
+      w->restore();
+      REQUIRE(w->n_spacecraft() == 1);
+      feed(*w, s, 1000, s.size());
+      const auto& ukf = w->fleet().find("SAT-1")->ukf;
+      CHECK(counters.stored == 2000);
+      CHECK(counters.rejected_total() == 0);
+      CHECK(counters.missing_by_seq == 0);
+      const double dx = (ukf.x() - reference_x)
+                            .cwiseQuotient(reference_x.cwiseAbs().cwiseMax(1e-3))
+                            .cwiseAbs()
+                            .maxCoeff();
+      CHECK(dx < kStateTol);
+      CHECK((ukf.P() - reference_P).norm() <= kStateTol * reference_P.norm());
+    }
+  }
+}
+
+TEST_CASE("an unwritable database is an error at construction", "[ingest_worker]") {
+  DaemonCounters counters;
+  auto c = test_config("/nonexistent-dir/sub/m.db");
+  CHECK_THROWS_AS(make_worker(c, counters), storage::StorageError);
+}
+
+// ---- time plausibility (issue 11): one frame cannot move a spacecraft's time ----
+
+namespace {
+
+constexpr int64_t kHour = 3600LL * 1000000;
+
+IngestItem single(const mag_sample_t& s) {
+  IngestItem it;
+  it.samples.push_back(s);
+  it.receive_utime = kT0 + 365LL * 86400 * 1000000;
+  return it;
+}
+
+// One frame per sample, as a live mag_sample_t feed; then the shutdown step.
+void feed_frames(IngestWorker& w, const std::vector<mag_sample_t>& frames) {
+  for (const auto& s : frames) w.process(single(s));
+  w.reject_held();
+  w.commit();
+}
+
+int64_t stored_rows(const std::string& db_path, const std::string& sat = "SAT-1") {
+  storage::Database db(db_path);
+  storage::SampleWindowStore store(db);
+  return store.count(sat);
+}
+
+}  // namespace
+
+TEST_CASE("one rogue time tag is rejected and every valid sample kept", "[ingest_worker][time]") {
+  const auto valid = simulate(400, 11);
+  struct Case {
+    const char* name;
+    int64_t utime;
+    RejectReason expect;
+  };
+  const int64_t mid = valid[200].utime;
+  const Case cases[] = {
+      {"20 h ahead", mid + 20 * kHour, RejectReason::kTimeJump},
+      {"2 h ahead", mid + 2 * kHour, RejectReason::kTimeJump},
+      {"20 h behind", mid - 20 * kHour, RejectReason::kOlderThanWindow},
+      {"utime 0", 0, RejectReason::kTimeOutOfRange},
+      {"int64 min", std::numeric_limits<int64_t>::min(), RejectReason::kTimeOutOfRange},
+      {"int64 max", std::numeric_limits<int64_t>::max(), RejectReason::kTimeOutOfRange},
+      {"past the wall clock", kT0 + 400LL * 86400 * 1000000, RejectReason::kFutureTime},
+  };
+  for (const auto& c : cases) {
+    for (const size_t at : {size_t{0}, size_t{1}, size_t{200}, valid.size()}) {
+      DYNAMIC_SECTION(c.name << " at frame " << at) {
+        TempDb tmp("rogue");
+        DaemonCounters counters;
+        auto w = make_worker(test_config(tmp.path()), counters);
+        auto frames = valid;
+        auto rogue = valid[std::min(at, valid.size() - 1)];
+        rogue.utime = c.utime;
+        frames.insert(frames.begin() + static_cast<long>(at), rogue);
+        feed_frames(*w, frames);
+        const auto expect = at == valid.size() && c.expect == RejectReason::kTimeJump
+                                ? RejectReason::kJumpUnconfirmed  // last: nothing followed
+                                : c.expect;
+        CHECK(counters.stored == static_cast<int64_t>(valid.size()));
+        CHECK(counters.rejected_count(expect) == 1);
+        CHECK(counters.rejected_total() == 1);
+        CHECK(stored_rows(tmp.path()) == static_cast<int64_t>(valid.size()));
+        CHECK(w->fleet().find("SAT-1")->newest_utime == valid.back().utime);
+        CHECK(w->data_clock_utime() == valid.back().utime);
+        CHECK(w->held_samples() == 0);
+      }
+    }
+  }
+}
+
+TEST_CASE("a genuine gap is accepted once later samples corroborate it", "[ingest_worker][time]") {
+  auto frames = simulate(300, 12);
+  for (size_t k = 150; k < frames.size(); ++k) frames[k].utime += 3 * kHour;  // 3 h gap
+  TempDb tmp("gap");
+  DaemonCounters counters;
+  auto w = make_worker(test_config(tmp.path()), counters);
+  for (size_t k = 0; k < 152; ++k) w->process(single(frames[k]));
+  // The first two after the gap are held: not stored, not in the filter, not the time base.
+  CHECK(w->held_samples() == 2);
+  CHECK(w->fleet().find("SAT-1")->newest_utime == frames[149].utime);
+  CHECK(w->data_clock_utime() == frames[149].utime);
+  for (size_t k = 152; k < frames.size(); ++k) w->process(single(frames[k]));
+  w->reject_held();
+  w->commit();
+  CHECK(counters.stored == 300);
+  CHECK(counters.rejected_total() == 0);
+  CHECK(w->fleet().find("SAT-1")->newest_utime == frames.back().utime);
+  // Stored in order, each once.
+  storage::Database db(tmp.path());
+  storage::SampleWindowStore store(db);
+  std::vector<storage::StoredSample> rows;
+  store.read_window("SAT-1", frames.front().utime, frames.back().utime + 1, rows);
+  REQUIRE(rows.size() == 300);
+  for (size_t k = 0; k < rows.size(); ++k) CHECK(rows[k].utime == frames[k].utime);
+}
+
+TEST_CASE("a recorder dump of older in-window samples is accepted", "[ingest_worker][time]") {
+  const auto s = simulate(600, 13);
+  TempDb tmp("dump");
+  DaemonCounters counters;
+  auto w = make_worker(test_config(tmp.path()), counters);
+  std::vector<mag_sample_t> frames(s.begin() + 300, s.end());  // live first
+  frames.insert(frames.end(), s.begin(), s.begin() + 300);     // then the recorder's dump
+  feed_frames(*w, frames);
+  CHECK(counters.stored == 600);
+  CHECK(counters.rejected_total() == 0);
+  CHECK(w->fleet().find("SAT-1")->newest_utime == s.back().utime);
+}
+
+TEST_CASE("the first samples of a spacecraft need corroboration too", "[ingest_worker][time]") {
+  const auto valid = simulate(100, 14);
+  SECTION("a rogue first frame does not set the time base") {
+    for (const int64_t offset : {20 * kHour, -20 * kHour, 400 * 24 * kHour}) {
+      TempDb tmp("first");
+      DaemonCounters counters;
+      auto w = make_worker(test_config(tmp.path()), counters);
+      auto frames = valid;
+      auto rogue = valid[0];
+      rogue.utime += offset;
+      frames.insert(frames.begin(), rogue);
+      feed_frames(*w, frames);
+      INFO("offset " << offset / kHour << " h");
+      CHECK(counters.stored == 100);
+      CHECK(counters.rejected_total() == 1);
+      CHECK(w->fleet().find("SAT-1")->newest_utime == valid.back().utime);
+    }
+  }
+  SECTION("one batch frame cannot set it alone; the next frame confirms it") {
+    TempDb tmp("batch");
+    DaemonCounters counters;
+    auto w = make_worker(test_config(tmp.path()), counters);
+    w->process(batch(valid, 0, 10));
+    CHECK(w->held_samples() == 10);
+    CHECK(counters.stored == 0);
+    w->process(single(valid[10]));
+    CHECK(w->held_samples() == 0);
+    w->commit();
+    CHECK(counters.stored == 11);
+  }
+  SECTION("a spacecraft that only ever sent one frame: counted at shutdown") {
+    TempDb tmp("lonely");
+    DaemonCounters counters;
+    auto w = make_worker(test_config(tmp.path()), counters);
+    w->process(batch(valid, 0, 5));
+    w->reject_held();
+    w->commit();
+    CHECK(counters.stored == 0);
+    CHECK(counters.rejected_count(RejectReason::kJumpUnconfirmed) == 5);
+  }
+}
+
+TEST_CASE("a whole downlink packet with a shifted time base cannot move the time",
+          "[ingest_worker][time]") {
+  // One mag_batch_t of 200 samples, all consistently 20 h ahead (a corrupted packet time base):
+  // one frame, however many samples, never corroborates itself.
+  const auto s = simulate(1000, 17);
+  TempDb tmp("packet");
+  DaemonCounters counters;
+  auto w = make_worker(test_config(tmp.path()), counters);
+  feed(*w, s, 0, 400);
+  auto shifted = batch(s, 400, 600);
+  for (auto& x : shifted.samples) x.utime += 20 * kHour;
+  w->process(shifted);
+  CHECK(w->held_samples() == 200);
+  CHECK(w->fleet().find("SAT-1")->newest_utime == s[399].utime);
+  for (size_t k = 400; k < s.size(); k += 200) w->process(batch(s, k, k + 200));
+  w->reject_held();
+  w->commit();
+  CHECK(counters.stored == 1000);
+  CHECK(counters.rejected_count(RejectReason::kTimeJump) == 200);
+  CHECK(stored_rows(tmp.path()) == 1000);
+  CHECK(w->fleet().find("SAT-1")->newest_utime == s.back().utime);
+}
+
+TEST_CASE("a shifted batch frame cannot move the time; the hold stays bounded",
+          "[ingest_worker][time]") {
+  const auto s = simulate(400, 15);
+  TempDb tmp("shifted");
+  DaemonCounters counters;
+  auto w = make_worker(test_config(tmp.path()), counters);
+  feed(*w, s, 0, 200);
+  auto shifted = batch(s, 200, 220);  // 20 consistent samples, all 20 h ahead
+  for (auto& x : shifted.samples) x.utime += 20 * kHour;
+  w->process(shifted);
+  CHECK(w->held_samples() == 20);
+  // Repeated rogues are duplicates of what is held, not corroboration.
+  w->process(shifted);
+  CHECK(counters.rejected_count(RejectReason::kDuplicate) == 20);
+  for (size_t k = 200; k < s.size(); ++k) w->process(single(s[k]));
+  w->reject_held();
+  w->commit();
+  CHECK(counters.stored == 400);
+  CHECK(counters.rejected_count(RejectReason::kTimeJump) == 20);
+  CHECK(w->fleet().find("SAT-1")->newest_utime == s.back().utime);
+
+  // Many mutually inconsistent rogues: the hold never exceeds its capacity.
+  for (int k = 0; k < 100; ++k) {
+    auto r = s.back();
+    r.utime += (2 + 2 * k) * kHour;  // 2 h apart: none corroborates another
+    w->process(single(r));
+    CHECK(w->held_samples() <= SpacecraftTracker::kHeldCapacity);
+  }
+  w->reject_held();
+  CHECK(counters.rejected_count(RejectReason::kTimeJump) +
+            counters.rejected_count(RejectReason::kJumpUnconfirmed) ==
+        120);
+}
+
+TEST_CASE("random rogue frames never cost a valid sample", "[ingest_worker][time]") {
+  const auto valid = simulate(300, 16);
+  std::mt19937_64 rng(20261130);
+  std::uniform_int_distribution<size_t> position(0, valid.size());
+  std::uniform_int_distribution<int> n_rogues(1, SpacecraftTracker::kCorroborating);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  const int64_t window = DaemonConfig{}.window_utime();
+  const int64_t jump = DaemonConfig{}.max_time_jump_utime();
+  for (int draw = 0; draw < 40; ++draw) {
+    auto frames = valid;
+    const int n = n_rogues(rng);
+    int64_t previous = 0;
+    for (int r = 0; r < n; ++r) {
+      auto rogue = valid[std::min(position(rng), valid.size() - 1)];
+      // Ahead by more than the jump, behind by more than the window, or garbage; rogues far
+      // apart from each other (fewer than kCorroborating + 1 can never corroborate anyway).
+      const double u = unit(rng);
+      if (u < 0.45) {
+        rogue.utime = std::max(previous, valid.back().utime) + jump + 1 +
+                      static_cast<int64_t>(unit(rng) * 1e4 * 3.6e9);
+        previous = rogue.utime + jump + 1;
+      } else if (u < 0.9) {
+        rogue.utime =
+            valid.front().utime - window - 1 - static_cast<int64_t>(unit(rng) * 1e4 * 3.6e9);
+      } else {
+        rogue.utime = static_cast<int64_t>(rng());
+      }
+      frames.insert(frames.begin() + static_cast<long>(position(rng)), rogue);
+    }
+    TempDb tmp("draw");
+    DaemonCounters counters;
+    auto w = make_worker(test_config(tmp.path()), counters);
+    feed_frames(*w, frames);
+    INFO("draw " << draw << ": " << n << " rogues");
+    CHECK(counters.stored == static_cast<int64_t>(valid.size()));
+    CHECK(counters.rejected_total() == n);
+    CHECK(w->fleet().find("SAT-1")->newest_utime == valid.back().utime);
+  }
+}
+
+TEST_CASE("sequence numbers at the int64 limits do not overflow", "[ingest_worker][time]") {
+  SpacecraftTracker t(MagnetometerUkf::Options{});
+  constexpr int64_t kMax = std::numeric_limits<int64_t>::max();
+  constexpr int64_t kMin = std::numeric_limits<int64_t>::min();
+  CHECK(t.observe_seq(kMin + 1) == 0);
+  CHECK(t.observe_seq(kMax) == 0);  // a reset, not 2^64 missing
+  CHECK(t.last_seq == kMax);
+  CHECK(t.observe_seq(kMin + 1) == 0);
+  CHECK(t.observe_seq(kMin + 4) == 2);
+  CHECK(t.observe_seq(kMin) == 0);  // older: the edge stays
+  CHECK(t.last_seq == kMin + 4);
+}
+
+TEST_CASE("stored filter state round trip is bit-exact, collecting and started",
+          "[ingest_worker]") {
+  // service/io/calibration_record.cpp (MCF2 blob): what the daemon saves and restores.
+  std::mt19937_64 rng(9);
+  std::normal_distribution<double> n(0.0, 1.0);
+  MagnetometerUkf ukf;
+  const Eigen::Vector3d b(1000.0, 800.0, 900.0);
+  for (int k = 0; k < 400; ++k) {
+    const Eigen::Vector3d h = 40000.0 * Eigen::Vector3d(n(rng), n(rng), n(rng)).normalized();
+    ukf.update(h + b + 3.0 * Eigen::Vector3d(n(rng), n(rng), n(rng)), 40000.0,
+               kT0 + k * 10'000'000LL);
+    if (k == 20 || k == 399) {
+      INFO("sample " << k << ", started " << ukf.initialized());
+      FilterState back;
+      REQUIRE(filter_state_from_stored(stored_filter_state("SAT-1", "ukf", ukf.state()), back));
+      CHECK(back == ukf.state());
+    }
+  }
+  CHECK(ukf.initialized());
+}

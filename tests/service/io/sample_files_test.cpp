@@ -1,0 +1,191 @@
+#include "service/io/sample_files.hpp"
+
+#include <catch2/catch.hpp>
+
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+
+#include <lcm/lcm-cpp.hpp>
+
+using namespace magcal;
+
+namespace {
+std::string temp_file(const std::string& name) {
+  return (std::filesystem::temp_directory_path() / ("magcal_sample_files_test_" + name)).string();
+}
+void write_text(const std::string& path, const std::string& text) {
+  std::ofstream(path) << text;
+}
+
+mag_sample_t make_sample(int64_t k, const std::string& sat) {
+  mag_sample_t m{};
+  m.utime = 1577836800LL * 1'000'000 + k * 10'000'000;
+  m.sat_id = sat;
+  m.seq = k;
+  for (int i = 0; i < 3; ++i) {
+    m.b_sensor_nT[i] = 1000.0 * (i + 1) + 0.1 * static_cast<double>(k);
+    m.h_body_nT[i] = -500.0 * (i + 1) + 1.0 / 3.0;
+    m.r_ecef_m[i] = 7e6 / (i + 1);
+  }
+  m.q_body_from_eci[0] = 1.0;
+  m.has_position = m.has_attitude = m.has_reference = true;
+  m.temperature_C = 20.5f;
+  return m;
+}
+}  // namespace
+
+TEST_CASE("CSV round trip is exact, with extras") {
+  const std::string path = temp_file("roundtrip.csv");
+  SampleCsvWriter w;
+  REQUIRE(w.open(path).empty());
+  SampleSet written;
+  for (int k = 0; k < 50; ++k) {
+    CalibrationSample s;
+    s.utime = 1577836800LL * 1'000'000 + k * 10'000'000 + 123;
+    s.b_sensor_nT = Eigen::Vector3d(1.0 / 3.0 + k, -2.0 / 7.0, 1e5 - 0.1);
+    s.h_body_nT = Eigen::Vector3d(M_PI * 1e4, -M_E * 1e4, 1e-300);
+    CsvSampleExtras e;
+    if (k % 2 == 0) {
+      e.q_body_from_eci = Eigen::Vector4d(0.5, 0.5, -0.5, 0.5);
+      e.r_ecef_m = Eigen::Vector3d(7e6, -1.5, 3.25);
+      e.temperature_C = 21.125;
+    }
+    w.write(s, e);
+    written.push_back(s);
+  }
+  REQUIRE(w.close().empty());
+  const CsvReadResult r = read_sample_csv(path);
+  REQUIRE(r.ok());
+  REQUIRE(r.rows.size() == written.size());
+  for (size_t k = 0; k < written.size(); ++k) {
+    CHECK(r.rows[k].sample.utime == written[k].utime);
+    CHECK(r.rows[k].sample.b_sensor_nT == written[k].b_sensor_nT);
+    CHECK(r.rows[k].sample.h_body_nT == written[k].h_body_nT);
+    CHECK(r.rows[k].extras.q_body_from_eci.has_value() == (k % 2 == 0));
+    if (k % 2 == 0) CHECK(*r.rows[k].extras.temperature_C == 21.125);
+  }
+  std::filesystem::remove(path);
+}
+
+TEST_CASE("CSV reader: columns by name, extra columns ignored, blank lines skipped") {
+  const std::string path = temp_file("reordered.csv");
+  write_text(path,
+             "hz_nT,note,t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT\n"
+             "3,foo,1577836800.5,10,20,30,1,2\n"
+             "\n"
+             "6,bar,1577836810,40,50,60,4,5\r\n");
+  const CsvReadResult r = read_sample_csv(path);
+  REQUIRE(r.ok());
+  REQUIRE(r.rows.size() == 2);
+  CHECK(r.rows[0].sample.utime == 1577836800500000LL);
+  CHECK(r.rows[0].sample.b_sensor_nT == Eigen::Vector3d(10, 20, 30));
+  CHECK(r.rows[1].sample.h_body_nT == Eigen::Vector3d(4, 5, 6));
+  CHECK_FALSE(r.rows[0].extras.q_body_from_eci.has_value());
+  std::filesystem::remove(path);
+}
+
+TEST_CASE("CSV reader errors name the file, line and column") {
+  const std::string path = temp_file("bad.csv");
+  write_text(path, "t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT\n1,2,3,4,5,6\n");
+  CsvReadResult r = read_sample_csv(path);
+  CHECK(r.error.find("hz_nT") != std::string::npos);
+  CHECK(r.rows.empty());
+
+  write_text(path, "t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT\n1,2,3,4,5,6,7\n1,2,x,4,5,6,7\n");
+  r = read_sample_csv(path);
+  CHECK(r.error.find("line 3") != std::string::npos);
+  CHECK(r.error.find("by_nT") != std::string::npos);
+  CHECK(r.rows.empty());
+
+  write_text(path, "t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT\n1,2,3,nan,5,6,7\n");
+  CHECK(read_sample_csv(path).error.find("bz_nT") != std::string::npos);
+  write_text(path, "t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT\n1,2,3\n");
+  CHECK(read_sample_csv(path).error.find("line 2") != std::string::npos);
+  write_text(path, "");
+  CHECK(!read_sample_csv(path).ok());
+  std::filesystem::remove(path);
+  CHECK(read_sample_csv(path).error.find("cannot open") != std::string::npos);
+}
+
+TEST_CASE("LCM log: samples and batches read back, every event decodes with lcm::LogFile") {
+  const std::string path = temp_file("log.lcm");
+  for (int batch : {0, 7}) {
+    SampleLcmLogWriter w;
+    REQUIRE(w.open(path, batch).empty());
+    for (int k = 0; k < 30; ++k) REQUIRE(w.write(make_sample(k, k < 20 ? "A" : "B")).empty());
+    REQUIRE(w.close().empty());
+
+    // Raw pass: channel, timestamp = (first) sample utime, decodes fully.
+    lcm::LogFile log(path, "r");
+    REQUIRE(log.good());
+    int events = 0;
+    while (const lcm::LogEvent* ev = log.readNextEvent()) {
+      ++events;
+      if (batch == 0) {
+        CHECK(ev->channel == kSamplesChannel);
+        mag_sample_t m;
+        CHECK(m.decode(ev->data, 0, ev->datalen) == ev->datalen);
+        CHECK(ev->timestamp == m.utime);
+      } else {
+        CHECK(ev->channel == kBatchChannel);
+        mag_batch_t b;
+        CHECK(b.decode(ev->data, 0, ev->datalen) == ev->datalen);
+        CHECK(b.n == static_cast<int>(b.samples.size()));
+        CHECK(ev->timestamp == b.samples.front().utime);
+      }
+    }
+    // 20 A + 10 B in batches of 7, split at the sat change: 3 + 2 + ... = ceil(20/7) + ceil(10/7)
+    CHECK(events == (batch == 0 ? 30 : 5));
+
+    LcmReadResult r = read_sample_lcm_log(path);
+    REQUIRE(r.ok());
+    CHECK(r.samples.size() == 30);
+    CHECK(r.undecodable == 0);
+    CHECK(r.sat_ids == std::vector<std::string>{"A", "B"});
+    CHECK(r.samples[5].b_sensor_nT[2] == make_sample(5, "A").b_sensor_nT[2]);
+    CHECK(r.samples[29].seq == 29);
+    LcmReadOptions only_b;
+    only_b.sat_id = "B";
+    CHECK(read_sample_lcm_log(path, only_b).samples.size() == 10);
+  }
+  const CalibrationSample c = to_calibration_sample(make_sample(3, "A"));
+  CHECK(c.has_reference_direction);
+  CHECK(c.h_body_nT.x() == make_sample(3, "A").h_body_nT[0]);
+  mag_sample_t no_ref = make_sample(3, "A");
+  no_ref.has_reference = false;
+  CHECK_FALSE(to_calibration_sample(no_ref).has_reference_direction);
+  std::filesystem::remove(path);
+}
+
+TEST_CASE("LCM log reader counts undecodable events and survives a truncated file") {
+  const std::string path = temp_file("corrupt.lcm");
+  {
+    lcm::LogFile log(path, "w");
+    REQUIRE(log.good());
+    const mag_sample_t m = make_sample(1, "A");
+    std::vector<uint8_t> buf(static_cast<size_t>(m.getEncodedSize()));
+    m.encode(buf.data(), 0, static_cast<int>(buf.size()));
+    lcm::LogEvent ev{};
+    ev.channel = kSamplesChannel;
+    ev.timestamp = m.utime;
+    ev.datalen = static_cast<int32_t>(buf.size());
+    ev.data = buf.data();
+    log.writeEvent(&ev);
+    buf[3] ^= 0xFF;  // corrupt the fingerprint
+    log.writeEvent(&ev);
+    ev.channel = "OTHER";  // ignored channel
+    log.writeEvent(&ev);
+  }
+  LcmReadResult r = read_sample_lcm_log(path);
+  REQUIRE(r.ok());
+  CHECK(r.samples.size() == 1);
+  CHECK(r.undecodable == 1);
+  CHECK(r.events == 2);
+  // Truncate in the middle of the last event: still no crash, earlier events kept.
+  std::filesystem::resize_file(path, std::filesystem::file_size(path) - 10);
+  r = read_sample_lcm_log(path);
+  CHECK(r.samples.size() == 1);
+  std::filesystem::remove(path);
+  CHECK(!read_sample_lcm_log(path).ok());
+}
