@@ -7,7 +7,7 @@
 //     reference (the batch start tried every 10 samples, written here) allows plus the grid's
 //     spacing: the pre-check never holds a possible start back;
 //   - on data that never observe p (a yaw-only capture) the pre-check turns every candidate
-//     attempt away, so only the unconditional ones run.
+//     attempt away, so only the unconditional ones run; collecting allocates nothing.
 #include <algorithm>
 #include <cmath>
 #include <random>
@@ -194,7 +194,10 @@ TEST_CASE("Data that never observe p: the pre-check turns every candidate attemp
   MagnetometerUkf::Options ou;
   ou.sigma_nT = sigma;
   MagnetometerUkf f(ou);
+  // Collecting, pre-checks and the unconditional attempts allocate nothing either.
+  const long before = g_allocations.load();
   for (const SimSample& s : data) f.update(s.b_sensor_nT, s.h_norm_nT, s.utime);
+  if (kCountingAllocations) CHECK(g_allocations.load() == before);
   CHECK_FALSE(f.initialized());
   CHECK(f.snapshot().status == CalibrationStatus::kNotConverged);
 }
