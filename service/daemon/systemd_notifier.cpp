@@ -28,6 +28,7 @@ bool SystemdNotifier::ready() {
 }
 
 bool SystemdNotifier::stopping() {
+  stopping_.store(true);
   return send("STOPPING=1");
 }
 
@@ -41,7 +42,7 @@ bool SystemdNotifier::status(const std::string& text) {
 }
 
 bool SystemdNotifier::watchdog_ping(Clock::time_point now) {
-  if (!enabled_ || watchdog_interval_.count() <= 0) return false;
+  if (!enabled_ || watchdog_interval_.count() <= 0 || stopping_.load()) return false;
   const int64_t half_ticks =
       std::chrono::duration_cast<Clock::duration>(watchdog_interval_ / 2).count();
   const int64_t now_ticks = now.time_since_epoch().count();

@@ -6,7 +6,8 @@
 //                    one ping per half of the watchdog interval (sd_watchdog_enabled(3): the
 //                    interval comes from WatchdogSec= through $WATCHDOG_USEC)
 //   stopping()       STOPPING=1: when shutdown starts (before the drain), so systemd waits for
-//                    the drain within TimeoutStopSec instead of taking the daemon for hung
+//                    the drain within TimeoutStopSec instead of taking the daemon for hung;
+//                    systemd stops the watchdog then, and so do later watchdog_ping() calls
 //   status(text)     STATUS=text: the one-line state `systemctl status` shows
 //
 // Without $NOTIFY_SOCKET (not started by systemd, or Type= is not notify) every call is a no-op
@@ -39,8 +40,9 @@ class SystemdNotifier {
   bool ready();
   bool stopping();
   bool status(const std::string& text);
-  // Sends WATCHDOG=1 when the watchdog is on and half of its interval has passed since the last
-  // ping sent (the first call always sends). `now` is injectable for tests.
+  // Sends WATCHDOG=1 when the watchdog is on, stopping() was not called, and half of its
+  // interval has passed since the last ping sent (the first call always sends). `now` is
+  // injectable for tests.
   bool watchdog_ping(Clock::time_point now = Clock::now());
 
  private:
@@ -51,6 +53,7 @@ class SystemdNotifier {
   // steady_clock ticks of the last ping sent; kNever before the first.
   static constexpr int64_t kNever = INT64_MIN;
   std::atomic<int64_t> last_ping_ticks_{kNever};
+  std::atomic<bool> stopping_{false};
 };
 
 }  // namespace magcal

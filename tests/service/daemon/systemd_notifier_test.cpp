@@ -102,8 +102,8 @@ TEST_CASE("ready, status and stopping reach the notify socket", "[systemd_notifi
   CHECK(notifier.ready());
   CHECK(notifier.status("ingesting: 12 spacecraft\nqueue 0"));
   CHECK(notifier.stopping());
-  CHECK(sock.drain() == std::vector<std::string>{"READY=1", "STATUS=ingesting: 12 spacecraft queue 0",
-                                                 "STOPPING=1"});
+  CHECK(sock.drain() == std::vector<std::string>{
+                            "READY=1", "STATUS=ingesting: 12 spacecraft queue 0", "STOPPING=1"});
   clear_systemd_environment();
 }
 
@@ -127,8 +127,13 @@ TEST_CASE("watchdog pings are rate-limited to half of WATCHDOG_USEC", "[systemd_
   int sent = 0;
   for (auto t = t0 + 30s + 100ms; t < t0 + 90s; t += 100ms) sent += notifier.watchdog_ping(t);
   CHECK(sent == 3);  // at 45, 60 and 75 s
-  const auto messages = sock.drain();
-  CHECK(messages.size() == 6);
+  // After STOPPING=1 systemd no longer expects pings, and none are sent.
+  CHECK(notifier.stopping());
+  CHECK_FALSE(notifier.watchdog_ping(t0 + 200s));
+  auto messages = sock.drain();
+  REQUIRE(messages.size() == 7);
+  CHECK(messages.back() == "STOPPING=1");
+  messages.pop_back();
   for (const auto& m : messages) CHECK(m == "WATCHDOG=1");
   clear_systemd_environment();
 }
