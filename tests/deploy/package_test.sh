@@ -178,6 +178,8 @@ if [ "${CI:-}" = true ] && [ "$(id -u)" = 0 ]; then
   [ "$(stat -c %U:%G:%a /var/lib/magcal)" = magcal:magcal:750 ] ||
     fail "/var/lib/magcal is $(stat -c %U:%G:%a /var/lib/magcal)"
   [ "$(/usr/bin/magcald --version)" = "$version" ] || fail "installed magcald --version"
+  wants=/etc/systemd/system/multi-user.target.wants/magcald.service
+  [ -L "$wants" ] || fail "dpkg -i did not enable magcald.service"
   dpkg -i "$deb" >>"$scratch/dpkg.log" 2>&1 || {
     cat "$scratch/dpkg.log" >&2
     fail "dpkg -i over itself (upgrade path)"
@@ -187,9 +189,14 @@ if [ "${CI:-}" = true ] && [ "$(id -u)" = 0 ]; then
   [ ! -e /usr/bin/magcald ] || fail "dpkg -r left /usr/bin/magcald"
   [ -e /var/lib/magcal/package-test-marker ] || fail "dpkg -r deleted /var/lib/magcal content"
   [ -e /etc/magcal/magcald.toml ] || fail "dpkg -r removed the conffile (only purge does)"
+  [ "$(readlink /etc/systemd/system/magcald.service)" = /dev/null ] ||
+    fail "dpkg -r did not disable (mask) magcald.service"
   dpkg --purge magcal >>"$scratch/dpkg.log" 2>&1 || fail "dpkg --purge"
   installed_here=0
   [ ! -e /etc/magcal/magcald.toml ] || fail "dpkg --purge left the conffile"
+  if [ -L "$wants" ] || [ -L /etc/systemd/system/magcald.service ]; then
+    fail "dpkg --purge left systemd links"
+  fi
   [ -e /var/lib/magcal/package-test-marker ] || fail "dpkg --purge deleted /var/lib/magcal content"
   rm -f /var/lib/magcal/package-test-marker
   echo "dpkg -i (twice), -r, --purge on this machine: ok"
