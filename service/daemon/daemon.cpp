@@ -19,6 +19,7 @@
 #include "service/daemon/refit_runner.hpp"
 #include "service/daemon/refit_scheduler.hpp"
 #include "service/daemon/storage_retry.hpp"
+#include "service/daemon/systemd_notifier.hpp"
 #include "service/io/calibration_record.hpp"
 #include "storage/refit_job_log.hpp"
 
@@ -52,6 +53,8 @@ struct Daemon::Impl {
   std::unique_ptr<IngestWorker> worker;
   std::unique_ptr<storage::Database> refit_db;
   std::unique_ptr<RefitRunner> refits;
+  // Type=notify + WatchdogSec (deploy/magcald.service); a no-op outside systemd.
+  SystemdNotifier systemd;
 
   // Refit requests (worker -> refit thread) and the retention floor they imply.
   std::mutex refit_mutex;
@@ -250,6 +253,9 @@ struct Daemon::Impl {
     std::vector<IngestItem> items;
     size_t next = 0;  // items[next..] are popped but not processed yet
     while (!fatal.load()) {
+      // The loop wakes at least every 100 ms (pop_all, the retry wait); a commit blocks at most
+      // [storage] busy_timeout_ms. Sent every WatchdogSec/2: a stuck worker gets restarted.
+      systemd.watchdog_ping();
       if (next == items.size() && !worker->backlogged()) {
         items.clear();
         next = 0;
@@ -272,7 +278,9 @@ struct Daemon::Impl {
       if (std::chrono::duration<double>(now - last_status).count() >=
           config.service.status_every_s) {
         last_status = now;
-        publisher->publish(status());
+        const auto st = status();
+        publisher->publish(st);
+        if (systemd.enabled()) systemd.status(format_status_line(st));  // systemctl status
       }
       if (std::chrono::duration<double>(now - last_log).count() >= config.log.status_every_s) {
         last_log = now;
@@ -354,7 +362,12 @@ int Daemon::run(const std::atomic<bool>& stop) {
   std::thread refitter([&d] { d.refit_thread(); });
 
   LcmIngest ingest(*d.lcm, c.lcm.samples_channel, c.lcm.batch_channel, *d.queue, d.counters);
+  // The database is open (open()) and the subscription live (the constructor): systemd may
+  // start what is ordered after magcald, and the watchdog runs from here.
+  d.systemd.ready();
   const auto end = ingest.run(stop, d.replay, &d.fatal);
+  // The drain (bounded by [storage] max_failure_s) runs under TimeoutStopSec, not the watchdog.
+  d.systemd.stopping();
   spdlog::info("{}; draining {} queued samples",
                d.fatal.load()                     ? "stopped on a fatal error"
                : end == LcmIngest::End::kEndOfLog ? "end of log"

@@ -18,6 +18,10 @@
 // dies for any reason, stops receiving and ends run() with a non-zero exit code and the reason in
 // the log; every received sample that was not committed is counted as storage_error and logged
 // (re-running a replay fills them: stored samples come back as counted duplicates).
+//
+// Under systemd (Type=notify, WatchdogSec; service/daemon/systemd_notifier.hpp): READY=1 once
+// open() succeeded and the LCM subscription is live, WATCHDOG=1 from the worker loop, STATUS=
+// with every status message, STOPPING=1 when run() stops receiving and the drain starts.
 #pragma once
 
 #include <atomic>

@@ -4,19 +4,16 @@
 // watchdog interval, STOPPING=1 when the drain starts, and nothing after it but status.
 #include <catch2/catch.hpp>
 
-#include <sys/socket.h>
-#include <sys/un.h>
 #include <unistd.h>
 
-#include <cerrno>
 #include <chrono>
 #include <cstdlib>
-#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <string>
 #include <vector>
 
+#include "tests/service/daemon/notify_socket.hpp"
 #include "tests/service/daemon_test_support.hpp"
 
 namespace {
@@ -50,36 +47,24 @@ TEST_CASE("magcald speaks sd_notify: READY once open, WATCHDOG within the interv
     cfg << "[refit]\nclock = \"data\"\n";
   }
 
-  const std::string sock_path = (dir / "notify").string();
-  const int fd = socket(AF_UNIX, SOCK_DGRAM | SOCK_CLOEXEC, 0);
-  REQUIRE(fd >= 0);
-  sockaddr_un addr{};
-  addr.sun_family = AF_UNIX;
-  REQUIRE(sock_path.size() < sizeof(addr.sun_path));
-  std::memcpy(addr.sun_path, sock_path.c_str(), sock_path.size() + 1);
-  REQUIRE(bind(fd, reinterpret_cast<const sockaddr*>(&addr), sizeof(addr)) == 0);
+  NotifySocket notify_socket;
 
   constexpr double kWatchdog_s = 1.0;
-  setenv("NOTIFY_SOCKET", sock_path.c_str(), 1);
+  setenv("NOTIFY_SOCKET", notify_socket.path().c_str(), 1);
   setenv("WATCHDOG_USEC", "1000000", 1);
   unsetenv("WATCHDOG_PID");  // systemd sets it to the service's pid; absent means "you"
   const auto t0 = Clock::now();
-  const pid_t pid =
-      spawn({kBin + "/magcald", "--config", (dir / "magcald.toml").string(), "--db", db,
-             "--lcm-url", "file://" + log + "?speed=2000"},
-            (dir / "magcald.log").string());
+  const pid_t pid = spawn({kBin + "/magcald", "--config", (dir / "magcald.toml").string(), "--db",
+                           db, "--lcm-url", "file://" + log + "?speed=2000"},
+                          (dir / "magcald.log").string());
   unsetenv("NOTIFY_SOCKET");
   unsetenv("WATCHDOG_USEC");
   REQUIRE(pid > 0);
 
   std::vector<Message> messages;
   auto receive = [&] {
-    char buf[4096];
-    while (true) {
-      const ssize_t n = recv(fd, buf, sizeof(buf), MSG_DONTWAIT);
-      if (n < 0) return;
-      messages.push_back({std::string(buf, static_cast<size_t>(n)),
-                          std::chrono::duration<double>(Clock::now() - t0).count(),
+    for (auto& text : notify_socket.drain()) {
+      messages.push_back({std::move(text), std::chrono::duration<double>(Clock::now() - t0).count(),
                           fs::exists(db)});
     }
   };
@@ -99,7 +84,6 @@ TEST_CASE("magcald speaks sd_notify: READY once open, WATCHDOG within the interv
     waitpid(pid, nullptr, 0);
   }
   receive();
-  close(fd);
   INFO("magcald log:\n" << slurp((dir / "magcald.log").string()));
   REQUIRE(exit_code == 0);
 
