@@ -1,5 +1,8 @@
 #!/usr/bin/env bash
 # Installs the Debian packages magcal needs to build, test and run.
+#   deploy/setup-deps.sh           build and run
+#   deploy/setup-deps.sh --tests   also what only the tests use (chromium for the page test:
+#                                  ~48 s to install on the dev machine, large)
 # Idempotent: does nothing (no apt-get at all) when every package is already installed.
 set -euo pipefail
 
@@ -13,7 +16,11 @@ packages=(
   libtomlplusplus-dev libcli11-dev nlohmann-json3-dev
   libbenchmark-dev
   liberfa-dev
+  libcpp-httplib-dev libjs-chart.js
 )
+if [ "${1:-}" = "--tests" ]; then
+  packages+=(chromium)
+fi
 
 missing=()
 for p in "${packages[@]}"; do
