@@ -221,6 +221,14 @@ std::unique_ptr<OperationsServer> OperationsServer::start(const std::string& lis
     return nullptr;
   }
   impl->routes();
+  // cpp-httplib's default on Linux is SO_REUSEPORT, which lets a second process bind the same
+  // port and the kernel split the requests between the two (two magcalds answering one
+  // /metrics at random). SO_REUSEADDR only: a port in use is an error, a restart still binds
+  // at once over TIME_WAIT.
+  impl->server.set_socket_options([](socket_t sock) {
+    int yes = 1;
+    ::setsockopt(sock, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof yes);
+  });
   if (port == 0) {
     port = impl->server.bind_to_any_port(host);
     if (port <= 0) {

@@ -8,6 +8,14 @@
 // Targets: >= 100 000 samples/s with the reference in the frame, >= 50 000 with IGRF.
 //   build/bin/daemon_ingest_bench --benchmark_format=json
 // Also: BM_TrackerMemory, resident memory per tracked spacecraft (target < 4 KB).
+//
+// BM_DaemonReplay/<server>/<hammer>: the whole magcald (magcal::Daemon: LCM file:// provider at
+// speed=0 -> receive thread -> queue -> worker -> SQLite, refit thread idle) over a log of the
+// same 400 000 samples (10 spacecraft), with the operations server off (0) or on (1) at
+// 127.0.0.1:0, and with (1) or without (0) a client on another thread fetching /metrics and
+// /api/v1/history?sat=SAT-0 in a loop for the whole replay (issue 12: drop < 10 %). Manual time
+// = open() + run(); items_per_second = samples/s; stored must equal sent (else an error).
+//   build/bin/daemon_ingest_bench --benchmark_filter=DaemonReplay --benchmark_format=json
 #include <benchmark/benchmark.h>
 #include <spdlog/spdlog.h>
 
@@ -17,10 +25,14 @@
 #include <filesystem>
 #include <random>
 
+#include <httplib.h>
+#include <lcm/lcm-cpp.hpp>
+
+#include "service/daemon/daemon.hpp"
 #include "service/daemon/ingest_worker.hpp"
 #include "service/daemon/lcm_ingest.hpp"
-#include "service/io/reference_field.hpp"
 #include "service/daemon/spacecraft_tracker.hpp"
+#include "service/io/reference_field.hpp"
 
 using namespace magcal;
 
@@ -125,6 +137,97 @@ BENCHMARK(BM_Ingest)
     ->Iterations(kSamplesPerRun / kBatch)
     ->Unit(benchmark::kMillisecond)
     ->UseRealTime();
+
+// The frames of make_frames(10, false) as an LCM log (MAGCAL_BATCH), written once per process.
+const std::string& replay_log() {
+  static const std::string path = [] {
+    const auto file = std::filesystem::temp_directory_path() /
+                      ("magcal_replay_bench_" + std::to_string(::getpid()) + ".lcm");
+    lcm::LogFile out(file.string(), "w");
+    int64_t event = 0;
+    for (auto& f : make_frames(10, false)) {
+      lcm::LogEvent e;
+      e.eventnum = event;
+      e.timestamp = kT0 + event * 1000;
+      e.channel = "MAGCAL_BATCH";
+      e.datalen = static_cast<int32_t>(f.size());
+      e.data = f.data();
+      out.writeEvent(&e);
+      ++event;
+    }
+    return file.string();
+  }();
+  return path;
+}
+
+void BM_DaemonReplay(benchmark::State& state) {
+  const bool server = state.range(0) != 0;
+  const bool hammer = state.range(1) != 0;
+  if (hammer && !server) {
+    state.SkipWithError("a client needs the server");
+    return;
+  }
+  const std::string& log = replay_log();
+  const auto dir = std::filesystem::temp_directory_path() /
+                   ("magcal_replay_bench_" + std::to_string(::getpid()));
+  int64_t sent = 0, stored = 0, requests = 0, failed_requests = 0;
+  double seconds = 0.0;
+  for (auto _ : state) {
+    std::filesystem::remove_all(dir);
+    std::filesystem::create_directories(dir);
+    DaemonConfig config;
+    config.storage.db_path = (dir / "bench.db").string();
+    config.lcm.url = "file://" + log + "?speed=0";
+    config.http.listen = server ? "127.0.0.1:0" : "";
+    const auto t0 = std::chrono::steady_clock::now();
+    Daemon daemon(config);
+    if (const auto error = daemon.open(); !error.empty()) {
+      state.SkipWithError(error.c_str());
+      break;
+    }
+    std::atomic<bool> done{false};
+    std::thread client;
+    if (hammer) {
+      client = std::thread([&, port = daemon.http_port()] {
+        httplib::Client http("127.0.0.1", port);
+        while (!done.load()) {
+          for (const char* path : {"/metrics", "/api/v1/history?sat=SAT-0"}) {
+            const auto reply = http.Get(path);
+            ++requests;
+            if (!reply || (reply->status != 200 && reply->status != 400)) ++failed_requests;
+          }
+        }
+      });
+    }
+    const std::atomic<bool> stop{false};
+    const int rc = daemon.run(stop);
+    seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    done.store(true);
+    if (client.joinable()) client.join();
+    state.SetIterationTime(seconds);
+    sent += daemon.counters().received.load();
+    stored += daemon.counters().stored.load();
+    if (rc != 0 || daemon.counters().stored.load() != daemon.counters().received.load()) {
+      state.SkipWithError("samples lost: stored != received");
+      break;
+    }
+  }
+  std::filesystem::remove_all(dir);
+  state.SetItemsProcessed(sent);
+  state.counters["sent"] = static_cast<double>(sent);
+  state.counters["stored"] = static_cast<double>(stored);
+  state.counters["http_requests"] = static_cast<double>(requests);
+  state.counters["http_failed"] = static_cast<double>(failed_requests);
+  state.counters["http_requests_per_s"] =
+      benchmark::Counter(static_cast<double>(requests), benchmark::Counter::kIsRate);
+}
+BENCHMARK(BM_DaemonReplay)
+    ->Args({0, 0})
+    ->Args({1, 0})
+    ->Args({1, 1})
+    ->Iterations(1)
+    ->UseManualTime()
+    ->Unit(benchmark::kMillisecond);
 
 // Heap bytes in use (glibc): RSS deltas are hidden by memory the allocator already holds.
 double heap_bytes() {

@@ -50,7 +50,8 @@ inline const std::string& replayed_day_db() {
     config << "[refit]\nclock = \"data\"\nevery_hours = 6\n";
   }
   REQUIRE(run({bin + "/magcald", "--config", dir.file("magcald.toml"), "--db", dir.file("day.db"),
-               "--lcm-url", "file://" + dir.file("day.lcm") + "?speed=0", "--log-level", "warn"},
+               "--lcm-url", "file://" + dir.file("day.lcm") + "?speed=0", "--log-level", "warn",
+               "--http-listen", ""},
               dir.file("magcald.log"), 300) == 0);
   db = dir.file("day.db");
   return db;
