@@ -1,7 +1,8 @@
 // `magcal serve`: the operations server (service/http/operations_server.hpp) over a database
-// file, read-only, until SIGINT or SIGTERM. /metrics is not served yet (the metrics from what
-// the DB knows come with service/http/metrics.*); /-/healthy and /-/ready answer 200 while the
-// server runs (the database is open).
+// file, read-only, until SIGINT or SIGTERM. /metrics: what the database alone knows
+// (service/http/metrics.hpp, database_metrics_text: the same names as magcald's), read on its own
+// read-only connection per scrape; /-/healthy and /-/ready answer 200 while the server runs (the
+// database is open).
 #include <pthread.h>
 #include <signal.h>
 
@@ -10,6 +11,7 @@
 
 #include "service/cli/cli_commands.hpp"
 #include "service/daemon/daemon_config.hpp"
+#include "service/http/metrics.hpp"
 #include "service/http/operations_server.hpp"
 
 namespace magcal::cli {
@@ -26,6 +28,12 @@ int run_serve(const ServeArgs& args) {
   http::ServerHooks hooks;
   // The same window as `magcal status` (the daemon's default [storage] window_hours).
   hooks.status_window_utime = DaemonConfig{}.window_utime();
+  hooks.metrics_text = [db_path = args.db] {
+    storage::OpenOptions read_only;
+    read_only.read_only = true;
+    storage::Database db(db_path, read_only);
+    return http::database_metrics_text(db, MAGCAL_VERSION);
+  };
   std::string error;
   auto server = http::OperationsServer::start(args.listen, args.db, std::move(hooks), &error);
   if (!server) {

@@ -9,7 +9,10 @@
 #include <catch2/catch.hpp>
 #include <nlohmann/json.hpp>
 
+#include "storage/calibration_history.hpp"
+#include "storage/sample_window_store.hpp"
 #include "tests/service/http_test_support.hpp"
+#include "tests/service/prometheus_text.hpp"
 
 using magcal::test::http_get;
 using magcal::test::run_magcal;
@@ -142,4 +145,43 @@ TEST_CASE("serve: a missing database or a taken port is one line on stderr and e
   r = run_magcal("serve --db " + magcal::test::replayed_day_db() + " --listen nowhere", dir);
   REQUIRE(r.exit_code == 2);
   REQUIRE(r.err.find("not ADDR:PORT") != std::string::npos);
+}
+
+TEST_CASE("serve over a replayed day: /metrics is what the database holds") {
+  const std::string& db = magcal::test::replayed_day_db();
+  TempDir dir("magcal_serve_metrics");
+  ServeProcess serve(db, dir);
+  const auto reply = http_get(serve.port(), "/metrics");
+  REQUIRE(reply.status == 200);
+  const auto p = magcal::test::parse_prometheus_text(reply.body);
+  INFO(reply.body);
+  REQUIRE(p.error.empty());
+  // Counted here through the storage API (independent of the server's queries).
+  namespace st = magcal::storage;
+  st::OpenOptions ro;
+  ro.read_only = true;
+  st::Database d(db, ro);
+  st::SampleWindowStore samples(d);
+  st::CalibrationHistory history(d);
+  CHECK(p.value("magcal_samples_stored_total", {{"sat", kSat}}) == samples.count(kSat));
+  st::HistoryQuery q;
+  q.sat_id = kSat;
+  q.method = "twostep";
+  std::map<std::string, int> verdicts;
+  for (const auto& r : history.query(q)) ++verdicts[r.verdict];
+  REQUIRE(verdicts["accepted"] == 3);  // deploy/demo.sh's day: 08:00, 14:00, 20:00
+  CHECK(p.value("magcal_refits_total", {{"sat", kSat}, {"verdict", "accepted"}}) ==
+        verdicts["accepted"]);
+  const auto last_refit = history.latest_accepted_refit(kSat);
+  REQUIRE(last_refit);
+  CHECK(p.value("magcal_last_refit_success_timestamp_seconds", {{"sat", kSat}}) ==
+        static_cast<double>(last_refit->utime) * 1e-6);
+  const auto ukf = history.latest(kSat, "ukf");
+  REQUIRE(ukf);
+  CHECK(p.value("magcal_ukf_bias_nT", {{"sat", kSat}, {"axis", "y"}}) == ukf->bias_nT[1]);
+  CHECK(p.value("magcal_ukf_bias_sigma_nT", {{"sat", kSat}, {"axis", "y"}}) ==
+        ukf->bias_sigma_nT[1]);
+  CHECK(p.value("magcal_build_info", {{"version", MAGCAL_VERSION}}) == 1);
+  CHECK_FALSE(p.has("magcal_samples_received_total"));  // only a running magcald knows
+  CHECK(serve.stop() == 0);
 }
