@@ -4,7 +4,8 @@
 // rows every 60 s of data) -> batched SQLite commits (one transaction per 4000 samples) and
 // retention, on a WAL database file in /tmp. Frames are pre-encoded; each iteration is one
 // frame. items_per_second = samples/s.
-//   BM_Ingest/<spacecraft>/<0: h_body in the frame | 1: IGRF from position + attitude>
+//   BM_Ingest/<spacecraft>/<0: h_body in the frame | 1: IGRF from position + attitude>/
+//             <1: with the Prometheus metrics (per-spacecraft stored/missing, commit histogram)>
 // Targets: >= 100 000 samples/s with the reference in the frame, >= 50 000 with IGRF.
 //   build/bin/daemon_ingest_bench --benchmark_format=json
 // Also: BM_TrackerMemory, resident memory per tracked spacecraft (target < 4 KB).
@@ -101,6 +102,7 @@ std::vector<std::vector<uint8_t>> make_frames(int n_sats, bool igrf) {
 void BM_Ingest(benchmark::State& state) {
   const int n_sats = static_cast<int>(state.range(0));
   const bool igrf = state.range(1) != 0;
+  const bool with_metrics = state.range(2) != 0;
   const auto frames = make_frames(n_sats, igrf);
   const auto dir = std::filesystem::temp_directory_path() /
                    ("magcal_ingest_bench_" + std::to_string(::getpid()));
@@ -111,7 +113,9 @@ void BM_Ingest(benchmark::State& state) {
   DaemonCounters counters;
   int64_t samples = 0;
   {
-    IngestWorker worker(config, counters, std::make_unique<ReferenceField>(), {});
+    http::DaemonMetrics metrics(MAGCAL_VERSION);
+    IngestWorker worker(config, counters, std::make_unique<ReferenceField>(), {},
+                        with_metrics ? &metrics : nullptr);
     IngestItem item;
     size_t next = 0;
     for (auto _ : state) {
@@ -134,12 +138,14 @@ void BM_Ingest(benchmark::State& state) {
 }
 // One pass over the pre-encoded frames (400 000 samples): sustained, with commits and retention.
 BENCHMARK(BM_Ingest)
-    ->Args({1, 0})
-    ->Args({10, 0})
-    ->Args({1000, 0})
-    ->Args({1, 1})
-    ->Args({10, 1})
-    ->Args({1000, 1})
+    ->Args({1, 0, 0})
+    ->Args({10, 0, 0})
+    ->Args({10, 0, 1})
+    ->Args({1000, 0, 0})
+    ->Args({1000, 0, 1})
+    ->Args({1, 1, 0})
+    ->Args({10, 1, 0})
+    ->Args({1000, 1, 0})
     ->Iterations(kSamplesPerRun / kBatch)
     ->Unit(benchmark::kMillisecond)
     ->UseRealTime();
