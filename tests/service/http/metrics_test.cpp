@@ -118,7 +118,7 @@ TEST_CASE("daemon metrics: the contract's names, the counted values, valid text"
   CHECK(p2.value("magcal_samples_rejected_total", {{"reason", "duplicate"}}) == 9.0);
 }
 
-TEST_CASE("daemon metrics: label values are escaped; spacecraft series are capped", "[metrics]") {
+TEST_CASE("daemon metrics: label values are escaped, spacecraft series are capped", "[metrics]") {
   DaemonMetrics m("1");
   const std::string odd = "SAT \"quoted\" \\ back\nslash";
   m.spacecraft(odd).received->Increment(3);
