@@ -37,7 +37,7 @@ std::vector<std::string> chromium_args(const std::string& exe, const TempDir& di
           "--hide-scrollbars",
           "--user-data-dir=" + dir.file("profile"),
           "--window-size=1400,1000",
-          "--virtual-time-budget=15000"};
+          "--virtual-time-budget=5000"};
 }
 
 }  // namespace
@@ -57,7 +57,7 @@ TEST_CASE("the page draws the replayed day in headless Chromium without console 
   args.push_back("--dump-dom");
   args.push_back(url);
   const std::string dom_file = dir.file("dom.html");
-  REQUIRE(magcal::test::run(args, dom_file, 180) == 0);
+  REQUIRE(magcal::test::run(args, dom_file, 120) == 0);
   const std::string dom = magcal::test::slurp(dom_file);
   std::smatch m;
   const std::regex marker(
@@ -77,7 +77,7 @@ TEST_CASE("the page draws the replayed day in headless Chromium without console 
   const std::string png = dir.file("page.png");
   args.push_back("--screenshot=" + png);
   args.push_back(url);
-  REQUIRE(magcal::test::run(args, dir.file("screenshot.log"), 180) == 0);
+  REQUIRE(magcal::test::run(args, dir.file("screenshot.log"), 120) == 0);
   REQUIRE(std::filesystem::exists(png));
   // A blank 1400x1000 page compresses to a few kB; six drawn charts are far larger.
   REQUIRE(std::filesystem::file_size(png) > 60'000);
