@@ -24,20 +24,15 @@ std::string find_chromium() {
   return "";
 }
 
-std::vector<std::string> chromium_args(const std::string& exe, const TempDir& dir) {
-  return {exe,
-          "--headless",
+// Each run gets its own profile: a second Chromium on the same one hands over to the first.
+std::vector<std::string> chromium_args(const std::string& exe, const std::string& profile) {
+  return {exe, "--headless",
           "--no-sandbox",  // CI runs as root
-          "--disable-gpu",
-          "--disable-quic",
-          "--no-first-run",
-          "--disable-background-networking",
-          "--disable-component-update",
-          "--disable-sync",
-          "--hide-scrollbars",
-          "--user-data-dir=" + dir.file("profile"),
-          "--window-size=1400,1000",
-          "--virtual-time-budget=5000"};
+          "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
+          "--disable-component-update", "--disable-sync", "--hide-scrollbars",
+          "--user-data-dir=" + profile, "--window-size=1400,1000",
+          // Below ~10 s of virtual time Chromium 156 was seen to hang on --screenshot.
+          "--virtual-time-budget=10000"};
 }
 
 }  // namespace
@@ -53,7 +48,7 @@ TEST_CASE("the page draws the replayed day in headless Chromium without console 
   ServeProcess serve(db, dir);
   const std::string url = "http://127.0.0.1:" + std::to_string(serve.port()) + "/";
 
-  auto args = chromium_args(chromium, dir);
+  auto args = chromium_args(chromium, dir.file("profile-dom"));
   args.push_back("--dump-dom");
   args.push_back(url);
   const std::string dom_file = dir.file("dom.html");
@@ -73,7 +68,7 @@ TEST_CASE("the page draws the replayed day in headless Chromium without console 
   // The page filled in the spacecraft picker and the summary from /api/v1/spacecraft.
   REQUIRE(dom.find("<option value=\"PAPER-1\">PAPER-1</option>") != std::string::npos);
 
-  args = chromium_args(chromium, dir);
+  args = chromium_args(chromium, dir.file("profile-screenshot"));
   const std::string png = dir.file("page.png");
   args.push_back("--screenshot=" + png);
   args.push_back(url);
