@@ -30,9 +30,9 @@ std::vector<std::string> chromium_args(const std::string& exe, const std::string
           "--no-sandbox",  // CI runs as root
           "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
           "--disable-component-update", "--disable-sync", "--hide-scrollbars",
-          "--user-data-dir=" + profile, "--window-size=1400,1000",
-          // Below ~10 s of virtual time Chromium 156 was seen to hang on --screenshot.
-          "--virtual-time-budget=10000"};
+          "--user-data-dir=" + profile, "--window-size=1400,1000", "--virtual-time-budget=5000",
+          // Without it Chromium 156 often hangs on --screenshot under a virtual-time budget.
+          "--run-all-compositor-stages-before-draw"};
 }
 
 }  // namespace
