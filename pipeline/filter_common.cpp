@@ -21,6 +21,8 @@ constexpr double kMicrosecondsPerSecond = 1e6;
 constexpr double kRelativeJitter = 1e-12;
 constexpr double kRelativeEigenFloor = 1e-14;
 constexpr double kTinyVariance = 1e-300;
+// Start attempts regardless of the pre-check at n = this x start_attempt_every x 2^k.
+constexpr int64_t kUnconditionalAttemptMultiple = 16;
 
 bool is_finite(const Eigen::Vector3d& v) {
   return v.allFinite();
@@ -47,6 +49,9 @@ std::string FilterOptions::validate() const {
   if (!(start.max_correlation >= 0.0 && start.max_correlation < 1.0))
     return "start max_correlation must be in [0, 1)";
   if (start_attempt_every < 1) return "start_attempt_every must be >= 1";
+  if (!(start_attempt_gap_fraction > 0.0 && start_attempt_gap_fraction <= 1.0))
+    return "start_attempt_gap_fraction must be in (0, 1]";
+  if (!(start.precheck_margin >= 1.0)) return "start precheck_margin must be >= 1";
   if (!(noise_adaptation_samples >= 1.0) || !std::isfinite(noise_adaptation_samples))
     return "noise_adaptation_samples must be >= 1";
   if (!(max_fisher_condition > 1.0)) return "max_fisher_condition must be > 1";
@@ -120,6 +125,18 @@ bool cholesky_downdate_whitened(Matrix9d& S, const Vector9d& p) {
     S.col(k).head(k).setZero();  // exact zeros above the diagonal despite round-off
   }
   return true;
+}
+
+StartAttempt start_attempt_due(int64_t n, const FilterOptions& options) {
+  const int64_t every = options.start_attempt_every;
+  if (n < options.start.min_samples || n % every != 0) return StartAttempt::kNone;
+  const int64_t multiple = n / every;
+  if (multiple >= kUnconditionalAttemptMultiple && (multiple & (multiple - 1)) == 0)
+    return StartAttempt::kUnconditional;
+  const double max_gap = options.start_attempt_gap_fraction * static_cast<double>(n);
+  int64_t spacing = every;
+  while (static_cast<double>(2 * spacing) <= max_gap) spacing *= 2;
+  return n % spacing == 0 ? StartAttempt::kIfObservable : StartAttempt::kNone;
 }
 
 Vector9d process_noise_diagonal(const Vector9d& q_per_sqrt_hour, double dt_s) {
@@ -365,8 +382,11 @@ bool ScalarFilterBase::begin_update(FilterUpdate& u, const Eigen::Vector3d& b_se
     state_.moments.add(b_sensor_nT, y, 1.0 / scalar_noise_variance(b_sensor_nT, options_.sigma_nT),
                        true);
     u.status = FilterUpdateStatus::kCollecting;
-    if (state_.moments.n >= options_.start.min_samples &&
-        state_.moments.n % options_.start_attempt_every == 0) {
+    const StartAttempt due = start_attempt_due(state_.moments.n, options_);
+    if (due == StartAttempt::kUnconditional ||
+        (due == StartAttempt::kIfObservable &&
+         start_precheck_condition(state_.moments) <=
+             options_.start.precheck_margin * options_.start.max_condition)) {
       const FilterStartResult start = solve_filter_start(state_.moments, options_.start);
       if (start.status != FilterStartStatus::kTooFewSamples)
         state_.fisher_condition = start.fisher_condition;

@@ -15,12 +15,20 @@
 // re-factorisation of S S^T + Q (one 9x9 LLT, cheaper than nine serial rank-1 updates).
 //
 // Start (estimation.md 7): by default (cold_start = kFromData) the filter does not start from
-// a prior. It accumulates the moments of the batch problem (filter_start.hpp) and, every
-// start_attempt_every samples once it has start.min_samples, solves the batch problem; it starts
-// when the solution exists and its scaled Fisher condition is <= start.max_condition. x and P
-// come from that solution (P scaled by the residual noise and the lag-1 correlation inflation),
-// the noise estimate is seeded from it. Until then update() returns kCollecting and snapshots are
+// a prior. It accumulates the moments of the batch problem (filter_start.hpp) and, at the
+// points start_attempt_due() names, solves the batch problem; it starts when the solution
+// exists and its scaled Fisher condition is <= start.max_condition. x and P come from that
+// solution (P scaled by the residual noise and the lag-1 correlation inflation), the noise
+// estimate is seeded from it. Until then update() returns kCollecting and snapshots are
 // not_converged. kZero / kFirstSampleScale keep the old cold prior (estimation.md 3).
+// Attempt schedule (stateless: a function of the sample count n, nothing new is stored):
+// candidate points n >= start.min_samples on a grid of spacing start_attempt_every x 2^k, the
+// largest such spacing <= start_attempt_gap_fraction x n, so a start comes at most that
+// fraction of the samples (or start_attempt_every samples) after the data allow it; at a
+// candidate the attempt runs only when the cheap pre-check start_precheck_condition() is
+// <= start.precheck_margin x start.max_condition (~3 us instead of an LM attempt: 0.5-5 ms
+// on data that do not observe p). Unconditional attempts at n = 16 x start_attempt_every x 2^k
+// (480, 960, 1920, ...) bound what a wrong pre-check could cost: at most a doubling of n.
 //
 // Adaptive measurement noise (Mehra 1970 / Sage-Husa, estimation.md 7): the white-equivalent
 // noise variance is sigma^2 a, a >= 1 (bounded below by the configured sigma_nT), with
@@ -82,7 +90,8 @@ struct FilterOptions {
   };
   ColdStart cold_start = ColdStart::kFromData;
   FilterStartOptions start;      // kFromData: sample count, observability, correlation inflation
-  int start_attempt_every = 30;  // samples between start attempts (each ~10-50 us)
+  int start_attempt_every = 30;  // smallest spacing of start attempts (schedule: file comment)
+  double start_attempt_gap_fraction = 1.0 / 32.0;  // largest spacing, as a fraction of n
   // Prior (kZero / kFirstSampleScale) and the cap of the consistency monitor's inflation.
   double initial_bias_sigma_nT = 2000.0;
   double initial_D_sigma = 0.05;
@@ -175,6 +184,11 @@ struct FilterUpdate {
   bool inconsistency_event = false;      // this sample closed an inconsistent NIS window
   bool started = false;                  // this sample completed the start from data
 };
+
+// Whether a filter collecting for its start tries it after its n-th sample (file comment):
+// kIfObservable = when start_precheck_condition() passes, kUnconditional = in any case.
+enum class StartAttempt : int8_t { kNone, kIfObservable, kUnconditional };
+StartAttempt start_attempt_due(int64_t n_samples, const FilterOptions& options);
 
 // diag(Q) for a step of dt_s: q_i^2 dt_s / 3600 (dt_s <= 0 gives 0).
 Vector9d process_noise_diagonal(const Vector9d& q_per_sqrt_hour, double dt_s);

@@ -306,4 +306,18 @@ FilterStartResult solve_filter_start(const ScalarMoments& moments,
   return r;
 }
 
+double start_precheck_condition(const ScalarMoments& moments) {
+  using Vector10d = Eigen::Matrix<double, 10, 1>;
+  using Matrix10d = Eigen::Matrix<double, 10, 10>;
+  const Matrix11d M = moments.matrix();
+  const Matrix10d A = M.topLeftCorner<10, 10>();
+  const Vector10d d = A.diagonal();
+  if (!(d.minCoeff() > 0.0) || !d.allFinite()) return std::numeric_limits<double>::infinity();
+  const Vector10d s_inv = d.cwiseSqrt().cwiseInverse();
+  const Matrix10d As = s_inv.asDiagonal() * A * s_inv.asDiagonal();
+  const Eigen::SelfAdjointEigenSolver<Matrix10d> eig(As, Eigen::EigenvaluesOnly);
+  const double second = eig.eigenvalues()(1);
+  return second > 0.0 ? eig.eigenvalues()(9) / second : std::numeric_limits<double>::infinity();
+}
+
 }  // namespace magcal

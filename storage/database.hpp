@@ -6,8 +6,8 @@
 // choose an exit code. transient() separates what a retry can heal (a lock held past the busy
 // timeout, I/O error, full disk, the file deleted / moved / made read-only underneath) from
 // what it cannot (corrupt or foreign file, schema, constraint, bad argument): the daemon
-// retries the first kind (service/storage_retry.hpp). Data outcomes that are not failures are
-// values: duplicate samples are counted in InsertStats, "not found" is std::nullopt.
+// retries the first kind (service/daemon/storage_retry.hpp). Data outcomes that are not failures
+// are values: duplicate samples are counted in InsertStats, "not found" is std::nullopt.
 //
 // Threads: a Database and the stores built on it belong to one thread at a time (prepared
 // statements are per connection). Give each thread (ingest worker, refit scheduler, CLI) its own

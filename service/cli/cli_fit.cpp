@@ -259,6 +259,23 @@ int run_fit(const FitArgs& args) {
     if (std::getline(head, header) && !is_design_sample_csv_header(header))
       return run_recording_fit(args);
   }
+  // The recording options mean nothing for the design's sample files: say so, never ignore.
+  const std::pair<bool, const char*> recording_only[] = {
+      {!args.field_unit.empty(), "--field-unit"},
+      {args.alt_km.has_value(), "--alt-km"},
+      {args.skip_first != 0, "--skip-first"},
+      {args.estimate_time_offset, "--estimate-time-offset"},
+      {!args.offset_range_s.empty(), "--offset-range-s"},
+      {args.time_offset_s.has_value(), "--time-offset-s"},
+      {!args.reference_magnitude.empty(), "--reference-magnitude"},
+      {args.split_halves, "--split-halves"}};
+  for (const auto& [given, flag] : recording_only) {
+    if (given) {
+      std::cerr << "magcal fit: " << flag << " applies to recordings in foreign CSV layouts only; "
+                << args.input << " is a magcal sample file (design.md)\n";
+      return kExitUsage;
+    }
+  }
   Loaded loaded = load_samples(args);
   if (!loaded.error.empty()) {
     std::cerr << "magcal fit: " << loaded.error << "\n";

@@ -383,6 +383,22 @@ std::string Daemon::open() {
   std::string error;
   auto field = ReferenceField::from_file(c.igrf.coefficients_file, &error);
   if (!field) return "[igrf] coefficients_file: " + error;
+  // LCM first: a URL that cannot be opened must not leave a new, empty database behind.
+  d.lcm = std::make_unique<lcm::LCM>(c.lcm.url);
+  if (!d.lcm->good()) {
+    return "cannot open LCM URL '" + c.lcm.url + "'" +
+           (d.replay ? " (does the log exist?)" : " (multicast route? see toolchain.md)");
+  }
+  const std::string pub_url = !c.lcm.publish_url.empty() ? c.lcm.publish_url
+                              : d.replay                 ? std::string()
+                                                         : c.lcm.url;
+  if (!c.lcm.publish_url.empty() || !d.replay) {
+    d.publisher =
+        std::make_unique<LcmPublisher>(pub_url, c.lcm.calibration_channel, c.lcm.status_channel);
+    if (!d.publisher->ok()) return "cannot open LCM publish URL '" + pub_url + "'";
+  } else {
+    d.publisher = std::make_unique<LcmPublisher>();  // replay without publish_url: no output
+  }
   d.queue = std::make_unique<IngestQueue>(c.service.queue_capacity_samples, d.replay);
   if (!c.http.listen.empty()) d.metrics = std::make_unique<http::DaemonMetrics>(MAGCAL_VERSION);
   try {
@@ -402,21 +418,6 @@ std::string Daemon::open() {
     d.worker->restore();
   } catch (const storage::StorageError& e) {
     return "database " + c.storage.db_path + ": " + e.what();
-  }
-  d.lcm = std::make_unique<lcm::LCM>(c.lcm.url);
-  if (!d.lcm->good()) {
-    return "cannot open LCM URL '" + c.lcm.url + "'" +
-           (d.replay ? " (does the log exist?)" : " (multicast route? see toolchain.md)");
-  }
-  const std::string pub_url = !c.lcm.publish_url.empty() ? c.lcm.publish_url
-                              : d.replay                 ? std::string()
-                                                         : c.lcm.url;
-  if (!c.lcm.publish_url.empty() || !d.replay) {
-    d.publisher =
-        std::make_unique<LcmPublisher>(pub_url, c.lcm.calibration_channel, c.lcm.status_channel);
-    if (!d.publisher->ok()) return "cannot open LCM publish URL '" + pub_url + "'";
-  } else {
-    d.publisher = std::make_unique<LcmPublisher>();  // replay without publish_url: no output
   }
   return d.start_server();
 }

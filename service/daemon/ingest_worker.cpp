@@ -321,9 +321,14 @@ void IngestWorker::maybe_snapshot(const std::string& sat_id, SpacecraftTracker& 
     t.next_snapshot_utime = saturating_add(utime, period);
     return;
   }
-  // Every period once the filter has seen data: before its start from data the snapshot says
-  // not_converged (collecting); each snapshot carries the evidence of its own period.
+  // Every period once the filter has started; each snapshot carries the evidence of its own
+  // period. While it still collects for its start from data it has no estimate at all, so
+  // nothing is stored or published (a row would need a bias, and 0 +- prior is not one).
   if (utime < t.next_snapshot_utime || !t.ukf.state().has_time) return;
+  if (!t.ukf.state().initialized) {
+    t.next_snapshot_utime += (saturating_sub(utime, t.next_snapshot_utime) / period + 1) * period;
+    return;
+  }
   CalibrationResult snap = t.ukf.snapshot_and_reset_period();
   snap.utime = utime;
   if (snap.window_end_utime == 0) snap.window_end_utime = utime;

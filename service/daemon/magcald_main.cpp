@@ -27,6 +27,9 @@ extern "C" void on_signal(int) {
 int main(int argc, char** argv) {
   using magcal::kExitData;
   using magcal::kExitUsage;
+  // Installed first: a SIGTERM during start-up (systemd stop, a test) is a clean stop, never 143.
+  std::signal(SIGINT, on_signal);
+  std::signal(SIGTERM, on_signal);
   CLI::App app{"magcald: magnetometer calibration daemon (LCM in, SQLite + LCM out)"};
   std::string config_path, db_path, lcm_url, log_level, http_listen;
   app.add_option("--config", config_path, "TOML config (deploy/magcald.example.toml lists keys)");
@@ -69,7 +72,5 @@ int main(int argc, char** argv) {
     std::cerr << "magcald: " << error << "\n";
     return kExitData;
   }
-  std::signal(SIGINT, on_signal);
-  std::signal(SIGTERM, on_signal);
   return daemon.run(g_stop);
 }

@@ -5,14 +5,38 @@
 namespace magcal {
 
 int64_t SpacecraftTracker::observe_seq(int64_t seq) {
-  const bool first = last_seq == std::numeric_limits<int64_t>::min();
+  constexpr int64_t kNone = std::numeric_limits<int64_t>::min();
+  if (last_seq == kNone) {
+    last_seq = seq;
+    return 0;
+  }
   // Saturating: seq is untrusted and may sit at either int64 limit.
+  if (gap_seq != kNone) {
+    // A forward jump is believed once the next number continues after it; a number that does
+    // not (the old sequence goes on) shows the jump was one corrupt seq, which implies nothing.
+    const int64_t after_jump = saturating_sub(seq, gap_seq);
+    const int64_t jump_from = gap_from_seq;
+    const int64_t jump_to = gap_seq;
+    gap_seq = kNone;
+    if (after_jump > 0 && after_jump <= kMaxSeqGap) {
+      last_seq = seq;
+      return (saturating_sub(jump_to, jump_from) - 1) + (after_jump - 1);
+    }
+  }
   const int64_t ahead = saturating_sub(seq, last_seq);
-  int64_t missing = 0;
-  if (!first && ahead > 1 && ahead - 1 <= kMaxSeqGap) missing = ahead - 1;
+  if (ahead == 1) {
+    last_seq = seq;
+    return 0;
+  }
+  if (ahead > 1 && ahead - 1 <= kMaxSeqGap) {
+    gap_from_seq = last_seq;  // counted when the next number confirms it
+    gap_seq = seq;
+    return 0;
+  }
   // Out-of-order (older) numbers do not move the edge back: recorder playback interleaves.
-  if (first || ahead > 0 || ahead < -kMaxSeqGap) last_seq = seq;
-  return missing;
+  // A jump beyond kMaxSeqGap either way is a counter reset: a new edge, nothing missing.
+  if (ahead > kMaxSeqGap || ahead < -kMaxSeqGap) last_seq = seq;
+  return 0;
 }
 
 bool SpacecraftTracker::on_time_base(int64_t utime, int64_t max_time_jump_utime) const {

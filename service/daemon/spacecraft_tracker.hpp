@@ -70,9 +70,13 @@ struct SpacecraftTracker {
   std::vector<HeldSample> held;  // arrival order; at most kHeldCapacity, freed when empty
   http::SpacecraftMetrics* metrics = nullptr;  // its Prometheus series (none without a server)
 
-  // Missing samples implied by `seq` (a forward gap); out-of-order or repeated numbers, and
-  // jumps larger than kMaxSeqGap (a counter reset), imply none. Advances last_seq.
+  // Missing samples implied by `seq`: a forward gap counts once the following number confirms
+  // it (continues after the gap), so one corrupt seq implies nothing; out-of-order or repeated
+  // numbers, and jumps larger than kMaxSeqGap (a counter reset), imply none. A gap at the very
+  // end of a stream (never confirmed) is not counted. Advances last_seq.
   int64_t observe_seq(int64_t seq);
+  int64_t gap_from_seq = std::numeric_limits<int64_t>::min();  // edge before an unconfirmed gap
+  int64_t gap_seq = std::numeric_limits<int64_t>::min();       // number after it; none
   static constexpr int64_t kMaxSeqGap = 1'000'000;
 
   // True when a sample at `utime` is on the time base (see the file comment), false when it

@@ -23,9 +23,10 @@ namespace {
 
 constexpr const char* kJson = "application/json";
 constexpr int kMaxPoints = 10000;
-// Request threads: the DB connection is shared under a mutex, so more would only queue there;
-// two let a slow client (page assets) not hold up a scrape.
-constexpr size_t kRequestThreads = 2;
+// Request threads. A browser holds up to 6 keep-alive connections, each occupying a thread
+// until it closes: 8 threads (and a short keep-alive) keep a page load from starving a
+// Prometheus scrape. Database reads are serialised on the one connection anyway.
+constexpr size_t kRequestThreads = 8;
 
 struct BadRequest {
   std::string message;
@@ -101,6 +102,13 @@ struct OperationsServer::Impl {
 
 void OperationsServer::Impl::routes() {
   server.new_task_queue = [] { return new httplib::ThreadPool(kRequestThreads); };
+  // SO_REUSEADDR only: cpp-httplib's default also sets SO_REUSEPORT, which would let a second
+  // server (a magcald and a magcal serve) silently share a port and split its requests.
+  server.set_socket_options([](socket_t sock) {
+    int yes = 1;
+    ::setsockopt(sock, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof yes);
+  });
+  server.set_keep_alive_timeout(1);
   server.set_read_timeout(5, 0);
   server.set_write_timeout(5, 0);
   server.set_payload_max_length(64 * 1024);  // GET only: no request needs a body
@@ -221,14 +229,6 @@ std::unique_ptr<OperationsServer> OperationsServer::start(const std::string& lis
     return nullptr;
   }
   impl->routes();
-  // cpp-httplib's default on Linux is SO_REUSEPORT, which lets a second process bind the same
-  // port and the kernel split the requests between the two (two magcalds answering one
-  // /metrics at random). SO_REUSEADDR only: a port in use is an error, a restart still binds
-  // at once over TIME_WAIT.
-  impl->server.set_socket_options([](socket_t sock) {
-    int yes = 1;
-    ::setsockopt(sock, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof yes);
-  });
   if (port == 0) {
     port = impl->server.bind_to_any_port(host);
     if (port <= 0) {

@@ -1,6 +1,7 @@
 #include "service/io/scenario_file.hpp"
 
 #include <cmath>
+#include <filesystem>
 #include <fstream>
 #include <set>
 #include <sstream>
@@ -260,7 +261,9 @@ ScenarioLoadResult parse_scenario_toml(std::string_view text, std::string_view s
     return result;
   }
   Scenario s = *start;
-  if (root.get("base") == nullptr) s.name = "custom";
+  // Without a `name` key the scenario is called after its file, never after its base preset:
+  // a report must not say "paper" for data that is not the paper's.
+  s.name = base + " (" + std::filesystem::path(src).filename().string() + ")";
   top.string("name", &s.name);
   top.string("sat_id", &s.sat_id);
   std::string epoch;

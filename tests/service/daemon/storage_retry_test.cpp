@@ -1,7 +1,7 @@
 // StorageRetry: transient storage errors are retried with bounded exponential backoff while the
 // daemon reports storage unhealthy; permanent errors and outages past max_failure_s end in
 // StorageOutage (the daemon's exit 3).
-#include "service/storage_retry.hpp"
+#include "service/daemon/storage_retry.hpp"
 
 #include <catch2/catch.hpp>
 

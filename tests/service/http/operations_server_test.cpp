@@ -174,7 +174,7 @@ TEST_CASE("bad history requests get 400 with a JSON error, never a crash") {
   REQUIRE(f.get("/api/v1/history?sat=SAT-B").status == 200);
 }
 
-TEST_CASE("spacecraft route is the status JSON; probes, metrics hook, page and Chart.js") {
+TEST_CASE("spacecraft route is the status JSON, and the probes, metrics hook, page and Chart.js") {
   SECTION("without hooks") {
     Fixture f;
     auto r = f.get("/api/v1/spacecraft");
