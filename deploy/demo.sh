@@ -37,8 +37,10 @@ TOML
 
 echo
 echo "== 2. replay it through magcald (file:// replay: same code path as live, exits at the end)"
+# The operations server (/metrics, /-/healthy, /-/ready, the API and the page) runs while it
+# does, on any free loopback port here (a live magcald may hold the default 127.0.0.1:9780).
 "$bin/magcald" --config magcald.toml --db magcal.db --lcm-url "file://$work/day.lcm?speed=0" \
-  --log-level info 2>&1 | sed -e 's/^\[[^]]*\] //'
+  --http-listen 127.0.0.1:0 --log-level info 2>&1 | sed -e 's/^\[[^]]*\] //'
 
 echo
 echo "== 3. magcal status"

@@ -5,7 +5,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-deploy/setup-deps.sh
+deploy/setup-deps.sh --tests
 # A compiler cache makes the second build (and the next run) cheap on 2 cores.
 launcher=(-DCMAKE_CXX_COMPILER_LAUNCHER=ccache)
 

@@ -1,5 +1,8 @@
 #!/usr/bin/env bash
 # Installs the Debian packages magcal needs to build, test and run.
+#   deploy/setup-deps.sh           build and run
+#   deploy/setup-deps.sh --tests   also what only the tests use (chromium for the page test:
+#                                  ~48 s to install on the dev machine, large)
 # Idempotent: does nothing (no apt-get at all) when every package is already installed.
 set -euo pipefail
 
@@ -13,12 +16,17 @@ packages=(
   libtomlplusplus-dev libcli11-dev nlohmann-json3-dev
   libbenchmark-dev
   liberfa-dev
-  # systemd notify (sd_notify); the .deb (cpack's dpkg-shlibdeps); tests of deploy/:
-  # systemd-analyze, promtool (prometheus: ~13 s to install, 12 packages), shellcheck, PyYAML
-  libsystemd-dev systemd
-  dpkg-dev
-  prometheus shellcheck python3-yaml
+  # systemd notify (sd_notify)
+  libsystemd-dev
+  # the operations server (cpp-httplib) and the page's plotting library (Chart.js, embedded)
+  libcpp-httplib-dev libjs-chart.js
 )
+# Only for the tests (deploy/run-tests.sh passes --tests): the browser test's Chromium; the
+# .deb (cpack's dpkg-shlibdeps); the tests of deploy/: systemd-analyze, promtool (prometheus:
+# ~13 s to install, 12 packages), shellcheck, PyYAML.
+if [ "${1:-}" = "--tests" ]; then
+  packages+=(chromium dpkg-dev systemd prometheus shellcheck python3-yaml)
+fi
 
 missing=()
 for p in "${packages[@]}"; do

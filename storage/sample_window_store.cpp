@@ -42,11 +42,14 @@ SampleWindowStore::SampleWindowStore(Database& db)
                     "DELETE FROM samples WHERE sat_id = ?1 AND utime IN (SELECT utime FROM "
                     "samples WHERE sat_id = ?1 AND utime < ?2 ORDER BY utime LIMIT ?3)") {}
 
-InsertStats SampleWindowStore::insert_batch(std::span<const StoredSample> samples) {
+InsertStats SampleWindowStore::insert_batch(std::span<const StoredSample> samples,
+                                            std::vector<size_t>* duplicate_rows) {
   InsertStats stats;
+  if (duplicate_rows) duplicate_rows->clear();
   if (samples.empty()) return stats;
   Transaction tx(db_);
-  for (const StoredSample& s : samples) {
+  for (size_t row = 0; row < samples.size(); ++row) {
+    const StoredSample& s = samples[row];
     auto use = insert_.use();
     insert_.bind(1, s.sat_id).bind(2, s.utime).bind(3, s.seq).bind(4, s.receive_utime);
     insert_.bind(5, s.b_sensor_nT[0]).bind(6, s.b_sensor_nT[1]).bind(7, s.b_sensor_nT[2]);
@@ -66,6 +69,7 @@ InsertStats SampleWindowStore::insert_batch(std::span<const StoredSample> sample
       ++stats.inserted;
     } else {
       ++stats.duplicates;
+      if (duplicate_rows) duplicate_rows->push_back(row);
     }
   }
   tx.commit();

@@ -56,8 +56,10 @@ class SampleWindowStore {
   explicit SampleWindowStore(Database& db);  // prepares its statements; throws StorageError
 
   // All samples in one transaction (one fsync-free WAL commit). Throws StorageError (the
-  // transaction is rolled back: nothing of the batch is stored).
-  InsertStats insert_batch(std::span<const StoredSample> samples);
+  // transaction is rolled back: nothing of the batch is stored). `duplicate_rows` (optional,
+  // cleared first): the indices of the rows that were duplicates, for per-row accounting.
+  InsertStats insert_batch(std::span<const StoredSample> samples,
+                           std::vector<size_t>* duplicate_rows = nullptr);
 
   // Samples of `sat_id` with t0 <= utime < t1, ascending utime, into `out` (cleared first; its
   // capacity is reused). A refit window (t_ref - W, t_ref] is [t_ref - W + 1, t_ref + 1).

@@ -96,4 +96,10 @@ struct StatusArgs {
 };
 int run_status(const StatusArgs& args);
 
+struct ServeArgs {
+  std::string db;
+  std::string listen = "127.0.0.1:9780";  // ADDR:PORT; port 0 = any free port
+};
+int run_serve(const ServeArgs& args);
+
 }  // namespace magcal::cli

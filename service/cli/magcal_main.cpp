@@ -99,6 +99,13 @@ int main(int argc, char** argv) {
   status_cmd->add_option("--db", status.db, "database file")->required();
   status_cmd->add_flag("--json", status.json, "print JSON");
 
+  ServeArgs serve;
+  auto* serve_cmd = app.add_subcommand(
+      "serve", "HTTP operations server over a database (read-only): API, plots page");
+  serve_cmd->add_option("--db", serve.db, "database file")->required();
+  serve_cmd->add_option("--listen", serve.listen,
+                        "ADDR:PORT to listen on (default 127.0.0.1:9780; port 0: any free)");
+
   try {
     app.parse(argc, argv);
   } catch (const CLI::CallForHelp& e) {
@@ -122,5 +129,6 @@ int main(int argc, char** argv) {
   if (*refit_cmd) return run_refit(refit);
   if (*hist_cmd) return run_history(history);
   if (*status_cmd) return run_status(status);
+  if (*serve_cmd) return run_serve(serve);
   return kExitUsage;
 }

@@ -1,5 +1,8 @@
 #include "service/daemon/daemon.hpp"
 
+#include <sys/resource.h>
+#include <unistd.h>
+
 #include <chrono>
 #include <condition_variable>
 #include <deque>
@@ -20,6 +23,8 @@
 #include "service/daemon/refit_scheduler.hpp"
 #include "service/daemon/storage_retry.hpp"
 #include "service/daemon/systemd_notifier.hpp"
+#include "service/http/metrics.hpp"
+#include "service/http/operations_server.hpp"
 #include "service/io/calibration_record.hpp"
 #include "storage/refit_job_log.hpp"
 
@@ -27,6 +32,8 @@ namespace magcal {
 namespace {
 
 constexpr double kFilterStateEvery_s = 30.0;
+// nice of the operations server's threads (ingest runs at the process's own, usually 0).
+constexpr int kServerNice = 10;
 
 int64_t wall_utime() {
   return std::chrono::duration_cast<std::chrono::microseconds>(
@@ -71,6 +78,12 @@ struct Daemon::Impl {
   std::mutex fatal_mutex;
   int fatal_exit = 0;
   std::string fatal_reason;
+
+  // The operations server ([http] listen; none when ""): /metrics from `metrics`, health from
+  // the flags below. Declared after everything its hooks read, so it stops first.
+  std::unique_ptr<http::DaemonMetrics> metrics;
+  std::atomic<bool> lcm_live{false};  // subscribed and receiving (ready)
+  std::unique_ptr<http::OperationsServer> server;
 
   // From any thread: log why, stop receiving, stop the worker and the refit thread; run() then
   // returns `exit_code`. Never half-alive: nothing keeps receiving what cannot be stored.
@@ -145,6 +158,60 @@ struct Daemon::Impl {
 
   void on_snapshot(const std::string& sat, const CalibrationResult& snap) {
     publisher->publish(message_from_result(sat, snap));
+    if (metrics) {
+      const Eigen::Vector3d sigma = snap.bias_sigma_nT();
+      const Eigen::Vector3d& bias = snap.parameters.bias_nT;
+      metrics->set_ukf(metrics->spacecraft(sat), {bias.x(), bias.y(), bias.z()},
+                       {sigma.x(), sigma.y(), sigma.z()}, snap.accepted);
+    }
+  }
+
+  void count_refit(const std::string& sat, http::DaemonMetrics::RefitVerdict verdict,
+                   int64_t utime) {
+    if (metrics) metrics->count_refit(metrics->spacecraft(sat), verdict, utime);
+  }
+
+  // /-/healthy: ingest, storage and the scheduler work. A dead thread or storage broken past
+  // max_failure_s ends the process (fatal), so until then "working" means storage is not
+  // failing right now (a failing operation is being retried).
+  bool healthy() const { return !fatal.load() && counters.storage_healthy(); }
+  // /-/ready: the database is open (the server only starts after it is) and LCM is live.
+  bool ready() const { return lcm_live.load() && !fatal.load(); }
+
+  http::DaemonMetrics::Totals metric_totals() const {
+    http::DaemonMetrics::Totals t;
+    t.rejected_by_reason.reserve(kRejectReasonCount);
+    for (int i = 0; i < kRejectReasonCount; ++i) {
+      const auto r = static_cast<RejectReason>(i);
+      t.rejected_by_reason.emplace_back(to_string(r), counters.rejected_count(r));
+    }
+    t.queue_depth = queue->depth_samples();
+    t.queue_overflow = queue->overflow_samples();
+    t.storage_healthy = counters.storage_healthy();
+    return t;
+  }
+
+  // After the database and LCM are open: empty, or why the server could not start.
+  std::string start_server() {
+    if (config.http.listen.empty()) return "";
+    metrics->set_totals_source([this] { return metric_totals(); });
+    http::ServerHooks hooks;
+    hooks.metrics_text = [this] { return metrics->text(); };
+    hooks.healthy = [this] { return healthy(); };
+    hooks.ready = [this] { return ready(); };
+    hooks.status_window_utime = config.window_utime();
+    std::string error;
+    // Started from a thread at a lower CPU priority, which every server thread inherits (Linux
+    // nice is per thread, inherited at creation): on a saturated machine a client hammering the
+    // API gets slower answers instead of slowing ingest (BM_DaemonReplayHttp measures both).
+    std::thread starter([&] {
+      ::setpriority(PRIO_PROCESS, static_cast<id_t>(::gettid()), kServerNice);
+      server = http::OperationsServer::start(config.http.listen, config.storage.db_path,
+                                             std::move(hooks), &error);
+    });
+    starter.join();
+    if (!server) return "[http] listen " + config.http.listen + ": " + error;
+    return "";  // the server logs its URL
   }
 
   // Refit thread: one refit, its storage errors retried with backoff (each attempt has its job
@@ -173,6 +240,7 @@ struct Daemon::Impl {
       counters.refits_run.fetch_add(1);
       if (out.kind == RefitOutcome::Kind::kError) {
         counters.refits_failed.fetch_add(1);
+        count_refit(sat, http::DaemonMetrics::RefitVerdict::kError, 0);
         spdlog::error("refit {}: {}", sat, out.message);
         continue;
       }
@@ -181,6 +249,11 @@ struct Daemon::Impl {
         counters.refits_failed.fetch_add(1);
       }
       counters.set_last_refit(sat, r.utime);
+      // The verdict as stored in the history (magcal serve counts the same rows).
+      count_refit(sat,
+                  r.accepted ? http::DaemonMetrics::RefitVerdict::kAccepted
+                             : http::DaemonMetrics::RefitVerdict::kRejected,
+                  r.utime);
       publisher->publish(message_from_result(sat, r));
       const Eigen::Vector3d sb = r.bias_sigma_nT();
       spdlog::info(
@@ -307,6 +380,10 @@ const DaemonCounters& Daemon::counters() const {
   return impl_->counters;
 }
 
+int Daemon::http_port() const {
+  return impl_->server ? impl_->server->port() : 0;
+}
+
 std::string Daemon::open() {
   auto& d = *impl_;
   const auto& c = d.config;
@@ -331,12 +408,14 @@ std::string Daemon::open() {
     d.publisher = std::make_unique<LcmPublisher>();  // replay without publish_url: no output
   }
   d.queue = std::make_unique<IngestQueue>(c.service.queue_capacity_samples, d.replay);
+  if (!c.http.listen.empty()) d.metrics = std::make_unique<http::DaemonMetrics>(MAGCAL_VERSION);
   try {
     d.worker = std::make_unique<IngestWorker>(
         c, d.counters, std::move(field),
         IngestWorker::Hooks{
             [&d](const std::string& sat, const CalibrationResult& r) { d.on_snapshot(sat, r); },
-            [&d](int64_t t) { d.on_refit_due(t); }});
+            [&d](int64_t t) { d.on_refit_due(t); }},
+        d.metrics.get());
     d.refit_db = std::make_unique<storage::Database>(
         c.storage.db_path, storage::OpenOptions{.busy_timeout_ms = c.storage.busy_timeout_ms});
     d.refits = std::make_unique<RefitRunner>(d.config, *d.refit_db);
@@ -348,7 +427,7 @@ std::string Daemon::open() {
   } catch (const storage::StorageError& e) {
     return "database " + c.storage.db_path + ": " + e.what();
   }
-  return "";
+  return d.start_server();
 }
 
 int Daemon::run(const std::atomic<bool>& stop) {
@@ -361,11 +440,14 @@ int Daemon::run(const std::atomic<bool>& stop) {
   std::thread worker([&d] { d.worker_thread(); });
   std::thread refitter([&d] { d.refit_thread(); });
 
-  LcmIngest ingest(*d.lcm, c.lcm.samples_channel, c.lcm.batch_channel, *d.queue, d.counters);
-  // The database is open (open()) and the subscription live (the constructor): systemd may
-  // start what is ordered after magcald, and the watchdog runs from here.
+  LcmIngest ingest(*d.lcm, c.lcm.samples_channel, c.lcm.batch_channel, *d.queue, d.counters,
+                   d.metrics.get());
+  // The database is open (open()) and the subscription live (the constructor): /-/ready says
+  // so, systemd may start what is ordered after magcald, and the watchdog runs from here.
+  d.lcm_live.store(true);
   d.systemd.ready();
   const auto end = ingest.run(stop, d.replay, &d.fatal);
+  d.lcm_live.store(false);
   // The drain (bounded by [storage] max_failure_s) runs under TimeoutStopSec, not the watchdog.
   d.systemd.stopping();
   spdlog::info("{}; draining {} queued samples",
@@ -409,6 +491,7 @@ int Daemon::run(const std::atomic<bool>& stop) {
   const auto st = d.status();
   d.publisher->publish(st);
   spdlog::info("final {}", format_status_line(st));
+  if (d.server) d.server->stop();
   if (d.fatal.load()) {
     std::lock_guard lock(d.fatal_mutex);
     spdlog::critical("magcald stopped: {} (exit code {})", d.fatal_reason, d.fatal_exit);

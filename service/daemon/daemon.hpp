@@ -7,6 +7,10 @@
 //   refit thread    : scheduled refits (wall clock: its own timer; data clock: requests from
 //                     the worker) on its own connection; publishes results and posts accepted
 //                     ones back to the worker for re-anchoring. Never blocks ingestion.
+//   http threads    : the operations server ([http] listen, service/http/operations_server.hpp):
+//                     its own read-only connection; /metrics from DaemonMetrics, /-/healthy and
+//                     /-/ready from the flags here. Started by open() (after the database and
+//                     LCM: a port it cannot bind is an error at start), stopped by run().
 //
 // run() ends when `stop` is set (SIGINT/SIGTERM) or, for a file:// URL, at the end of the log:
 // stop receiving, drain the queue, commit, finish due refits (replay) or the running one
@@ -47,6 +51,9 @@ class Daemon {
   int run(const std::atomic<bool>& stop);
 
   const DaemonCounters& counters() const;
+  // The operations server's bound port after open() (useful with [http] listen port 0); 0 when
+  // the server is off.
+  int http_port() const;
 
  private:
   struct Impl;

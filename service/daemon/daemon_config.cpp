@@ -188,7 +188,23 @@ std::map<std::string, Section> key_table(DaemonConfig& c) {
         {"status_every_s", bind(c.service.status_every_s)},
         {"min_position_km", bind(c.service.min_position_km)},
         {"max_position_km", bind(c.service.max_position_km)}}},
+      {"http", {{"listen", bind(c.http.listen)}}},
   };
+}
+
+// "" (off) or ADDR:PORT with a port in 0..65535 (binding is checked at start).
+std::string check_listen(const std::string& listen) {
+  if (listen.empty()) return "";
+  const auto colon = listen.rfind(':');
+  const std::string port = colon == std::string::npos ? "" : listen.substr(colon + 1);
+  const bool digits = !port.empty() && port.size() <= 5 &&
+                      port.find_first_not_of("0123456789") == std::string::npos;
+  if (colon == 0 || !digits || std::stoi(port) > 65535) {
+    return "[http] listen: expected \"ADDR:PORT\" (e.g. \"127.0.0.1:9780\", port 0 = any free "
+           "one) or \"\" (off), got \"" +
+           listen + "\"";
+  }
+  return "";
 }
 
 std::string check_channel(const std::string& key, const std::string& name) {
@@ -240,6 +256,7 @@ std::string DaemonConfig::validate() const {
            "\"";
   }
   if (!(log.status_every_s > 0.0)) return "[log] status_every_s: must be > 0";
+  if (auto e = check_listen(http.listen); !e.empty()) return e;
   // Bounded so that the microsecond conversions stay far from the int64 limits.
   if (!(ingest.max_time_jump_s >= 1.0 && ingest.max_time_jump_s <= 1e6)) {
     return "[ingest] max_time_jump_s: must be within [1, 1e6] s";

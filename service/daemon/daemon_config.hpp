@@ -83,6 +83,15 @@ struct DaemonConfig {
     double max_position_km = 8000.0;
   } service;
 
+  // The operations server (design.md "Operations surface"): /metrics, /-/healthy, /-/ready, the
+  // history API and the page, read-only, on its own thread and database connection.
+  struct Http {
+    // "ADDR:PORT" ([ADDR]:PORT for IPv6; port 0 = any free port, logged), "" = off. Loopback
+    // by default: binding elsewhere is an explicit choice. A port that cannot be bound stops
+    // magcald at start (exit 2): monitoring that silently is not there is worse.
+    std::string listen = "127.0.0.1:9780";
+  } http;
+
   // Empty when every value is valid; else one line naming the key.
   std::string validate() const;
 

@@ -43,9 +43,11 @@ int64_t snapshot_period_utime(const DaemonConfig& c) {
 }  // namespace
 
 IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
-                           std::unique_ptr<ReferenceField> field, Hooks hooks)
+                           std::unique_ptr<ReferenceField> field, Hooks hooks,
+                           http::DaemonMetrics* metrics)
     : config_(config),
       counters_(counters),
+      metrics_(metrics),
       field_(std::move(field)),
       hooks_(std::move(hooks)),
       validator_(validator_options(config)),
@@ -74,7 +76,7 @@ void IngestWorker::restore() {
   for (const auto& sat : samples_.spacecraft()) {
     const auto newest = samples_.newest_utime(sat);
     if (!newest) continue;
-    SpacecraftTracker& t = fleet_.get(sat);
+    SpacecraftTracker& t = tracker(sat, nullptr);
     t.newest_utime = *newest;
     samples_.read_window(sat, *newest, saturating_add(*newest, 1), rows);
     if (!rows.empty()) t.last_seq = rows.back().seq;
@@ -117,6 +119,47 @@ void IngestWorker::process(const IngestItem& item) {
   if (data_scheduler_) check_data_clock();
 }
 
+SpacecraftTracker& IngestWorker::tracker(const std::string& sat_id, bool* created) {
+  bool is_new = false;
+  SpacecraftTracker& t = fleet_.get(sat_id, &is_new);
+  // Its series are looked up once, here; the per-sample path uses the cached pointer.
+  if (is_new && metrics_) t.metrics = &metrics_->spacecraft(sat_id);
+  if (created) *created = is_new;
+  return t;
+}
+
+void IngestWorker::count_missing(SpacecraftTracker& t, int64_t seq) {
+  const int64_t missing = t.observe_seq(seq);
+  if (missing == 0) return;
+  counters_.missing_by_seq.fetch_add(missing, std::memory_order_relaxed);
+  if (t.metrics) t.metrics->missing->Increment(static_cast<double>(missing));
+}
+
+void IngestWorker::count_stored(size_t begin, size_t end) {
+  // Rows come in runs of one spacecraft (a batch, a recorder dump): one lookup per run.
+  size_t dup = 0;
+  size_t run_start = begin;
+  int64_t run_stored = 0;
+  auto flush_run = [&](size_t at) {
+    if (run_stored > 0) {
+      if (SpacecraftTracker* t = fleet_.find(pending_[run_start].sat_id); t && t->metrics) {
+        t->metrics->stored->Increment(static_cast<double>(run_stored));
+      }
+    }
+    run_stored = 0;
+    run_start = at;
+  };
+  for (size_t i = begin; i < end; ++i) {
+    if (pending_[i].sat_id != pending_[run_start].sat_id) flush_run(i);
+    if (dup < duplicate_rows_.size() && duplicate_rows_[dup] + begin == i) {
+      ++dup;  // a duplicate the in-memory check could not see: counted as rejected instead
+      continue;
+    }
+    ++run_stored;
+  }
+  flush_run(end);
+}
+
 bool IngestWorker::is_duplicate(const std::string& sat_id, int64_t utime) {
   // Only reached for samples not newer than the spacecraft's newest (rare: recorder playback).
   for (const auto& p : pending_) {
@@ -142,18 +185,18 @@ void IngestWorker::ingest_sample(const mag_sample_t& s, const std::string& batch
     if (*reason != RejectReason::kInvalidSatId && *reason != RejectReason::kBatchSatMismatch &&
         *reason != RejectReason::kUnknownSpacecraft) {
       // The frame was received: it is not missing, whatever is wrong with it.
-      if (auto* t = fleet_.find(sat)) counters_.missing_by_seq += t->observe_seq(s.seq);
+      if (auto* t = fleet_.find(sat)) count_missing(*t, s.seq);
     }
     reject_sample(*reason, sat, s);
     return;
   }
   bool created = false;
-  SpacecraftTracker& t = fleet_.get(sat, &created);
+  SpacecraftTracker& t = tracker(sat, &created);
   if (created) {
     counters_.n_spacecraft.store(static_cast<int32_t>(fleet_.size()));
     spdlog::info("new spacecraft '{}' (first sample {})", sat, format_iso8601_utc(s.utime));
   }
-  counters_.missing_by_seq += t.observe_seq(s.seq);
+  count_missing(t, s.seq);
   // Telemetry cannot come from the future (beyond clock skew): a corrupt time tag.
   const int64_t now = receive_utime > 0 ? receive_utime : wall_utime();
   if (s.utime > saturating_add(now, config_.max_future_utime())) {
@@ -355,8 +398,21 @@ void IngestWorker::commit_pending() {
       const bool last = done + n == pending_.size();
       storage::InsertStats stats;
       {
+        const auto t0 = std::chrono::steady_clock::now();
+        // Every attempt is timed, a failed one too (a lock wait shows as a long commit).
+        struct ObserveOnExit {
+          http::DaemonMetrics* metrics;
+          std::chrono::steady_clock::time_point t0;
+          ~ObserveOnExit() {
+            if (metrics) {
+              metrics->observe_commit_seconds(
+                  std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+            }
+          }
+        } observe{metrics_, t0};
         storage::Transaction tx(db_);
-        stats = samples_.insert_batch(std::span(pending_).subspan(done, n));
+        stats = samples_.insert_batch(std::span(pending_).subspan(done, n),
+                                      metrics_ ? &duplicate_rows_ : nullptr);
         if (last) {
           for (const auto& [sat, snap] : pending_snapshots_) {
             history_.append(record_from_result(sat, snap));
@@ -364,6 +420,7 @@ void IngestWorker::commit_pending() {
         }
         tx.commit();
       }
+      if (metrics_) count_stored(done, done + n);
       done += n;
       counters_.stored.fetch_add(stats.inserted, std::memory_order_relaxed);
       // Duplicates the in-memory check could not see (e.g. within one frame).

@@ -39,6 +39,7 @@
 #include "service/daemon/spacecraft_tracker.hpp"
 #include "service/daemon/storage_retry.hpp"
 #include "service/daemon/throttled_log.hpp"
+#include "service/http/metrics.hpp"
 #include "service/io/reference_field.hpp"
 #include "storage/calibration_history.hpp"
 #include "storage/database.hpp"
@@ -57,8 +58,11 @@ class IngestWorker {
   };
 
   // Opens its own connection to config.storage.db_path (throws storage::StorageError).
+  // `metrics` (optional, must outlive the worker): per-spacecraft stored and missing counts and
+  // the commit-latency histogram (service/http/metrics.hpp).
   IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
-               std::unique_ptr<ReferenceField> field, Hooks hooks);
+               std::unique_ptr<ReferenceField> field, Hooks hooks,
+               http::DaemonMetrics* metrics = nullptr);
   ~IngestWorker();
 
   // Rebuilds trackers from the database (see file comment). Call once before process().
@@ -122,9 +126,14 @@ class IngestWorker {
   void run_retention();
   void check_data_clock();
   void commit_pending();
+  // Counts the committed rows [begin, end) of pending_ per spacecraft (minus duplicate_rows_).
+  void count_stored(size_t begin, size_t end);
+  SpacecraftTracker& tracker(const std::string& sat_id, bool* created);
+  void count_missing(SpacecraftTracker& t, int64_t seq);
 
   const DaemonConfig config_;  // a copy: callers may pass a temporary
   DaemonCounters& counters_;
+  http::DaemonMetrics* metrics_;
   std::unique_ptr<ReferenceField> field_;
   Hooks hooks_;
   ValidatorOptions validator_;
@@ -139,6 +148,7 @@ class IngestWorker {
   StorageRetry read_retry_;
 
   std::vector<storage::StoredSample> pending_;
+  std::vector<size_t> duplicate_rows_;  // of the last insert (reused: no allocation per batch)
   std::vector<std::pair<std::string, CalibrationResult>> pending_snapshots_;
   std::chrono::steady_clock::time_point first_pending_time_{};
   std::chrono::steady_clock::time_point last_retention_time_{};

@@ -99,8 +99,9 @@ DecodeOutcome decode_frame(const void* data, int size, bool expect_batch, Ingest
 }
 
 LcmIngest::LcmIngest(lcm::LCM& lcm, const std::string& samples_channel,
-                     const std::string& batch_channel, IngestQueue& queue, DaemonCounters& counters)
-    : lcm_(lcm), queue_(queue), counters_(counters) {
+                     const std::string& batch_channel, IngestQueue& queue, DaemonCounters& counters,
+                     http::DaemonMetrics* metrics)
+    : lcm_(lcm), queue_(queue), counters_(counters), metrics_(metrics) {
   samples_sub_ = lcm_.subscribeFunction(samples_channel, &LcmIngest::on_samples, this);
   batch_sub_ = lcm_.subscribeFunction(batch_channel, &LcmIngest::on_batch, this);
   // Unbounded inside LCM (its default of 30 drops silently); IngestQueue is the bound.
@@ -120,18 +121,41 @@ void LcmIngest::on_batch(const lcm::ReceiveBuffer* rbuf, const std::string&, Lcm
   self->on_frame(rbuf, true);
 }
 
+void LcmIngest::count_received(const std::string& sat_id, int64_t n) {
+  if (!metrics_) return;
+  auto it = received_series_.find(sat_id);
+  if (it == received_series_.end()) {
+    http::SpacecraftMetrics& m = metrics_->spacecraft(sat_id);
+    // Bounded like the registry (hostile ids must not grow it): past the cap, look up each time.
+    if (received_series_.size() >= http::DaemonMetrics::kMaxSpacecraftSeries) {
+      m.received->Increment(static_cast<double>(n));
+      return;
+    }
+    it = received_series_.emplace(sat_id, &m).first;
+  }
+  it->second->received->Increment(static_cast<double>(n));
+}
+
 void LcmIngest::on_frame(const lcm::ReceiveBuffer* rbuf, bool batch) {
   IngestItem item;
   const auto outcome = decode_frame(rbuf->data, static_cast<int>(rbuf->data_size), batch, item);
   if (outcome != DecodeOutcome::kOk) {
     // One undecodable frame = one received, one rejected (its sample count is unknowable).
     counters_.received.fetch_add(1, std::memory_order_relaxed);
+    count_received(std::string(), 1);
     counters_.reject(outcome == DecodeOutcome::kWrongType ? RejectReason::kWrongType
                                                           : RejectReason::kDecodeError);
     return;
   }
   counters_.received.fetch_add(static_cast<int64_t>(item.samples.size()),
                                std::memory_order_relaxed);
+  if (metrics_) {
+    if (batch) {
+      count_received(item.batch_sat_id, static_cast<int64_t>(item.samples.size()));
+    } else if (!item.samples.empty()) {
+      count_received(item.samples[0].sat_id, 1);
+    }
+  }
   if (item.samples.empty()) return;
   item.receive_utime = wall_utime();
   queue_.push(std::move(item));  // overflow is counted by the queue

@@ -10,11 +10,13 @@
 
 #include <atomic>
 #include <string>
+#include <unordered_map>
 
 #include <lcm/lcm-cpp.hpp>
 
 #include "service/daemon/health.hpp"
 #include "service/daemon/ingest_queue.hpp"
+#include "service/http/metrics.hpp"
 
 namespace magcal {
 
@@ -31,9 +33,11 @@ class LcmIngest {
  public:
   enum class End { kStopped, kEndOfLog, kError };
 
-  // Subscribes immediately; `lcm` must be good() and outlive this object.
+  // Subscribes immediately; `lcm` must be good() and outlive this object. `metrics` (optional,
+  // must outlive this): magcal_samples_received_total per spacecraft (a batch counts under its
+  // sat_id, an undecodable frame as 1 under "").
   LcmIngest(lcm::LCM& lcm, const std::string& samples_channel, const std::string& batch_channel,
-            IngestQueue& queue, DaemonCounters& counters);
+            IngestQueue& queue, DaemonCounters& counters, http::DaemonMetrics* metrics = nullptr);
   ~LcmIngest();
   LcmIngest(const LcmIngest&) = delete;
   LcmIngest& operator=(const LcmIngest&) = delete;
@@ -48,10 +52,14 @@ class LcmIngest {
                          LcmIngest* self);
   static void on_batch(const lcm::ReceiveBuffer* rbuf, const std::string& channel, LcmIngest* self);
   void on_frame(const lcm::ReceiveBuffer* rbuf, bool batch);
+  void count_received(const std::string& sat_id, int64_t n);
 
   lcm::LCM& lcm_;
   IngestQueue& queue_;
   DaemonCounters& counters_;
+  http::DaemonMetrics* metrics_;
+  // This thread's own cache of the per-spacecraft series (no lock, no allocation once seen).
+  std::unordered_map<std::string, http::SpacecraftMetrics*> received_series_;
   lcm::Subscription* samples_sub_ = nullptr;
   lcm::Subscription* batch_sub_ = nullptr;
 };

@@ -1,6 +1,7 @@
 // magcald: the calibration daemon's composition root (design.md "The daemon's command line and
 // config"). Flags override the config file, which overrides the built-in defaults.
 //   magcald [--config FILE.toml] [--db FILE] [--lcm-url URL] [--log-level LEVEL]
+//           [--http-listen ADDR:PORT]
 // Exit codes: 0 ok (stopped by SIGINT/SIGTERM or end of a replayed log), 1 usage or bad
 // config, 2 database / LCM / data error at start, 3 storage failed for [storage] max_failure_s
 // while running, 4 a worker or refit thread died (service/daemon/daemon.hpp).
@@ -30,12 +31,16 @@ int main(int argc, char** argv) {
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);
   CLI::App app{"magcald: magnetometer calibration daemon (LCM in, SQLite + LCM out)"};
-  std::string config_path, db_path, lcm_url, log_level;
+  std::string config_path, db_path, lcm_url, log_level, http_listen;
   app.add_option("--config", config_path, "TOML config (deploy/magcald.example.toml lists keys)");
   app.add_option("--db", db_path, "SQLite database (overrides [storage] db_path)");
   app.add_option("--lcm-url", lcm_url,
                  "LCM URL (overrides [lcm] url); file://LOG?speed=0 replays a log and exits");
   app.add_option("--log-level", log_level, "trace|debug|info|warn|error|critical|off");
+  auto* http_opt = app.add_option(
+      "--http-listen", http_listen,
+      "operations server ADDR:PORT (overrides [http] listen; default 127.0.0.1:9780, port 0 = any "
+      "free port, \"\" = off): /metrics, /-/healthy, /-/ready, /api/v1/, /");
   app.set_version_flag("--version", MAGCAL_VERSION);
   try {
     app.parse(argc, argv);
@@ -54,8 +59,10 @@ int main(int argc, char** argv) {
   if (!db_path.empty()) config.storage.db_path = db_path;
   if (!lcm_url.empty()) config.lcm.url = lcm_url;
   if (!log_level.empty()) config.log.level = log_level;
+  if (http_opt->count() > 0) config.http.listen = http_listen;  // "" is a value: off
   if (const auto error = config.validate(); !error.empty()) {
-    std::cerr << "magcald: " << (log_level.empty() ? "" : "--log-level / ") << error << "\n";
+    std::cerr << "magcald: " << (log_level.empty() ? "" : "--log-level / ")
+              << (http_opt->count() > 0 ? "--http-listen / " : "") << error << "\n";
     return kExitUsage;
   }
   spdlog::set_level(spdlog::level::from_str(config.log.level));

@@ -37,6 +37,10 @@
 #include "pipeline/magnetometer_ukf.hpp"
 #include "schemas/magcal_messages.hpp"
 
+namespace magcal::http {
+struct SpacecraftMetrics;
+}
+
 namespace magcal {
 
 // A sample waiting for corroboration of its time (its sat_id is the tracker's, left empty).
@@ -64,6 +68,7 @@ struct SpacecraftTracker {
   bool state_dirty = false;      // filter changed since its state was last written
   bool retention_due = false;    // new samples since the last retention pass
   std::vector<HeldSample> held;  // arrival order; at most kHeldCapacity, freed when empty
+  http::SpacecraftMetrics* metrics = nullptr;  // its Prometheus series (none without a server)
 
   // Missing samples implied by `seq`: a forward gap counts once the following number confirms
   // it (continues after the gap), so one corrupt seq implies nothing; out-of-order or repeated

@@ -3,16 +3,22 @@
 // with an independent decoder (lcm::LogFile + the generated types).
 #pragma once
 
+#include <arpa/inet.h>
 #include <fcntl.h>
+#include <netinet/in.h>
 #include <signal.h>
 #include <spawn.h>
+#include <sys/socket.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <fstream>
 #include <functional>
 #include <iterator>
+#include <regex>
 #include <string>
 #include <thread>
 #include <vector>
@@ -78,6 +84,98 @@ inline int run(const std::vector<std::string>& args, const std::string& log,
 inline std::string slurp(const std::string& path) {
   std::ifstream in(path);
   return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
+
+// Multicast over loopback works here (toolchain.md: not in every network namespace).
+inline bool multicast_available(const std::string& url) {
+  lcm::LCM a(url);
+  if (!a.good()) return false;
+  bool got = false;
+  a.subscribeFunction(
+      "MAGCAL_PROBE",
+      +[](const lcm::ReceiveBuffer*, const std::string&, bool* flag) { *flag = true; }, &got);
+  for (int i = 0; i < 5 && !got; ++i) {
+    uint8_t byte = 1;
+    a.publish("MAGCAL_PROBE", &byte, 1);
+    a.handleTimeout(200);
+  }
+  return got;
+}
+
+// The port magcald's operations server bound, from its log line "operations server:
+// http://ADDR:PORT/ ..." (with --http-listen ADDR:0); -1 when it does not appear within timeout_s.
+inline int wait_http_port(const std::string& log_path, double timeout_s) {
+  int port = -1;
+  wait_until(
+      [&] {
+        std::smatch m;
+        const std::string log = slurp(log_path);
+        if (!std::regex_search(log, m, std::regex(R"(operations server: http://[^ ]*:(\d+)/)")))
+          return false;
+        port = std::stoi(m[1].str());
+        return true;
+      },
+      timeout_s);
+  return port;
+}
+
+constexpr int kLogBatch = 50;                   // samples per mag_batch_t frame of write_batch_log
+constexpr int64_t kLogStep_utime = 10'000'000;  // 10 s between its samples
+
+// A replay log of n valid samples of `sat` (has_reference) from t0_utime, kLogBatch per
+// mag_batch_t frame on MAGCAL_BATCH; consecutive frames are `frame_spacing_us` apart in log
+// time, so `?speed=1` (or lcm-logplayer -s 1) plays them over n/kLogBatch spacings.
+inline void write_batch_log(const std::string& path, const std::string& sat, int64_t t0_utime,
+                            int n, int64_t frame_spacing_us) {
+  lcm::LogFile out(path, "w");
+  REQUIRE(out.good());
+  int64_t event = 0;
+  for (int first = 0; first < n; first += kLogBatch) {
+    magcal::mag_batch_t batch;
+    batch.sat_id = sat;
+    for (int k = first; k < std::min(n, first + kLogBatch); ++k) {
+      magcal::mag_sample_t s{};
+      s.utime = t0_utime + k * kLogStep_utime;
+      s.sat_id = sat;
+      s.seq = k;
+      // A field turning slowly through all directions, seen with a constant bias.
+      const double a = 0.01 * k, b = 0.0037 * k;
+      const double h[3] = {30000.0 * std::cos(a) * std::cos(b), 30000.0 * std::sin(a) * std::cos(b),
+                           30000.0 * std::sin(b)};
+      for (int i = 0; i < 3; ++i) {
+        s.h_body_nT[i] = h[i];
+        s.b_sensor_nT[i] = h[i] + 100.0 * (i + 1);
+      }
+      s.has_reference = true;
+      s.temperature_C = std::nanf("");
+      batch.samples.push_back(s);
+    }
+    batch.n = static_cast<int32_t>(batch.samples.size());
+    std::vector<uint8_t> bytes(static_cast<size_t>(batch.getEncodedSize()));
+    batch.encode(bytes.data(), 0, static_cast<int>(bytes.size()));
+    lcm::LogEvent e;
+    e.eventnum = event;
+    e.timestamp = t0_utime + event * frame_spacing_us;
+    e.channel = "MAGCAL_BATCH";
+    e.datalen = static_cast<int32_t>(bytes.size());
+    e.data = bytes.data();
+    out.writeEvent(&e);
+    ++event;
+  }
+}
+
+// Another process (the sqlite3 shell) takes the write lock of `db` and holds it for `hold_s`;
+// returns once it holds it (its script and output go to script_path and log_path).
+inline pid_t hold_write_lock(const std::string& script_path, const std::string& log_path,
+                             const std::string& db, int hold_s) {
+  {
+    std::ofstream script(script_path);
+    script << "BEGIN EXCLUSIVE;\n.print locked\n.shell sleep " << hold_s << "\nCOMMIT;\n";
+  }
+  const pid_t locker = spawn({"sqlite3", db}, log_path, script_path);
+  REQUIRE(locker > 0);
+  REQUIRE(wait_until([&] { return slurp(log_path).find("locked") != std::string::npos; }, 10));
+  return locker;
 }
 
 // Every event of an LCM log, decoded by the generated types (an independent reader).

@@ -118,9 +118,11 @@ TEST_CASE("duplicate (sat_id, utime) is rejected, counted, and the first copy ke
   other_sat.sat_id = "SAT2";  // same time, other spacecraft: not a duplicate
   second.push_back(other_sat);
 
-  const InsertStats stats = store.insert_batch(second);
+  std::vector<size_t> duplicate_rows{99};  // cleared by the call
+  const InsertStats stats = store.insert_batch(second, &duplicate_rows);
   CHECK(stats.inserted == 3 + 1);    // seq 10, 11, 12 and SAT2
   CHECK(stats.duplicates == 2 + 2);  // seq 8, 9, the repeat, the changed copy
+  CHECK(duplicate_rows == std::vector<size_t>{0, 1, 5, 6});
   CHECK(store.count("SAT1") == 13);
   CHECK(store.count("SAT2") == 1);
   const auto back = store.window("SAT1", first[3].utime, first[3].utime + 1);

@@ -69,7 +69,7 @@ TEST_CASE("magcald on its embedded defaults: honest UKF snapshots, accepted full
       std::ofstream out(cfg);
       out << "[refit]\nclock = \"data\"\nevery_hours = 6\n";
     }
-    REQUIRE(run({bin + "/magcald", "--config", cfg, "--db", db, "--lcm-url",
+    REQUIRE(run({bin + "/magcald", "--http-listen", "", "--config", cfg, "--db", db, "--lcm-url",
                  "file://" + log + "?speed=0"},
                 tmp.file("magcald.log"), 300) == 0);
     std::ifstream tin(tmp.file("truth.json"));

@@ -32,6 +32,7 @@ TEST_CASE("defaults are valid and match design.md", "[daemon_config]") {
   CHECK(c.storage.max_failure_s == 60.0);
   CHECK(c.storage.max_pending_samples == 200000);
   CHECK(c.storage.busy_timeout_ms == 5000);
+  CHECK(c.http.listen == "127.0.0.1:9780");  // design.md: loopback by default
 }
 
 TEST_CASE("the example config lists every key with exactly the defaults", "[daemon_config]") {
@@ -82,6 +83,7 @@ TEST_CASE("the example config lists every key with exactly the defaults", "[daem
   CHECK(c.log.status_every_s == d.log.status_every_s);
   CHECK(c.ingest.max_time_jump_s == d.ingest.max_time_jump_s);
   CHECK(c.ingest.max_future_s == d.ingest.max_future_s);
+  CHECK(c.http.listen == d.http.listen);
 }
 
 TEST_CASE("values are read, integers accepted for floats", "[daemon_config]") {
@@ -102,6 +104,8 @@ consistency_action = "reseed"
 residual_test = "chi_square"
 [service]
 whitelist = ["SAT-B", "SAT-A"]
+[http]
+listen = "[::1]:0"
 )",
                                         "t.toml");
   REQUIRE(load.error == "");
@@ -112,6 +116,8 @@ whitelist = ["SAT-B", "SAT-A"]
   CHECK(load.config.ukf.filter.process_noise_per_sqrt_hour(0) == 0.1);
   CHECK(load.config.gates.residual_test == magcal::GateOptions::ResidualTest::kChiSquare);
   CHECK(load.config.service.whitelist.size() == 2);
+  CHECK(load.config.http.listen == "[::1]:0");
+  CHECK(parse_daemon_config("[http]\nlisten = \"\"\n", "off.toml").config.http.listen.empty());
 }
 
 TEST_CASE("unknown keys, bad types and bad values name the key", "[daemon_config]") {
@@ -142,6 +148,12 @@ TEST_CASE("unknown keys, bad types and bad values name the key", "[daemon_config
       {"[storage]\nbusy_timeout_ms = -1\n", "[storage] busy_timeout_ms: must be >= 0"},
       {"[storage]\nmax_pending_samples = 100\n",
        "[storage] max_pending_samples: must be >= commit_every_samples"},
+      {"[http]\nlisten = \"9780\"\n", "[http] listen: expected \"ADDR:PORT\""},
+      {"[http]\nlisten = \"localhost:\"\n", "[http] listen"},
+      {"[http]\nlisten = \":9780\"\n", "[http] listen"},
+      {"[http]\nlisten = \"127.0.0.1:65536\"\n", "[http] listen"},
+      {"[http]\nlisten = \"127.0.0.1:-1\"\n", "[http] listen"},
+      {"[http]\nlisten = 9780\n", "[http] listen: expected a string"},
       {"lcm = 3\n", "[lcm] must be a table"},
       {"[storage\n", "t.toml:1"},
   };

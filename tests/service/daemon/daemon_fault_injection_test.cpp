@@ -32,46 +32,10 @@ const std::string kBin = MAGCAL_BIN_DIR;
 const std::string kSat = "FAULT-1";
 constexpr int64_t kT0_utime = 1704081600000000;  // 2024-01-01T04:00:00Z: no data-clock refit
 constexpr int64_t kStep_utime = 10'000'000;      // 10 s between samples
-constexpr int kBatch = 50;                       // samples per mag_batch_t frame
+constexpr int kBatch = kLogBatch;                // samples per mag_batch_t frame
 
-// A replay log of n valid samples (has_reference) in frames of kBatch; consecutive frames
-// are `frame_spacing_us` apart in log time, so `?speed=1` replays them over n/kBatch spacings.
 void write_log(const std::string& path, int n, int64_t frame_spacing_us) {
-  lcm::LogFile out(path, "w");
-  REQUIRE(out.good());
-  int64_t event = 0;
-  for (int first = 0; first < n; first += kBatch) {
-    magcal::mag_batch_t batch;
-    batch.sat_id = kSat;
-    for (int k = first; k < std::min(n, first + kBatch); ++k) {
-      magcal::mag_sample_t s{};
-      s.utime = kT0_utime + k * kStep_utime;
-      s.sat_id = kSat;
-      s.seq = k;
-      // A field turning slowly through all directions, seen with a constant bias.
-      const double a = 0.01 * k, b = 0.0037 * k;
-      const double h[3] = {30000.0 * std::cos(a) * std::cos(b), 30000.0 * std::sin(a) * std::cos(b),
-                           30000.0 * std::sin(b)};
-      for (int i = 0; i < 3; ++i) {
-        s.h_body_nT[i] = h[i];
-        s.b_sensor_nT[i] = h[i] + 100.0 * (i + 1);
-      }
-      s.has_reference = true;
-      s.temperature_C = std::nanf("");
-      batch.samples.push_back(s);
-    }
-    batch.n = static_cast<int32_t>(batch.samples.size());
-    std::vector<uint8_t> bytes(static_cast<size_t>(batch.getEncodedSize()));
-    batch.encode(bytes.data(), 0, static_cast<int>(bytes.size()));
-    lcm::LogEvent e;
-    e.eventnum = event;
-    e.timestamp = kT0_utime + event * frame_spacing_us;
-    e.channel = "MAGCAL_BATCH";
-    e.datalen = static_cast<int32_t>(bytes.size());
-    e.data = bytes.data();
-    out.writeEvent(&e);
-    ++event;
-  }
+  write_batch_log(path, kSat, kT0_utime, n, frame_spacing_us);
 }
 
 // Data-clock refits (none in these logs), a status message every 0.1 s, and `storage` keys.
@@ -89,7 +53,7 @@ std::string write_config(const TempDir& tmp, const std::string& name, const std:
 
 pid_t start_daemon(const std::string& config, const std::string& db, const std::string& log_lcm,
                    const std::string& speed, const std::string& out_log) {
-  return spawn({kBin + "/magcald", "--config", config, "--db", db, "--lcm-url",
+  return spawn({kBin + "/magcald", "--http-listen", "", "--config", config, "--db", db, "--lcm-url",
                 "file://" + log_lcm + "?speed=" + speed},
                out_log);
 }
@@ -151,18 +115,8 @@ struct TmpfsMount {
   }
 };
 
-// Another process (the sqlite3 shell) takes the write lock of `db` and holds it for `hold_s`;
-// returns once it holds it.
 pid_t hold_write_lock(const TempDir& tmp, const std::string& db, int hold_s) {
-  {
-    std::ofstream script(tmp.file("lock.sql"));
-    script << "BEGIN EXCLUSIVE;\n.print locked\n.shell sleep " << hold_s << "\nCOMMIT;\n";
-  }
-  const pid_t locker = spawn({"sqlite3", db}, tmp.file("lock.log"), tmp.file("lock.sql"));
-  REQUIRE(locker > 0);
-  REQUIRE(wait_until(
-      [&] { return slurp(tmp.file("lock.log")).find("locked") != std::string::npos; }, 10));
-  return locker;
+  return magcal::test::hold_write_lock(tmp.file("lock.sql"), tmp.file("lock.log"), db, hold_s);
 }
 
 // A magcald that must stop because storage stays broken: exit 3, the reason and the count of
@@ -222,14 +176,7 @@ TEST_CASE("database locked by another process past the busy timeout: retried, al
   REQUIRE(wait_until([&] { return fs::exists(db) && read_stored(db).count >= 200; }, 20));
 
   // Another process takes the write lock and holds it for 2 s (20x the busy timeout).
-  {
-    std::ofstream script(tmp.file("lock.sql"));
-    script << "BEGIN EXCLUSIVE;\n.print locked\n.shell sleep 2\nCOMMIT;\n";
-  }
-  const pid_t locker = spawn({"sqlite3", db}, tmp.file("lock.log"), tmp.file("lock.sql"));
-  REQUIRE(locker > 0);
-  REQUIRE(wait_until(
-      [&] { return slurp(tmp.file("lock.log")).find("locked") != std::string::npos; }, 10));
+  const pid_t locker = hold_write_lock(tmp, db, 2);
   const int64_t stored_at_lock = read_stored(db).count;
   REQUIRE(wait_exit(locker, 20) == 0);
   const int64_t stored_at_release = read_stored(db).count;
@@ -316,9 +263,9 @@ TEST_CASE("full filesystem: kept and retried, exit 3 after max_failure_s, re-rep
   // Space freed: a restart and the same replay store the rest, the stored part as duplicates.
   fs::remove(fsm.dir + "/filler.bin");
   const auto cfg2 = write_config(tmp, "d2.toml", tmp.file("out2.lcm"), "");
-  const int rc2 = run(
-      {kBin + "/magcald", "--config", cfg2, "--db", db, "--lcm-url", "file://" + log + "?speed=0"},
-      tmp.file("run2.log"));
+  const int rc2 = run({kBin + "/magcald", "--http-listen", "", "--config", cfg2, "--db", db,
+                       "--lcm-url", "file://" + log + "?speed=0"},
+                      tmp.file("run2.log"));
   INFO(slurp(tmp.file("run2.log")));
   CHECK(rc2 == 0);
   const auto s2 = read_published(tmp.file("out2.lcm")).statuses.back();
@@ -396,9 +343,9 @@ TEST_CASE("database made read-only underneath: the open file keeps working, a re
   const auto cfg = write_config(tmp, "d.toml", tmp.file("out.lcm"), "max_failure_s = 2\n");
   auto daemon_args = [&](const std::string& speed) {
     std::vector<std::string> args = as_user;
-    for (const std::string& a :
-         {kBin + "/magcald", std::string("--config"), cfg, std::string("--db"), db,
-          std::string("--lcm-url"), "file://" + log + "?speed=" + speed}) {
+    for (const std::string& a : {kBin + "/magcald", std::string("--http-listen"), std::string(),
+                                 std::string("--config"), cfg, std::string("--db"), db,
+                                 std::string("--lcm-url"), "file://" + log + "?speed=" + speed}) {
       args.push_back(a);
     }
     return args;
@@ -498,9 +445,9 @@ TEST_CASE("kill -9 at 20 random points of a replay: after a re-replay every samp
     kept += std::to_string(k_stored) + " ";
     max_missing = std::max(max_missing, kN - k_stored);
 
-    const int rc = run(
-        {kBin + "/magcald", "--config", cfg, "--db", db, "--lcm-url", "file://" + log + "?speed=0"},
-        tmp.file("rerun.log"));
+    const int rc = run({kBin + "/magcald", "--http-listen", "", "--config", cfg, "--db", db,
+                        "--lcm-url", "file://" + log + "?speed=0"},
+                       tmp.file("rerun.log"));
     INFO(slurp(tmp.file("rerun.log")));
     REQUIRE(rc == 0);
     const auto s = read_published(out).statuses.back();
@@ -555,7 +502,7 @@ TEST_CASE("SIGTERM while storage fails: retried until max_failure_s, exit 3, los
 
   // Lock gone: a restart and the same replay fill the rest, the stored part as duplicates.
   const auto cfg2 = write_config(tmp, "d2.toml", tmp.file("out2.lcm"), "");
-  REQUIRE(run({kBin + "/magcald", "--config", cfg2, "--db", db, "--lcm-url",
+  REQUIRE(run({kBin + "/magcald", "--http-listen", "", "--config", cfg2, "--db", db, "--lcm-url",
                "file://" + log + "?speed=0"},
               tmp.file("run2.log")) == 0);
   const auto s2 = read_published(tmp.file("out2.lcm")).statuses.back();

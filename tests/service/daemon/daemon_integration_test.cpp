@@ -91,22 +91,6 @@ std::string simulate_day(const TempDir& tmp) {
   return log;
 }
 
-// Multicast over loopback works here (toolchain.md: not in every network namespace).
-bool multicast_available(const std::string& url) {
-  lcm::LCM a(url);
-  if (!a.good()) return false;
-  bool got = false;
-  a.subscribeFunction(
-      "MAGCAL_PROBE",
-      +[](const lcm::ReceiveBuffer*, const std::string&, bool* flag) { *flag = true; }, &got);
-  for (int i = 0; i < 5 && !got; ++i) {
-    uint8_t byte = 1;
-    a.publish("MAGCAL_PROBE", &byte, 1);
-    a.handleTimeout(200);
-  }
-  return got;
-}
-
 }  // namespace
 
 TEST_CASE("replay a simulated day via file://: all samples, snapshots, data-clock refits",
@@ -115,8 +99,8 @@ TEST_CASE("replay a simulated day via file://: all samples, snapshots, data-cloc
   const std::string log = simulate_day(tmp);
   const std::string out = tmp / "out.lcm";
   write_config(tmp / "d.toml", "[lcm]\npublish_url = \"file://" + out + "?mode=w\"\n");
-  const int rc = run({kBin + "/magcald", "--config", tmp / "d.toml", "--db", tmp / "m.db",
-                      "--lcm-url", "file://" + log + "?speed=0"},
+  const int rc = run({kBin + "/magcald", "--http-listen", "", "--config", tmp / "d.toml", "--db",
+                      tmp / "m.db", "--lcm-url", "file://" + log + "?speed=0"},
                      tmp / "magcald.log");
   INFO(slurp(tmp / "magcald.log"));
   REQUIRE(rc == 0);
@@ -179,8 +163,8 @@ TEST_CASE("live over udpm: lcm-logplayer in, lcm-logger records the results",
                               "MAGCAL_CALIBRATION", "-f", recorded},
                              tmp / "logger.log");
   REQUIRE(logger > 0);
-  const pid_t daemon = spawn({kBin + "/magcald", "--config", tmp / "d.toml", "--db", tmp / "m.db",
-                              "--lcm-url", url + "&recv_buf_size=4194304"},
+  const pid_t daemon = spawn({kBin + "/magcald", "--http-listen", "", "--config", tmp / "d.toml",
+                              "--db", tmp / "m.db", "--lcm-url", url + "&recv_buf_size=4194304"},
                              tmp / "magcald.log");
   REQUIRE(daemon > 0);
 
@@ -285,8 +269,8 @@ TEST_CASE("SIGTERM mid-stream, restart: every sample stored or counted, no jump"
   const std::string db = tmp / "m.db";
   write_config(tmp / "d.toml", "[lcm]\npublish_url = \"file://" + tmp / "out1.lcm" + "?mode=w\"\n");
   // speed 20000: the day's 43 packets arrive over ~4 s, so the signal lands mid-stream.
-  const pid_t d1 = spawn({kBin + "/magcald", "--config", tmp / "d.toml", "--db", db, "--lcm-url",
-                          "file://" + log + "?speed=20000"},
+  const pid_t d1 = spawn({kBin + "/magcald", "--http-listen", "", "--config", tmp / "d.toml",
+                          "--db", db, "--lcm-url", "file://" + log + "?speed=20000"},
                          tmp / "run1.log");
   REQUIRE(d1 > 0);
   REQUIRE(wait_until([&] { return stored_count(db, "PAPER-1") >= 1000; }, 30));
@@ -322,8 +306,8 @@ TEST_CASE("SIGTERM mid-stream, restart: every sample stored or counted, no jump"
 
   // Restart and replay the whole day: what was stored comes back as duplicates.
   write_config(tmp / "d.toml", "[lcm]\npublish_url = \"file://" + tmp / "out2.lcm" + "?mode=w\"\n");
-  const int rc2 = run({kBin + "/magcald", "--config", tmp / "d.toml", "--db", db, "--lcm-url",
-                       "file://" + log + "?speed=0"},
+  const int rc2 = run({kBin + "/magcald", "--http-listen", "", "--config", tmp / "d.toml", "--db",
+                       db, "--lcm-url", "file://" + log + "?speed=0"},
                       tmp / "run2.log");
   INFO(slurp(tmp / "run2.log"));
   REQUIRE(rc2 == 0);
@@ -425,8 +409,8 @@ TEST_CASE("malformed frames are counted per reason and the daemon carries on",
     cfg << "[lcm]\npublish_url = \"file://" << out << "?mode=w\"\n"
         << "[service]\nwhitelist = [\"SAT-A\", \"SAT-B\"]\n";
   }
-  const int rc = run({kBin + "/magcald", "--config", tmp / "d.toml", "--db", tmp / "m.db",
-                      "--lcm-url", "file://" + log + "?speed=0"},
+  const int rc = run({kBin + "/magcald", "--http-listen", "", "--config", tmp / "d.toml", "--db",
+                      tmp / "m.db", "--lcm-url", "file://" + log + "?speed=0"},
                      tmp / "magcald.log");
   const std::string daemon_log = slurp(tmp / "magcald.log");
   INFO(daemon_log);
@@ -459,17 +443,19 @@ TEST_CASE("bad config and unusable database: clear error, non-zero exit", "[daem
     std::ofstream cfg(tmp / "bad.toml");
     cfg << "[refit]\nclock = \"sundial\"\n";
   }
-  CHECK(run({kBin + "/magcald", "--config", tmp / "bad.toml"}, tmp / "a.log") == 1);
+  CHECK(run({kBin + "/magcald", "--http-listen", "", "--config", tmp / "bad.toml"},
+            tmp / "a.log") == 1);
   CHECK_THAT(slurp(tmp / "a.log"), Catch::Contains("[refit] clock"));
   {
     std::ofstream cfg(tmp / "unknown.toml");
     cfg << "[storage]\nwindow = 3\n";
   }
-  CHECK(run({kBin + "/magcald", "--config", tmp / "unknown.toml"}, tmp / "b.log") == 1);
+  CHECK(run({kBin + "/magcald", "--http-listen", "", "--config", tmp / "unknown.toml"},
+            tmp / "b.log") == 1);
   CHECK_THAT(slurp(tmp / "b.log"), Catch::Contains("unknown key [storage] window"));
   write_sample_log(tmp / "one.lcm",
                    {magcal::mag_sample_t{}});  // a log that opens: the database is what fails
-  CHECK(run({kBin + "/magcald", "--db", "/nonexistent-dir/x/m.db", "--lcm-url",
+  CHECK(run({kBin + "/magcald", "--http-listen", "", "--db", "/nonexistent-dir/x/m.db", "--lcm-url",
              "file://" + tmp / "one.lcm"},
             tmp / "c.log") == 2);
   CHECK_THAT(slurp(tmp / "c.log"), Catch::Contains("/nonexistent-dir/x/m.db"));
@@ -483,9 +469,10 @@ TEST_CASE("bad config and unusable database: clear error, non-zero exit", "[daem
     std::ofstream junk(tmp / "junk.db");
     junk << "this is not a database, just text long enough to be a file header............\n";
   }
-  CHECK(run({kBin + "/magcald", "--db", tmp / "junk.db", "--lcm-url", "file://" + tmp / "none.lcm"},
+  CHECK(run({kBin + "/magcald", "--http-listen", "", "--db", tmp / "junk.db", "--lcm-url",
+             "file://" + tmp / "none.lcm"},
             tmp / "d.log") == 2);
-  CHECK(run({kBin + "/magcald", "--log-level", "loud"}, tmp / "e.log") == 1);
+  CHECK(run({kBin + "/magcald", "--http-listen", "", "--log-level", "loud"}, tmp / "e.log") == 1);
 }
 
 namespace {
@@ -570,9 +557,10 @@ TEST_CASE("one rogue time tag among 2000 frames: all 2000 kept, the rogue counte
         std::ofstream cfg(tmp / "d.toml");  // the embedded defaults, plus somewhere to publish
         cfg << "[lcm]\npublish_url = \"file://" << out << "?mode=w\"\n";
       }
-      const int rc = run({kBin + "/magcald", "--config", tmp / "d.toml", "--db", tmp / "m.db",
-                          "--lcm-url", "file://" + (tmp / "in.lcm") + "?speed=0"},
-                         tmp / "magcald.log");
+      const int rc =
+          run({kBin + "/magcald", "--http-listen", "", "--config", tmp / "d.toml", "--db",
+               tmp / "m.db", "--lcm-url", "file://" + (tmp / "in.lcm") + "?speed=0"},
+              tmp / "magcald.log");
       INFO(slurp(tmp / "magcald.log"));
       REQUIRE(rc == 0);
       const auto st = read_published(out).statuses.back();

@@ -12,8 +12,10 @@
 #include "service/io/calibration_record.hpp"
 #include "storage/calibration_history.hpp"
 #include "storage/sample_window_store.hpp"
+#include "tests/service/prometheus_text.hpp"
 
 using namespace magcal;
+using magcal::test::parse_prometheus_text;
 
 namespace {
 
@@ -144,6 +146,41 @@ TEST_CASE("valid samples are stored, bad ones counted per reason", "[ingest_work
   storage::SampleWindowStore store(db);
   CHECK(store.count("SAT-1") == 298);
   CHECK(store.count_in_window("SAT-1", s[51].utime, s[51].utime + 1) == 1);
+}
+
+TEST_CASE("per-spacecraft metrics equal the worker's counts and the stored rows",
+          "[ingest_worker][metrics]") {
+  TempDb tmp("metrics");
+  auto c = test_config(tmp.path());
+  c.storage.commit_every_samples = 150;  // several transactions per spacecraft
+  DaemonCounters counters;
+  http::DaemonMetrics metrics("test");
+  IngestWorker w(c, counters, std::make_unique<ReferenceField>(), IngestWorker::Hooks{}, &metrics);
+  auto a = simulate(500, 3, "SAT-A");
+  auto b = simulate(400, 4, "SAT-B");
+  std::vector<mag_sample_t> a_gaps(a.begin(), a.begin() + 100);  // seq 100..104 never arrive
+  a_gaps.insert(a_gaps.end(), a.begin() + 105, a.end());
+  // Interleaved frames of the two spacecraft, then a repeat of a stored frame (duplicates).
+  for (size_t i = 0; i < 400; i += 100) {
+    w.process(batch(a_gaps, i, i + 100));
+    w.process(batch(b, i, i + 100));
+  }
+  w.process(batch(a_gaps, 400, a_gaps.size()));
+  w.process(batch(b, 100, 200));
+  w.commit();
+  const auto p = parse_prometheus_text(metrics.text());
+  REQUIRE(p.error.empty());
+  storage::Database db(tmp.path());
+  storage::SampleWindowStore store(db);
+  CHECK(p.value("magcal_samples_stored_total", {{"sat", "SAT-A"}}) == store.count("SAT-A"));
+  CHECK(p.value("magcal_samples_stored_total", {{"sat", "SAT-B"}}) == store.count("SAT-B"));
+  CHECK(store.count("SAT-A") == 495);
+  CHECK(p.sum("magcal_samples_stored_total") == counters.stored.load());
+  CHECK(p.value("magcal_samples_missing_total", {{"sat", "SAT-A"}}) == 5);
+  CHECK(p.value("magcal_samples_missing_total", {{"sat", "SAT-B"}}) == 0);
+  CHECK(counters.rejected_count(RejectReason::kDuplicate) == 100);
+  // One observation per transaction: 895 samples in chunks of 150 at least 6.
+  CHECK(p.value("magcal_sqlite_commit_seconds_count") >= 6);
 }
 
 TEST_CASE("UKF snapshots follow the data clock", "[ingest_worker]") {

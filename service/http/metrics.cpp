@@ -1,0 +1,253 @@
+#include "service/http/metrics.hpp"
+
+#include <sstream>
+
+#include <prometheus/text_serializer.h>
+
+#include "storage/calibration_history.hpp"
+#include "storage/sample_window_store.hpp"
+
+namespace magcal::http {
+namespace {
+
+constexpr std::array<const char*, 3> kAxes{"x", "y", "z"};
+
+// Counters only move forward: bring one up to a total kept elsewhere.
+void raise_to(prometheus::Counter& c, int64_t total) {
+  const double delta = static_cast<double>(total) - c.Value();
+  if (delta > 0.0) c.Increment(delta);
+}
+
+struct Families {
+  prometheus::Family<prometheus::Counter>* received;
+  prometheus::Family<prometheus::Counter>* stored;
+  prometheus::Family<prometheus::Counter>* rejected;
+  prometheus::Family<prometheus::Counter>* missing;
+  prometheus::Family<prometheus::Gauge>* queue_depth;
+  prometheus::Family<prometheus::Counter>* queue_overflow;
+  prometheus::Family<prometheus::Histogram>* commit_seconds;
+  prometheus::Family<prometheus::Gauge>* ukf_bias;
+  prometheus::Family<prometheus::Gauge>* ukf_sigma;
+  prometheus::Family<prometheus::Gauge>* ukf_accepted;
+  prometheus::Family<prometheus::Counter>* refits;
+  prometheus::Family<prometheus::Gauge>* last_refit_success;
+  prometheus::Family<prometheus::Gauge>* storage_healthy;
+};
+
+// Every family of the contract, registered in one place for the daemon and `magcal serve`.
+Families register_families(prometheus::Registry& r, const std::string& version) {
+  using prometheus::BuildCounter;
+  using prometheus::BuildGauge;
+  Families f{};
+  f.received = &BuildCounter()
+                    .Name("magcal_samples_received_total")
+                    .Help(
+                        "Samples received per spacecraft (an undecodable frame counts 1 under "
+                        "sat=\"\")")
+                    .Register(r);
+  f.stored = &BuildCounter()
+                  .Name("magcal_samples_stored_total")
+                  .Help("Samples committed to the database per spacecraft")
+                  .Register(r);
+  f.rejected = &BuildCounter()
+                    .Name("magcal_samples_rejected_total")
+                    .Help("Samples rejected, per reason")
+                    .Register(r);
+  f.missing = &BuildCounter()
+                   .Name("magcal_samples_missing_total")
+                   .Help("Samples missing by gaps in seq, per spacecraft")
+                   .Register(r);
+  f.queue_depth = &BuildGauge()
+                       .Name("magcal_queue_depth")
+                       .Help("Samples waiting in the receive queue")
+                       .Register(r);
+  f.queue_overflow = &BuildCounter()
+                          .Name("magcal_queue_overflow_total")
+                          .Help("Samples dropped because the receive queue was full")
+                          .Register(r);
+  f.commit_seconds = &prometheus::BuildHistogram()
+                          .Name("magcal_sqlite_commit_seconds")
+                          .Help("Duration of each sample-batch SQLite transaction (failed too)")
+                          .Register(r);
+  f.ukf_bias = &BuildGauge()
+                    .Name("magcal_ukf_bias_nT")
+                    .Help("Bias of the newest stored UKF snapshot, nT")
+                    .Register(r);
+  f.ukf_sigma = &BuildGauge()
+                     .Name("magcal_ukf_bias_sigma_nT")
+                     .Help("1-sigma of the newest stored UKF snapshot's bias, nT")
+                     .Register(r);
+  f.ukf_accepted = &BuildGauge()
+                        .Name("magcal_ukf_snapshot_accepted")
+                        .Help("1 when the newest stored UKF snapshot passed the acceptance gates")
+                        .Register(r);
+  f.refits = &BuildCounter()
+                  .Name("magcal_refits_total")
+                  .Help("Refits run, per spacecraft and verdict (accepted, rejected, error)")
+                  .Register(r);
+  f.last_refit_success = &BuildGauge()
+                              .Name("magcal_last_refit_success_timestamp_seconds")
+                              .Help("Time (s since 1970, data time) of the newest accepted refit")
+                              .Register(r);
+  f.storage_healthy = &BuildGauge()
+                           .Name("magcal_storage_healthy")
+                           .Help("1, or 0 while a storage operation fails and is retried")
+                           .Register(r);
+  BuildGauge()
+      .Name("magcal_build_info")
+      .Help("Build of magcal (value 1)")
+      .Register(r)
+      .Add({{"version", version}})
+      .Set(1.0);
+  return f;
+}
+
+std::string serialize(const prometheus::Registry& r) {
+  std::ostringstream out;
+  prometheus::TextSerializer().Serialize(out, r.Collect());
+  return out.str();
+}
+
+}  // namespace
+
+const std::vector<double>& sqlite_commit_buckets_s() {
+  static const std::vector<double> buckets{0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005,
+                                           0.01,   0.025,   0.05,   0.1,   0.25,   0.5,
+                                           1.0,    2.5,     5.0,    10.0};
+  return buckets;
+}
+
+DaemonMetrics::DaemonMetrics(const std::string& version)
+    : registry_(std::make_shared<prometheus::Registry>()) {
+  const Families f = register_families(*registry_, version);
+  received_ = f.received;
+  stored_ = f.stored;
+  rejected_ = f.rejected;
+  missing_ = f.missing;
+  queue_depth_ = &f.queue_depth->Add({});
+  queue_overflow_ = &f.queue_overflow->Add({});
+  commit_seconds_ = &f.commit_seconds->Add({}, sqlite_commit_buckets_s());
+  ukf_bias_ = f.ukf_bias;
+  ukf_sigma_ = f.ukf_sigma;
+  ukf_accepted_ = f.ukf_accepted;
+  refits_ = f.refits;
+  last_refit_success_ = f.last_refit_success;
+  storage_healthy_ = &f.storage_healthy->Add({});
+  storage_healthy_->Set(1.0);
+}
+
+SpacecraftMetrics& DaemonMetrics::spacecraft(const std::string& sat_id) {
+  std::lock_guard lock(mutex_);
+  if (const auto it = spacecraft_.find(sat_id); it != spacecraft_.end()) return *it->second;
+  // Past the cap every new id shares one series (and takes no memory of its own).
+  const bool full = spacecraft_.size() >= kMaxSpacecraftSeries;
+  if (full) {
+    if (const auto it = spacecraft_.find(kOtherSpacecraft); it != spacecraft_.end()) {
+      return *it->second;
+    }
+  }
+  const std::string label = full ? kOtherSpacecraft : sat_id;
+  auto m = std::make_unique<SpacecraftMetrics>();
+  m->sat_label = label;
+  m->received = &received_->Add({{"sat", label}});
+  m->stored = &stored_->Add({{"sat", label}});
+  m->missing = &missing_->Add({{"sat", label}});
+  m->refits_accepted = &refits_->Add({{"sat", label}, {"verdict", "accepted"}});
+  m->refits_rejected = &refits_->Add({{"sat", label}, {"verdict", "rejected"}});
+  m->refits_error = &refits_->Add({{"sat", label}, {"verdict", "error"}});
+  return *spacecraft_.emplace(label, std::move(m)).first->second;
+}
+
+void DaemonMetrics::set_ukf(SpacecraftMetrics& m, const std::array<double, 3>& bias_nT,
+                            const std::array<double, 3>& sigma_nT, bool accepted) {
+  if (!m.ukf_snapshot_accepted) {
+    // The first snapshot creates the series: no bias of 0 nT is shown before there is one.
+    std::lock_guard lock(mutex_);
+    for (size_t i = 0; i < 3; ++i) {
+      m.ukf_bias_nT[i] = &ukf_bias_->Add({{"sat", m.sat_label}, {"axis", kAxes[i]}});
+      m.ukf_bias_sigma_nT[i] = &ukf_sigma_->Add({{"sat", m.sat_label}, {"axis", kAxes[i]}});
+    }
+    m.ukf_snapshot_accepted = &ukf_accepted_->Add({{"sat", m.sat_label}});
+  }
+  for (size_t i = 0; i < 3; ++i) {
+    m.ukf_bias_nT[i]->Set(bias_nT[i]);
+    m.ukf_bias_sigma_nT[i]->Set(sigma_nT[i]);
+  }
+  m.ukf_snapshot_accepted->Set(accepted ? 1.0 : 0.0);
+}
+
+void DaemonMetrics::count_refit(SpacecraftMetrics& m, RefitVerdict verdict, int64_t result_utime) {
+  switch (verdict) {
+    case RefitVerdict::kAccepted:
+      m.refits_accepted->Increment();
+      if (!m.last_refit_success_s) {
+        std::lock_guard lock(mutex_);
+        m.last_refit_success_s = &last_refit_success_->Add({{"sat", m.sat_label}});
+      }
+      m.last_refit_success_s->Set(static_cast<double>(result_utime) * 1e-6);
+      break;
+    case RefitVerdict::kRejected:
+      m.refits_rejected->Increment();
+      break;
+    case RefitVerdict::kError:
+      m.refits_error->Increment();
+      break;
+  }
+}
+
+void DaemonMetrics::set_totals_source(std::function<Totals()> source) {
+  std::lock_guard lock(mutex_);
+  totals_source_ = std::move(source);
+}
+
+void DaemonMetrics::apply_totals(const Totals& t) {
+  for (const auto& [reason, total] : t.rejected_by_reason) {
+    auto it = rejected_by_reason_.find(reason);
+    if (it == rejected_by_reason_.end()) {
+      it = rejected_by_reason_.emplace(reason, &rejected_->Add({{"reason", reason}})).first;
+    }
+    raise_to(*it->second, total);
+  }
+  queue_depth_->Set(static_cast<double>(t.queue_depth));
+  raise_to(*queue_overflow_, t.queue_overflow);
+  storage_healthy_->Set(t.storage_healthy ? 1.0 : 0.0);
+}
+
+std::string DaemonMetrics::text() {
+  std::lock_guard lock(mutex_);
+  if (totals_source_) apply_totals(totals_source_());
+  return serialize(*registry_);
+}
+
+std::string database_metrics_text(storage::Database& db, const std::string& version) {
+  prometheus::Registry registry;
+  const Families f = register_families(registry, version);
+  storage::SampleWindowStore samples(db);
+  storage::CalibrationHistory history(db);
+  for (const auto& sat : samples.spacecraft()) {
+    f.stored->Add({{"sat", sat}}).Increment(static_cast<double>(samples.count(sat)));
+  }
+  for (const auto& sat : history.spacecraft()) {
+    if (const auto ukf = history.latest(sat, "ukf")) {
+      for (size_t i = 0; i < 3; ++i) {
+        f.ukf_bias->Add({{"sat", sat}, {"axis", kAxes[i]}}).Set(ukf->bias_nT[i]);
+        f.ukf_sigma->Add({{"sat", sat}, {"axis", kAxes[i]}}).Set(ukf->bias_sigma_nT[i]);
+      }
+      f.ukf_accepted->Add({{"sat", sat}}).Set(ukf->verdict == "accepted" ? 1.0 : 0.0);
+    }
+    for (const char* method : {"centered", "twostep"}) {
+      storage::HistoryQuery q;
+      q.sat_id = sat;
+      q.method = method;
+      for (const auto& r : history.query(q)) {
+        f.refits->Add({{"sat", sat}, {"verdict", r.verdict}}).Increment();
+      }
+    }
+    if (const auto ok = history.latest_accepted_refit(sat)) {
+      f.last_refit_success->Add({{"sat", sat}}).Set(static_cast<double>(ok->utime) * 1e-6);
+    }
+  }
+  return serialize(registry);
+}
+
+}  // namespace magcal::http

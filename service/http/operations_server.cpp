@@ -1,0 +1,268 @@
+// The only translation unit that includes <httplib.h> (large; keep it to one).
+#include "service/http/operations_server.hpp"
+
+#include <httplib.h>
+
+#include <charconv>
+#include <chrono>
+#include <mutex>
+#include <set>
+#include <thread>
+
+#include <spdlog/spdlog.h>
+#include <nlohmann/json.hpp>
+
+#include "service/http/embedded_assets.hpp"
+#include "service/io/history_report.hpp"
+#include "service/io/status_report.hpp"
+#include "storage/database.hpp"
+
+namespace magcal::http {
+
+namespace {
+
+constexpr const char* kJson = "application/json";
+constexpr int kMaxPoints = 10000;
+// Request threads. A browser holds up to 6 keep-alive connections, each occupying a thread
+// until it closes: 8 threads (and a short keep-alive) keep a page load from starving a
+// Prometheus scrape. Database reads are serialised on the one connection anyway.
+constexpr size_t kRequestThreads = 8;
+
+struct BadRequest {
+  std::string message;
+};
+
+void send_error(httplib::Response& res, int status, const std::string& message) {
+  res.status = status;
+  res.set_content(nlohmann::json{{"error", message}}.dump() + "\n", kJson);
+}
+
+// "ADDR:PORT" or "[ADDR]:PORT" -> host and port (0..65535).
+bool parse_listen(const std::string& listen, std::string* host, int* port, std::string* error) {
+  const auto colon = listen.rfind(':');
+  if (colon == std::string::npos || colon == 0 || colon + 1 == listen.size()) {
+    *error = "listen address '" + listen + "' is not ADDR:PORT (e.g. 127.0.0.1:9780)";
+    return false;
+  }
+  *host = listen.substr(0, colon);
+  if (host->size() >= 2 && host->front() == '[' && host->back() == ']') {
+    *host = host->substr(1, host->size() - 2);
+  }
+  const std::string port_text = listen.substr(colon + 1);
+  const auto res = std::from_chars(port_text.data(), port_text.data() + port_text.size(), *port);
+  if (res.ec != std::errc{} || res.ptr != port_text.data() + port_text.size() || *port < 0 ||
+      *port > 65535) {
+    *error = "listen address '" + listen + "': port '" + port_text + "' is not 0..65535";
+    return false;
+  }
+  return true;
+}
+
+// A whole decimal integer in [lo, hi], else BadRequest naming the parameter.
+int parse_int_param(const std::string& name, const std::string& text, int lo, int hi) {
+  int value = 0;
+  const auto res = std::from_chars(text.data(), text.data() + text.size(), value);
+  if (text.empty() || res.ec != std::errc{} || res.ptr != text.data() + text.size() || value < lo ||
+      value > hi) {
+    throw BadRequest{name + " '" + text + "' is not an integer in " + std::to_string(lo) + ".." +
+                     std::to_string(hi)};
+  }
+  return value;
+}
+
+// Every query parameter must be known and given at most once (a typo is an error, not ignored).
+void check_params(const httplib::Request& req, const std::set<std::string>& known) {
+  for (const auto& [name, value] : req.params) {
+    if (!known.count(name)) throw BadRequest{"unknown parameter '" + name + "'"};
+    if (req.params.count(name) > 1) throw BadRequest{"parameter '" + name + "' given twice"};
+  }
+}
+
+std::string param(const httplib::Request& req, const std::string& name) {
+  return req.has_param(name.c_str()) ? req.get_param_value(name.c_str()) : std::string();
+}
+
+}  // namespace
+
+struct OperationsServer::Impl {
+  ServerHooks hooks;
+  std::mutex db_mutex;  // the connection belongs to one request thread at a time
+  storage::Database db;
+  httplib::Server server;
+  std::thread thread;
+  int port = 0;
+  std::once_flag stopped;
+
+  Impl(ServerHooks h, storage::Database&& database)
+      : hooks(std::move(h)), db(std::move(database)) {}
+
+  void routes();
+  void history(const httplib::Request& req, httplib::Response& res);
+};
+
+void OperationsServer::Impl::routes() {
+  server.new_task_queue = [] { return new httplib::ThreadPool(kRequestThreads); };
+  // SO_REUSEADDR only: cpp-httplib's default also sets SO_REUSEPORT, which would let a second
+  // server (a magcald and a magcal serve) silently share a port and split its requests.
+  server.set_socket_options([](socket_t sock) {
+    int yes = 1;
+    ::setsockopt(sock, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof yes);
+  });
+  server.set_keep_alive_timeout(1);
+  server.set_read_timeout(5, 0);
+  server.set_write_timeout(5, 0);
+  server.set_payload_max_length(64 * 1024);  // GET only: no request needs a body
+
+  server.Get("/metrics", [this](const httplib::Request&, httplib::Response& res) {
+    if (!hooks.metrics_text) return send_error(res, 404, "no metrics in this server");
+    res.set_content(hooks.metrics_text(), "text/plain; version=0.0.4; charset=utf-8");
+  });
+  auto probe = [](const std::function<bool()>& hook, const char* yes, const char* no) {
+    return [&hook, yes, no](const httplib::Request&, httplib::Response& res) {
+      const bool ok = !hook || hook();
+      res.status = ok ? 200 : 503;
+      res.set_content(ok ? yes : no, "text/plain; charset=utf-8");
+    };
+  };
+  server.Get("/-/healthy", probe(hooks.healthy, "magcal is healthy.\n", "magcal is unhealthy.\n"));
+  server.Get("/-/ready", probe(hooks.ready, "magcal is ready.\n", "magcal is not ready.\n"));
+  server.Get("/api/v1/spacecraft", [this](const httplib::Request& req, httplib::Response& res) {
+    check_params(req, {});
+    std::lock_guard lock(db_mutex);
+    const auto all = read_status(db, hooks.status_window_utime);
+    res.set_content(status_json_text(all, hooks.status_window_utime), kJson);
+  });
+  server.Get("/api/v1/history",
+             [this](const httplib::Request& req, httplib::Response& res) { history(req, res); });
+  server.Get("/", [](const httplib::Request&, httplib::Response& res) {
+    res.set_content(std::string(kIndexHtml), "text/html; charset=utf-8");
+  });
+  server.Get("/static/chart.js", [](const httplib::Request&, httplib::Response& res) {
+    res.set_header("Cache-Control", "max-age=86400");
+    res.set_content(std::string(kChartJs), "application/javascript; charset=utf-8");
+  });
+
+  server.set_exception_handler(
+      [](const httplib::Request&, httplib::Response& res, std::exception_ptr ep) {
+        try {
+          std::rethrow_exception(ep);
+        } catch (const BadRequest& e) {
+          send_error(res, 400, e.message);
+        } catch (const storage::StorageError& e) {
+          // A lock held past the busy timeout or an I/O error may heal: tell the client to retry.
+          send_error(res, e.transient() ? 503 : 500, std::string("database: ") + e.what());
+        } catch (const std::exception& e) {
+          send_error(res, 500, e.what());
+        } catch (...) {
+          send_error(res, 500, "unknown error");
+        }
+      });
+  server.set_error_handler([](const httplib::Request& req, httplib::Response& res) {
+    if (!res.body.empty()) return;  // a route's own error (400, 503) already has its JSON body
+    send_error(
+        res, res.status,
+        res.status == 404 ? "no such path: " + req.path : "HTTP " + std::to_string(res.status));
+  });
+}
+
+void OperationsServer::Impl::history(const httplib::Request& req, httplib::Response& res) {
+  check_params(req, {"sat", "method", "since", "until", "limit", "order", "format", "points"});
+  HistoryRequest request;
+  request.sat = param(req, "sat");
+  if (request.sat.empty()) throw BadRequest{"sat is required (a spacecraft id)"};
+  request.method = param(req, "method");
+  request.since = param(req, "since");
+  request.until = param(req, "until");
+  if (req.has_param("limit")) {
+    request.limit = parse_int_param("limit", param(req, "limit"), 1, 1'000'000'000);
+  }
+  if (req.has_param("order")) request.order = param(req, "order");
+  request.format = req.has_param("format") ? param(req, "format") : "json";
+  if (request.format != "json" && request.format != "csv") {
+    throw BadRequest{"format '" + request.format + "' is not json or csv"};
+  }
+  std::optional<int> points;
+  if (req.has_param("points")) {
+    points = parse_int_param("points", param(req, "points"), 1, kMaxPoints);
+    if (request.format != "json") throw BadRequest{"points needs format=json"};
+  }
+  std::string error;
+  const auto query = parse_history_request(request, "", &error);
+  if (!query) throw BadRequest{error};
+
+  std::vector<storage::CalibrationRecord> rows;
+  {
+    std::lock_guard lock(db_mutex);
+    rows = read_history(db, *query);
+    if (rows.empty() && !spacecraft_known(db, request.sat)) {
+      throw BadRequest{"no data for spacecraft '" + request.sat + "'"};
+    }
+  }
+  if (points) {
+    res.set_content(downsample_history(rows, *query, *points).dump() + "\n", kJson);
+  } else if (request.format == "csv") {
+    res.set_content(history_csv_text(rows), "text/csv; charset=utf-8");
+  } else {
+    res.set_content(history_json_text(rows), kJson);
+  }
+}
+
+OperationsServer::OperationsServer(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+
+std::unique_ptr<OperationsServer> OperationsServer::start(const std::string& listen,
+                                                          const std::string& db_path,
+                                                          ServerHooks hooks, std::string* error) {
+  std::string host;
+  int port = 0;
+  if (!parse_listen(listen, &host, &port, error)) return nullptr;
+  if (hooks.status_window_utime <= 0) {
+    *error = "operations server: status_window_utime must be > 0";
+    return nullptr;
+  }
+  std::unique_ptr<Impl> impl;
+  try {
+    storage::OpenOptions options;
+    options.read_only = true;
+    impl = std::make_unique<Impl>(std::move(hooks), storage::Database(db_path, options));
+  } catch (const storage::StorageError& e) {
+    *error = std::string("cannot open the database read-only: ") + e.what();
+    return nullptr;
+  }
+  impl->routes();
+  if (port == 0) {
+    port = impl->server.bind_to_any_port(host);
+    if (port <= 0) {
+      *error = "cannot bind " + listen + " (address not available?)";
+      return nullptr;
+    }
+  } else if (!impl->server.bind_to_port(host, port)) {
+    *error = "cannot bind " + listen + " (address in use or not available?)";
+    return nullptr;
+  }
+  impl->port = port;
+  Impl* raw = impl.get();
+  impl->thread = std::thread([raw] { raw->server.listen_after_bind(); });
+  // stop() is a no-op until the listener runs: wait for it (it only has to enter its loop).
+  for (int i = 0; i < 5000 && !impl->server.is_running(); ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  }
+  spdlog::info("operations server: http://{}:{}/ (database {}, read-only)", host, port, db_path);
+  return std::unique_ptr<OperationsServer>(new OperationsServer(std::move(impl)));
+}
+
+int OperationsServer::port() const {
+  return impl_->port;
+}
+
+void OperationsServer::stop() {
+  std::call_once(impl_->stopped, [this] {
+    impl_->server.stop();
+    if (impl_->thread.joinable()) impl_->thread.join();
+  });
+}
+
+OperationsServer::~OperationsServer() {
+  stop();
+}
+
+}  // namespace magcal::http

@@ -1,0 +1,60 @@
+// The read-only operations server (design.md "Operations surface"), one implementation for
+// `magcald --http-listen` and `magcal serve`:
+//   GET /metrics            hooks.metrics_text() as Prometheus text (404 without the hook)
+//   GET /-/healthy          200 / 503 from hooks.healthy (200 without the hook)
+//   GET /-/ready            200 / 503 from hooks.ready (200 without the hook: the DB is open)
+//   GET /api/v1/spacecraft  exactly the stdout of `magcal status --json`
+//   GET /api/v1/history?sat=&method=&since=&until=&limit=&order=&format=json|csv
+//                           exactly the stdout of `magcal history` with the same arguments;
+//                           &points=N (1..10000, JSON only): downsample_history()
+//                           (service/io/history_report.hpp) over the same rows
+//   GET /                   the plots page; GET /static/chart.js the plotting library
+// A bad request (missing or unknown spacecraft, bad time, limit, order, method, format or
+// points, an unknown or repeated parameter) gets 400 with {"error": "..."}; an unknown path 404;
+// a database error 503 (transient: locked, I/O) or 500, always with a JSON error body.
+//
+// Threads: the server runs on its own thread (cpp-httplib's listener plus a small pool of
+// request threads) with its own read-only SQLite connection, opened once at start and shared by
+// the request threads under a mutex; every request reads in one short deferred transaction, so
+// with WAL a writer (the daemon's ingest) is never blocked by it.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <string>
+
+namespace magcal::http {
+
+struct ServerHooks {
+  std::function<std::string()>
+      metrics_text;               // Prometheus text exposition for /metrics (empty fn: 404)
+  std::function<bool()> healthy;  // /-/healthy: 200 when true, 503 when false
+  std::function<bool()> ready;    // /-/ready: 200 when true, 503 when false
+  // The refit window /api/v1/spacecraft counts samples in (the daemon's [storage]
+  // window_hours; `magcal serve` and `magcal status` use the default config's). Must be > 0.
+  int64_t status_window_utime = 0;
+};
+
+class OperationsServer {
+ public:
+  // Binds listen = "ADDR:PORT" (IPv6 as "[ADDR]:PORT"; port 0 = any free port), opens db_path
+  // read-only with its own connection (never writes, never creates the file), serves on its
+  // own thread. nullptr and *error set (one line) when it cannot bind or open.
+  static std::unique_ptr<OperationsServer> start(const std::string& listen,
+                                                 const std::string& db_path, ServerHooks hooks,
+                                                 std::string* error);
+  int port() const;  // the bound port
+  void stop();       // idempotent; also in the destructor
+  ~OperationsServer();
+
+  OperationsServer(const OperationsServer&) = delete;
+  OperationsServer& operator=(const OperationsServer&) = delete;
+
+ private:
+  struct Impl;
+  explicit OperationsServer(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace magcal::http

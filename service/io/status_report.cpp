@@ -1,0 +1,148 @@
+#include "service/io/status_report.hpp"
+
+#include <cmath>
+#include <set>
+
+#include "pipeline/time_utc.hpp"
+#include "service/io/printf_string.hpp"
+#include "service/io/result_json.hpp"
+#include "storage/sample_window_store.hpp"
+
+namespace magcal {
+
+namespace {
+
+std::optional<std::array<double, 3>> bias_change(const SpacecraftStatus& s) {
+  if (!s.last_refit || !s.previous_refit) return std::nullopt;
+  std::array<double, 3> d;
+  for (int i = 0; i < 3; ++i) d[i] = s.last_refit->bias_nT[i] - s.previous_refit->bias_nT[i];
+  return d;
+}
+
+nlohmann::json job_json(const storage::RefitJob& job) {
+  nlohmann::json j;
+  j["id"] = job.id;
+  j["trigger"] = job.trigger;
+  j["outcome"] = job.outcome;
+  j["scheduled_time"] = history_time(job.scheduled_utime);
+  j["started_time"] = job.started_utime ? nlohmann::json(history_time(*job.started_utime))
+                                        : nlohmann::json(nullptr);
+  j["finished_time"] = job.finished_utime ? nlohmann::json(history_time(*job.finished_utime))
+                                          : nlohmann::json(nullptr);
+  j["error"] = job.error;
+  j["calibration_id"] =
+      job.calibration_id ? nlohmann::json(*job.calibration_id) : nlohmann::json(nullptr);
+  return j;
+}
+
+void append_estimate(std::string* text, const char* label, const storage::CalibrationRecord& r) {
+  append_printf(text,
+                "  %-16s %s  %-8s bias [%9.2f %9.2f %9.2f] nT  1-sigma [%6.2f %6.2f %6.2f] nT  "
+                "rms %.2f nT  %s, %s\n",
+                label, format_iso8601_utc(r.utime).c_str(), r.method.c_str(), r.bias_nT[0],
+                r.bias_nT[1], r.bias_nT[2], r.bias_sigma_nT[0], r.bias_sigma_nT[1],
+                r.bias_sigma_nT[2], r.residual_rms_nT, storage::status_name(r.status),
+                r.verdict.c_str());
+}
+
+}  // namespace
+
+std::vector<SpacecraftStatus> read_status(storage::Database& db, int64_t window_utime) {
+  std::vector<SpacecraftStatus> all;
+  storage::Transaction snapshot(db, storage::Transaction::Mode::kDeferred);
+  storage::SampleWindowStore samples(db);
+  storage::CalibrationHistory history(db);
+  storage::RefitJobLog jobs(db);
+  std::set<std::string> sats;
+  for (auto& id : samples.spacecraft()) sats.insert(std::move(id));
+  for (auto& id : history.spacecraft()) sats.insert(std::move(id));
+  for (const auto& id : sats) {
+    SpacecraftStatus s;
+    s.sat_id = id;
+    s.last_sample_utime = samples.newest_utime(id);
+    if (s.last_sample_utime) {
+      // The refit window (newest - W, newest].
+      // Saturating: a database written before the time bounds may hold any utime.
+      s.samples_in_window =
+          samples.count_in_window(id, saturating_sub(*s.last_sample_utime, window_utime) + 1,
+                                  saturating_add(*s.last_sample_utime, 1));
+    }
+    s.last_ukf = history.latest(id, "ukf");
+    s.last_refit = history.latest_refit(id);
+    s.previous_refit = history.previous_refit(id);
+    s.last_job = jobs.latest(id);
+    all.push_back(std::move(s));
+  }
+  return all;
+}
+
+nlohmann::json status_json(const std::vector<SpacecraftStatus>& all, int64_t window_utime) {
+  nlohmann::json list = nlohmann::json::array();
+  for (const auto& s : all) {
+    nlohmann::json j;
+    j["sat_id"] = s.sat_id;
+    j["last_sample_time"] =
+        s.last_sample_utime ? nlohmann::json(history_time(*s.last_sample_utime)) : nullptr;
+    j["last_sample_utime"] =
+        s.last_sample_utime ? nlohmann::json(*s.last_sample_utime) : nlohmann::json(nullptr);
+    j["samples_in_window"] = s.samples_in_window;
+    j["window_hours"] = static_cast<double>(window_utime) / 3.6e9;
+    j["last_ukf"] = s.last_ukf ? history_record_json(*s.last_ukf) : nlohmann::json(nullptr);
+    j["last_refit"] = s.last_refit ? history_record_json(*s.last_refit) : nlohmann::json(nullptr);
+    j["last_refit_job"] = s.last_job ? job_json(*s.last_job) : nlohmann::json(nullptr);
+    const auto d = bias_change(s);
+    j["bias_change_since_previous_refit_nT"] =
+        d ? nlohmann::json{json_number((*d)[0]), json_number((*d)[1]), json_number((*d)[2])}
+          : nlohmann::json(nullptr);
+    list.push_back(std::move(j));
+  }
+  return nlohmann::json{{"spacecraft", list}};
+}
+
+std::string status_json_text(const std::vector<SpacecraftStatus>& all, int64_t window_utime) {
+  return status_json(all, window_utime).dump(2) + "\n";
+}
+
+std::string status_text(const std::vector<SpacecraftStatus>& all, int64_t window_utime) {
+  std::string text;
+  for (const auto& s : all) {
+    append_printf(&text, "%s\n", s.sat_id.c_str());
+    if (s.last_sample_utime) {
+      append_printf(&text, "  %-16s %s  (%lld samples in the %.4g h window)\n", "last sample",
+                    format_iso8601_utc(*s.last_sample_utime).c_str(),
+                    static_cast<long long>(s.samples_in_window),
+                    static_cast<double>(window_utime) / 3.6e9);
+    } else {
+      append_printf(&text, "  %-16s none stored\n", "last sample");
+    }
+    if (s.last_ukf) {
+      append_estimate(&text, "last ukf", *s.last_ukf);
+    } else {
+      append_printf(&text, "  %-16s none\n", "last ukf");
+    }
+    if (s.last_refit) {
+      append_estimate(&text, "last refit", *s.last_refit);
+      for (const auto& reason : s.last_refit->rejection_reasons) {
+        append_printf(&text, "  %-16s   rejected: %s\n", "", reason.c_str());
+      }
+    } else {
+      append_printf(&text, "  %-16s none\n", "last refit");
+    }
+    if (s.last_job) {
+      append_printf(&text, "  %-16s %s, due %s%s%s\n", "last refit job",
+                    s.last_job->outcome.c_str(),
+                    format_iso8601_utc(s.last_job->scheduled_utime).c_str(),
+                    s.last_job->error.empty() ? "" : ": ", s.last_job->error.c_str());
+    }
+    if (const auto d = bias_change(s)) {
+      append_printf(&text,
+                    "  %-16s [%+9.2f %+9.2f %+9.2f] nT  (|change| %.2f nT) since the refit of %s\n",
+                    "bias change", (*d)[0], (*d)[1], (*d)[2],
+                    std::sqrt((*d)[0] * (*d)[0] + (*d)[1] * (*d)[1] + (*d)[2] * (*d)[2]),
+                    format_iso8601_utc(s.previous_refit->utime).c_str());
+    }
+  }
+  return text;
+}
+
+}  // namespace magcal

@@ -1,0 +1,43 @@
+// Per spacecraft, what operations watch — last sample time, samples in the refit window, the
+// last UKF estimate with its 1-sigma, the last refit with its verdict and job outcome, and the
+// change of bias since the previous refit: the text and JSON of `magcal status [--json]` and
+// of GET /api/v1/spacecraft, built once here so that both answer byte for byte the same.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "storage/calibration_history.hpp"
+#include "storage/database.hpp"
+#include "storage/refit_job_log.hpp"
+
+namespace magcal {
+
+struct SpacecraftStatus {
+  std::string sat_id;
+  std::optional<int64_t> last_sample_utime;
+  int64_t samples_in_window = 0;  // in (last sample - window, last sample]
+  std::optional<storage::CalibrationRecord> last_ukf, last_refit, previous_refit;
+  std::optional<storage::RefitJob> last_job;
+};
+
+// Every spacecraft with samples or results (sorted by id), read in one snapshot (a short
+// deferred read transaction) on `db`, which may be read-only. window_utime: the refit window
+// the samples are counted in (the daemon's [storage] window_hours). Throws StorageError.
+std::vector<SpacecraftStatus> read_status(storage::Database& db, int64_t window_utime);
+
+// `magcal status --json`: {"spacecraft": [{sat_id, last_sample_time, last_sample_utime,
+// samples_in_window, window_hours, last_ukf, last_refit (history objects or null),
+// last_refit_job, bias_change_since_previous_refit_nT}]}.
+nlohmann::json status_json(const std::vector<SpacecraftStatus>& all, int64_t window_utime);
+// The exact stdout of `magcal status --json` (dumped with indent 2 and a final newline).
+std::string status_json_text(const std::vector<SpacecraftStatus>& all, int64_t window_utime);
+// The exact stdout of `magcal status` (empty when there is no spacecraft).
+std::string status_text(const std::vector<SpacecraftStatus>& all, int64_t window_utime);
+
+}  // namespace magcal

@@ -1,0 +1,222 @@
+// Metrics (service/http/metrics.hpp): the exposition text parses (an independent reader,
+// tests/service/prometheus_text.hpp), carries exactly the contract's names with the values that
+// were counted, and the database-only metrics of `magcal serve` equal counts made here from
+// the rows the test wrote.
+#include "service/http/metrics.hpp"
+
+#include <unistd.h>
+
+#include <filesystem>
+#include <set>
+#include <thread>
+
+#include <catch2/catch.hpp>
+
+#include "storage/calibration_history.hpp"
+#include "storage/sample_window_store.hpp"
+#include "tests/service/prometheus_text.hpp"
+
+namespace {
+
+namespace fs = std::filesystem;
+using magcal::http::DaemonMetrics;
+using magcal::test::parse_prometheus_text;
+
+struct TempDb {
+  fs::path dir;
+  TempDb() {
+    dir = fs::temp_directory_path() / ("magcal_metrics_" + std::to_string(::getpid()));
+    fs::remove_all(dir);
+    fs::create_directories(dir);
+  }
+  ~TempDb() { fs::remove_all(dir); }
+  std::string path() const { return (dir / "m.db").string(); }
+};
+
+}  // namespace
+
+TEST_CASE("daemon metrics: the contract's names, the counted values, valid text", "[metrics]") {
+  DaemonMetrics m("9.9.9-test");
+  auto& a = m.spacecraft("SAT-A");
+  auto& b = m.spacecraft("SAT-B");
+  CHECK(&m.spacecraft("SAT-A") == &a);  // cached: the same series every time
+  a.received->Increment(300);
+  b.received->Increment(7);
+  a.stored->Increment(290);
+  b.missing->Increment(2);
+  m.set_ukf(a, {1000.5, 800.25, -900.0}, {0.3, 1.2, 0.2}, true);
+  m.count_refit(a, DaemonMetrics::RefitVerdict::kAccepted, 1'577'923'200'000'000);
+  m.count_refit(a, DaemonMetrics::RefitVerdict::kRejected, 1'577'930'400'000'000);
+  m.count_refit(b, DaemonMetrics::RefitVerdict::kError, 0);
+  const std::vector<double> commits_s{0.0002, 0.003, 0.003, 7.0};
+  for (const double s : commits_s) m.observe_commit_seconds(s);
+  int64_t duplicates = 4;
+  m.set_totals_source([&] {
+    return DaemonMetrics::Totals{{{"duplicate", duplicates}, {"out_of_range", 1}}, 12, 5, false};
+  });
+
+  const auto p = parse_prometheus_text(m.text());
+  REQUIRE(p.error.empty());
+  const std::map<std::string, std::string> expected_types{
+      {"magcal_samples_received_total", "counter"},
+      {"magcal_samples_stored_total", "counter"},
+      {"magcal_samples_rejected_total", "counter"},
+      {"magcal_samples_missing_total", "counter"},
+      {"magcal_queue_depth", "gauge"},
+      {"magcal_queue_overflow_total", "counter"},
+      {"magcal_sqlite_commit_seconds", "histogram"},
+      {"magcal_ukf_bias_nT", "gauge"},
+      {"magcal_ukf_bias_sigma_nT", "gauge"},
+      {"magcal_ukf_snapshot_accepted", "gauge"},
+      {"magcal_refits_total", "counter"},
+      {"magcal_last_refit_success_timestamp_seconds", "gauge"},
+      {"magcal_storage_healthy", "gauge"},
+      {"magcal_build_info", "gauge"}};
+  CHECK(p.types == expected_types);
+
+  CHECK(p.value("magcal_samples_received_total", {{"sat", "SAT-A"}}) == 300.0);
+  CHECK(p.sum("magcal_samples_received_total") == 307.0);
+  CHECK(p.value("magcal_samples_stored_total", {{"sat", "SAT-A"}}) == 290.0);
+  CHECK(p.value("magcal_samples_missing_total", {{"sat", "SAT-B"}}) == 2.0);
+  CHECK(p.value("magcal_samples_rejected_total", {{"reason", "duplicate"}}) == 4.0);
+  CHECK(p.value("magcal_samples_rejected_total", {{"reason", "out_of_range"}}) == 1.0);
+  CHECK(p.value("magcal_queue_depth") == 12.0);
+  CHECK(p.value("magcal_queue_overflow_total") == 5.0);
+  CHECK(p.value("magcal_storage_healthy") == 0.0);
+  CHECK(p.value("magcal_build_info", {{"version", "9.9.9-test"}}) == 1.0);
+  CHECK(p.value("magcal_ukf_bias_nT", {{"sat", "SAT-A"}, {"axis", "y"}}) == 800.25);
+  CHECK(p.value("magcal_ukf_bias_sigma_nT", {{"sat", "SAT-A"}, {"axis", "x"}}) == 0.3);
+  CHECK(p.value("magcal_ukf_snapshot_accepted", {{"sat", "SAT-A"}}) == 1.0);
+  // No snapshot of SAT-B yet: no bias series (never a made-up 0 nT).
+  CHECK(p.sum("magcal_ukf_bias_nT", {{"sat", "SAT-B"}}) == 0.0);
+  CHECK(!p.value("magcal_ukf_bias_nT", {{"sat", "SAT-B"}, {"axis", "x"}}));
+  CHECK(p.value("magcal_refits_total", {{"sat", "SAT-A"}, {"verdict", "accepted"}}) == 1.0);
+  CHECK(p.value("magcal_refits_total", {{"sat", "SAT-A"}, {"verdict", "rejected"}}) == 1.0);
+  CHECK(p.value("magcal_refits_total", {{"sat", "SAT-B"}, {"verdict", "error"}}) == 1.0);
+  // The accepted refit's time, not the rejected later one's.
+  CHECK(p.value("magcal_last_refit_success_timestamp_seconds", {{"sat", "SAT-A"}}) ==
+        1'577'923'200.0);
+  CHECK(!p.value("magcal_last_refit_success_timestamp_seconds", {{"sat", "SAT-B"}}));
+
+  // Histogram: cumulative buckets counted here from the observations, +Inf = count.
+  CHECK(p.value("magcal_sqlite_commit_seconds_count") == 4.0);
+  CHECK(p.value("magcal_sqlite_commit_seconds_sum") == Approx(7.0062));
+  for (const double le : magcal::http::sqlite_commit_buckets_s()) {
+    double n = 0;
+    for (const double s : commits_s) n += s <= le ? 1 : 0;
+    const auto it = std::find_if(p.samples.begin(), p.samples.end(), [&](const auto& x) {
+      return x.name == "magcal_sqlite_commit_seconds_bucket" && std::stod(x.labels.at("le")) == le;
+    });
+    REQUIRE(it != p.samples.end());
+    CHECK(it->value == n);
+  }
+  CHECK(p.value("magcal_sqlite_commit_seconds_bucket", {{"le", "+Inf"}}) == 4.0);
+
+  // Totals kept elsewhere only move the counters forward.
+  duplicates = 9;
+  const auto p2 = parse_prometheus_text(m.text());
+  CHECK(p2.value("magcal_samples_rejected_total", {{"reason", "duplicate"}}) == 9.0);
+}
+
+TEST_CASE("daemon metrics: label values are escaped, spacecraft series are capped", "[metrics]") {
+  DaemonMetrics m("1");
+  const std::string odd = "SAT \"quoted\" \\ back\nslash";
+  m.spacecraft(odd).received->Increment(3);
+  m.spacecraft("").received->Increment(1);  // undecodable frames
+  auto p = parse_prometheus_text(m.text());
+  REQUIRE(p.error.empty());
+  CHECK(p.value("magcal_samples_received_total", {{"sat", odd}}) == 3.0);
+  CHECK(p.sum("magcal_samples_received_total") == 4.0);
+
+  for (size_t i = 0; i < DaemonMetrics::kMaxSpacecraftSeries + 10; ++i) {
+    std::string sat = "S";
+    sat += std::to_string(i);  // (not "S" + ...: a GCC 12 -Wrestrict false positive)
+    m.spacecraft(sat).received->Increment();
+  }
+  p = parse_prometheus_text(m.text());
+  REQUIRE(p.error.empty());
+  std::set<std::string> sats;
+  for (const auto& s : p.samples) {
+    if (s.name == "magcal_samples_received_total") sats.insert(s.labels.at("sat"));
+  }
+  CHECK(sats.size() == DaemonMetrics::kMaxSpacecraftSeries + 1);  // + "(other)"
+  CHECK(sats.count(DaemonMetrics::kOtherSpacecraft) == 1);
+  // Nothing is lost: the total is every increment.
+  CHECK(p.sum("magcal_samples_received_total") ==
+        4.0 + static_cast<double>(DaemonMetrics::kMaxSpacecraftSeries + 10));
+}
+
+TEST_CASE("daemon metrics: counts from two threads during scrapes add up", "[metrics]") {
+  DaemonMetrics m("1");
+  constexpr int kPerThread = 20000;
+  auto count = [&](const std::string& sat) {
+    auto& s = m.spacecraft(sat);
+    for (int i = 0; i < kPerThread; ++i) {
+      s.received->Increment();
+      m.spacecraft("shared").stored->Increment();
+    }
+  };
+  std::thread t1(count, "A");
+  std::thread t2(count, "B");
+  for (int i = 0; i < 20; ++i) REQUIRE(parse_prometheus_text(m.text()).error.empty());
+  t1.join();
+  t2.join();
+  const auto p = parse_prometheus_text(m.text());
+  CHECK(p.sum("magcal_samples_received_total") == 2.0 * kPerThread);
+  CHECK(p.value("magcal_samples_stored_total", {{"sat", "shared"}}) == 2.0 * kPerThread);
+}
+
+TEST_CASE("database metrics (magcal serve): what the database holds", "[metrics]") {
+  namespace st = magcal::storage;
+  TempDb tmp;
+  std::map<std::string, int> stored;
+  {
+    st::Database db(tmp.path());
+    st::SampleWindowStore samples(db);
+    std::vector<st::StoredSample> rows;
+    for (int i = 0; i < 250; ++i) {
+      st::StoredSample s;
+      s.sat_id = i % 5 == 0 ? "SAT-B" : "SAT-A";
+      s.utime = 1'577'836'800'000'000 + int64_t{i} * 10'000'000;
+      s.h_norm_nT = 40000.0;
+      ++stored[s.sat_id];
+      rows.push_back(s);
+    }
+    samples.insert_batch(rows);
+    st::CalibrationHistory history(db);
+    auto record = [](const std::string& method, int64_t utime, bool accepted, double bx) {
+      st::CalibrationRecord r;
+      r.sat_id = "SAT-A";
+      r.method = method;
+      r.utime = utime;
+      r.bias_nT = {bx, 2.0, 3.0};
+      r.cov[st::cov_index(0, 0)] = 0.25;  // sigma x = 0.5 nT
+      r.cov[st::cov_index(1, 1)] = 4.0;
+      r.cov[st::cov_index(2, 2)] = 9.0;
+      r.verdict = accepted ? "accepted" : "rejected";
+      r.status = accepted ? 0 : 4;
+      return r;
+    };
+    history.append(record("twostep", 1'577'858'400'000'000, true, 10.0));
+    history.append(record("twostep", 1'577'880'000'000'000, false, 11.0));
+    history.append(record("centered", 1'577'880'000'000'000, true, 12.0));
+    history.append(record("ukf", 1'577'880'000'000'000, true, 13.0));
+    history.append(record("ukf", 1'577'880'060'000'000, false, 14.0));  // the newest one
+  }
+  st::Database db(tmp.path(), st::OpenOptions{.read_only = true});
+  const auto p = parse_prometheus_text(magcal::http::database_metrics_text(db, "2.0"));
+  REQUIRE(p.error.empty());
+  CHECK(p.value("magcal_samples_stored_total", {{"sat", "SAT-A"}}) == stored["SAT-A"]);
+  CHECK(p.value("magcal_samples_stored_total", {{"sat", "SAT-B"}}) == stored["SAT-B"]);
+  CHECK(p.value("magcal_refits_total", {{"sat", "SAT-A"}, {"verdict", "accepted"}}) == 2.0);
+  CHECK(p.value("magcal_refits_total", {{"sat", "SAT-A"}, {"verdict", "rejected"}}) == 1.0);
+  CHECK(p.value("magcal_last_refit_success_timestamp_seconds", {{"sat", "SAT-A"}}) ==
+        1'577'880'000.0);
+  CHECK(p.value("magcal_ukf_bias_nT", {{"sat", "SAT-A"}, {"axis", "x"}}) == 14.0);
+  CHECK(p.value("magcal_ukf_bias_sigma_nT", {{"sat", "SAT-A"}, {"axis", "x"}}) == 0.5);
+  CHECK(p.value("magcal_ukf_bias_sigma_nT", {{"sat", "SAT-A"}, {"axis", "z"}}) == 3.0);
+  CHECK(p.value("magcal_ukf_snapshot_accepted", {{"sat", "SAT-A"}}) == 0.0);
+  CHECK(p.value("magcal_build_info", {{"version", "2.0"}}) == 1.0);
+  CHECK(!p.has("magcal_samples_received_total"));  // only a running daemon knows
+  CHECK(!p.has("magcal_sqlite_commit_seconds_count"));
+}

@@ -1,0 +1,351 @@
+// The operations server in-process over a small database written here: every route, the 400s,
+// start errors, downsampling through the API, reading while a writer writes, and that the
+// server never modifies the database file.
+#include <sys/stat.h>
+
+#include <atomic>
+#include <filesystem>
+#include <thread>
+
+#include <catch2/catch.hpp>
+#include <nlohmann/json.hpp>
+
+#include "service/http/embedded_assets.hpp"
+#include "service/http/operations_server.hpp"
+#include "service/io/history_report.hpp"
+#include "service/io/status_report.hpp"
+#include "storage/calibration_history.hpp"
+#include "storage/database.hpp"
+#include "tests/service/http_test_support.hpp"
+
+using namespace magcal;
+using magcal::test::http_get;
+using magcal::test::TempDir;
+
+namespace {
+
+constexpr int64_t kMinute = 60'000'000LL;
+constexpr int64_t kT0 = 1'577'836'800'000'000LL;  // 2020-01-01T00:00:00Z
+constexpr int64_t kWindow = 12 * 60 * kMinute;
+
+// One stored result; every 7th UKF snapshot rejected (not converged, rms unknown).
+storage::CalibrationRecord record(const std::string& sat, const std::string& method, int k) {
+  storage::CalibrationRecord r;
+  r.sat_id = sat;
+  r.method = method;
+  r.utime = kT0 + k * kMinute;
+  r.window_start_utime = kT0;
+  r.window_end_utime = r.utime;
+  r.n_samples = 6 * (k + 1);
+  r.bias_nT = {1000.0 + 0.5 * std::sin(k), 800.0 - 0.01 * k, 900.0 + (k % 5)};
+  r.D = {0.01, 0.02, 0.01, 1e-3 * (k % 3), 0.0, -1e-3};
+  for (int i = 0; i < 9; ++i)
+    r.cov[storage::cov_index(i, i)] = i < 3 ? 1.0 + 0.1 * k : 1e-8 * (k + 1);
+  r.residual_rms_nT = 3.0 + 0.01 * k;
+  if (method == "ukf" && k % 7 == 0) {
+    r.status = 1;
+    r.verdict = "rejected";
+    r.rejection_reasons = {"not_converged: bias 1-sigma above 10 nT"};
+    r.residual_rms_nT = std::numeric_limits<double>::quiet_NaN();
+  }
+  return r;
+}
+
+// SAT-A: 120 UKF snapshots (one a minute) and 2 twostep refits; SAT-B: 3 UKF snapshots.
+void populate(const std::string& path) {
+  storage::Database db(path);
+  storage::CalibrationHistory history(db);
+  storage::Transaction tx(db);
+  for (int k = 0; k < 120; ++k) history.append(record("SAT-A", "ukf", k));
+  for (int k : {30, 90}) history.append(record("SAT-A", "twostep", k));
+  for (int k = 0; k < 3; ++k) history.append(record("SAT-B", "ukf", k));
+  tx.commit();
+}
+
+http::ServerHooks default_hooks() {
+  http::ServerHooks hooks;
+  hooks.status_window_utime = kWindow;
+  return hooks;
+}
+
+struct Fixture {
+  TempDir dir{"magcal_http"};
+  std::string db = dir.file("m.db");
+  std::unique_ptr<http::OperationsServer> server;
+  explicit Fixture(http::ServerHooks hooks = default_hooks()) {
+    populate(db);
+    std::string error;
+    server = http::OperationsServer::start("127.0.0.1:0", db, std::move(hooks), &error);
+    REQUIRE(server);
+    REQUIRE(error.empty());
+    REQUIRE(server->port() > 0);
+  }
+  test::HttpResult get(const std::string& path) const { return http_get(server->port(), path); }
+  // What the CLI prints for the same request, through the shared io functions.
+  std::string expected(const HistoryRequest& request) const {
+    storage::OpenOptions ro;
+    ro.read_only = true;
+    storage::Database d(db, ro);
+    std::string error;
+    const auto q = parse_history_request(request, "--", &error);
+    REQUIRE(q);
+    const auto rows = read_history(d, *q);
+    return request.format == "csv" ? history_csv_text(rows) : history_json_text(rows);
+  }
+};
+
+void require_json_error(const test::HttpResult& r, int status, const std::string& fragment) {
+  INFO(r.body);
+  REQUIRE(r.status == status);
+  REQUIRE(r.content_type == "application/json");
+  const auto j = nlohmann::json::parse(r.body);
+  REQUIRE(j.at("error").get<std::string>().find(fragment) != std::string::npos);
+}
+
+}  // namespace
+
+TEST_CASE("history route answers what the shared history text is, JSON and CSV") {
+  Fixture f;
+  HistoryRequest request;
+  request.sat = "SAT-A";
+  request.format = "json";
+  auto r = f.get("/api/v1/history?sat=SAT-A");
+  REQUIRE(r.status == 200);
+  REQUIRE(r.content_type == "application/json");
+  REQUIRE(r.body == f.expected(request));
+  REQUIRE(nlohmann::json::parse(r.body).size() == 122);
+
+  request.format = "csv";
+  r = f.get("/api/v1/history?sat=SAT-A&format=csv");
+  REQUIRE(r.status == 200);
+  REQUIRE(r.content_type == "text/csv; charset=utf-8");
+  REQUIRE(r.body == f.expected(request));
+
+  // Filters: method, inclusive since/until, newest N in descending order.
+  request.format = "json";
+  request.method = "ukf";
+  request.since = "2020-01-01T00:10:00Z";
+  request.until = "2020-01-01T00:20:00Z";
+  request.limit = 4;
+  request.order = "desc";
+  r = f.get(
+      "/api/v1/history?sat=SAT-A&method=ukf&since=2020-01-01T00:10:00Z&until=2020-01-01T00:20:00Z"
+      "&limit=4&order=desc");
+  REQUIRE(r.status == 200);
+  REQUIRE(r.body == f.expected(request));
+  const auto rows = nlohmann::json::parse(r.body);
+  REQUIRE(rows.size() == 4);
+  REQUIRE(rows[0]["time"] == "2020-01-01T00:20:00Z");
+  REQUIRE(rows[3]["time"] == "2020-01-01T00:17:00Z");
+
+  // A known spacecraft with no row in the range: the empty array, like the CLI.
+  r = f.get("/api/v1/history?sat=SAT-B&since=2021-01-01T00:00:00Z");
+  REQUIRE(r.status == 200);
+  REQUIRE(r.body == "[]\n");
+}
+
+TEST_CASE("bad history requests get 400 with a JSON error, never a crash") {
+  Fixture f;
+  require_json_error(f.get("/api/v1/history"), 400, "sat is required");
+  require_json_error(f.get("/api/v1/history?sat=NOPE"), 400, "no data for spacecraft 'NOPE'");
+  require_json_error(f.get("/api/v1/history?sat=SAT-A&since=yesterday"), 400,
+                     "since 'yesterday' is not an ISO 8601 UTC time");
+  require_json_error(f.get("/api/v1/history?sat=SAT-A&until=2020-13-01T00:00:00Z"), 400, "until");
+  for (const char* limit : {"0", "-3", "abc", "1e3", "5x", "", "99999999999999"}) {
+    require_json_error(f.get(std::string("/api/v1/history?sat=SAT-A&limit=") + limit), 400,
+                       "limit");
+  }
+  require_json_error(f.get("/api/v1/history?sat=SAT-A&order=up"), 400, "order must be asc or desc");
+  require_json_error(f.get("/api/v1/history?sat=SAT-A&method=kalman"), 400, "unknown method");
+  require_json_error(f.get("/api/v1/history?sat=SAT-A&format=table"), 400, "format 'table'");
+  require_json_error(f.get("/api/v1/history?sat=SAT-A&format=xml"), 400, "format 'xml'");
+  for (const char* points : {"0", "-1", "10001", "many", "2.5"}) {
+    require_json_error(f.get(std::string("/api/v1/history?sat=SAT-A&points=") + points), 400,
+                       "points");
+  }
+  require_json_error(f.get("/api/v1/history?sat=SAT-A&points=10&format=csv"), 400,
+                     "points needs format=json");
+  require_json_error(f.get("/api/v1/history?sat=SAT-A&sat=SAT-B"), 400, "given twice");
+  require_json_error(f.get("/api/v1/history?sat=SAT-A&satellite=x"), 400,
+                     "unknown parameter 'satellite'");
+  require_json_error(f.get("/api/v1/spacecraft?verbose=1"), 400, "unknown parameter");
+  require_json_error(f.get("/api/v2/history"), 404, "no such path");
+  // Still serving after all of that.
+  REQUIRE(f.get("/api/v1/history?sat=SAT-B").status == 200);
+}
+
+TEST_CASE("spacecraft route is the status JSON, and the probes, metrics hook, page and Chart.js") {
+  SECTION("without hooks") {
+    Fixture f;
+    auto r = f.get("/api/v1/spacecraft");
+    REQUIRE(r.status == 200);
+    REQUIRE(r.content_type == "application/json");
+    storage::OpenOptions ro;
+    ro.read_only = true;
+    storage::Database d(f.db, ro);
+    REQUIRE(r.body == status_json_text(read_status(d, kWindow), kWindow));
+    const auto j = nlohmann::json::parse(r.body);
+    REQUIRE(j["spacecraft"].size() == 2);
+    REQUIRE(j["spacecraft"][0]["sat_id"] == "SAT-A");
+    REQUIRE(j["spacecraft"][0]["last_refit"]["time"] == "2020-01-01T01:30:00Z");
+
+    REQUIRE(f.get("/-/healthy").status == 200);
+    REQUIRE(f.get("/-/ready").status == 200);
+    require_json_error(f.get("/metrics"), 404, "no metrics");
+
+    r = f.get("/");
+    REQUIRE(r.status == 200);
+    REQUIRE(r.content_type == "text/html; charset=utf-8");
+    REQUIRE(r.body == http::kIndexHtml);
+    REQUIRE(r.body.find("/static/chart.js") != std::string::npos);
+    r = f.get("/static/chart.js");
+    REQUIRE(r.status == 200);
+    REQUIRE(r.content_type == "application/javascript; charset=utf-8");
+    REQUIRE(r.body == http::kChartJs);
+    REQUIRE(r.body.size() > 100'000);
+    REQUIRE(r.body.find("Chart.js v" + std::string(http::kChartJsVersion)) != std::string::npos);
+  }
+  SECTION("with hooks: their answers, changing while the server runs") {
+    std::atomic<bool> healthy{true}, ready{false};
+    std::atomic<int> scrapes{0};
+    auto hooks = default_hooks();
+    hooks.healthy = [&] { return healthy.load(); };
+    hooks.ready = [&] { return ready.load(); };
+    hooks.metrics_text = [&] {
+      return "# TYPE magcal_scrapes counter\nmagcal_scrapes " + std::to_string(++scrapes) + "\n";
+    };
+    Fixture f(hooks);
+    REQUIRE(f.get("/-/healthy").status == 200);
+    REQUIRE(f.get("/-/ready").status == 503);
+    ready = true;
+    healthy = false;
+    REQUIRE(f.get("/-/healthy").status == 503);
+    REQUIRE(f.get("/-/ready").status == 200);
+    const auto r = f.get("/metrics");
+    REQUIRE(r.status == 200);
+    REQUIRE(r.content_type == "text/plain; version=0.0.4; charset=utf-8");
+    REQUIRE(r.body == "# TYPE magcal_scrapes counter\nmagcal_scrapes 1\n");
+  }
+}
+
+TEST_CASE("points=N through the API: the rows of the same query, bucketed") {
+  Fixture f;
+  const auto r = f.get("/api/v1/history?sat=SAT-A&method=ukf&points=7");
+  REQUIRE(r.status == 200);
+  const auto j = nlohmann::json::parse(r.body);
+  REQUIRE(j["rows"] == 120);
+  REQUIRE(j["points"] == 7);
+  REQUIRE(j["series"].size() == 1);
+  int64_t total = 0;
+  for (const auto& b : j["series"][0]["buckets"]) total += b["count"].get<int64_t>();
+  REQUIRE(total == 120);
+  REQUIRE(j["series"][0]["buckets"].size() == 7);
+  // Both methods: one series each, counts per series = rows per method.
+  const auto all = nlohmann::json::parse(f.get("/api/v1/history?sat=SAT-A&points=3").body);
+  REQUIRE(all["series"].size() == 2);
+  REQUIRE(all["series"][1]["method"] == "twostep");
+  int64_t refits = 0;
+  for (const auto& b : all["series"][1]["buckets"]) refits += b["count"].get<int64_t>();
+  REQUIRE(refits == 2);
+}
+
+TEST_CASE("start errors: bad listen address, port in use, missing or foreign database") {
+  TempDir dir("magcal_http_err");
+  const std::string db = dir.file("m.db");
+  populate(db);
+  std::string error;
+  REQUIRE_FALSE(http::OperationsServer::start("127.0.0.1", db, default_hooks(), &error));
+  REQUIRE(error.find("not ADDR:PORT") != std::string::npos);
+  REQUIRE_FALSE(http::OperationsServer::start("127.0.0.1:70000", db, default_hooks(), &error));
+  REQUIRE(error.find("not 0..65535") != std::string::npos);
+  REQUIRE_FALSE(http::OperationsServer::start("203.0.113.7:0", db, default_hooks(), &error));
+  REQUIRE(error.find("cannot bind") != std::string::npos);
+
+  auto first = http::OperationsServer::start("127.0.0.1:0", db, default_hooks(), &error);
+  REQUIRE(first);
+  const std::string taken = "127.0.0.1:" + std::to_string(first->port());
+  REQUIRE_FALSE(http::OperationsServer::start(taken, db, default_hooks(), &error));
+  REQUIRE(error.find("cannot bind " + taken) != std::string::npos);
+
+  REQUIRE_FALSE(
+      http::OperationsServer::start("127.0.0.1:0", dir.file("absent.db"), default_hooks(), &error));
+  REQUIRE(error.find("cannot open the database") != std::string::npos);
+  REQUIRE_FALSE(std::filesystem::exists(dir.file("absent.db")));  // never created
+  {
+    std::ofstream junk(dir.file("junk.db"));
+    junk << "not a database at all, just some text that is long enough to be a header....";
+  }
+  REQUIRE_FALSE(
+      http::OperationsServer::start("127.0.0.1:0", dir.file("junk.db"), default_hooks(), &error));
+  REQUIRE(error.find("cannot open the database") != std::string::npos);
+  auto no_window = default_hooks();
+  no_window.status_window_utime = 0;
+  REQUIRE_FALSE(http::OperationsServer::start("127.0.0.1:0", db, no_window, &error));
+
+  // stop() is idempotent and the destructor after it is fine.
+  first->stop();
+  first->stop();
+  REQUIRE(http_get(std::stoi(taken.substr(taken.rfind(':') + 1)), "/-/healthy").status == -1);
+}
+
+TEST_CASE("the server reads while a writer commits, and the writer is never refused") {
+  Fixture f;
+  std::atomic<bool> done{false};
+  std::atomic<int> written{0};
+  std::thread writer([&] {
+    storage::Database db(f.db);  // the daemon's role: its own read-write connection
+    storage::CalibrationHistory history(db);
+    for (int k = 120; k < 420; ++k) {
+      storage::Transaction tx(db);
+      history.append(record("SAT-A", "ukf", k));
+      tx.commit();
+      ++written;
+    }
+    done = true;
+  });
+  int reads = 0;
+  size_t last_rows = 0;
+  while (!done || reads < 5) {
+    const auto r = f.get("/api/v1/history?sat=SAT-A&method=ukf&format=csv");
+    REQUIRE(r.status == 200);
+    // A consistent snapshot: header plus whole rows, never fewer than before.
+    const size_t rows = static_cast<size_t>(std::count(r.body.begin(), r.body.end(), '\n')) - 1;
+    REQUIRE(rows >= last_rows);
+    REQUIRE(rows >= 120);
+    last_rows = rows;
+    ++reads;
+  }
+  writer.join();
+  REQUIRE(written == 300);
+  const auto r = f.get("/api/v1/history?sat=SAT-A&method=ukf&points=1");
+  REQUIRE(nlohmann::json::parse(r.body)["rows"] == 420);
+}
+
+TEST_CASE("the server never modifies the database file") {
+  TempDir dir("magcal_http_ro");
+  const std::string db = dir.file("m.db");
+  populate(db);  // closed: checkpointed, no -wal left
+  REQUIRE_FALSE(std::filesystem::exists(db + "-wal"));
+  struct stat before {};
+  REQUIRE(::stat(db.c_str(), &before) == 0);
+  const auto bytes_before = test::slurp(db);
+  {
+    std::string error;
+    auto server = http::OperationsServer::start("127.0.0.1:0", db, default_hooks(), &error);
+    REQUIRE(server);
+    for (const char* path : {"/api/v1/spacecraft", "/api/v1/history?sat=SAT-A",
+                             "/api/v1/history?sat=SAT-A&format=csv&points=3",
+                             "/api/v1/history?sat=SAT-A&points=50", "/-/healthy"}) {
+      http_get(server->port(), path);
+    }
+  }
+  struct stat after {};
+  REQUIRE(::stat(db.c_str(), &after) == 0);
+  REQUIRE(after.st_size == before.st_size);
+  REQUIRE(after.st_mtim.tv_sec == before.st_mtim.tv_sec);
+  REQUIRE(after.st_mtim.tv_nsec == before.st_mtim.tv_nsec);
+  REQUIRE(test::slurp(db) == bytes_before);
+  // SQLite's read-only reader of a WAL database may leave an empty -wal / the -shm index
+  // behind (not the database); it never writes a frame into the -wal.
+  if (std::filesystem::exists(db + "-wal")) REQUIRE(std::filesystem::file_size(db + "-wal") == 0);
+}

@@ -1,0 +1,160 @@
+// service/io/history_report: request validation and the points=N downsampling, checked against
+// a direct computation written here (bucket edges from the stated width, per-field statistics).
+#include <cmath>
+#include <limits>
+#include <map>
+
+#include <catch2/catch.hpp>
+
+#include "service/io/history_report.hpp"
+#include "service/io/status_report.hpp"
+
+using namespace magcal;
+
+namespace {
+
+constexpr int64_t kT0 = 1'577'836'800'000'000LL;  // 2020-01-01T00:00:00Z
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+
+// Irregular times (gaps, a burst), two methods, some rejected, some unknown rms.
+std::vector<storage::CalibrationRecord> rows() {
+  std::vector<storage::CalibrationRecord> out;
+  int64_t t = kT0;
+  for (int k = 0; k < 200; ++k) {
+    t += (k % 17 == 0) ? 3'600'000'000LL : 1'000'000LL * (1 + (k * 7919) % 97);
+    storage::CalibrationRecord r;
+    r.sat_id = "S";
+    r.method = k % 10 == 3 ? "twostep" : "ukf";
+    r.utime = t;
+    r.n_samples = k;
+    r.bias_nT = {std::sin(0.1 * k) * 50, 1000.0 - k, 0.25 * k * k};
+    r.bias_sigma_nT = {1.0 + k % 3, 2.0, 3.0};
+    for (int i = 3; i < 9; ++i) r.cov[storage::cov_index(i, i)] = 1e-6 * (i + k % 4);
+    r.D = {0.01 * k, 0, 0, 0, 0, -0.01 * k};
+    r.residual_rms_nT = k % 5 == 0 ? kNaN : 2.0 + 0.1 * k;
+    if (k % 11 == 0) r.verdict = "rejected";
+    out.push_back(r);
+  }
+  return out;
+}
+
+}  // namespace
+
+TEST_CASE("downsample_history: buckets recomputed directly, counts sum to the rows") {
+  const auto all = rows();
+  storage::HistoryQuery q;
+  q.sat_id = "S";
+  for (const int points : {1, 3, 10, 64, 1000}) {
+    INFO("points=" << points);
+    const auto d = downsample_history(all, q, points);
+    REQUIRE(d["rows"] == all.size());
+    const int64_t start = d["start_utime"], end = d["end_utime"];
+    REQUIRE(start == all.front().utime);
+    REQUIRE(end == all.back().utime);
+    const int64_t width = d["bucket_us"];
+    REQUIRE(width * points >= end - start + 1);       // covers the range...
+    REQUIRE(width * (points - 1) < end - start + 1);  // ...with no empty tail bucket
+    size_t total = 0;
+    for (const auto& series : d["series"]) {
+      const std::string method = series["method"];
+      for (const auto& b : series["buckets"]) {
+        const int64_t lo = b["start_utime"], hi = b["end_utime"];
+        REQUIRE((lo - start) % width == 0);
+        REQUIRE(hi <= end);
+        std::vector<const storage::CalibrationRecord*> in;
+        for (const auto& r : all) {
+          if (r.method == method && r.utime >= lo && r.utime <= hi) in.push_back(&r);
+        }
+        REQUIRE(b["count"] == in.size());
+        REQUIRE(!in.empty());
+        size_t accepted = 0;
+        for (auto* r : in) accepted += r->verdict == "accepted";
+        REQUIRE(b["accepted"] == accepted);
+        REQUIRE(b["rejected"] == in.size() - accepted);
+        // bias_z (exact values), residual rms (some unknown), D23 sigma (from the covariance).
+        auto check = [&](const char* name, auto value_of) {
+          double sum = 0, mn = INFINITY, mx = -INFINITY;
+          size_t n = 0;
+          for (auto* r : in) {
+            const double v = value_of(*r);
+            if (!std::isfinite(v)) continue;
+            sum += v;
+            mn = std::min(mn, v);
+            mx = std::max(mx, v);
+            ++n;
+          }
+          const auto& f = b[name];
+          REQUIRE(f["n"] == n);
+          if (n == 0) {
+            REQUIRE(f["mean"].is_null());
+            return;
+          }
+          REQUIRE(f["min"].get<double>() == mn);
+          REQUIRE(f["max"].get<double>() == mx);
+          REQUIRE(f["mean"].get<double>() == Approx(sum / static_cast<double>(n)).epsilon(1e-12));
+          REQUIRE(mn <= f["mean"].get<double>());
+          REQUIRE(f["mean"].get<double>() <= mx);
+        };
+        check("bias_z_nT", [](const auto& r) { return r.bias_nT[2]; });
+        check("residual_rms_nT", [](const auto& r) { return r.residual_rms_nT; });
+        check("D23_sigma",
+              [](const auto& r) { return std::sqrt(r.cov[storage::cov_index(8, 8)]); });
+        check("n_samples", [](const auto& r) { return static_cast<double>(r.n_samples); });
+        total += in.size();
+      }
+    }
+    REQUIRE(total == all.size());
+  }
+}
+
+TEST_CASE("downsample_history: query range, descending order, no rows") {
+  const auto all = rows();
+  storage::HistoryQuery q;
+  q.sat_id = "S";
+  q.since_utime = kT0 - 86'400'000'000LL;
+  q.until_utime = all.back().utime + 86'400'000'000LL;
+  const auto d = downsample_history(all, q, 6);
+  REQUIRE(d["start_utime"] == *q.since_utime);
+  REQUIRE(d["end_utime"] == *q.until_utime);
+  // The data sit in the middle of a 3-day span: the first bucket (day 1 minus...) is empty.
+  for (const auto& s : d["series"]) {
+    REQUIRE(s["buckets"].front()["start_utime"].get<int64_t>() > *q.since_utime);
+  }
+  q.descending = true;
+  const auto desc = downsample_history(all, q, 50);
+  for (const auto& s : desc["series"]) {
+    int64_t previous = std::numeric_limits<int64_t>::max();
+    for (const auto& b : s["buckets"]) {
+      REQUIRE(b["start_utime"].get<int64_t>() < previous);
+      previous = b["start_utime"];
+    }
+  }
+  const auto none = downsample_history({}, q, 10);
+  REQUIRE(none["rows"] == 0);
+  REQUIRE(none["series"].empty());
+}
+
+TEST_CASE("parse_history_request names the bad parameter with the caller's prefix") {
+  HistoryRequest r;
+  r.sat = "S";
+  std::string error;
+  REQUIRE(parse_history_request(r, "--", &error));
+  r.since = "2020-01-01";
+  r.until = "2020-01-02T00:00:00.5Z";
+  r.limit = 3;
+  r.order = "desc";
+  const auto q = parse_history_request(r, "--", &error);
+  REQUIRE(q);
+  REQUIRE(*q->since_utime == kT0);
+  REQUIRE(*q->until_utime == kT0 + 86'400'000'000LL + 500'000);
+  REQUIRE(q->descending);
+  r.since = "soon";
+  REQUIRE_FALSE(parse_history_request(r, "--", &error));
+  REQUIRE(error == "--since 'soon' is not an ISO 8601 UTC time (e.g. 2026-01-01T12:00:00Z)");
+  REQUIRE_FALSE(parse_history_request(r, "", &error));
+  REQUIRE(error.rfind("since 'soon'", 0) == 0);
+  r.since.clear();
+  r.method = "lsq";
+  REQUIRE_FALSE(parse_history_request(r, "", &error));
+  REQUIRE(error == "unknown method 'lsq' (ukf, ekf, centered, twostep)");
+}
