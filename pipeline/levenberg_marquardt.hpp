@@ -37,8 +37,9 @@ template <int P>
 struct LmDriverResult {
   bool evaluated = false;  // the start had a cost (else nothing below is set)
   bool converged = false;
-  int iterations = 0;  // iterations that tried a step
-  double cost = 0.0;   // at the returned x
+  int iterations = 0;   // iterations that tried a step
+  double cost = 0.0;    // at the returned x
+  double lambda = 0.0;  // damping at the end (a continuation may start from it)
   Eigen::Matrix<double, P, P> information = Eigen::Matrix<double, P, P>::Zero();  // F at x
   Eigen::Matrix<double, P, 1> gradient = Eigen::Matrix<double, P, 1>::Zero();     // g at x
 };
@@ -81,7 +82,8 @@ LmDriverResult<P> levenberg_marquardt(const Evaluate& evaluate, const Feasible& 
     return res;
   }
   res.evaluated = true;
-  double lambda = options.initial_lambda;
+  double& lambda = res.lambda;
+  lambda = options.initial_lambda;
   for (int iter = 0; iter < options.max_iterations; ++iter) {
     if (iter > 0 &&
         gauss_newton_decrement<P>(res.information, res.gradient) < options.step_tolerance) {

@@ -81,6 +81,10 @@ bool theta_positive_definite(const Vector9d& theta) {
 
 namespace {
 
+// Passes over the samples (moments about the latest estimate) before a non-robust refinement
+// is declared not converged.
+constexpr int kMaxMomentPasses = 5;
+
 // The samples as the scalar problem with NX extension columns sees them: the regressor row v_k
 // (scalar_moments_cost), the weight w_k and the robust weights u_k.
 template <int NX>
@@ -105,8 +109,8 @@ class ScalarProblem {
 
   std::size_t size() const { return samples_.size(); }
 
-  // v_k and the total weight u_k w_k.
-  VectorN row(std::size_t k, double* weight) const {
+  // v_k about the reference (moments_reference) and the total weight u_k w_k.
+  VectorN row(std::size_t k, const VectorN& c_ref, double* weight) const {
     const CalibrationSample& s = samples_[k];
     const double h2 = s.h_body_nT.squaredNorm();
     VectorN v;
@@ -114,23 +118,55 @@ class ScalarProblem {
     v(9) = 1.0;
     v(10) = s.b_sensor_nT.squaredNorm() - h2 - mu_;
     if constexpr (NX > 0) v.template tail<NX>() = (*phi_)[k].template head<NX>();
-    *weight = 1.0 / (4.0 * s2_ * h2 + 6.0 * s2_ * s2_);
-    if (options_.robust) *weight *= u_[k];
+    v(10) = v.dot(c_ref);  // r_k at the reference (c_ref(10) = 1)
+    if (options_.robust) {
+      // Robust: |y_k|^2 = r_k + |h_k|^2 + mu at the reference estimate (estimation.md 2, second
+      // line; |B|^2 if not positive), refreshed with every re-weighting: a spike in B then also
+      // loses weight through its |y|^2, which the Huber weight alone does not give (measured:
+      // 600 nT sensor with 3 G spikes, bias error 80 nT with |h|, 20 nT like this).
+      double y2 = v(10) + h2 + mu_;
+      if (!(y2 > 0.0)) y2 = s.b_sensor_nT.squaredNorm();
+      *weight = u_[k] / (4.0 * s2_ * y2 + 6.0 * s2_ * s2_);
+    } else {
+      *weight = 1.0 / (4.0 * s2_ * h2 + 6.0 * s2_ * s2_);
+    }
     return v;
   }
 
-  // M = sum u w v^T v (one pass).
-  MatrixN moments() const {
+  // The reference x_ref of the moments (scalar_moments_cost) and c(x_ref) about zero.
+  static bool reference(const VectorP& x_ref, MomentsReference<NX>* ref, VectorN* c_ref) {
+    ref->x = x_ref;
+    Vector9d gb;
+    if (!residual_vector(x_ref, c_ref, &gb)) return false;
+    ref->bsq = (*c_ref)(9);
+    return true;
+  }
+
+  // M = sum u w v^T v about the reference (one pass). base: its leading 11 x 11 block, already
+  // known about the same reference (no robust weights).
+  MatrixN moments(const VectorN& c_ref, const Eigen::Matrix<double, 11, 11>* base = nullptr) const {
+    if (NX > 0 && base && !options_.robust) {
+      OuterProductSum<N, 11> sum;
+      for (std::size_t k = 0; k < samples_.size(); ++k) {
+        double w = 0.0;
+        const VectorN v = row(k, c_ref, &w);
+        sum.add(std::sqrt(w) * v);
+      }
+      MatrixN M = sum.sum();
+      M.template topLeftCorner<11, 11>() = *base;
+      return M;
+    }
     OuterProductSum<N> sum;
     for (std::size_t k = 0; k < samples_.size(); ++k) {
       double w = 0.0;
-      const VectorN v = row(k, &w);
+      const VectorN v = row(k, c_ref, &w);
       sum.add(std::sqrt(w) * v);
     }
     return sum.sum();
   }
 
-  // c(x) of scalar_moments_cost and the |b|^2 gradient at x; false if I + E is singular.
+  // c(x) about zero (v_k c = r_k with v_k(10) = z_k - mu_k) and the |b|^2 gradient at x; false
+  // if I + E is singular.
   static bool residual_vector(const VectorP& x, VectorN* c, Vector9d* gb) {
     double bsq = 0.0;
     if (!bias_norm_squared(x.template head<9>(), &bsq, gb)) return false;
@@ -151,8 +187,8 @@ class ScalarProblem {
     abs_e_.resize(samples_.size());
     for (std::size_t k = 0; k < samples_.size(); ++k) {
       double w = 0.0;
-      const VectorN v = row(k, &w);  // u = 1 here
-      abs_e_[k] = u_[k] = std::abs(v.dot(c)) * std::sqrt(w);
+      const VectorN v = row(k, c, &w);  // v(10) = r_k at x; u = 1 here
+      abs_e_[k] = u_[k] = std::abs(v(10)) * std::sqrt(w);
     }
     auto mid = abs_e_.begin() + static_cast<std::ptrdiff_t>(abs_e_.size() / 2);
     std::nth_element(abs_e_.begin(), mid, abs_e_.end());
@@ -180,8 +216,8 @@ class ScalarProblem {
     e->resize(samples_.size());
     for (std::size_t k = 0; k < samples_.size(); ++k) {
       double w = 0.0;
-      const VectorN v = row(k, &w);
-      const double r = v.dot(c);
+      const VectorN v = row(k, c, &w);
+      const double r = v(10);
       VectorP J;  // dr/dx = v G
       J.template head<9>() = gb - v.template head<9>();
       if constexpr (NX > 0) J.template tail<NX>() = -v.template tail<NX>();
@@ -224,11 +260,12 @@ std::string check_inputs(const SampleSet& samples, const Vector9d& theta0, const
 
 template <int NX>
 LmResult refine(const SampleSet& samples, const Vector9d& theta0, const LmOptions& options,
-                const std::vector<Vector6d>* phi) {
+                const std::vector<Vector6d>* phi, const LmResult* base) {
   using Problem = ScalarProblem<NX>;
   constexpr int P = Problem::P;
   using VectorP = typename Problem::VectorP;
   using MatrixP = typename Problem::MatrixP;
+  using VectorN = typename Problem::VectorN;
   using MatrixN = typename Problem::MatrixN;
   LmResult res;
   if (std::string err = check_inputs(samples, theta0, options, &res); !err.empty()) {
@@ -248,19 +285,42 @@ LmResult refine(const SampleSet& samples, const Vector9d& theta0, const LmOption
   driver.step_tolerance = options.tolerance;
   auto feasible = [](const VectorP& v) { return theta_positive_definite(v.template head<9>()); };
 
-  // Without robust weights M does not depend on x: one pass, then LM on M. Robust: IRLS, u at
-  // the current estimate, LM on the moments with those u, until the Gauss–Newton decrement with
-  // the weights of the estimate is below the tolerance.
-  int n_down = problem.update_robust_weights(x);
-  MatrixN M = problem.moments();
-  const int max_outer = options.robust ? options.max_iterations : 1;
-  for (int outer = 0; outer < max_outer; ++outer) {
-    auto evaluate = [&M](const VectorP& v, double* cost, MatrixP* F, VectorP* g) {
-      return scalar_moments_cost<NX>(M, v, cost, F, g);
+  // Without robust weights M depends on x only through its reference: one pass, then LM on M;
+  // another pass about the result only when rounding kept LM from meeting the tolerance (the
+  // moments lose precision far from their reference). Robust: IRLS, u at the current
+  // estimate, LM on the moments with those u, until the Gauss–Newton decrement with the weights
+  // of the estimate is below the tolerance.
+  MomentsReference<NX> ref;
+  VectorN c_ref;
+  MatrixN M;
+  int n_down = 0;
+  const bool reuse_base = NX > 0 && base != nullptr && !options.robust;
+  if (reuse_base) {
+    x.template head<9>() = base->moments_reference;
+    if constexpr (NX > 0) x.template tail<NX>().setZero();
+  }
+  auto prepare = [&](bool with_base) {
+    n_down = problem.update_robust_weights(x);
+    if (!problem.reference(x, &ref, &c_ref)) return false;
+    M = problem.moments(c_ref, with_base ? &base->moments : nullptr);
+    return true;
+  };
+  if (!prepare(reuse_base)) {
+    res.status = LmStatus::kSingular;
+    res.message = "refinement: I + E singular at the start";
+    return res;
+  }
+  if (reuse_base) {  // the base's reference; the refinement starts from theta0
+    x.template head<9>() = theta0;
+    if (!theta_positive_definite(theta0)) x.template segment<6>(3).setZero();
+  }
+  const int max_passes = options.robust ? options.max_iterations : kMaxMomentPasses;
+  for (int pass = 0; pass < max_passes; ++pass) {
+    auto evaluate = [&M, &ref](const VectorP& v, double* cost, MatrixP* F, VectorP* g) {
+      return scalar_moments_cost<NX>(M, v, cost, F, g, ref);
     };
-    if (outer > 0) {
-      n_down = problem.update_robust_weights(x);
-      M = problem.moments();
+    if (pass > 0) {
+      if (!prepare(false)) break;
       double cost = 0.0;
       MatrixP F;
       VectorP g;
@@ -269,27 +329,28 @@ LmResult refine(const SampleSet& samples, const Vector9d& theta0, const LmOption
         break;
       }
     }
+    // Robust: one LM iteration per re-weighting (as IRLS; a full solve with the weights of a
+    // start far from the solution can settle on the outliers), the damping carried over.
+    if (options.robust) driver.max_iterations = 1;
     const LmDriverResult<P> run = levenberg_marquardt<P>(evaluate, feasible, &x, driver);
+    driver.initial_lambda = run.lambda;
     if (!run.evaluated) {
       res.status = LmStatus::kSingular;
       res.message = "refinement: non-finite cost";
       return res;
     }
     res.iterations += run.iterations;
-    res.converged = run.converged;
-    if (!run.converged) break;
-    if (options.robust) res.converged = false;  // until the weights at x confirm it
+    res.converged = run.converged && !options.robust;  // robust: until the weights at x agree
+    if (res.converged) break;
+    if (options.robust && run.iterations == 0) break;  // no step possible: not converged
   }
-  if (options.robust && !res.converged) {  // weights and moments at the returned estimate
-    n_down = problem.update_robust_weights(x);
-    M = problem.moments();
-  }
+  if (!res.converged) prepare(false);  // weights and moments about the returned estimate
 
   // The undamped information at the solution, with the weights evaluated there.
   double chi2 = 0.0;
   MatrixP F;
   VectorP g;
-  if (!scalar_moments_cost<NX>(M, x, &chi2, &F, &g) || !std::isfinite(chi2)) {
+  if (!scalar_moments_cost<NX>(M, x, &chi2, &F, &g, ref) || !std::isfinite(chi2)) {
     res.status = LmStatus::kSingular;
     res.message = "refinement: non-finite cost";
     return res;
@@ -323,6 +384,10 @@ LmResult refine(const SampleSet& samples, const Vector9d& theta0, const LmOption
   res.n_parameters = P;
   res.noise_scale = std::sqrt(chi2 / dof);
   if (options.robust) res.robust_weights = problem.robust_weights();
+  if constexpr (NX == 0) {
+    res.moments = M;
+    res.moments_reference = ref.x;
+  }
   {
     std::vector<VectorP> scores;
     std::vector<double> e;
@@ -334,9 +399,9 @@ LmResult refine(const SampleSet& samples, const Vector9d& theta0, const LmOption
       // Small-sample correction n / (n - p), as for the reduced chi-square.
       const MatrixP omega =
           newey_west_meat<P>(scores, res.lag_window) * (static_cast<double>(samples.size()) / dof);
-      const MatrixP hac = F_inv * omega * F_inv;
-      res.theta_covariance = covariance_not_below(res.theta_covariance_white,
-                                                  Matrix9d(hac.template topLeftCorner<9, 9>()));
+      const MatrixP hac_full = F_inv * omega * F_inv;
+      const Matrix9d hac = hac_full.template topLeftCorner<9, 9>();
+      res.theta_covariance = covariance_not_below(res.theta_covariance_white, hac);
     }
   }
   if (res.converged) {
@@ -352,18 +417,18 @@ LmResult refine(const SampleSet& samples, const Vector9d& theta0, const LmOption
 }  // namespace
 
 LmResult refine_lm(const SampleSet& samples, const Vector9d& theta0, const LmOptions& options) {
-  return refine<0>(samples, theta0, options, nullptr);
+  return refine<0>(samples, theta0, options, nullptr, nullptr);
 }
 
 LmResult refine_lm_extended(const SampleSet& samples, const Vector9d& theta0,
                             const std::vector<Vector6d>& extension_regressors,
-                            const LmOptions& options) {
+                            const LmOptions& options, const LmResult* base) {
   if (extension_regressors.size() != samples.size()) {
     LmResult res;
     res.message = "extension regressors: one row per sample required";
     return res;
   }
-  return refine<6>(samples, theta0, options, &extension_regressors);
+  return refine<6>(samples, theta0, options, &extension_regressors, base);
 }
 
 }  // namespace magcal

@@ -73,7 +73,11 @@ struct LmResult {
   int n_parameters = 9;                   // 9, or 15 with the model extension
   Vector6d extension = Vector6d::Zero();  // refine_lm_extended: the coefficients a
   Matrix6d extension_covariance = Matrix6d::Zero();  // white-noise, marginal
-  int iterations = 0;                                // accepted or attempted outer iterations
+  // M = sum w u v^T v of the fit's samples about theta_ref (scalar_moments_cost, 9-parameter
+  // rows): without robust weights refine_lm_extended takes it instead of summing that block again.
+  Eigen::Matrix<double, 11, 11> moments = Eigen::Matrix<double, 11, 11>::Zero();
+  Vector9d moments_reference = Vector9d::Zero();
+  int iterations = 0;  // accepted or attempted outer iterations
   bool converged = false;
   double cost = 0.0;       // J at the solution
   int n_downweighted = 0;  // robust mode: samples with u_k < 1
@@ -91,18 +95,30 @@ RowVector9d lm_residual_jacobian(const Vector9d& theta, const Eigen::Vector3d& b
 bool theta_positive_definite(const Vector9d& theta);
 
 // The weighted scalar problem with NX linear extension columns phi_k (x = [theta; a]) from its
-// moments (estimation.md 2b):
-//   v_k = [L_k (1x9), 1, y_k, phi_k^T (1xNX)],  y_k = z_k - mu_k
-//   r_k = y_k - L_k theta + |b(theta)|^2 - phi_k^T a = v_k c(x),  c = [-theta; |b|^2; 1; -a]
+// moments (estimation.md 2b), taken about a reference estimate x_ref (zero: the plain form):
+//   v_k = [L_k (1x9), 1, rho_k, phi_k^T (1xNX)],  rho_k = r_k(x_ref)  (= z_k - mu_k at x_ref = 0)
+//   r_k(x) = rho_k - L_k (theta - theta_ref) + |b(theta)|^2 - |b(theta_ref)|^2 - phi_k^T (a -
+//   a_ref)
+//          = v_k c(x),  c = [-(theta - theta_ref); |b|^2 - |b_ref|^2; 1; -(a - a_ref)]
 //   sum w r^2 = c^T M c,   M = sum w_k v_k^T v_k   ((11 + NX) x (11 + NX), symmetric)
 //   dr_k/dx = v_k G,  G = [-I_9, 0; g_b^T, 0; 0, 0; 0, -I_NX]
 //   F = G^T M G (Gauss–Newton information), g = G^T M c (gradient of 1/2 sum w r^2)
+// About a reference near the solution the sums do not cancel: z_k is ~|B|^2 (1e9..1e11 nT^2)
+// while r_k is ~|B| sigma, so moments about zero lose the chi-square to rounding for large
+// fields and biases (measured: |b| = 3 |H| never met the 1e-10 tolerance).
 // cost in chi-square units (sum w r^2). False if I + E is singular.
+template <int NX>
+struct MomentsReference {
+  Eigen::Matrix<double, 9 + NX, 1> x = Eigen::Matrix<double, 9 + NX, 1>::Zero();
+  double bsq = 0.0;  // |b(theta_ref)|^2
+};
+
 template <int NX>
 bool scalar_moments_cost(const Eigen::Matrix<double, 11 + NX, 11 + NX>& M,
                          const Eigen::Matrix<double, 9 + NX, 1>& x, double* cost,
                          Eigen::Matrix<double, 9 + NX, 9 + NX>* F,
-                         Eigen::Matrix<double, 9 + NX, 1>* g) {
+                         Eigen::Matrix<double, 9 + NX, 1>* g,
+                         const MomentsReference<NX>& ref = {}) {
   constexpr int N = 11 + NX;
   constexpr int P = 9 + NX;
   double bsq = 0.0;
@@ -110,10 +126,10 @@ bool scalar_moments_cost(const Eigen::Matrix<double, 11 + NX, 11 + NX>& M,
   const Vector9d theta = x.template head<9>();
   if (!bias_norm_squared(theta, &bsq, &gb)) return false;
   Eigen::Matrix<double, N, 1> c;
-  c.template head<9>() = -theta;
-  c(9) = bsq;
+  c.template head<9>() = ref.x.template head<9>() - theta;
+  c(9) = bsq - ref.bsq;
   c(10) = 1.0;
-  if constexpr (NX > 0) c.template tail<NX>() = -x.template tail<NX>();
+  if constexpr (NX > 0) c.template tail<NX>() = ref.x.template tail<NX>() - x.template tail<NX>();
   const Eigen::Matrix<double, N, 1> Mc = M * c;
   if (cost) *cost = c.dot(Mc);
   if (g) {
@@ -138,8 +154,10 @@ LmResult refine_lm(const SampleSet& samples, const Vector9d& theta0, const LmOpt
 // sensor nonlinearity and hysteresis terms of pipeline/model_extension.hpp):
 //   r_k = z_k - mu_k - L_k theta + |b(theta)|^2 - phi_k^T a,   unknowns [theta; a], a0 = 0.
 // theta_covariance(_white) are the marginal 9x9 blocks (a estimated jointly).
+// base: a non-robust refine_lm on the same samples and sigma (or nullptr), whose moments are
+// reused.
 LmResult refine_lm_extended(const SampleSet& samples, const Vector9d& theta0,
                             const std::vector<Vector6d>& extension_regressors,
-                            const LmOptions& options = {});
+                            const LmOptions& options = {}, const LmResult* base = nullptr);
 
 }  // namespace magcal
