@@ -224,7 +224,7 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
         // iterations instead of ~5 with the default damping (measured on the paper scenario).
         LmOptions ext_options = lopt;
         ext_options.initial_lambda = 0.0;
-        LmResult ext = refine_lm_extended(samples, lm.theta, phi, ext_options);
+        LmResult ext = refine_lm_extended(samples, lm.theta, phi, ext_options, &lm);
         const RecoveryResult extended = recover_parameters(ext.theta);
         const Eigen::Vector3d shift =
             extended.ok() ? Eigen::Vector3d(extended.parameters.bias_nT - base.parameters.bias_nT)

@@ -6,6 +6,7 @@
 
 #include <Eigen/Dense>
 
+#include "pipeline/outer_product_sum.hpp"
 #include "pipeline/scalar_measurement.hpp"
 
 namespace magcal {
@@ -74,15 +75,18 @@ CenteredResult centered_solution(const SampleSet& samples, const CenteredOptions
   const RowVector9d L_bar = sum_wL / sum_w;
 
   // Pass 2: centered normal equations.
-  Matrix9d F = Matrix9d::Zero();
-  Vector9d g = Vector9d::Zero();
+  // [F g; g^T .] = sum w [Lc zc]^T [Lc zc], one blocked outer-product sum.
+  OuterProductSum<10> normal;
   for (const CalibrationSample& s : samples) {
     const double w = weight(s.b_sensor_nT);
-    const RowVector9d Lc = scalar_regressor(s.b_sensor_nT) - L_bar;
-    const double zc = scalar_measurement(s.b_sensor_nT, s.h_body_nT.norm()) - mu - z_bar;
-    F.noalias() += (Lc.transpose() * w) * Lc;  // fixed-size 9x9, vectorised
-    g.noalias() += (w * zc) * Lc.transpose();
+    Eigen::Matrix<double, 10, 1> row;
+    row.head<9>() = (scalar_regressor(s.b_sensor_nT) - L_bar).transpose();
+    row(9) = scalar_measurement(s.b_sensor_nT, s.h_body_nT.norm()) - mu - z_bar;
+    normal.add(std::sqrt(w) * row);
   }
+  const Eigen::Matrix<double, 10, 10> normal_sum = normal.sum();
+  const Matrix9d F = normal_sum.topLeftCorner<9, 9>();
+  const Vector9d g = normal_sum.block<9, 1>(0, 9);
 
   // Scaled solve: F_s = S^-1 F S^-1.
   const Vector9d d = F.diagonal();

@@ -6,6 +6,7 @@
 
 #include <Eigen/Dense>
 
+#include "pipeline/outer_product_sum.hpp"
 #include "pipeline/scalar_measurement.hpp"
 
 namespace magcal {
@@ -28,16 +29,16 @@ void scaled_condition(const Matrix9d& F, double* condition_number, double* min_e
 CrlbResult compute_crlb(const SampleSet& samples, const CalibrationParameters& p, double sigma_nT,
                         double max_condition) {
   CrlbResult r;
-  const Vector9d packed = p.packed();
-  Matrix9d F = Matrix9d::Zero();
+  OuterProductSum<9> F;  // sum w H^T H as sum (sqrt(w) H)^T (sqrt(w) H)
   for (const CalibrationSample& s : samples) {
     if (!s.b_sensor_nT.allFinite()) continue;
-    const RowVector9d H = scalar_measurement_jacobian(packed, s.b_sensor_nT);
-    const double w = 1.0 / scalar_noise_variance(p.apply(s.b_sensor_nT), sigma_nT);
-    F.noalias() += (H.transpose() * w) * H;  // fixed-size 9x9, vectorised
+    const Eigen::Vector3d y = p.apply(s.b_sensor_nT);
+    const RowVector9d H = scalar_measurement_jacobian_at(y, s.b_sensor_nT);
+    const double w = 1.0 / scalar_noise_variance(y, sigma_nT);
+    F.add(std::sqrt(w) * H.transpose());
     ++r.n_samples;
   }
-  r.fisher = F;
+  r.fisher = F.sum();
   scaled_condition(r.fisher, &r.condition_number, &r.min_eigenvalue);
   if (!(r.condition_number < max_condition)) {
     char buf[128];

@@ -4,9 +4,9 @@
 #include <cmath>
 #include <limits>
 
-#include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
 
+#include "pipeline/levenberg_marquardt.hpp"
 #include "pipeline/lm_refinement.hpp"
 #include "pipeline/parameter_recovery.hpp"
 
@@ -24,11 +24,6 @@ constexpr int kMaxLineIterations = 30;
 
 int packed_index(int i, int j) {  // i <= j
   return i * 11 - i * (i - 1) / 2 + (j - i);
-}
-
-bool is_positive_definite(const Vector9d& theta) {
-  const Eigen::Matrix3d I_E = Eigen::Matrix3d::Identity() + unpack_symmetric(theta.tail<6>());
-  return Eigen::LLT<Eigen::Matrix3d>(I_E).info() == Eigen::Success;
 }
 
 // Inverse of a symmetric positive semi-definite matrix in the diagonally scaled form, and its
@@ -60,53 +55,18 @@ bool scaled_inverse(const Eigen::Matrix<double, N, N>& F, Eigen::Matrix<double, 
 
 // Levenberg-Marquardt on the moments from theta (must make I + E positive definite).
 bool refine_on_moments(const Matrix11d& M, Vector9d& theta, double& cost, int& iterations) {
-  Matrix9d F;
-  Vector9d g;
-  if (!moments_cost(M, theta, &cost, &F, &g)) return false;
-  double lambda = 1e-3;
-  for (int it = 0; it < kMaxLmIterations; ++it) {
-    ++iterations;
-    bool accepted = false;
-    double step_chi2 = 0.0;
-    for (int trial = 0; trial < kMaxLambdaIncreases; ++trial) {
-      // LM damping F + lambda diag(F), solved in the diagonally scaled form by Cholesky: one
-      // LLT per trial (an eigen-decomposition per trial made a start attempt on data that do
-      // not observe p cost milliseconds, measured in daemon_ingest_bench with 1000 spacecraft).
-      const Vector9d dF = F.diagonal();
-      if (!(dF.minCoeff() > 0.0) || !dF.allFinite()) return false;
-      const Vector9d s_inv = dF.cwiseSqrt().cwiseInverse();
-      Matrix9d As = s_inv.asDiagonal() * F * s_inv.asDiagonal();
-      As.diagonal().array() += lambda;  // scaled diag(F) is the identity
-      const Eigen::LLT<Matrix9d> llt(As);
-      if (llt.info() != Eigen::Success) {
-        lambda = std::max(lambda * 10.0, 1e-6);
-        continue;
-      }
-      const Vector9d step = -(s_inv.asDiagonal() * llt.solve(s_inv.asDiagonal() * g));
-      const Vector9d candidate = theta + step;
-      double c2 = 0.0;
-      Matrix9d F2;
-      Vector9d g2;
-      if (step.allFinite() && is_positive_definite(candidate) &&
-          moments_cost(M, candidate, &c2, &F2, &g2) && c2 <= cost) {
-        step_chi2 = step.dot(F * step);
-        theta = candidate;
-        cost = c2;
-        F = F2;
-        g = g2;
-        lambda = std::max(lambda * 0.1, 1e-12);
-        accepted = true;
-        break;
-      }
-      lambda = std::max(lambda * 10.0, 1e-6);
-    }
-    if (!accepted) {
-      Matrix9d Finv;
-      return scaled_inverse<9>(F, &Finv, nullptr) && g.dot(Finv * g) < kDecrementTolerance;
-    }
-    if (step_chi2 < kStepTolerance) return true;
-  }
-  return false;
+  LmDriverOptions options;
+  options.max_iterations = kMaxLmIterations;
+  options.max_lambda_increases = kMaxLambdaIncreases;
+  options.step_tolerance = kStepTolerance;
+  options.decrement_tolerance = kDecrementTolerance;
+  const LmDriverResult<9> run =
+      levenberg_marquardt<9>([&M](const Vector9d& x, double* c, Matrix9d* F,
+                                  Vector9d* g) { return scalar_moments_cost<0>(M, x, c, F, g); },
+                             theta_positive_definite, &theta, options);
+  iterations += run.iterations;
+  cost = run.cost;
+  return run.evaluated && run.converged;
 }
 
 // Degenerate linear system (constant reference magnitude): the point on the near-null line
@@ -118,7 +78,7 @@ bool line_start(const Eigen::Matrix<double, 10, 1>& u_p, const Eigen::Matrix<dou
     const Eigen::Matrix<double, 10, 1> u = u_p + t * d;
     const Vector9d th = u.head<9>();
     double bsq = 0.0;
-    if (!is_positive_definite(th) || !bias_norm_squared(th, &bsq, nullptr)) return false;
+    if (!theta_positive_definite(th) || !bias_norm_squared(th, &bsq, nullptr)) return false;
     *value = u(9) - bsq;
     return std::isfinite(*value);
   };
@@ -186,19 +146,7 @@ bool ScalarMoments::operator==(const ScalarMoments& o) const {
 
 bool moments_cost(const Matrix11d& M, const Vector9d& theta, double* cost, Matrix9d* info_theta,
                   Vector9d* gradient) {
-  double bsq = 0.0;
-  Vector9d gb;
-  if (!bias_norm_squared(theta, &bsq, &gb)) return false;
-  Vector11d c;
-  c << -theta, bsq, 1.0;
-  const Vector11d Mc = M * c;
-  if (cost) *cost = c.dot(Mc);
-  Eigen::Matrix<double, 11, 9> G = Eigen::Matrix<double, 11, 9>::Zero();
-  G.topRows<9>() = -Matrix9d::Identity();
-  G.row(9) = gb.transpose();
-  if (info_theta) *info_theta = G.transpose() * M * G;
-  if (gradient) *gradient = G.transpose() * Mc;
-  return true;
+  return scalar_moments_cost<0>(M, theta, cost, info_theta, gradient);
 }
 
 double moments_fisher_condition(const Matrix11d& M, const Vector9d& p) {
@@ -255,7 +203,7 @@ FilterStartResult solve_filter_start(const ScalarMoments& moments,
   for (int i = 0; i < n_candidates; ++i) {
     Vector9d theta = candidates[i];
     if (!theta.allFinite()) continue;
-    if (!is_positive_definite(theta)) theta.tail<6>().setZero();
+    if (!theta_positive_definite(theta)) theta.tail<6>().setZero();
     double cost = 0.0;
     if (refine_on_moments(M, theta, cost, r.iterations) && cost < best_cost) {
       best_cost = cost;
@@ -272,7 +220,7 @@ FilterStartResult solve_filter_start(const ScalarMoments& moments,
   moments_cost(M, best, nullptr, &info, nullptr);
   Matrix9d cov_theta;
   double condition_theta = 0.0;
-  if (!scaled_inverse<9>(info, &cov_theta, &condition_theta) || !is_positive_definite(best)) {
+  if (!scaled_inverse<9>(info, &cov_theta, &condition_theta) || !theta_positive_definite(best)) {
     r.status = FilterStartStatus::kUnobservable;
     r.fisher_condition = std::numeric_limits<double>::infinity();
     return r;

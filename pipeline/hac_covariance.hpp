@@ -29,6 +29,7 @@
 #include <Eigen/Core>
 
 #include "pipeline/calibration_types.hpp"
+#include "pipeline/outer_product_sum.hpp"
 
 namespace magcal {
 
@@ -45,22 +46,21 @@ template <int P>
 Eigen::Matrix<double, P, P> newey_west_meat(const std::vector<Eigen::Matrix<double, P, 1>>& scores,
                                             int lag_window) {
   using V = Eigen::Matrix<double, P, 1>;
-  using M = Eigen::Matrix<double, P, P>;
   const int n = static_cast<int>(scores.size());
   const int L = lag_window > 0 ? lag_window : 0;
-  M omega = M::Zero();
+  OuterProductSum<P> omega;
   if (L == 0) {
-    for (const V& u : scores) omega.noalias() += u * u.transpose();
-    return omega;
+    for (const V& u : scores) omega.add(u);
+    return omega.sum();
   }
   // Moving sum over [t, t + L], t = -L .. n - 1: add u_{t+L} entering, drop u_{t-1} leaving.
   V window = V::Zero();
   for (int t = -L; t < n; ++t) {
     if (t + L < n) window += scores[static_cast<std::size_t>(t + L)];
     if (t - 1 >= 0) window -= scores[static_cast<std::size_t>(t - 1)];
-    omega.noalias() += window * window.transpose();
+    omega.add(window);
   }
-  return omega / static_cast<double>(L + 1);
+  return omega.sum() / static_cast<double>(L + 1);
 }
 
 // max(C_hac, F^-1) in the sense above, given F^-1 (symmetric positive definite) and C_hac.

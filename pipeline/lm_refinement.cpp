@@ -9,6 +9,8 @@
 #include <Eigen/Dense>
 
 #include "pipeline/hac_covariance.hpp"
+#include "pipeline/levenberg_marquardt.hpp"
+#include "pipeline/outer_product_sum.hpp"
 #include "pipeline/scalar_measurement.hpp"
 
 namespace magcal {
@@ -72,84 +74,124 @@ RowVector9d lm_residual_jacobian(const Vector9d& theta, const Eigen::Vector3d& B
   return -scalar_regressor(B) + g.transpose();
 }
 
-namespace {
-
-bool is_positive_definite(const Vector9d& theta) {
+bool theta_positive_definite(const Vector9d& theta) {
   const Eigen::Matrix3d I_E = Eigen::Matrix3d::Identity() + unpack_symmetric(theta.tail<6>());
   return Eigen::LLT<Eigen::Matrix3d>(I_E).info() == Eigen::Success;
 }
 
-// The unknowns: theta (9) and NX linear extension coefficients a (model extension columns
-// phi_k, fixed per sample): r_k = z_k - mu - L_k theta + |b|^2 - phi_k a.
-template <int NX>
-struct Types {
-  static constexpr int P = 9 + NX;
-  using Vector = Eigen::Matrix<double, P, 1>;
-  using Row = Eigen::Matrix<double, 1, P>;
-  using Matrix = Eigen::Matrix<double, P, P>;
-  using Extension = Eigen::Matrix<double, NX == 0 ? 1 : NX, 1>;
-};
+namespace {
 
-// Everything one pass over the samples at the current estimate produces.
-template <int NX>
-struct Accumulation {
-  typename Types<NX>::Matrix F = Types<NX>::Matrix::Zero();  // sum w u J^T J
-  typename Types<NX>::Vector g = Types<NX>::Vector::Zero();  // sum w u J^T r
-  double cost = 0.0;                                         // 1/2 sum w u r^2
-};
+// Passes over the samples (moments about the latest estimate) before a non-robust refinement
+// is declared not converged.
+constexpr int kMaxMomentPasses = 5;
 
+// The samples as the scalar problem with NX extension columns sees them: the regressor row v_k
+// (scalar_moments_cost), the weight w_k and the robust weights u_k.
 template <int NX>
-class Problem {
+class ScalarProblem {
  public:
-  using T = Types<NX>;
-  using Phi = std::vector<typename T::Extension>;
+  static constexpr int P = 9 + NX;
+  static constexpr int N = 11 + NX;
+  using VectorP = Eigen::Matrix<double, P, 1>;
+  using MatrixP = Eigen::Matrix<double, P, P>;
+  using VectorN = Eigen::Matrix<double, N, 1>;
+  using MatrixN = Eigen::Matrix<double, N, N>;
+  using Phi = std::vector<Vector6d>;
 
-  Problem(const SampleSet& samples, const LmOptions& options, const Phi* phi)
-      : samples_(samples), options_(options), phi_(phi), mu_(scalar_noise_mean(options.sigma_nT)) {
-    if (options.robust) u_.resize(samples.size());
+  ScalarProblem(const SampleSet& samples, const LmOptions& options, const Phi* phi)
+      : samples_(samples),
+        options_(options),
+        phi_(phi),
+        mu_(scalar_noise_mean(options.sigma_nT)),
+        s2_(options.sigma_nT * options.sigma_nT) {
+    if (options.robust) u_.assign(samples.size(), 1.0);
   }
 
-  // w_k from the estimate theta_w (|y|^2 = |B|^2 - L theta + |b|^2; |B|^2 if that is not
-  // positive, e.g. far from the solution).
-  double weight(const Eigen::Vector3d& B, const RowVector9d& L, const Vector9d& theta_w,
-                double bsq_w) const {
-    double y2 = B.squaredNorm() - L.dot(theta_w) + bsq_w;
-    if (!(y2 > 0.0)) y2 = B.squaredNorm();
-    const double s2 = options_.sigma_nT * options_.sigma_nT;
-    return 1.0 / (4.0 * s2 * y2 + 6.0 * s2 * s2);
-  }
+  std::size_t size() const { return samples_.size(); }
 
-  // r_k and its Jacobian row at x = [theta; a] (gbt: the |b|^2 gradient at theta).
-  double residual(std::size_t k, const RowVector9d& L, const typename T::Vector& x, double bsq,
-                  const RowVector9d& gbt, typename T::Row* J) const {
+  // v_k about the reference (moments_reference) and the total weight u_k w_k.
+  VectorN row(std::size_t k, const VectorN& c_ref, double* weight) const {
     const CalibrationSample& s = samples_[k];
-    double r = scalar_measurement(s.b_sensor_nT, s.h_body_nT.norm()) - mu_ -
-               L.dot(x.template head<9>()) + bsq;
-    if (J) J->template head<9>() = gbt - L;
-    if constexpr (NX > 0) {
-      const typename T::Extension& phi = (*phi_)[k];
-      r -= phi.dot(x.template tail<NX>());
-      if (J) J->template tail<NX>() = -phi.transpose();
+    const double h2 = s.h_body_nT.squaredNorm();
+    VectorN v;
+    v.template head<9>() = scalar_regressor(s.b_sensor_nT).transpose();
+    v(9) = 1.0;
+    v(10) = s.b_sensor_nT.squaredNorm() - h2 - mu_;
+    if constexpr (NX > 0) v.template tail<NX>() = (*phi_)[k].template head<NX>();
+    v(10) = v.dot(c_ref);  // r_k at the reference (c_ref(10) = 1)
+    if (options_.robust) {
+      // Robust: |y_k|^2 = r_k + |h_k|^2 + mu at the reference estimate (estimation.md 2, second
+      // line; |B|^2 if not positive), refreshed with every re-weighting: a spike in B then also
+      // loses weight through its |y|^2, which the Huber weight alone does not give (measured:
+      // 600 nT sensor with 3 G spikes, bias error 80 nT with |h|, 20 nT like this).
+      double y2 = v(10) + h2 + mu_;
+      if (!(y2 > 0.0)) y2 = s.b_sensor_nT.squaredNorm();
+      *weight = u_[k] / (4.0 * s2_ * y2 + 6.0 * s2_ * s2_);
+    } else {
+      *weight = 1.0 / (4.0 * s2_ * h2 + 6.0 * s2_ * s2_);
     }
-    return r;
+    return v;
   }
 
-  // Robust weights u_k at x (stored in u_), returns the number below 1.
-  int update_robust_weights(const typename T::Vector& x) {
-    if (!options_.robust) return 0;
-    const Vector9d theta = x.template head<9>();
-    double bsq = 0.0;
+  // The reference x_ref of the moments (scalar_moments_cost) and c(x_ref) about zero.
+  static bool reference(const VectorP& x_ref, MomentsReference<NX>* ref, VectorN* c_ref) {
+    ref->x = x_ref;
     Vector9d gb;
-    bias_norm_squared(theta, &bsq, &gb);
-    std::vector<double> abs_e(samples_.size());
-    for (std::size_t k = 0; k < samples_.size(); ++k) {
-      const RowVector9d L = scalar_regressor(samples_[k].b_sensor_nT);
-      const double r = residual(k, L, x, bsq, gb.transpose(), nullptr);
-      abs_e[k] = std::abs(r) * std::sqrt(weight(samples_[k].b_sensor_nT, L, theta, bsq));
-      u_[k] = abs_e[k];
+    if (!residual_vector(x_ref, c_ref, &gb)) return false;
+    ref->bsq = (*c_ref)(9);
+    return true;
+  }
+
+  // M = sum u w v^T v about the reference (one pass). base: its leading 11 x 11 block, already
+  // known about the same reference (no robust weights).
+  MatrixN moments(const VectorN& c_ref, const Eigen::Matrix<double, 11, 11>* base = nullptr) const {
+    if (NX > 0 && base && !options_.robust) {
+      OuterProductSum<N, 11> sum;
+      for (std::size_t k = 0; k < samples_.size(); ++k) {
+        double w = 0.0;
+        const VectorN v = row(k, c_ref, &w);
+        sum.add(std::sqrt(w) * v);
+      }
+      MatrixN M = sum.sum();
+      M.template topLeftCorner<11, 11>() = *base;
+      return M;
     }
-    auto mid = abs_e.begin() + static_cast<std::ptrdiff_t>(abs_e.size() / 2);
-    std::nth_element(abs_e.begin(), mid, abs_e.end());
+    OuterProductSum<N> sum;
+    for (std::size_t k = 0; k < samples_.size(); ++k) {
+      double w = 0.0;
+      const VectorN v = row(k, c_ref, &w);
+      sum.add(std::sqrt(w) * v);
+    }
+    return sum.sum();
+  }
+
+  // c(x) about zero (v_k c = r_k with v_k(10) = z_k - mu_k) and the |b|^2 gradient at x; false
+  // if I + E is singular.
+  static bool residual_vector(const VectorP& x, VectorN* c, Vector9d* gb) {
+    double bsq = 0.0;
+    if (!bias_norm_squared(x.template head<9>(), &bsq, gb)) return false;
+    c->template head<9>() = -x.template head<9>();
+    (*c)(9) = bsq;
+    (*c)(10) = 1.0;
+    if constexpr (NX > 0) c->template tail<NX>() = -x.template tail<NX>();
+    return true;
+  }
+
+  // Robust weights u_k at x (one pass); returns the number below 1.
+  int update_robust_weights(const VectorP& x) {
+    if (!options_.robust) return 0;
+    VectorN c;
+    Vector9d gb;
+    if (!residual_vector(x, &c, &gb)) return 0;
+    std::fill(u_.begin(), u_.end(), 1.0);
+    abs_e_.resize(samples_.size());
+    for (std::size_t k = 0; k < samples_.size(); ++k) {
+      double w = 0.0;
+      const VectorN v = row(k, c, &w);  // v(10) = r_k at x; u = 1 here
+      abs_e_[k] = u_[k] = std::abs(v(10)) * std::sqrt(w);
+    }
+    auto mid = abs_e_.begin() + static_cast<std::ptrdiff_t>(abs_e_.size() / 2);
+    std::nth_element(abs_e_.begin(), mid, abs_e_.end());
     scale_ = std::max(1.0, 1.4826 * *mid);  // 1.4826 x median |e|: a robust sigma
     const double threshold = options_.huber_k * scale_;
     int n = 0;
@@ -164,62 +206,22 @@ class Problem {
     return n;
   }
 
-  // F, g and cost at x with weights from x (and the current u_). When x_w is given, also the
-  // cost at x with the weights of x_w (the LM acceptance test against the previous iterate),
-  // so a trial and the next iteration's accumulation share one pass.
-  bool accumulate(const typename T::Vector& x, Accumulation<NX>* acc,
-                  const typename T::Vector* x_w = nullptr, double* cost_w = nullptr) const {
-    const Vector9d theta = x.template head<9>();
-    double bsq = 0.0, bsq_w = 0.0;
-    Vector9d gb;
-    if (!bias_norm_squared(theta, &bsq, &gb)) return false;
-    Vector9d theta_w = theta;
-    if (x_w) {
-      theta_w = x_w->template head<9>();
-      if (!bias_norm_squared(theta_w, &bsq_w, nullptr)) return false;
-    }
-    const RowVector9d gbt = gb.transpose();
-    typename T::Matrix F = T::Matrix::Zero();
-    typename T::Vector g = T::Vector::Zero();
-    typename T::Row J;
-    double cost = 0.0, cost_old = 0.0;
-    for (std::size_t k = 0; k < samples_.size(); ++k) {
-      const Eigen::Vector3d& B = samples_[k].b_sensor_nT;
-      const RowVector9d L = scalar_regressor(B);
-      const double u = options_.robust ? u_[k] : 1.0;
-      const double w = u * weight(B, L, theta, bsq);
-      const double r = residual(k, L, x, bsq, gbt, &J);
-      F.noalias() += (J.transpose() * w) * J;  // fixed-size, vectorised
-      g.noalias() += (w * r) * J.transpose();
-      cost += 0.5 * w * r * r;
-      if (x_w) cost_old += 0.5 * u * weight(B, L, theta_w, bsq_w) * r * r;
-    }
-    acc->F = F;
-    acc->g = g;
-    acc->cost = cost;
-    if (cost_w) *cost_w = cost_old;
-    return std::isfinite(cost) && std::isfinite(cost_old);
-  }
-
-  // Per-sample scores u_k = w_k r_k J_k^T (robust weight included) and normalised residuals
-  // e_k = sqrt(w_k) r_k at x, in sample order (HAC covariance).
-  void scores(const typename T::Vector& x, std::vector<typename T::Vector>* u,
-              std::vector<double>* e) const {
-    const Vector9d theta = x.template head<9>();
-    double bsq = 0.0;
-    Vector9d gb;
-    bias_norm_squared(theta, &bsq, &gb);
-    const RowVector9d gbt = gb.transpose();
-    typename T::Row J;
-    u->resize(samples_.size());
+  // Per-sample scores u w r J^T and normalised residuals sqrt(u w) r at x, in sample order
+  // (HAC covariance; one pass).
+  void scores(const VectorP& x, std::vector<VectorP>* scores, std::vector<double>* e) const {
+    VectorN c = VectorN::Zero();
+    Vector9d gb = Vector9d::Zero();
+    residual_vector(x, &c, &gb);  // x is feasible here (checked by the caller)
+    scores->resize(samples_.size());
     e->resize(samples_.size());
     for (std::size_t k = 0; k < samples_.size(); ++k) {
-      const Eigen::Vector3d& B = samples_[k].b_sensor_nT;
-      const RowVector9d L = scalar_regressor(B);
-      const double uk = options_.robust ? u_[k] : 1.0;
-      const double w = uk * weight(B, L, theta, bsq);
-      const double r = residual(k, L, x, bsq, gbt, &J);
-      (*u)[k] = (w * r) * J.transpose();
+      double w = 0.0;
+      const VectorN v = row(k, c, &w);
+      const double r = v(10);
+      VectorP J;  // dr/dx = v G
+      J.template head<9>() = gb - v.template head<9>();
+      if constexpr (NX > 0) J.template tail<NX>() = -v.template tail<NX>();
+      (*scores)[k] = (w * r) * J;
       (*e)[k] = std::sqrt(w) * r;
     }
   }
@@ -232,25 +234,11 @@ class Problem {
   const LmOptions& options_;
   const Phi* phi_;
   double mu_;
+  double s2_;
   std::vector<double> u_;
+  std::vector<double> abs_e_;
   double scale_ = 1.0;
 };
-
-// Solves (F + lambda diag F) x = rhs in the diagonally scaled form; false if singular.
-template <int P>
-bool solve_scaled(const Eigen::Matrix<double, P, P>& F, double lambda,
-                  const Eigen::Matrix<double, P, 1>& rhs, Eigen::Matrix<double, P, 1>* x) {
-  using V = Eigen::Matrix<double, P, 1>;
-  const V d = F.diagonal();
-  if (!(d.minCoeff() > 0.0) || !d.allFinite()) return false;
-  const V s_inv = d.cwiseSqrt().cwiseInverse();
-  Eigen::Matrix<double, P, P> A = s_inv.asDiagonal() * F * s_inv.asDiagonal();
-  A.diagonal().array() += lambda;
-  const Eigen::LDLT<Eigen::Matrix<double, P, P>> ldlt(A);
-  if (ldlt.info() != Eigen::Success || !(ldlt.vectorD().minCoeff() > 1e-15)) return false;
-  *x = s_inv.asDiagonal() * ldlt.solve(s_inv.asDiagonal() * rhs);
-  return x->allFinite();
-}
 
 std::string check_inputs(const SampleSet& samples, const Vector9d& theta0, const LmOptions& options,
                          LmResult* res) {
@@ -271,117 +259,137 @@ std::string check_inputs(const SampleSet& samples, const Vector9d& theta0, const
 }
 
 template <int NX>
-LmResult refine(const SampleSet& samples, const Vector9d& theta0,
-                const typename Types<NX>::Extension& a0, const LmOptions& options,
-                const typename Problem<NX>::Phi* phi) {
-  using T = Types<NX>;
-  constexpr int P = T::P;
+LmResult refine(const SampleSet& samples, const Vector9d& theta0, const LmOptions& options,
+                const std::vector<Vector6d>* phi, const LmResult* base) {
+  using Problem = ScalarProblem<NX>;
+  constexpr int P = Problem::P;
+  using VectorP = typename Problem::VectorP;
+  using MatrixP = typename Problem::MatrixP;
+  using VectorN = typename Problem::VectorN;
+  using MatrixN = typename Problem::MatrixN;
   LmResult res;
   if (std::string err = check_inputs(samples, theta0, options, &res); !err.empty()) {
     res.message = err;
     return res;
   }
 
-  typename T::Vector x;
+  VectorP x = VectorP::Zero();
   x.template head<9>() = theta0;
-  if constexpr (NX > 0) x.template tail<NX>() = a0;
-  if (!is_positive_definite(theta0)) x.template segment<6>(3).setZero();  // fallback start
+  if (!theta_positive_definite(theta0)) x.template segment<6>(3).setZero();  // fallback start
 
-  Problem<NX> problem(samples, options, phi);
-  double lambda = options.initial_lambda;
-  Accumulation<NX> acc;  // always at x, with weights (and u) evaluated at x
-  int n_down = problem.update_robust_weights(x);
-  if (!problem.accumulate(x, &acc)) {
+  Problem problem(samples, options, phi);
+  LmDriverOptions driver;
+  driver.max_iterations = options.max_iterations;
+  driver.max_lambda_increases = options.max_lambda_increases;
+  driver.initial_lambda = options.initial_lambda;
+  driver.step_tolerance = options.tolerance;
+  auto feasible = [](const VectorP& v) { return theta_positive_definite(v.template head<9>()); };
+
+  // Without robust weights M depends on x only through its reference: one pass, then LM on M;
+  // another pass about the result only when rounding kept LM from meeting the tolerance (the
+  // moments lose precision far from their reference). Robust: IRLS, u at the current
+  // estimate, LM on the moments with those u, until the Gauss–Newton decrement with the weights
+  // of the estimate is below the tolerance.
+  MomentsReference<NX> ref;
+  VectorN c_ref;
+  MatrixN M;
+  int n_down = 0;
+  const bool reuse_base = NX > 0 && base != nullptr && !options.robust;
+  if (reuse_base) {
+    x.template head<9>() = base->moments_reference;
+    if constexpr (NX > 0) x.template tail<NX>().setZero();
+  }
+  auto prepare = [&](bool with_base) {
+    n_down = problem.update_robust_weights(x);
+    if (!problem.reference(x, &ref, &c_ref)) return false;
+    M = problem.moments(c_ref, with_base ? &base->moments : nullptr);
+    return true;
+  };
+  if (!prepare(reuse_base)) {
+    res.status = LmStatus::kSingular;
+    res.message = "refinement: I + E singular at the start";
+    return res;
+  }
+  if (reuse_base) {  // the base's reference; the refinement starts from theta0
+    x.template head<9>() = theta0;
+    if (!theta_positive_definite(theta0)) x.template segment<6>(3).setZero();
+  }
+  const int max_passes = options.robust ? options.max_iterations : kMaxMomentPasses;
+  for (int pass = 0; pass < max_passes; ++pass) {
+    auto evaluate = [&M, &ref](const VectorP& v, double* cost, MatrixP* F, VectorP* g) {
+      return scalar_moments_cost<NX>(M, v, cost, F, g, ref);
+    };
+    if (pass > 0) {
+      if (!prepare(false)) break;
+      double cost = 0.0;
+      MatrixP F;
+      VectorP g;
+      if (evaluate(x, &cost, &F, &g) && gauss_newton_decrement<P>(F, g) < options.tolerance) {
+        res.converged = true;
+        break;
+      }
+    }
+    // Robust: one LM iteration per re-weighting (as IRLS; a full solve with the weights of a
+    // start far from the solution can settle on the outliers), the damping carried over.
+    if (options.robust) driver.max_iterations = 1;
+    const LmDriverResult<P> run = levenberg_marquardt<P>(evaluate, feasible, &x, driver);
+    driver.initial_lambda = run.lambda;
+    if (!run.evaluated) {
+      res.status = LmStatus::kSingular;
+      res.message = "refinement: non-finite cost";
+      return res;
+    }
+    res.iterations += run.iterations;
+    res.converged = run.converged && !options.robust;  // robust: until the weights at x agree
+    if (res.converged) break;
+    if (options.robust && run.iterations == 0) break;  // no step possible: not converged
+  }
+  if (!res.converged) prepare(false);  // weights and moments about the returned estimate
+
+  // The undamped information at the solution, with the weights evaluated there.
+  double chi2 = 0.0;
+  MatrixP F;
+  VectorP g;
+  if (!scalar_moments_cost<NX>(M, x, &chi2, &F, &g, ref) || !std::isfinite(chi2)) {
     res.status = LmStatus::kSingular;
     res.message = "refinement: non-finite cost";
     return res;
   }
-  for (int iter = 0; iter < options.max_iterations; ++iter) {
-    // Converged when even the full Gauss-Newton step would gain less than the tolerance
-    // (g^T F^-1 g = its step^T F step): checked before trying steps, because at the minimum no
-    // trial lowers the cost (rounding) and each failed trial costs a pass over the samples.
-    if (typename T::Vector gn;
-        iter > 0 && solve_scaled<P>(acc.F, 0.0, acc.g, &gn) && acc.g.dot(gn) < options.tolerance) {
-      res.converged = true;
-      break;
-    }
-    res.iterations = iter + 1;
-    bool accepted = false;
-    double step_chi2 = 0.0;
-    for (int trial = 0; trial < options.max_lambda_increases; ++trial) {
-      typename T::Vector step;
-      if (!solve_scaled<P>(acc.F, lambda, -acc.g, &step)) {
-        lambda = std::max(lambda * 10.0, 1e-6);
-        continue;
-      }
-      const typename T::Vector candidate = x + step;
-      Accumulation<NX> next;
-      double cost_fixed_weights = 0.0;
-      if (is_positive_definite(candidate.template head<9>()) &&
-          problem.accumulate(candidate, &next, &x, &cost_fixed_weights) &&
-          cost_fixed_weights <= acc.cost) {
-        step_chi2 = step.dot(acc.F * step);
-        x = candidate;
-        acc = next;
-        lambda = std::max(lambda * 0.1, 1e-12);
-        accepted = true;
-        break;
-      }
-      lambda = std::max(lambda * 10.0, 1e-6);
-    }
-    if (!accepted) {
-      // No step lowers the cost: converged if the Gauss-Newton decrement g^T F^-1 g (the
-      // chi-square still to gain) is negligible, i.e. we sit at the minimum to rounding.
-      typename T::Vector gn;
-      res.converged = solve_scaled<P>(acc.F, 0.0, acc.g, &gn) && acc.g.dot(gn) < 1e-6;
-      break;
-    }
-    if (options.robust) {  // IRLS: new u at the new iterate, then F and g with it
-      n_down = problem.update_robust_weights(x);
-      if (!problem.accumulate(x, &acc)) {
-        res.status = LmStatus::kSingular;
-        res.message = "refinement: non-finite cost";
-        return res;
-      }
-    }
-    if (step_chi2 < options.tolerance) {
-      res.converged = true;
-      break;
-    }
-  }
-
-  // acc holds the undamped information at the solution with the weights evaluated there.
   res.n_downweighted = n_down;
   res.robust_scale = problem.scale();
   res.theta = x.template head<9>();
   if constexpr (NX > 0) res.extension = x.template tail<NX>();
-  res.cost = acc.cost;
-  const typename T::Vector d = acc.F.diagonal();
+  res.cost = 0.5 * chi2;
+  const VectorP d = F.diagonal();
   if (!(d.minCoeff() > 0.0)) {
     res.status = LmStatus::kSingular;
     res.message = "refinement: information matrix is singular";
     return res;
   }
-  const typename T::Vector s_inv = d.cwiseSqrt().cwiseInverse();
-  const typename T::Matrix Fs = s_inv.asDiagonal() * acc.F * s_inv.asDiagonal();
-  const Eigen::SelfAdjointEigenSolver<typename T::Matrix> eig(Fs);
+  const VectorP s_inv = d.cwiseSqrt().cwiseInverse();
+  const MatrixP Fs = s_inv.asDiagonal() * F * s_inv.asDiagonal();
+  const Eigen::SelfAdjointEigenSolver<MatrixP> eig(Fs);
   if (!(eig.eigenvalues()(0) > 1e-14 * eig.eigenvalues()(P - 1))) {
     res.status = LmStatus::kSingular;
     res.message = "refinement: information matrix is singular (geometry)";
     return res;
   }
-  const typename T::Matrix F_inv = s_inv.asDiagonal() * eig.eigenvectors() *
-                                   eig.eigenvalues().cwiseInverse().asDiagonal() *
-                                   eig.eigenvectors().transpose() * s_inv.asDiagonal();
+  const MatrixP F_inv = s_inv.asDiagonal() * eig.eigenvectors() *
+                        eig.eigenvalues().cwiseInverse().asDiagonal() *
+                        eig.eigenvectors().transpose() * s_inv.asDiagonal();
   res.theta_covariance_white = F_inv.template topLeftCorner<9, 9>();
   res.theta_covariance = res.theta_covariance_white;
   if constexpr (NX > 0) res.extension_covariance = F_inv.template bottomRightCorner<NX, NX>();
   const double dof = static_cast<double>(samples.size()) - P;
   res.n_parameters = P;
-  res.noise_scale = std::sqrt(2.0 * acc.cost / dof);
+  res.noise_scale = std::sqrt(chi2 / dof);
   if (options.robust) res.robust_weights = problem.robust_weights();
+  if constexpr (NX == 0) {
+    res.moments = M;
+    res.moments_reference = ref.x;
+  }
   {
-    std::vector<typename T::Vector> scores;
+    std::vector<VectorP> scores;
     std::vector<double> e;
     problem.scores(x, &scores, &e);
     res.residual_autocorrelation = lag1_autocorrelation(e);
@@ -389,11 +397,11 @@ LmResult refine(const SampleSet& samples, const Vector9d& theta0,
       res.lag_window =
           bartlett_lag_window(res.residual_autocorrelation, static_cast<int>(samples.size()));
       // Small-sample correction n / (n - p), as for the reduced chi-square.
-      const typename T::Matrix omega =
+      const MatrixP omega =
           newey_west_meat<P>(scores, res.lag_window) * (static_cast<double>(samples.size()) / dof);
-      const typename T::Matrix hac = F_inv * omega * F_inv;
-      res.theta_covariance = covariance_not_below(res.theta_covariance_white,
-                                                  Matrix9d(hac.template topLeftCorner<9, 9>()));
+      const MatrixP hac_full = F_inv * omega * F_inv;
+      const Matrix9d hac = hac_full.template topLeftCorner<9, 9>();
+      res.theta_covariance = covariance_not_below(res.theta_covariance_white, hac);
     }
   }
   if (res.converged) {
@@ -409,18 +417,18 @@ LmResult refine(const SampleSet& samples, const Vector9d& theta0,
 }  // namespace
 
 LmResult refine_lm(const SampleSet& samples, const Vector9d& theta0, const LmOptions& options) {
-  return refine<0>(samples, theta0, Types<0>::Extension::Zero(), options, nullptr);
+  return refine<0>(samples, theta0, options, nullptr, nullptr);
 }
 
 LmResult refine_lm_extended(const SampleSet& samples, const Vector9d& theta0,
                             const std::vector<Vector6d>& extension_regressors,
-                            const LmOptions& options) {
+                            const LmOptions& options, const LmResult* base) {
   if (extension_regressors.size() != samples.size()) {
     LmResult res;
     res.message = "extension regressors: one row per sample required";
     return res;
   }
-  return refine<6>(samples, theta0, Vector6d::Zero(), options, &extension_regressors);
+  return refine<6>(samples, theta0, options, &extension_regressors, base);
 }
 
 }  // namespace magcal

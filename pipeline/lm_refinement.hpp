@@ -5,17 +5,24 @@
 //   |b(theta)|^2 = c^T (I + E)^-1 c,   x = (I + E)^-1 c   (= (I + D)^-1 b)
 //   d|b|^2/dc = 2x,  d|b|^2/dE_ii = -x_i^2,  d|b|^2/dE_ij = -2 x_i x_j     (gradient g_b)
 //   dr_k/dtheta = -L_k + g_b^T
-//   w_k = 1/sigma_k^2 at the current estimate: |y_k|^2 = |B_k|^2 - (L_k theta - |b|^2)
-//   LM step: (F + lambda diag F) dtheta = -sum w u J_k^T r_k,  F = sum w u J_k^T J_k
-//   stop when dtheta^T F dtheta < tolerance (chi-square units) or after max_iterations.
-//   Covariance: F^-1 (undamped, lambda = 0) with the weights at the solution (white noise),
-//   and the HAC sandwich from the per-sample scores (pipeline/hac_covariance.hpp), reported.
+//   w_k = 1/sigma_k^2, sigma_k^2 = 4 sigma^2 |R h_k|^2 + 6 sigma^4 (estimation.md 2, first
+//   line: |R h_k| = |h_k| is known, so the weights do not depend on theta or on the noise)
+//   Covariance: F^-1 (undamped) at the solution (white noise), and the HAC sandwich from the
+//   per-sample scores (pipeline/hac_covariance.hpp), reported.
+//
+// With weights that do not depend on theta, the cost, F and g at any theta follow from one
+// moment matrix M = sum w u v^T v of the samples (scalar_moments_cost below), so the LM
+// iterations (pipeline/levenberg_marquardt.hpp, the driver the filter start uses too) cost no
+// pass over the samples: one pass builds M, one more gives the residual autocorrelation and the
+// HAC scores at the solution.
 //
 // Robust mode (Huber IRLS): e_k = r_k sqrt(w_k) is the normalised residual, s = max(1, 1.4826
 // median |e_k|) a robust scale (1 when the model noise explains the residuals; larger when
-// unmodelled effects or a poor start dominate), u_k = min(1, huber_k s / |e_k|). Samples with
+// unmodelled effects or a poor start dominate), u_k = min(1, huber_k s / |e_k|), re-evaluated at
+// each LM solution until the Gauss–Newton decrement with the weights of the current estimate is
+// below the tolerance (the same fixed point as re-weighting after every step). Samples with
 // u_k < 1 at the solution are reported as down-weighted. Without robust mode u_k = 1.
-// No per-sample allocation (robust mode allocates one residual buffer per call).
+// No per-sample allocation (one residual / score buffer per call).
 #pragma once
 
 #include <string>
@@ -30,7 +37,7 @@ namespace magcal {
 struct LmOptions {
   double sigma_nT = 3.0;
   int max_iterations = 50;
-  double tolerance = 1e-10;  // on dtheta^T F dtheta
+  double tolerance = 1e-10;  // on dtheta^T F dtheta and the Gauss-Newton decrement
   double initial_lambda = 1e-3;
   int max_lambda_increases = 12;  // per iteration, before giving up on improving the cost
   bool robust = false;
@@ -66,7 +73,11 @@ struct LmResult {
   int n_parameters = 9;                   // 9, or 15 with the model extension
   Vector6d extension = Vector6d::Zero();  // refine_lm_extended: the coefficients a
   Matrix6d extension_covariance = Matrix6d::Zero();  // white-noise, marginal
-  int iterations = 0;                                // accepted or attempted outer iterations
+  // M = sum w u v^T v of the fit's samples about theta_ref (scalar_moments_cost, 9-parameter
+  // rows): without robust weights refine_lm_extended takes it instead of summing that block again.
+  Eigen::Matrix<double, 11, 11> moments = Eigen::Matrix<double, 11, 11>::Zero();
+  Vector9d moments_reference = Vector9d::Zero();
+  int iterations = 0;  // accepted or attempted outer iterations
   bool converged = false;
   double cost = 0.0;       // J at the solution
   int n_downweighted = 0;  // robust mode: samples with u_k < 1
@@ -80,6 +91,61 @@ bool bias_norm_squared(const Vector9d& theta, double* bsq, Vector9d* gradient);
 double lm_residual(const Vector9d& theta, const Eigen::Vector3d& b_sensor_nT, double z_minus_mu);
 RowVector9d lm_residual_jacobian(const Vector9d& theta, const Eigen::Vector3d& b_sensor_nT);
 
+// I + E(theta) is positive definite (theta maps to b, D).
+bool theta_positive_definite(const Vector9d& theta);
+
+// The weighted scalar problem with NX linear extension columns phi_k (x = [theta; a]) from its
+// moments (estimation.md 2b), taken about a reference estimate x_ref (zero: the plain form):
+//   v_k = [L_k (1x9), 1, rho_k, phi_k^T (1xNX)],  rho_k = r_k(x_ref)  (= z_k - mu_k at x_ref = 0)
+//   r_k(x) = rho_k - L_k (theta - theta_ref) + |b(theta)|^2 - |b(theta_ref)|^2 - phi_k^T (a -
+//   a_ref)
+//          = v_k c(x),  c = [-(theta - theta_ref); |b|^2 - |b_ref|^2; 1; -(a - a_ref)]
+//   sum w r^2 = c^T M c,   M = sum w_k v_k^T v_k   ((11 + NX) x (11 + NX), symmetric)
+//   dr_k/dx = v_k G,  G = [-I_9, 0; g_b^T, 0; 0, 0; 0, -I_NX]
+//   F = G^T M G (Gauss–Newton information), g = G^T M c (gradient of 1/2 sum w r^2)
+// About a reference near the solution the sums do not cancel: z_k is ~|B|^2 (1e9..1e11 nT^2)
+// while r_k is ~|B| sigma, so moments about zero lose the chi-square to rounding for large
+// fields and biases (measured: |b| = 3 |H| never met the 1e-10 tolerance).
+// cost in chi-square units (sum w r^2). False if I + E is singular.
+template <int NX>
+struct MomentsReference {
+  Eigen::Matrix<double, 9 + NX, 1> x = Eigen::Matrix<double, 9 + NX, 1>::Zero();
+  double bsq = 0.0;  // |b(theta_ref)|^2
+};
+
+template <int NX>
+bool scalar_moments_cost(const Eigen::Matrix<double, 11 + NX, 11 + NX>& M,
+                         const Eigen::Matrix<double, 9 + NX, 1>& x, double* cost,
+                         Eigen::Matrix<double, 9 + NX, 9 + NX>* F,
+                         Eigen::Matrix<double, 9 + NX, 1>* g,
+                         const MomentsReference<NX>& ref = {}) {
+  constexpr int N = 11 + NX;
+  constexpr int P = 9 + NX;
+  double bsq = 0.0;
+  Vector9d gb;
+  const Vector9d theta = x.template head<9>();
+  if (!bias_norm_squared(theta, &bsq, &gb)) return false;
+  Eigen::Matrix<double, N, 1> c;
+  c.template head<9>() = ref.x.template head<9>() - theta;
+  c(9) = bsq - ref.bsq;
+  c(10) = 1.0;
+  if constexpr (NX > 0) c.template tail<NX>() = ref.x.template tail<NX>() - x.template tail<NX>();
+  const Eigen::Matrix<double, N, 1> Mc = M * c;
+  if (cost) *cost = c.dot(Mc);
+  if (g) {
+    g->template head<9>() = -Mc.template head<9>() + Mc(9) * gb;
+    if constexpr (NX > 0) g->template tail<NX>() = -Mc.template tail<NX>();
+  }
+  if (F) {
+    Eigen::Matrix<double, N, P> MG;  // M G, column by column of G
+    MG.template leftCols<9>() = -M.template leftCols<9>() + M.col(9) * gb.transpose();
+    if constexpr (NX > 0) MG.template rightCols<NX>() = -M.template rightCols<NX>();
+    F->template topRows<9>() = -MG.template topRows<9>() + gb * MG.row(9);
+    if constexpr (NX > 0) F->template bottomRows<NX>() = -MG.template bottomRows<NX>();
+  }
+  return true;
+}
+
 // Refines theta0 (e.g. the centered solution, or zero). When I + E is not positive definite at
 // theta0 the refinement starts from [c; 0].
 LmResult refine_lm(const SampleSet& samples, const Vector9d& theta0, const LmOptions& options = {});
@@ -88,8 +154,10 @@ LmResult refine_lm(const SampleSet& samples, const Vector9d& theta0, const LmOpt
 // sensor nonlinearity and hysteresis terms of pipeline/model_extension.hpp):
 //   r_k = z_k - mu_k - L_k theta + |b(theta)|^2 - phi_k^T a,   unknowns [theta; a], a0 = 0.
 // theta_covariance(_white) are the marginal 9x9 blocks (a estimated jointly).
+// base: a non-robust refine_lm on the same samples and sigma (or nullptr), whose moments are
+// reused.
 LmResult refine_lm_extended(const SampleSet& samples, const Vector9d& theta0,
                             const std::vector<Vector6d>& extension_regressors,
-                            const LmOptions& options = {});
+                            const LmOptions& options = {}, const LmResult* base = nullptr);
 
 }  // namespace magcal

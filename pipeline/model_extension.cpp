@@ -3,38 +3,29 @@
 #include <cmath>
 
 namespace magcal {
-namespace {
-
-// Hysteresis signs s_k (per axis) from the calibrated vectors of p, in sample order.
-std::vector<Eigen::Vector3d> hysteresis_signs(const SampleSet& samples,
-                                              const CalibrationParameters& p) {
+std::vector<Vector6d> model_extension_regressors(const SampleSet& samples,
+                                                 const CalibrationParameters& p) {
   const std::size_t n = samples.size();
-  std::vector<Eigen::Vector3d> s(n, Eigen::Vector3d::Ones());
-  if (n < 2) return s;
+  std::vector<Vector6d> phi(n);
+  if (n == 0) return phi;
+  // Calibrated vectors y_k, computed once: phi_k holds y_k until its signs are known.
+  for (std::size_t k = 0; k < n; ++k) phi[k].head<3>() = p.apply(samples[k].b_sensor_nT);
+  // Hysteresis signs s_k (per axis) from the central differences y_{k+1} - y_{k-1} (one-sided
+  // at the ends), held over a zero difference; y_{k-1} is kept aside before phi_{k-1} is
+  // overwritten.
   Eigen::Vector3d last = Eigen::Vector3d::Ones();
+  Eigen::Vector3d y_previous = phi[0].head<3>();
   for (std::size_t k = 0; k < n; ++k) {
-    const std::size_t lo = k == 0 ? 0 : k - 1;
-    const std::size_t hi = k + 1 < n ? k + 1 : n - 1;
+    const Eigen::Vector3d y = phi[k].head<3>();
+    const Eigen::Vector3d y_next = k + 1 < n ? Eigen::Vector3d(phi[k + 1].head<3>()) : y;
     const Eigen::Vector3d change =
-        p.apply(samples[hi].b_sensor_nT) - p.apply(samples[lo].b_sensor_nT);
+        n < 2 ? Eigen::Vector3d::Zero() : Eigen::Vector3d(y_next - y_previous);
     for (int i = 0; i < 3; ++i) {
       if (change(i) > 0.0) last(i) = 1.0;
       if (change(i) < 0.0) last(i) = -1.0;
     }
-    s[k] = last;
-  }
-  return s;
-}
-
-}  // namespace
-
-std::vector<Vector6d> model_extension_regressors(const SampleSet& samples,
-                                                 const CalibrationParameters& p) {
-  const std::vector<Eigen::Vector3d> s = hysteresis_signs(samples, p);
-  std::vector<Vector6d> phi(samples.size());
-  for (std::size_t k = 0; k < samples.size(); ++k) {
-    const Eigen::Vector3d y = p.apply(samples[k].b_sensor_nT);
-    phi[k] << 2.0 * y.cwiseAbs2().cwiseProduct(y), 2.0 * y.cwiseProduct(s[k]);
+    phi[k] << 2.0 * y.cwiseAbs2().cwiseProduct(y), 2.0 * y.cwiseProduct(last);
+    y_previous = y;
   }
   return phi;
 }

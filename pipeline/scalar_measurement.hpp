@@ -29,7 +29,9 @@ inline RowVector9d scalar_regressor(const Eigen::Vector3d& B) {
 }
 
 // E[v_k] for isotropic noise of sigma per axis.
-inline double scalar_noise_mean(double sigma_nT) { return 3.0 * sigma_nT * sigma_nT; }
+inline double scalar_noise_mean(double sigma_nT) {
+  return 3.0 * sigma_nT * sigma_nT;
+}
 
 // Var[v_k] for isotropic noise, given y = (I+D)B - b (or B as the first approximation).
 inline double scalar_noise_variance(const Eigen::Vector3d& y_nT, double sigma_nT) {
@@ -46,13 +48,17 @@ inline double predicted_scalar_measurement(const Vector9d& p, const Eigen::Vecto
 
 // dz/dp at p (estimation.md 2d; also the EKF's measurement Jacobian).
 //   dz/db = 2 y^T,  dz/dD = -2 [B1y1, B2y2, B3y3, B1y2+B2y1, B1y3+B3y1, B2y3+B3y2]
-inline RowVector9d scalar_measurement_jacobian(const Vector9d& p, const Eigen::Vector3d& B) {
-  const Eigen::Vector3d y = CalibrationParameters::from_packed(p).apply(B);
+// Given y = (I + D) B - b already (the CRLB needs it for the weight too).
+inline RowVector9d scalar_measurement_jacobian_at(const Eigen::Vector3d& y,
+                                                  const Eigen::Vector3d& B) {
   RowVector9d J;
   J << 2.0 * y(0), 2.0 * y(1), 2.0 * y(2), -2.0 * B(0) * y(0), -2.0 * B(1) * y(1),
       -2.0 * B(2) * y(2), -2.0 * (B(0) * y(1) + B(1) * y(0)), -2.0 * (B(0) * y(2) + B(2) * y(0)),
       -2.0 * (B(1) * y(2) + B(2) * y(1));
   return J;
+}
+inline RowVector9d scalar_measurement_jacobian(const Vector9d& p, const Eigen::Vector3d& B) {
+  return scalar_measurement_jacobian_at(CalibrationParameters::from_packed(p).apply(B), B);
 }
 
 }  // namespace magcal
