@@ -172,7 +172,7 @@ TEST_CASE("property: twostep matches an independent Gauss-Newton over the plausi
   CHECK(checked == draws);
 }
 
-TEST_CASE("yaw-only (planar) capture is rejected; a low-field (22 uT) capture is accepted") {
+TEST_CASE("yaw-only (planar) capture is rejected, a low-field (22 uT) capture is accepted") {
   CalibrationParameters p;
   p.bias_nT << 1500.0, -2200.0, 3200.0;
   p.D = Eigen::Vector3d(0.02, -0.01, 0.015).asDiagonal();

@@ -246,7 +246,7 @@ TEST_CASE("dates outside 1900-2030 are refused", "[igrf]") {
   CHECK(model.set_date(decimal_year_from_utime(utime_from_calendar({2029, 12, 31, 23, 0, 0.0}))));
 }
 
-TEST_CASE("built-in table equals the parsed official file; .shc gives the same field", "[igrf]") {
+TEST_CASE("built-in table equals the parsed official file, .shc gives the same field", "[igrf]") {
   const auto txt = read_shared("igrf14coeffs.txt");
   const auto shc = read_shared("IGRF14.shc");
   if (!txt || !shc) {

@@ -115,7 +115,7 @@ TEST_CASE("LM covariance is consistent with Monte Carlo (NEES ~ chi-square 9)") 
   CHECK(nees_sum < 451.0);
 }
 
-TEST_CASE("robust LM withstands spikes and a wrong reference; plain LM does not") {
+TEST_CASE("robust LM withstands spikes and a wrong reference, plain LM does not") {
   const CalibrationParameters p = truth_parameters();
   SampleSet s = model_data(p, 600, 3.0, 77);
   const SampleSet clean = s;

@@ -127,7 +127,7 @@ TEST_CASE("Kepler's equation is solved for high eccentricity") {
   }
 }
 
-TEST_CASE("ECEF state: rotation preserves radius; velocity matches finite differences") {
+TEST_CASE("ECEF state: rotation preserves radius, velocity matches finite differences") {
   const Orbit orbit(elements(550.0, 0.0, 97.6), {});
   auto ecef = [&](double t) {
     return Orbit::ecef_from_eci(orbit.state_eci(at(t)), gcrs_from_itrf(at(t)));

@@ -30,7 +30,7 @@ TEST_CASE("everything off except the installation rotation: B == R h exactly") {
   CHECK(m.sensor_from_body() == R);
 }
 
-TEST_CASE("only a bias: B - h equals the bias; D only: (I + D) B == h") {
+TEST_CASE("only a bias: B - h equals the bias, D only: (I + D) B == h") {
   SensorModelParameters p = all_off();
   p.bias_nT = Eigen::Vector3d(1000.0, 800.0, 900.0);
   SensorModel m(p);
@@ -45,7 +45,7 @@ TEST_CASE("only a bias: B - h equals the bias; D only: (I + D) B == h") {
   CHECK((B - kH).norm() > 100.0);  // the effect is really there
 }
 
-TEST_CASE("permeability adds P x; internal misalignment is the small rotation C_int") {
+TEST_CASE("permeability adds P x, internal misalignment is the small rotation C_int") {
   SensorModelParameters p = all_off();
   p.permeability << 0.002, 0.001, 0.0, 0.001, -0.003, 0.0005, 0.0, 0.0005, 0.001;
   SensorModel m(p);
@@ -102,7 +102,7 @@ TEST_CASE("hysteresis switches with the direction of the noise-free field") {
   CHECK(e.z() == Approx(-kh));
 }
 
-TEST_CASE("quantisation steps are the LSB; saturation clips to the range") {
+TEST_CASE("quantisation steps are the LSB, saturation clips to the range") {
   SensorModelParameters p = all_off();
   p.nbits = 16;
   SensorModel m(p);
@@ -159,7 +159,7 @@ TEST_CASE("temperature-dependent bias and drift follow b0 + k_T (T - T0) + k_dri
   CHECK((m.bias_nT(86400.0, 20.0) - (p.bias_nT + p.drift_nT_per_day)).norm() < 1e-12);
 }
 
-TEST_CASE("white noise has the configured sigma; the sampler is deterministic") {
+TEST_CASE("white noise has the configured sigma, the sampler is deterministic") {
   SensorModelParameters p = all_off();
   p.noise_sigma_nT = 3.0;
   SensorModel m(p);

@@ -78,7 +78,7 @@ TEST_CASE("paper scenario: |h| range and field rotation per orbit (body and ECI)
                           << " deg");
 }
 
-TEST_CASE("same seed gives bit-identical samples; another seed differs") {
+TEST_CASE("same seed gives bit-identical samples, another seed differs") {
   auto bytes = [](uint64_t seed, const char* preset) {
     Scenario sc = short_run(preset, 1.0);
     sc.seed = seed;

@@ -55,7 +55,7 @@ TEST_CASE("cov_index addresses the row-major upper triangle") {
   }
 }
 
-TEST_CASE("a calibration record round-trips exactly; bias sigma comes from cov") {
+TEST_CASE("a calibration record round-trips exactly, bias sigma comes from cov") {
   Database db(":memory:");
   CalibrationHistory history(db);
   for (int k : {3, 4}) {  // with alignment + accepted, without alignment + rejected
@@ -168,7 +168,7 @@ TEST_CASE("latest, latest refit, previous refit, latest accepted refit") {
   CHECK_FALSE(is_refit_method("ukf"));
 }
 
-TEST_CASE("uncertainty evidence (schema 3) round-trips; unknown values stay NULL") {
+TEST_CASE("uncertainty evidence (schema 3) round-trips, unknown values stay NULL") {
   Database db(":memory:");
   CalibrationHistory history(db);
   CalibrationRecord known = make_record("SAT1", "twostep", kT0, 1);

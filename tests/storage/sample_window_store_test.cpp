@@ -131,7 +131,7 @@ TEST_CASE("duplicate (sat_id, utime) is rejected, counted, and the first copy ke
   CHECK(store.spacecraft() == std::vector<std::string>{"SAT1", "SAT2"});
 }
 
-TEST_CASE("window query: [t0, t1), ascending time, only the asked spacecraft") {
+TEST_CASE("window query: t0 <= t < t1, ascending time, only the asked spacecraft") {
   Database db(":memory:");
   SampleWindowStore store(db);
   auto a = make_series("SAT-A", 500, 3 * kSecond);
