@@ -38,7 +38,8 @@ TOML
 echo
 echo "== 2. replay it through magcald (file:// replay: same code path as live, exits at the end)"
 # The operations server (/metrics, /-/healthy, /-/ready, the API and the page) runs while it
-# does, on any free loopback port here (a live magcald may hold the default 127.0.0.1:9780).
+# does (a fraction of a second here), on any free loopback port (a live magcald may hold the
+# default 127.0.0.1:9780); `magcal serve` (printed at the end) browses the day afterwards.
 "$bin/magcald" --config magcald.toml --db magcal.db --lcm-url "file://$work/day.lcm?speed=0" \
   --http-listen 127.0.0.1:0 --log-level info 2>&1 | sed -e 's/^\[[^]]*\] //'
 
@@ -60,3 +61,11 @@ echo "== 6. truth (from the simulator)"
 flat="$(tr -d ' \n' < truth.json)"
 echo "bias_nT $(grep -o '"bias_nT":\[[^]]*\]' <<< "$flat" | cut -d: -f2)"
 echo "D       $(grep -o '"D":\[\[[^]]*\],\[[^]]*\],\[[^]]*\]\]' <<< "$flat" | cut -d: -f2)"
+
+echo
+# The replay's own operations server ended with it (a replay exits at the end of its log).
+if [[ "${KEEP:-0}" == 1 ]]; then
+  echo "== the plots page and API over this day: $bin/magcal serve --db $work/magcal.db  (then http://127.0.0.1:9780/)"
+else
+  echo "== to browse this day in the plots page: KEEP=1 ./deploy/run-demo.sh, then the magcal serve line it prints"
+fi

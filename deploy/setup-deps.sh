@@ -16,8 +16,8 @@ packages=(
   libtomlplusplus-dev libcli11-dev nlohmann-json3-dev
   libbenchmark-dev
   liberfa-dev
-  # systemd notify (sd_notify)
-  libsystemd-dev
+  # systemd notify (sd_notify); cpack's dpkg-shlibdeps for the .deb
+  libsystemd-dev dpkg-dev
   # the operations server (cpp-httplib) and the page's plotting library (Chart.js, embedded)
   libcpp-httplib-dev libjs-chart.js
 )
@@ -25,7 +25,7 @@ packages=(
 # .deb (cpack's dpkg-shlibdeps); the tests of deploy/: systemd-analyze, promtool (prometheus:
 # ~13 s to install, 12 packages), shellcheck, PyYAML.
 if [ "${1:-}" = "--tests" ]; then
-  packages+=(chromium dpkg-dev systemd prometheus shellcheck python3-yaml)
+  packages+=(chromium systemd prometheus shellcheck python3-yaml)
 fi
 
 missing=()

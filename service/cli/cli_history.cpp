@@ -34,11 +34,13 @@ int run_history(const HistoryArgs& args) {
     options.read_only = true;
     storage::Database db(args.db, options);
     rows = read_history(db, *query);
-    // Unknown spacecraft (nothing stored at all): a note, not an error.
+    // Unknown spacecraft (nothing stored at all): a data error (exit 2), as the API's 400 — a
+    // script must not take an empty answer for success. A known one with no rows in the asked
+    // range is a valid, empty answer.
     if (rows.empty() && !spacecraft_known(db, args.sat)) {
       std::cerr << "magcal history: no data for spacecraft '" << args.sat << "' in " << args.db
                 << "\n";
-      return kExitOk;
+      return kExitData;
     }
   } catch (const storage::StorageError& e) {
     std::cerr << "magcal history: " << e.what() << "\n";

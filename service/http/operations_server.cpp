@@ -24,9 +24,10 @@ namespace {
 constexpr const char* kJson = "application/json";
 constexpr int kMaxPoints = 10000;
 // Request threads. A browser holds up to 6 keep-alive connections, each occupying a thread
-// until it closes: 8 threads (and a short keep-alive) keep a page load from starving a
-// Prometheus scrape. Database reads are serialised on the one connection anyway.
-constexpr size_t kRequestThreads = 8;
+// until it closes: 16 threads (and a short keep-alive and read timeout) keep a page load or a
+// few idle sockets from starving a Prometheus scrape. Database reads are serialised on the one
+// connection anyway.
+constexpr size_t kRequestThreads = 16;
 
 struct BadRequest {
   std::string message;
@@ -109,7 +110,10 @@ void OperationsServer::Impl::routes() {
     ::setsockopt(sock, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof yes);
   });
   server.set_keep_alive_timeout(1);
-  server.set_read_timeout(5, 0);
+  // A client that opens a connection and sends nothing (or trickles a header) holds a request
+  // thread until this timeout: short, so that a few idle sockets cannot stall health probes
+  // and scrapes for long (a trickle of one header line per second still can: loopback default).
+  server.set_read_timeout(1, 0);
   server.set_write_timeout(5, 0);
   server.set_payload_max_length(64 * 1024);  // GET only: no request needs a body
 

@@ -24,8 +24,8 @@ namespace fs = std::filesystem;
 using namespace magcal;
 using namespace magcal::storage;
 using magcal::test::Run;
-using magcal::test::TempDir;
 using magcal::test::run_magcal;
+using magcal::test::TempDir;
 
 namespace {
 
@@ -264,7 +264,7 @@ TEST_CASE("history: unknown spacecraft, missing or foreign database, bad argumen
   const std::string db = dir.file("m.db");
   populate(db);
   Run r = run_magcal("history --db " + db + " --sat NOPE --format json", dir);
-  CHECK(r.exit_code == 0);
+  CHECK(r.exit_code == 2);
   CHECK(r.out.empty());
   CHECK(r.err.find("NOPE") != std::string::npos);
 
