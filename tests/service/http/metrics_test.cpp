@@ -206,8 +206,9 @@ TEST_CASE("database metrics (magcal serve): what the database holds", "[metrics]
   st::Database db(tmp.path(), st::OpenOptions{.read_only = true});
   const auto p = parse_prometheus_text(magcal::http::database_metrics_text(db, "2.0"));
   REQUIRE(p.error.empty());
-  CHECK(p.value("magcal_samples_stored_total", {{"sat", "SAT-A"}}) == stored["SAT-A"]);
-  CHECK(p.value("magcal_samples_stored_total", {{"sat", "SAT-B"}}) == stored["SAT-B"]);
+  CHECK(p.value("magcal_window_samples", {{"sat", "SAT-A"}}) == stored["SAT-A"]);
+  CHECK(p.value("magcal_window_samples", {{"sat", "SAT-B"}}) == stored["SAT-B"]);
+  CHECK(!p.has("magcal_samples_stored_total"));  // retention makes the held count fall
   CHECK(p.value("magcal_refits_total", {{"sat", "SAT-A"}, {"verdict", "accepted"}}) == 2.0);
   CHECK(p.value("magcal_refits_total", {{"sat", "SAT-A"}, {"verdict", "rejected"}}) == 1.0);
   CHECK(p.value("magcal_last_refit_success_timestamp_seconds", {{"sat", "SAT-A"}}) ==
