@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Builds magcal and runs every test: a Release build, then the same tests under
-# AddressSanitizer + UndefinedBehaviorSanitizer. Installs the Debian packages first if missing.
+# Builds magcal and runs every test: a Release build with all tests, then a build under
+# AddressSanitizer + UndefinedBehaviorSanitizer with the storage, service and low-level pipeline
+# tests (tests/CMakeLists.txt says which). Installs the Debian packages first if missing.
 #   MAGCAL_SKIP_SANITIZE=1  skips the sanitizer pass (quicker local runs)
 set -euo pipefail
 cd "$(dirname "$0")/.."
