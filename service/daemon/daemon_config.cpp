@@ -9,6 +9,7 @@
 #include <toml++/toml.h>
 
 #include "service/daemon/refit_scheduler.hpp"
+#include "service/http/operations_server.hpp"
 
 namespace magcal {
 namespace {
@@ -194,17 +195,12 @@ std::map<std::string, Section> key_table(DaemonConfig& c) {
 
 // "" (off) or ADDR:PORT with a port in 0..65535 (binding is checked at start).
 std::string check_listen(const std::string& listen) {
-  if (listen.empty()) return "";
-  const auto colon = listen.rfind(':');
-  const std::string port = colon == std::string::npos ? "" : listen.substr(colon + 1);
-  const bool digits = !port.empty() && port.size() <= 5 &&
-                      port.find_first_not_of("0123456789") == std::string::npos;
-  if (colon == 0 || !digits || std::stoi(port) > 65535) {
-    return "[http] listen: expected \"ADDR:PORT\" (e.g. \"127.0.0.1:9780\", port 0 = any free "
-           "one) or \"\" (off), got \"" +
-           listen + "\"";
-  }
-  return "";
+  std::string host, error;
+  int port = 0;
+  if (listen.empty() || http::parse_listen(listen, &host, &port, &error)) return "";
+  return "[http] listen: expected \"ADDR:PORT\" (e.g. \"127.0.0.1:9780\", port 0 = any free "
+         "one) or \"\" (off), got \"" +
+         listen + "\"";
 }
 
 std::string check_channel(const std::string& key, const std::string& name) {

@@ -325,10 +325,8 @@ void IngestWorker::maybe_snapshot(const std::string& sat_id, SpacecraftTracker& 
   // period. While it still collects for its start from data it has no estimate at all, so
   // nothing is stored or published (a row would need a bias, and 0 +- prior is not one).
   if (utime < t.next_snapshot_utime || !t.ukf.state().has_time) return;
-  if (!t.ukf.state().initialized) {
-    t.next_snapshot_utime += (saturating_sub(utime, t.next_snapshot_utime) / period + 1) * period;
-    return;
-  }
+  t.next_snapshot_utime += (saturating_sub(utime, t.next_snapshot_utime) / period + 1) * period;
+  if (!t.ukf.state().initialized) return;
   CalibrationResult snap = t.ukf.snapshot_and_reset_period();
   snap.utime = utime;
   if (snap.window_end_utime == 0) snap.window_end_utime = utime;
@@ -345,7 +343,6 @@ void IngestWorker::maybe_snapshot(const std::string& sat_id, SpacecraftTracker& 
   }
   apply_verdict(snap, verdict);
   pending_snapshots_.emplace_back(sat_id, std::move(snap));
-  t.next_snapshot_utime += (saturating_sub(utime, t.next_snapshot_utime) / period + 1) * period;
 }
 
 void IngestWorker::commit_if_due() {

@@ -14,13 +14,13 @@ int64_t SpacecraftTracker::observe_seq(int64_t seq) {
   if (gap_seq != kNone) {
     // A forward jump is believed once the next number continues after it; a number that does
     // not (the old sequence goes on) shows the jump was one corrupt seq, which implies nothing.
+    // last_seq is still the edge before the jump (nothing moves it while a jump is pending).
     const int64_t after_jump = saturating_sub(seq, gap_seq);
-    const int64_t jump_from = gap_from_seq;
-    const int64_t jump_to = gap_seq;
+    const int64_t jump = saturating_sub(gap_seq, last_seq);
     gap_seq = kNone;
     if (after_jump > 0 && after_jump <= kMaxSeqGap) {
       last_seq = seq;
-      return (saturating_sub(jump_to, jump_from) - 1) + (after_jump - 1);
+      return (jump - 1) + (after_jump - 1);
     }
   }
   const int64_t ahead = saturating_sub(seq, last_seq);
@@ -29,8 +29,7 @@ int64_t SpacecraftTracker::observe_seq(int64_t seq) {
     return 0;
   }
   if (ahead > 1 && ahead - 1 <= kMaxSeqGap) {
-    gap_from_seq = last_seq;  // counted when the next number confirms it
-    gap_seq = seq;
+    gap_seq = seq;  // counted when the next number confirms it
     return 0;
   }
   // Out-of-order (older) numbers do not move the edge back: recorder playback interleaves.

@@ -75,8 +75,7 @@ struct SpacecraftTracker {
   // numbers, and jumps larger than kMaxSeqGap (a counter reset), imply none. A gap at the very
   // end of a stream (never confirmed) is not counted. Advances last_seq.
   int64_t observe_seq(int64_t seq);
-  int64_t gap_from_seq = std::numeric_limits<int64_t>::min();  // edge before an unconfirmed gap
-  int64_t gap_seq = std::numeric_limits<int64_t>::min();       // number after it; none
+  int64_t gap_seq = std::numeric_limits<int64_t>::min();  // after an unconfirmed gap; none
   static constexpr int64_t kMaxSeqGap = 1'000'000;
 
   // True when a sample at `utime` is on the time base (see the file comment), false when it

@@ -38,27 +38,6 @@ void send_error(httplib::Response& res, int status, const std::string& message) 
   res.set_content(nlohmann::json{{"error", message}}.dump() + "\n", kJson);
 }
 
-// "ADDR:PORT" or "[ADDR]:PORT" -> host and port (0..65535).
-bool parse_listen(const std::string& listen, std::string* host, int* port, std::string* error) {
-  const auto colon = listen.rfind(':');
-  if (colon == std::string::npos || colon == 0 || colon + 1 == listen.size()) {
-    *error = "listen address '" + listen + "' is not ADDR:PORT (e.g. 127.0.0.1:9780)";
-    return false;
-  }
-  *host = listen.substr(0, colon);
-  if (host->size() >= 2 && host->front() == '[' && host->back() == ']') {
-    *host = host->substr(1, host->size() - 2);
-  }
-  const std::string port_text = listen.substr(colon + 1);
-  const auto res = std::from_chars(port_text.data(), port_text.data() + port_text.size(), *port);
-  if (res.ec != std::errc{} || res.ptr != port_text.data() + port_text.size() || *port < 0 ||
-      *port > 65535) {
-    *error = "listen address '" + listen + "': port '" + port_text + "' is not 0..65535";
-    return false;
-  }
-  return true;
-}
-
 // A whole decimal integer in [lo, hi], else BadRequest naming the parameter.
 int parse_int_param(const std::string& name, const std::string& text, int lo, int hi) {
   int value = 0;
@@ -84,6 +63,26 @@ std::string param(const httplib::Request& req, const std::string& name) {
 }
 
 }  // namespace
+
+bool parse_listen(const std::string& listen, std::string* host, int* port, std::string* error) {
+  const auto colon = listen.rfind(':');
+  if (colon == std::string::npos || colon == 0 || colon + 1 == listen.size()) {
+    *error = "listen address '" + listen + "' is not ADDR:PORT (e.g. 127.0.0.1:9780)";
+    return false;
+  }
+  *host = listen.substr(0, colon);
+  if (host->size() >= 2 && host->front() == '[' && host->back() == ']') {
+    *host = host->substr(1, host->size() - 2);
+  }
+  const std::string port_text = listen.substr(colon + 1);
+  const auto res = std::from_chars(port_text.data(), port_text.data() + port_text.size(), *port);
+  if (res.ec != std::errc{} || res.ptr != port_text.data() + port_text.size() || *port < 0 ||
+      *port > 65535) {
+    *error = "listen address '" + listen + "': port '" + port_text + "' is not 0..65535";
+    return false;
+  }
+  return true;
+}
 
 struct OperationsServer::Impl {
   ServerHooks hooks;

@@ -36,6 +36,11 @@ struct ServerHooks {
   int64_t status_window_utime = 0;
 };
 
+// Splits a listen address "ADDR:PORT" (IPv6 as "[ADDR]:PORT") into host and port 0..65535
+// (0 = any free port). False and *error set (one line) when it is not one. The one parser for
+// `magcal serve --listen`, `magcald --http-listen` and the config check of `[http] listen`.
+bool parse_listen(const std::string& listen, std::string* host, int* port, std::string* error);
+
 class OperationsServer {
  public:
   // Binds listen = "ADDR:PORT" (IPv6 as "[ADDR]:PORT"; port 0 = any free port), opens db_path
