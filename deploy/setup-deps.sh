@@ -7,7 +7,7 @@
 set -euo pipefail
 
 packages=(
-  build-essential cmake pkg-config ccache
+  build-essential cmake ninja-build pkg-config ccache
   libeigen3-dev
   liblcm-dev liblcm-bin
   libsqlite3-dev sqlite3
