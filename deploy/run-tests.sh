@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Builds magcal and runs every test once: the storage, service and low-level pipeline tests in a
-# build under AddressSanitizer + UndefinedBehaviorSanitizer, the rest (Monte-Carlo estimation,
-# browser, packaging) in a Release build; tests/CMakeLists.txt (MAGCAL_TEST_SET) says which.
+# Builds magcal and runs every test once: the storage and service tests in a build under
+# AddressSanitizer + UndefinedBehaviorSanitizer (linking the Release build's pipeline library),
+# the rest (pipeline unit and Monte-Carlo tests, browser, packaging) in a Release build;
+# tests/CMakeLists.txt (MAGCAL_TEST_SET) says which.
 # Installs the Debian packages first if missing.
 #   MAGCAL_SKIP_SANITIZE=1  no sanitizer build: every test runs in the Release build
 set -euo pipefail
@@ -27,10 +28,12 @@ ctest --test-dir build --output-on-failure -j2
 if [ "${MAGCAL_SKIP_SANITIZE:-0}" != 1 ]; then
   echo "== AddressSanitizer + UndefinedBehaviorSanitizer build and tests (MAGCAL_TEST_SET=sanitized)"
   # -O1 -g1 (line tables for the sanitizers' stack traces; NDEBUG as in Release) compiles 2-4x faster
-  # than RelWithDebInfo under the sanitizers, which is what keeps CI within its 30 minutes.
+  # than RelWithDebInfo under the sanitizers; test code is -O0 and the pipeline is not rebuilt
+  # (tests/CMakeLists.txt): that is what keeps CI within its 30 minutes.
   cmake -S . -B build-asan "${asan_generator[@]}" -DCMAKE_BUILD_TYPE=Debug -DCMAKE_CXX_FLAGS_DEBUG="-O1 -g1 -DNDEBUG" \
     -DCMAKE_C_FLAGS_DEBUG="-O1 -g1 -DNDEBUG" -DMAGCAL_SANITIZE=ON -DMAGCAL_BUILD_BENCH=OFF \
-    -DMAGCAL_TEST_SET=sanitized "${launcher[@]}" >/dev/null
+    -DMAGCAL_TEST_SET=sanitized -DMAGCAL_PIPELINE_LIBRARY="$PWD/build/pipeline/libmagcal_pipeline.a" \
+    "${launcher[@]}" >/dev/null
   cmake --build build-asan -j2
   ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1 \
     ctest --test-dir build-asan --output-on-failure -j2

@@ -9,6 +9,9 @@
 #include <Eigen/Eigenvalues>
 #include <Eigen/SVD>
 
+#include "pipeline/hac_covariance.hpp"
+#include "pipeline/model_extension.hpp"
+
 namespace magcal {
 
 namespace {
@@ -65,15 +68,32 @@ bool check_pairs(const std::vector<AlignmentPair>& pairs, const AlignmentOptions
 // Residuals, sigma and covariance about R (sensor-frame dtheta), and the angle outputs.
 void finish(const std::vector<AlignmentPair>& pairs, const Eigen::Matrix3d& R,
             const AlignmentOptions& options, AlignmentResult& out) {
+  const std::size_t n = pairs.size();
+  std::vector<Eigen::Vector3d> residuals(n), scores(n);
   double ss = 0.0;
-  for (const auto& p : pairs) ss += (p.u_sensor_nT - R * p.h_body_nT).squaredNorm();
-  const auto n = static_cast<double>(pairs.size());
-  out.residual_rms_nT = std::sqrt(ss / n);
+  for (std::size_t k = 0; k < n; ++k) {
+    const Eigen::Vector3d g = R * pairs[k].h_body_nT;
+    residuals[k] = pairs[k].u_sensor_nT - g;
+    scores[k] = cross_matrix(g).transpose() * residuals[k];  // J_k^T e_k
+    ss += residuals[k].squaredNorm();
+  }
+  const auto nd = static_cast<double>(n);
+  out.residual_rms_nT = std::sqrt(ss / nd);
   out.sigma_used_nT =
-      options.sigma_nT > 0.0 ? options.sigma_nT : std::sqrt(ss / std::max(1.0, 3.0 * n - 3.0));
+      options.sigma_nT > 0.0 ? options.sigma_nT : std::sqrt(ss / std::max(1.0, 3.0 * nd - 3.0));
+  const Eigen::Matrix3d F_inv = rotation_information(pairs, R).inverse();
+  Eigen::Matrix3d covariance = out.sigma_used_nT * out.sigma_used_nT * F_inv;
+  out.residual_autocorrelation = 0.0;
+  out.covariance_lag_window = 0;
+  if (!(options.sigma_nT > 0.0)) {
+    out.residual_autocorrelation = lag1_autocorrelation(residuals);
+    out.covariance_lag_window =
+        bartlett_lag_window(out.residual_autocorrelation, static_cast<int>(n));
+    const Eigen::Matrix3d omega = newey_west_meat<3>(scores, out.covariance_lag_window);
+    covariance = covariance_not_below<3>(covariance, F_inv * omega * F_inv);
+  }
   out.estimate.R_sensor_from_body = R;
-  out.estimate.angle_covariance_rad2 =
-      out.sigma_used_nT * out.sigma_used_nT * rotation_information(pairs, R).inverse();
+  out.estimate.angle_covariance_rad2 = covariance;
   out.rpy = roll_pitch_yaw_from_dcm(R);
   out.status = AlignmentStatus::kOk;
   out.message.clear();
@@ -108,14 +128,74 @@ Eigen::Vector3d small_angle_step(const std::vector<AlignmentPair>& pairs,
 }  // namespace
 
 std::vector<AlignmentPair> make_alignment_pairs(const SampleSet& samples,
-                                                const CalibrationParameters& params) {
+                                                const std::vector<Eigen::Vector3d>& u_sensor_nT) {
+  assert(u_sensor_nT.size() == samples.size());
   std::vector<AlignmentPair> pairs;
   pairs.reserve(samples.size());
-  for (const auto& s : samples) {
-    if (!s.has_reference_direction || !finite(s.b_sensor_nT) || !finite(s.h_body_nT)) continue;
-    pairs.push_back({params.apply(s.b_sensor_nT), s.h_body_nT});
+  for (std::size_t k = 0; k < samples.size(); ++k) {
+    const CalibrationSample& s = samples[k];
+    if (!s.has_reference_direction || !finite(u_sensor_nT[k]) || !finite(s.h_body_nT)) continue;
+    pairs.push_back({u_sensor_nT[k], s.h_body_nT});
   }
   return pairs;
+}
+
+std::vector<AlignmentPair> make_alignment_pairs(const SampleSet& samples,
+                                                const CalibrationParameters& params) {
+  std::vector<Eigen::Vector3d> u(samples.size());
+  for (std::size_t k = 0; k < samples.size(); ++k) u[k] = params.apply(samples[k].b_sensor_nT);
+  return make_alignment_pairs(samples, u);
+}
+
+Eigen::Matrix3d alignment_covariance_from_stage1(const SampleSet& samples, const Eigen::Matrix3d& R,
+                                                 const Matrix9d& parameter_covariance,
+                                                 const CalibrationParameters* extension_base,
+                                                 const Matrix6d& extension_covariance) {
+  std::vector<Eigen::Vector3d> y, signs;  // the extension's regressor inputs, sample order
+  if (extension_base) {
+    y.resize(samples.size());
+    for (std::size_t k = 0; k < samples.size(); ++k)
+      y[k] = extension_base->apply(samples[k].b_sensor_nT);
+    signs = hysteresis_signs(y);
+  }
+  Eigen::Matrix3d F = Eigen::Matrix3d::Zero();
+  Eigen::Matrix<double, 3, 9> JtUp = Eigen::Matrix<double, 3, 9>::Zero();
+  Eigen::Matrix<double, 3, 6> JtUa = Eigen::Matrix<double, 3, 6>::Zero();
+  for (std::size_t k = 0; k < samples.size(); ++k) {
+    const CalibrationSample& s = samples[k];
+    if (!s.has_reference_direction || !finite(s.b_sensor_nT) || !finite(s.h_body_nT)) continue;
+    const Eigen::Vector3d g = R * s.h_body_nT;
+    const Eigen::Matrix3d J = cross_matrix(g);
+    const Eigen::Vector3d& B = s.b_sensor_nT;
+    // du/dp for u = (I + D) B - b, p = [b1 b2 b3 D11 D22 D33 D12 D13 D23].
+    Eigen::Matrix<double, 3, 9> dUp = Eigen::Matrix<double, 3, 9>::Zero();
+    dUp.leftCols<3>() = -Eigen::Matrix3d::Identity();
+    dUp(0, 3) = B(0);
+    dUp(1, 4) = B(1);
+    dUp(2, 5) = B(2);
+    dUp(0, 6) = B(1), dUp(1, 6) = B(0);
+    dUp(0, 7) = B(2), dUp(2, 7) = B(0);
+    dUp(1, 8) = B(2), dUp(2, 8) = B(1);
+    F.noalias() += J.transpose() * J;
+    JtUp.noalias() += J.transpose() * dUp;
+    if (extension_base) {
+      Eigen::Matrix<double, 3, 6> dUa = Eigen::Matrix<double, 3, 6>::Zero();
+      for (int i = 0; i < 3; ++i) {
+        dUa(i, i) = -y[k](i) * y[k](i);
+        dUa(i, 3 + i) = -signs[k](i);
+      }
+      JtUa.noalias() += J.transpose() * dUa;
+    }
+  }
+  if (!(F.trace() > 0.0)) return Eigen::Matrix3d::Zero();
+  const Eigen::LDLT<Eigen::Matrix3d> F_ldlt(F);
+  const Eigen::Matrix<double, 3, 9> Gp = F_ldlt.solve(JtUp);
+  Eigen::Matrix3d C = Gp * parameter_covariance * Gp.transpose();
+  if (extension_base) {
+    const Eigen::Matrix<double, 3, 6> Ga = F_ldlt.solve(JtUa);
+    C += Ga * extension_covariance * Ga.transpose();
+  }
+  return 0.5 * (C + C.transpose());
 }
 
 std::string AlignmentOptions::validate() const {

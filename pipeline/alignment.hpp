@@ -48,11 +48,30 @@ struct AlignmentPair {
 // u_k = params.apply(B_k) for every sample with has_reference_direction and finite values.
 std::vector<AlignmentPair> make_alignment_pairs(const SampleSet& samples,
                                                 const CalibrationParameters& params);
+// The same with the stage-1 calibrated vectors given (one per sample, sample order; e.g.
+// extension_corrected_vectors() when the batch fit enabled the sensor-model extension).
+std::vector<AlignmentPair> make_alignment_pairs(const SampleSet& samples,
+                                                const std::vector<Eigen::Vector3d>& u_sensor_nT);
+
+// What stage-1 errors do to the angles (first order): Cov = G_p C_p G_p^T + G_a C_a G_a^T,
+// G_p = F^-1 sum_k J_k^T du_k/dp, J_k = [(R h_k) x], du_k/dp = 3 x 9 (-I for b, B_k entries for
+// D), over the samples make_alignment_pairs() uses; R = the estimate, C_p = the stage-1 covariance
+// of p. With extension_base (the parameters the extension regressors were built from) the
+// extension's coefficients a = [k; eta] were removed from u too (extension_corrected_vectors):
+// G_a the same with du_k/da = -[diag(y_k^2) diag(s_k)], C_a their covariance (cross-covariance
+// of p and a left out). rad^2, sensor frame. Zero when no sample carries a reference direction.
+Eigen::Matrix3d alignment_covariance_from_stage1(
+    const SampleSet& samples, const Eigen::Matrix3d& R, const Matrix9d& parameter_covariance,
+    const CalibrationParameters* extension_base = nullptr,
+    const Matrix6d& extension_covariance = Matrix6d::Zero());
 
 struct AlignmentOptions {
-  // Per-axis noise of u (nT) used for the covariance. <= 0: estimate it from the residuals,
-  // sigma^2 = sum |u_k - R_hat h_k|^2 / (3N - 3) (honest when stage-1 errors and unmodelled
-  // effects dominate the white noise).
+  // Per-axis noise of u (nT) used for the covariance: sigma^2 F^-1 (white noise, known level).
+  // <= 0: the covariance comes from the residuals' structure (stage-1 errors, unmodelled effects
+  // and attitude noise leave correlated residuals): sigma^2 = sum |u_k - R_hat h_k|^2 / (3N - 3)
+  // and a Newey–West sandwich F^-1 Omega F^-1 on the scores J_k^T e_k, J_k = [(R_hat h_k) x],
+  // Bartlett lag window from the residuals' lag-1 autocorrelation (hac_covariance.hpp; samples
+  // in time order), reported as max(sigma^2 F^-1, sandwich).
   double sigma_nT = 0.0;
   int min_samples = 3;
   // Geometry gate: the field directions must span at least two dimensions, otherwise the
@@ -79,6 +98,10 @@ struct AlignmentResult {
   RollPitchYaw rpy;              // of estimate.R_sensor_from_body (section 0)
   double residual_rms_nT = 0.0;  // rms over k of |u_k - R_hat h_k| (vector norm)
   double sigma_used_nT = 0.0;    // noise level behind the covariance
+  // Residual-structure covariance (sigma_nT <= 0): pooled lag-1 autocorrelation of the vector
+  // residuals and the Newey–West lag window (samples; 0 = white).
+  double residual_autocorrelation = 0.0;
+  int covariance_lag_window = 0;
 
   bool ok() const { return status == AlignmentStatus::kOk; }
 };

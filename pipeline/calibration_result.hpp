@@ -70,6 +70,8 @@ struct CalibrationResult {
   // pipeline/model_extension.hpp; fitted jointly with the hysteresis amplitude below.
   Eigen::Vector3d nonlinearity_k3 = Eigen::Vector3d::Zero();
   Eigen::Vector3d hysteresis_nT = Eigen::Vector3d::Zero();  // per-axis hysteresis amplitude
+  // Covariance of [nonlinearity_k3; hysteresis_nT] ((1/nT)^2, nT^2; HAC, as `covariance`).
+  Matrix6d extension_covariance = Matrix6d::Zero();
 
   // Online filters: mean normalised innovation squared over the snapshot period, and the
   // effective per-axis measurement noise the (adaptive) filter currently uses.

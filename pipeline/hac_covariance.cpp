@@ -8,15 +8,27 @@
 
 namespace magcal {
 
-double lag1_autocorrelation(const std::vector<double>& residuals) {
+namespace {
+template <class T>
+double lag1(const std::vector<T>& residuals, double (*dot)(const T&, const T&)) {
   if (residuals.size() < 3) return std::numeric_limits<double>::quiet_NaN();
   double num = 0.0, den = 0.0;
   for (std::size_t k = 0; k < residuals.size(); ++k) {
-    den += residuals[k] * residuals[k];
-    if (k + 1 < residuals.size()) num += residuals[k] * residuals[k + 1];
+    den += dot(residuals[k], residuals[k]);
+    if (k + 1 < residuals.size()) num += dot(residuals[k], residuals[k + 1]);
   }
   if (!(den > 0.0)) return std::numeric_limits<double>::quiet_NaN();
   return num / den;
+}
+}  // namespace
+
+double lag1_autocorrelation(const std::vector<double>& residuals) {
+  return lag1<double>(residuals, [](const double& a, const double& b) { return a * b; });
+}
+
+double lag1_autocorrelation(const std::vector<Eigen::Vector3d>& residuals) {
+  return lag1<Eigen::Vector3d>(
+      residuals, [](const Eigen::Vector3d& a, const Eigen::Vector3d& b) { return a.dot(b); });
 }
 
 int bartlett_lag_window(double rho, int n) {
@@ -26,33 +38,6 @@ int bartlett_lag_window(double rho, int n) {
   const double alpha = 4.0 * r * r / ((1.0 - r) * (1.0 - r) * (1.0 + r) * (1.0 + r));
   const double lag = std::ceil(1.1447 * std::cbrt(alpha * n));
   return static_cast<int>(std::min(lag, static_cast<double>(n / 4)));
-}
-
-Matrix9d covariance_not_below(const Matrix9d& white_covariance, const Matrix9d& hac_covariance) {
-  // nT and dimensionless parameters differ by ~1e5: work on the diagonally scaled matrices.
-  const Vector9d d = white_covariance.diagonal();
-  if (!(d.minCoeff() > 0.0) || !d.allFinite() || !hac_covariance.allFinite()) {
-    return white_covariance;
-  }
-  const Vector9d scale = d.cwiseSqrt();
-  const Vector9d inv = scale.cwiseInverse();
-  const Matrix9d Cw = inv.asDiagonal() * white_covariance * inv.asDiagonal();
-  const Matrix9d Ch = inv.asDiagonal() * hac_covariance * inv.asDiagonal();
-  // Whiten with the symmetric square root of Cw: A = Cw^-1/2 Ch Cw^-1/2, clamp A >= I.
-  const Eigen::SelfAdjointEigenSolver<Matrix9d> ew(Cw);
-  if (!(ew.eigenvalues().minCoeff() > 0.0)) return white_covariance;
-  const Vector9d root = ew.eigenvalues().cwiseSqrt();
-  const Matrix9d Cw_half = ew.eigenvectors() * root.asDiagonal() * ew.eigenvectors().transpose();
-  const Matrix9d Cw_inv_half =
-      ew.eigenvectors() * root.cwiseInverse().asDiagonal() * ew.eigenvectors().transpose();
-  Matrix9d A = Cw_inv_half * Ch * Cw_inv_half;
-  A = 0.5 * (A + A.transpose());
-  const Eigen::SelfAdjointEigenSolver<Matrix9d> ea(A);
-  const Vector9d clamped = ea.eigenvalues().cwiseMax(1.0);
-  const Matrix9d Cs =
-      Cw_half * ea.eigenvectors() * clamped.asDiagonal() * ea.eigenvectors().transpose() * Cw_half;
-  Matrix9d C = scale.asDiagonal() * Cs * scale.asDiagonal();
-  return 0.5 * (C + C.transpose());
 }
 
 }  // namespace magcal

@@ -27,8 +27,8 @@
 #include <vector>
 
 #include <Eigen/Core>
+#include <Eigen/Eigenvalues>
 
-#include "pipeline/calibration_types.hpp"
 #include "pipeline/outer_product_sum.hpp"
 
 namespace magcal {
@@ -36,6 +36,8 @@ namespace magcal {
 // Lag-1 autocorrelation sum e_k e_{k+1} / sum e_k^2 of a (zero-mean) residual sequence; NaN
 // for fewer than 3 values or all-zero residuals.
 double lag1_autocorrelation(const std::vector<double>& residuals);
+// The same for vector residuals (pooled over the axes): sum e_k . e_{k+1} / sum |e_k|^2.
+double lag1_autocorrelation(const std::vector<Eigen::Vector3d>& residuals);
 
 // Andrews' AR(1) plug-in Bartlett lag window for n samples with lag-1 autocorrelation rho
 // (0 when |rho| < 3/sqrt(n); capped at n / 4; rho is clamped to [-0.97, 0.97]).
@@ -63,7 +65,39 @@ Eigen::Matrix<double, P, P> newey_west_meat(const std::vector<Eigen::Matrix<doub
   return omega.sum() / static_cast<double>(L + 1);
 }
 
-// max(C_hac, F^-1) in the sense above, given F^-1 (symmetric positive definite) and C_hac.
-Matrix9d covariance_not_below(const Matrix9d& white_covariance, const Matrix9d& hac_covariance);
+// max(C_hac, F^-1) in the sense above, given F^-1 (symmetric positive definite) and C_hac
+// (P x P). Returns the white covariance unchanged when either input is not usable.
+template <int P>
+Eigen::Matrix<double, P, P> covariance_not_below(
+    const Eigen::Matrix<double, P, P>& white_covariance,
+    const Eigen::Matrix<double, P, P>& hac_covariance) {
+  using M = Eigen::Matrix<double, P, P>;
+  using V = Eigen::Matrix<double, P, 1>;
+  // Parameters in different units (nT and dimensionless differ by ~1e5): work on the diagonally
+  // scaled matrices.
+  const V d = white_covariance.diagonal();
+  if (!(d.minCoeff() > 0.0) || !d.allFinite() || !hac_covariance.allFinite()) {
+    return white_covariance;
+  }
+  const V scale = d.cwiseSqrt();
+  const V inv = scale.cwiseInverse();
+  const M Cw = inv.asDiagonal() * white_covariance * inv.asDiagonal();
+  const M Ch = inv.asDiagonal() * hac_covariance * inv.asDiagonal();
+  // Whiten with the symmetric square root of Cw: A = Cw^-1/2 Ch Cw^-1/2, clamp A >= I.
+  const Eigen::SelfAdjointEigenSolver<M> ew(Cw);
+  if (!(ew.eigenvalues().minCoeff() > 0.0)) return white_covariance;
+  const V root = ew.eigenvalues().cwiseSqrt();
+  const M Cw_half = ew.eigenvectors() * root.asDiagonal() * ew.eigenvectors().transpose();
+  const M Cw_inv_half =
+      ew.eigenvectors() * root.cwiseInverse().asDiagonal() * ew.eigenvectors().transpose();
+  M A = Cw_inv_half * Ch * Cw_inv_half;
+  A = 0.5 * (A + A.transpose());
+  const Eigen::SelfAdjointEigenSolver<M> ea(A);
+  const V clamped = ea.eigenvalues().cwiseMax(1.0);
+  const M Cs =
+      Cw_half * ea.eigenvectors() * clamped.asDiagonal() * ea.eigenvectors().transpose() * Cw_half;
+  const M C = scale.asDiagonal() * Cs * scale.asDiagonal();
+  return 0.5 * (C + C.transpose());
+}
 
 }  // namespace magcal

@@ -402,6 +402,11 @@ LmResult refine(const SampleSet& samples, const Vector9d& theta0, const LmOption
       const MatrixP hac_full = F_inv * omega * F_inv;
       const Matrix9d hac = hac_full.template topLeftCorner<9, 9>();
       res.theta_covariance = covariance_not_below(res.theta_covariance_white, hac);
+      if constexpr (NX > 0) {
+        const Eigen::Matrix<double, NX, NX> hac_extension =
+            hac_full.template bottomRightCorner<NX, NX>();
+        res.extension_covariance = covariance_not_below(res.extension_covariance, hac_extension);
+      }
     }
   }
   if (res.converged) {

@@ -72,7 +72,8 @@ struct LmResult {
   std::vector<double> robust_weights;     // robust mode: u_k per sample (1 = kept unchanged)
   int n_parameters = 9;                   // 9, or 15 with the model extension
   Vector6d extension = Vector6d::Zero();  // refine_lm_extended: the coefficients a
-  Matrix6d extension_covariance = Matrix6d::Zero();  // white-noise, marginal
+  // Marginal covariance of a: the HAC one not below the white-noise one (as theta_covariance).
+  Matrix6d extension_covariance = Matrix6d::Zero();
   // M = sum w u v^T v of the fit's samples about theta_ref (scalar_moments_cost, 9-parameter
   // rows): without robust weights refine_lm_extended takes it instead of summing that block again.
   Eigen::Matrix<double, 11, 11> moments = Eigen::Matrix<double, 11, 11>::Zero();

@@ -3,31 +3,46 @@
 #include <cmath>
 
 namespace magcal {
-std::vector<Vector6d> model_extension_regressors(const SampleSet& samples,
-                                                 const CalibrationParameters& p) {
-  const std::size_t n = samples.size();
-  std::vector<Vector6d> phi(n);
-  if (n == 0) return phi;
-  // Calibrated vectors y_k, computed once: phi_k holds y_k until its signs are known.
-  for (std::size_t k = 0; k < n; ++k) phi[k].head<3>() = p.apply(samples[k].b_sensor_nT);
-  // Hysteresis signs s_k (per axis) from the central differences y_{k+1} - y_{k-1} (one-sided
-  // at the ends), held over a zero difference; y_{k-1} is kept aside before phi_{k-1} is
-  // overwritten.
+std::vector<Eigen::Vector3d> hysteresis_signs(const std::vector<Eigen::Vector3d>& y) {
+  const std::size_t n = y.size();
+  std::vector<Eigen::Vector3d> signs(n);
   Eigen::Vector3d last = Eigen::Vector3d::Ones();
-  Eigen::Vector3d y_previous = phi[0].head<3>();
   for (std::size_t k = 0; k < n; ++k) {
-    const Eigen::Vector3d y = phi[k].head<3>();
-    const Eigen::Vector3d y_next = k + 1 < n ? Eigen::Vector3d(phi[k + 1].head<3>()) : y;
-    const Eigen::Vector3d change =
-        n < 2 ? Eigen::Vector3d::Zero() : Eigen::Vector3d(y_next - y_previous);
+    const Eigen::Vector3d& y_previous = k > 0 ? y[k - 1] : y[k];
+    const Eigen::Vector3d& y_next = k == 0 && n > 1 ? y[1] : y[k];
+    const Eigen::Vector3d change = y_next - y_previous;
     for (int i = 0; i < 3; ++i) {
       if (change(i) > 0.0) last(i) = 1.0;
       if (change(i) < 0.0) last(i) = -1.0;
     }
-    phi[k] << 2.0 * y.cwiseAbs2().cwiseProduct(y), 2.0 * y.cwiseProduct(last);
-    y_previous = y;
+    signs[k] = last;
+  }
+  return signs;
+}
+
+std::vector<Vector6d> model_extension_regressors(const SampleSet& samples,
+                                                 const CalibrationParameters& p) {
+  std::vector<Eigen::Vector3d> y(samples.size());
+  for (std::size_t k = 0; k < samples.size(); ++k) y[k] = p.apply(samples[k].b_sensor_nT);
+  const std::vector<Eigen::Vector3d> s = hysteresis_signs(y);
+  std::vector<Vector6d> phi(samples.size());
+  for (std::size_t k = 0; k < samples.size(); ++k) {
+    phi[k] << 2.0 * y[k].cwiseAbs2().cwiseProduct(y[k]), 2.0 * y[k].cwiseProduct(s[k]);
   }
   return phi;
+}
+
+std::vector<Eigen::Vector3d> extension_corrected_vectors(const SampleSet& samples,
+                                                         const CalibrationParameters& p,
+                                                         const Eigen::Vector3d& k_per_nT,
+                                                         const Eigen::Vector3d& eta_nT) {
+  std::vector<Eigen::Vector3d> x(samples.size());
+  for (std::size_t k = 0; k < samples.size(); ++k) x[k] = p.apply(samples[k].b_sensor_nT);
+  const std::vector<Eigen::Vector3d> s = hysteresis_signs(x);
+  for (std::size_t k = 0; k < samples.size(); ++k) {
+    x[k] -= k_per_nT.cwiseProduct(x[k].cwiseAbs2()) + eta_nT.cwiseProduct(s[k]);
+  }
+  return x;
 }
 
 bool bic_prefers_extension(double chi2_base, double chi2_extended, int n_samples) {

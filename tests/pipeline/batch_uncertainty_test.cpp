@@ -10,6 +10,7 @@
 
 #include "pipeline/batch_calibration.hpp"
 #include "pipeline/crlb.hpp"
+#include "pipeline/rotation.hpp"
 #include "pipeline/scenario.hpp"
 #include "pipeline/simulator.hpp"
 
@@ -57,6 +58,24 @@ struct AxisStats {
     if (r.has_nonlinearity) ++extended;
     ++runs;
   }
+  // Alignment (stage 2): error angles (sensor frame, R_true = (I - [d x]) R_hat) per sigma.
+  Eigen::Vector3d sum_align_z2 = Eigen::Vector3d::Zero();
+  Eigen::Vector3d sum_align_err2_arcsec2 = Eigen::Vector3d::Zero();
+  int aligned = 0;
+  void add_alignment(const CalibrationResult& r, const TruthParameters& t) {
+    if (!r.has_alignment) return;
+    const Eigen::Matrix3d M = t.R_sensor_from_body * r.alignment.R_sensor_from_body.transpose();
+    const Eigen::Vector3d d =
+        -0.5 * Eigen::Vector3d(M(2, 1) - M(1, 2), M(0, 2) - M(2, 0), M(1, 0) - M(0, 1));
+    const Eigen::Vector3d sigma = r.alignment.angle_covariance_rad2.diagonal().cwiseSqrt();
+    sum_align_z2 += d.cwiseQuotient(sigma).cwiseAbs2();
+    sum_align_err2_arcsec2 += (d * kRadToDeg * 3600.0).cwiseAbs2();
+    ++aligned;
+  }
+  Eigen::Vector3d align_rms_z() const { return (sum_align_z2 / aligned).cwiseSqrt(); }
+  Eigen::Vector3d align_rms_arcsec() const {
+    return (sum_align_err2_arcsec2 / aligned).cwiseSqrt();
+  }
   Eigen::Vector3d rms_z() const { return (sum_z2 / runs).cwiseSqrt(); }
   double bias_mse() const { return sum_err2.sum() / (3.0 * runs); }
   double crlb_ratio() const { return std::sqrt(sum_crlb_z2.sum() / (3.0 * runs)); }
@@ -84,7 +103,9 @@ TEST_CASE(
     CHECK(r.has_nonlinearity);  // BIC: the data support the sensor-model extension
     CHECK(std::isfinite(r.noise_scale));
     CHECK(std::isfinite(r.residual_autocorrelation));
+    CHECK(r.has_alignment);
     stats.add(r, set.truth, nullptr);
+    stats.add_alignment(r, set.truth);
   }
   const Eigen::Vector3d z9 = stats_9.rms_z();
   std::printf(
@@ -101,6 +122,49 @@ TEST_CASE(
   CHECK(z.maxCoeff() <= 1.5);
   CHECK(z.minCoeff() >= 0.25);
   CHECK(stats.bias_mse() <= 5.0);
+  // Stage 2 on the same fits: the angle sigma covers the error (hysteresis, a lag much like a
+  // rotation about the orbit normal, is removed with the fitted extension; the stage-1 error and
+  // the residuals' structure are in the covariance).
+  const Eigen::Vector3d za = stats.align_rms_z();
+  const Eigen::Vector3d ea = stats.align_rms_arcsec();
+  std::printf(
+      "paper 12 h x %d alignment: RMS(err/sigma) = (%.3f, %.3f, %.3f), RMS error (%.2f, %.2f, "
+      "%.2f) arcsec\n",
+      stats.aligned, za(0), za(1), za(2), ea(0), ea(1), ea(2));
+  CHECK(za.maxCoeff() <= 1.5);
+  CHECK(za.minCoeff() >= 0.25);
+}
+
+TEST_CASE("paper scenario, short windows (4 h and 6 h): sigmas still cover the error") {
+  // The daemon's first refits see what a spacecraft has sent so far: a few orbits. There the
+  // 9-parameter fit bends b by tens of nT to absorb the unmodelled effects, so the extension
+  // must still be taken (measured before: 6 h, RMS(err/sigma) 4.2 on x, accepted).
+  for (const double hours : {4.0, 6.0}) {
+    AxisStats stats;
+    const int runs = 15;
+    for (int run = 0; run < runs; ++run) {
+      const SimulatedSet set = simulate("paper", 3000 + static_cast<uint64_t>(run), hours);
+      const CalibrationResult r = calibrate_batch(set.samples, BatchCalibrationOptions());
+      INFO(hours << " h, run " << run << ": " << r.message);
+      REQUIRE(r.status == CalibrationStatus::kOk);
+      stats.add(r, set.truth, nullptr);
+      stats.add_alignment(r, set.truth);
+    }
+    const Eigen::Vector3d z = stats.rms_z();
+    const Eigen::Vector3d za = stats.align_rms_z();
+    std::printf(
+        "paper %.0f h x %d: RMS(err/sigma) bias (%.3f, %.3f, %.3f), alignment (%.3f, %.3f, "
+        "%.3f), extended in %d runs\n",
+        hours, runs, z(0), z(1), z(2), za(0), za(1), za(2), stats.extended);
+    INFO(hours << " h: bias " << z.transpose() << ", alignment " << za.transpose());
+    // Measured (seeds 3000-3014): 4 h up to 1.61 (bias z), 6 h up to 1.51 (pitch); the 12 h bar
+    // (1.5) is not quite met on a few orbits, where unmodelled effects the extension does not
+    // describe (quantisation, its own first-order terms) weigh more. Before the extension was
+    // taken on short windows: 4.2 (6 h, bias x).
+    CHECK(z.maxCoeff() <= 2.0);
+    CHECK(za.maxCoeff() <= 2.0);
+    CHECK(z.minCoeff() >= 0.25);
+  }
 }
 
 TEST_CASE("pure model, 50 x 12 h: error <= 1.1x CRLB, sigma within 1.2x CRLB, 9 parameters") {
