@@ -7,6 +7,7 @@
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
 
+#include "pipeline/hac_covariance.hpp"
 #include "pipeline/scalar_measurement.hpp"
 #include "pipeline/time_utc.hpp"
 
@@ -81,7 +82,9 @@ bool FilterState::operator==(const FilterState& o) const {
          fisher_condition == o.fisher_condition && samples_since_fisher == o.samples_since_fisher &&
          period_start_utime == o.period_start_utime && period_n == o.period_n &&
          period_residual_sum2_nT2 == o.period_residual_sum2_nT2 &&
-         period_nis_sum == o.period_nis_sum;
+         period_nis_sum == o.period_nis_sum && anchor_information == o.anchor_information &&
+         score_block == o.score_block && score_block_n == o.score_block_n &&
+         score_meat == o.score_meat && score_blocks == o.score_blocks;
 }
 
 const char* to_string(FilterUpdateStatus s) {
@@ -198,10 +201,21 @@ void ScalarFilterBase::set_covariance(const Matrix9d& P) {
   state_.S = L.triangularView<Eigen::Lower>();
 }
 
+void ScalarFilterBase::anchor_sandwich() {
+  // A = P^-1 = S^-T S^-1, from the factor (no explicit inverse of P).
+  const Matrix9d S_inv = state_.S.triangularView<Eigen::Lower>().solve(Matrix9d::Identity());
+  state_.anchor_information = S_inv.transpose() * S_inv;
+  state_.score_block.setZero();
+  state_.score_block_n = 0;
+  state_.score_meat.setZero();
+  state_.score_blocks = 0;
+}
+
 void ScalarFilterBase::initialize(const Vector9d& x0, const Matrix9d& P0) {
   state_ = FilterState{};
   state_.x = x0;
   set_covariance(P0);
+  anchor_sandwich();
   state_.initialized = true;
   update_convergence_time();
 }
@@ -209,6 +223,7 @@ void ScalarFilterBase::initialize(const Vector9d& x0, const Matrix9d& P0) {
 void ScalarFilterBase::reanchor(const Vector9d& x, const Matrix9d& P) {
   state_.x = x;
   set_covariance(P);
+  anchor_sandwich();
   state_.initialized = true;
   state_.consistent = true;
   state_.nis_window_sum = 0.0;
@@ -246,6 +261,13 @@ Matrix9d ScalarFilterBase::P() const {
   return state_.S * state_.S.transpose();
 }
 
+Matrix9d ScalarFilterBase::reported_covariance() const {
+  const Matrix9d P = this->P();
+  if (options_.sandwich_block_samples <= 0 || state_.score_blocks == 0) return P;
+  const Matrix9d C = P * (state_.anchor_information + state_.score_meat) * P;
+  return covariance_not_below(P, Matrix9d(0.5 * (C + C.transpose())));
+}
+
 Eigen::Vector3d ScalarFilterBase::bias_sigma_nT() const {
   return state_.S.topRows<3>().rowwise().norm();
 }
@@ -278,7 +300,8 @@ CalibrationResult ScalarFilterBase::snapshot() const {
   r.window_end_utime = state_.last_utime;
   r.n_samples = static_cast<int>(state_.moments.n);
   r.parameters = parameters();
-  r.covariance = state_.initialized ? P() : options_.initial_covariance();
+  r.covariance = state_.initialized ? reported_covariance() : options_.initial_covariance();
+  const Eigen::Vector3d bias_sigma = r.covariance.diagonal().head<3>().cwiseSqrt();
   r.iterations = static_cast<int>(state_.n_accepted);
   r.converged = converged();
   if (state_.period_n > 0) {
@@ -318,7 +341,7 @@ CalibrationResult ScalarFilterBase::snapshot() const {
     std::snprintf(buf, sizeof buf, "inconsistent innovations (mean NIS %.3g), covariance re-opened",
                   state_.last_window_mean_nis);
     r.message = buf;
-  } else if (!(bias_sigma_nT().array() < options_.converged_bias_sigma_nT).all()) {
+  } else if (!(bias_sigma.array() < options_.converged_bias_sigma_nT).all()) {
     r.status = CalibrationStatus::kNotConverged;
     std::snprintf(buf, sizeof buf, "bias 1-sigma above %.3g nT", options_.converged_bias_sigma_nT);
     r.message = buf;
@@ -337,6 +360,7 @@ CalibrationResult ScalarFilterBase::snapshot_and_reset_period() {
 void ScalarFilterBase::start_from(const FilterStartResult& start) {
   state_.x = start.p;
   set_covariance(start.covariance);
+  anchor_sandwich();
   state_.initialized = true;
   state_.noise_scale2 = std::max(state_.noise_scale2, start.noise_scale2);
   state_.innovation_c0 = 1.0;
@@ -467,12 +491,24 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
   // fail; if round-off ever made it, the update is refused and S left untouched.
   const double inv_sqrt_S = 1.0 / std::sqrt(S_gain);
   const Vector9d x_new = state_.x + Pxz * (nu * inv_sqrt_S * inv_sqrt_S);
+  // The sample's score for the reported covariance, from the prior factor: H^T = S^-T Pxz_white.
+  const Vector9d score =
+      state_.S.transpose().triangularView<Eigen::Upper>().solve(Pxz_white) * (nu / (S_gain - hph));
   if (!x_new.allFinite() || !cholesky_downdate_whitened(state_.S, Pxz_white * inv_sqrt_S)) {
     ++state_.n_rejected_invalid;
     u.status = FilterUpdateStatus::kRejectedNumerical;
     return;
   }
   state_.x = x_new;
+  if (options_.sandwich_block_samples > 0 && score.allFinite()) {
+    state_.score_block += score;
+    if (++state_.score_block_n >= options_.sandwich_block_samples) {
+      state_.score_meat.noalias() += state_.score_block * state_.score_block.transpose();
+      ++state_.score_blocks;
+      state_.score_block.setZero();
+      state_.score_block_n = 0;
+    }
+  }
   ++state_.n_accepted;
   u.status = FilterUpdateStatus::kAccepted;
   state_.moments.add(b_sensor_nT, y, 1.0 / scalar_noise_variance(b_sensor_nT, sigma), false);
@@ -511,6 +547,7 @@ void ScalarFilterBase::monitor(FilterUpdate& u) {
       if (var > p0(i)) state_.S.row(i) *= std::sqrt(p0(i) / var);
     }
   }
+  anchor_sandwich();  // the re-opened P forgets; so do the blocks
   update_convergence_time();
 }
 

@@ -207,6 +207,13 @@ storage::FilterState stored_filter_state(const std::string& sat_id, const std::s
   put(b, st.period_n);
   put(b, st.period_residual_sum2_nT2);
   put(b, st.period_nis_sum);
+  // Appended later (a blob without them restores with the reported covariance = P until the
+  // next block completes).
+  for (int i = 0; i < st.anchor_information.size(); ++i) put(b, st.anchor_information(i));
+  for (int i = 0; i < st.score_block.size(); ++i) put(b, st.score_block(i));
+  put(b, st.score_block_n);
+  for (int i = 0; i < st.score_meat.size(); ++i) put(b, st.score_meat(i));
+  put(b, st.score_blocks);
   return out;
 }
 
@@ -261,6 +268,22 @@ bool filter_state_from_stored(const storage::FilterState& in, FilterState& out) 
        get(b, pos, st.period_n) && get(b, pos, st.period_residual_sum2_nT2) &&
        get(b, pos, st.period_nis_sum);
   if (!ok) return false;
+  if (pos < b.size()) {  // the reported covariance's blocks (see stored_filter_state)
+    FilterState blocks;
+    for (int i = 0; ok && i < blocks.anchor_information.size(); ++i)
+      ok = get(b, pos, blocks.anchor_information(i));
+    for (int i = 0; ok && i < blocks.score_block.size(); ++i)
+      ok = get(b, pos, blocks.score_block(i));
+    ok = ok && get(b, pos, blocks.score_block_n);
+    for (int i = 0; ok && i < blocks.score_meat.size(); ++i) ok = get(b, pos, blocks.score_meat(i));
+    ok = ok && get(b, pos, blocks.score_blocks);
+    if (!ok) return false;
+    st.anchor_information = blocks.anchor_information;
+    st.score_block = blocks.score_block;
+    st.score_block_n = blocks.score_block_n;
+    st.score_meat = blocks.score_meat;
+    st.score_blocks = blocks.score_blocks;
+  }
   st.has_time = has_time != 0;
   st.has_previous_innovation = has_prev != 0;
   out = st;
