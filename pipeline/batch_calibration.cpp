@@ -19,6 +19,7 @@ namespace magcal {
 
 // See the model-extension decision in calibrate_batch().
 constexpr double kMaxExtensionResidualRatio = 2.0;
+constexpr double kMaxExtensionEffectFraction = 0.01;
 
 const char* to_string(BatchCalibrationOptions::Method m) {
   return m == BatchCalibrationOptions::Method::kCentered ? "centered" : "twostep";
@@ -239,7 +240,19 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
         // on 6 h, 1.75x on 3 h, where the 9-parameter fit bends b by up to 31 nT to absorb the
         // unmodelled effects), never far worse (ISS Astro Pi, whose effects the extension does
         // not describe: 18 500 vs 3 400 nT, 5.4x).
-        if (ext.status == LmStatus::kOk &&
+        // And the effects it describes must be small sensor effects: per axis, |k_i| |h|^2 and
+        // |eta_i| within kMaxExtensionEffectFraction of the mean |h| (paper sensor, 3-12 h
+        // windows: at most 0.44 %; ISS Astro Pi halves, where the "nonlinearity" soaks up
+        // 500-8 700 nT of what the station does to the field: 1.4-25 %).
+        double mean_h_nT = 0.0;
+        for (const CalibrationSample& s : samples) mean_h_nT += s.h_body_nT.norm();
+        mean_h_nT /= static_cast<double>(samples.size());
+        const double effect_limit_nT = kMaxExtensionEffectFraction * mean_h_nT;
+        const bool small_effects =
+            (ext.extension.head<3>().cwiseAbs() * (mean_h_nT * mean_h_nT)).maxCoeff() <=
+                effect_limit_nT &&
+            ext.extension.tail<3>().cwiseAbs().maxCoeff() <= effect_limit_nT;
+        if (ext.status == LmStatus::kOk && small_effects &&
             (shift.cwiseAbs().array() <= 5.0 * sigma.array()).all() &&
             bic_prefers_extension(2.0 * lm.cost, 2.0 * ext.cost, r.n_samples) &&
             geometric_residual_rms(samples, ext.theta) <=
