@@ -36,6 +36,11 @@ ValidatorOptions validator_options(const DaemonConfig& c) {
   return v;
 }
 
+// The key of a pending row in IngestWorker::pending_index_ (equal keys are compared in full).
+uint64_t pending_key(const std::string& sat_id, int64_t utime) {
+  return std::hash<std::string>{}(sat_id) ^ (static_cast<uint64_t>(utime) * 0x9E3779B97F4A7C15ULL);
+}
+
 int64_t snapshot_period_utime(const DaemonConfig& c) {
   return std::max<int64_t>(1, static_cast<int64_t>(c.ukf.snapshot_every_s * 1e6));
 }
@@ -78,6 +83,7 @@ void IngestWorker::restore() {
     if (!newest) continue;
     SpacecraftTracker& t = tracker(sat, nullptr);
     t.newest_utime = *newest;
+    t.stored_bound_utime = *newest;
     samples_.read_window(sat, *newest, saturating_add(*newest, 1), rows);
     if (!rows.empty()) t.last_seq = rows.back().seq;
 
@@ -170,9 +176,27 @@ void IngestWorker::count_stored(size_t begin, size_t end) {
   flush_run(end);
 }
 
-bool IngestWorker::is_duplicate(const std::string& sat_id, int64_t utime) {
-  // Only reached for samples not newer than the spacecraft's newest (rare: recorder playback).
-  for (const auto& p : pending_) {
+void IngestWorker::index_pending() {
+  for (; pending_indexed_ < pending_.size(); ++pending_indexed_) {
+    const auto& p = pending_[pending_indexed_];
+    pending_index_.emplace(pending_key(p.sat_id, p.utime), static_cast<uint32_t>(pending_indexed_));
+  }
+}
+
+void IngestWorker::reset_pending_index() {
+  pending_index_.clear();
+  pending_indexed_ = 0;
+}
+
+bool IngestWorker::is_duplicate(const std::string& sat_id, const SpacecraftTracker& t,
+                                int64_t utime) {
+  // Only reached for samples not newer than the spacecraft's newest (recorder playback, held
+  // samples accepted in arrival order). Nothing stored or pending is newer than the bound.
+  if (utime > t.stored_bound_utime) return false;
+  index_pending();
+  const auto [first, last] = pending_index_.equal_range(pending_key(sat_id, utime));
+  for (auto it = first; it != last; ++it) {
+    const auto& p = pending_[it->second];
     if (p.utime == utime && p.sat_id == sat_id) return true;
   }
   // Reads work through most faults (WAL readers never wait for the writer); one that fails is
@@ -227,7 +251,7 @@ void IngestWorker::accept_sample(const std::string& sat, SpacecraftTracker& t,
       reject_sample(RejectReason::kOlderThanWindow, sat, s);
       return;
     }
-    if (s.utime <= t.newest_utime && is_duplicate(sat, s.utime)) {
+    if (s.utime <= t.newest_utime && is_duplicate(sat, t, s.utime)) {
       reject_sample(RejectReason::kDuplicate, sat, s);
       return;
     }
@@ -243,6 +267,7 @@ void IngestWorker::accept_sample(const std::string& sat, SpacecraftTracker& t,
 
   if (pending_.empty()) first_pending_time_ = std::chrono::steady_clock::now();
   fill_stored_sample(s, sat, *sample, receive_utime, pending_.emplace_back());
+  t.stored_bound_utime = std::max(t.stored_bound_utime, s.utime);
   const bool advanced = s.utime > t.newest_utime;
   if (advanced) {
     t.newest_utime = s.utime;
@@ -323,21 +348,18 @@ void IngestWorker::base_from_held(const std::string& sat, SpacecraftTracker& t) 
 }
 
 void IngestWorker::release_first_holds(std::chrono::steady_clock::time_point now) {
-  if (first_holds_.empty()) return;
+  // first_holds_ is in the order of its times: only its front can be due (O(1) per call).
   const auto max_age = std::chrono::duration<double>(SpacecraftTracker::kFirstHoldMax_s);
-  size_t keep = 0;
-  for (size_t i = 0; i < first_holds_.size(); ++i) {
-    auto& [sat, since] = first_holds_[i];
+  size_t due = 0;
+  while (due < first_holds_.size() && now - first_holds_[due].second >= max_age) {
+    const std::string& sat = first_holds_[due++].first;
     SpacecraftTracker* t = fleet_.find(sat);
-    if (!t || t->newest_utime != kNoTime || t->held.empty()) continue;  // corroborated since
-    if (now - since < max_age) {
-      if (keep != i) first_holds_[keep] = std::move(first_holds_[i]);
-      ++keep;
-      continue;
-    }
-    base_from_held(sat, *t);
+    // (Corroborated since, or settled: nothing to do.)
+    if (t && t->newest_utime == kNoTime && !t->held.empty()) base_from_held(sat, *t);
   }
-  first_holds_.resize(keep);
+  if (due > 0)
+    first_holds_.erase(first_holds_.begin(),
+                       first_holds_.begin() + static_cast<std::ptrdiff_t>(due));
 }
 
 void IngestWorker::settle_held() {
@@ -476,9 +498,11 @@ void IngestWorker::commit_pending() {
   } catch (const storage::StorageError&) {
     // What was committed leaves the batch; the rest stays pending for the retry.
     pending_.erase(pending_.begin(), pending_.begin() + static_cast<std::ptrdiff_t>(done));
+    reset_pending_index();
     throw;
   }
   pending_.clear();
+  reset_pending_index();
 }
 
 void IngestWorker::flush() {

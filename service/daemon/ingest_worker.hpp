@@ -29,6 +29,7 @@
 #include <mutex>
 #include <optional>
 #include <string>
+#include <unordered_map>
 #include <vector>
 
 #include "pipeline/calibration_result.hpp"
@@ -129,7 +130,12 @@ class IngestWorker {
   // t has no time base: takes it from t's held samples (likeliest_held_utime) and resolves them.
   void base_from_held(const std::string& sat, SpacecraftTracker& t);
   void reject_sample(RejectReason r, const std::string& sat, const mag_sample_t& s);
-  bool is_duplicate(const std::string& sat_id, int64_t utime);
+  // A row of (sat_id, utime) is pending or stored. O(1) for the pending batch: pending_index_.
+  bool is_duplicate(const std::string& sat_id, const SpacecraftTracker& t, int64_t utime);
+  // Extends pending_index_ over the rows of pending_ added since it was last used.
+  void index_pending();
+  // pending_ lost rows at its front or was cleared: the index starts again.
+  void reset_pending_index();
   void maybe_snapshot(const std::string& sat_id, SpacecraftTracker& t, int64_t utime);
   void apply_reanchors();
   void run_retention();
@@ -160,11 +166,16 @@ class IngestWorker {
 
   std::vector<storage::StoredSample> pending_;
   std::vector<size_t> duplicate_rows_;  // of the last insert (reused: no allocation per batch)
+  // pending_[0, pending_indexed_) by a hash of (sat_id, utime) -> row; built only when a
+  // duplicate check needs it (out-of-order samples), so in-order ingest pays nothing.
+  std::unordered_multimap<uint64_t, uint32_t> pending_index_;
+  size_t pending_indexed_ = 0;
   std::vector<std::pair<std::string, CalibrationResult>> pending_snapshots_;
   std::chrono::steady_clock::time_point first_pending_time_{};
   std::chrono::steady_clock::time_point last_retention_time_{};
   std::vector<std::string> retention_dirty_;
-  // Spacecraft without a time base whose first samples are held, and since when (wall time).
+  // Spacecraft without a time base whose first samples are held, and since when (wall time),
+  // in that order; one entry per spacecraft (its first hold), dropped once due.
   std::vector<std::pair<std::string, std::chrono::steady_clock::time_point>> first_holds_;
   int64_t last_retention_data_utime_ = std::numeric_limits<int64_t>::min() / 2;
   int64_t data_clock_utime_ = std::numeric_limits<int64_t>::min();

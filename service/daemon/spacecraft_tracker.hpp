@@ -72,6 +72,8 @@ struct SpacecraftTracker {
 
   MagnetometerUkf ukf;
   int64_t newest_utime = kNoTime;  // newest accepted sample (the time base); none yet
+  // Newest time stored (restored) or pending for it: a sample after it is no duplicate.
+  int64_t stored_bound_utime = kNoTime;
   int64_t last_seq = std::numeric_limits<int64_t>::min();  // none yet
   int64_t next_snapshot_utime = kNoTime;
   int64_t advances = 0;          // accepted samples that moved newest_utime forward

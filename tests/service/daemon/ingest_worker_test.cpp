@@ -633,3 +633,36 @@ TEST_CASE("stored filter state round trip is bit-exact, collecting and started",
   }
   CHECK(ukf.initialized());
 }
+
+TEST_CASE("duplicates are found in the pending batch and in the store, per spacecraft",
+          "[ingest_worker]") {
+  // Two spacecraft on interleaved time grids (B a third of a step after A), one sample per
+  // frame, nothing committed yet: repeats must be found among the pending rows, a sample of A
+  // at one of B's times is new, and after the commit the repeats are found in the store.
+  TempDb tmp("dups");
+  DaemonCounters counters;
+  auto w = make_worker(test_config(tmp.path()), counters);
+  const auto a = simulate(200, 21, "SAT-A");
+  auto b = simulate(200, 22, "SAT-B");
+  for (auto& s : b) s.utime += kStep / 3;
+  for (size_t k = 0; k < a.size(); ++k) {
+    w->process(single(a[k]));
+    w->process(single(b[k]));
+  }
+  REQUIRE(w->pending_samples() == 400);  // nothing committed: the checks below hit the batch
+  for (size_t k = 100; k < 150; ++k) w->process(single(a[k]));
+  for (size_t k = 0; k < 50; ++k) w->process(single(b[k]));
+  auto a_at_b_time = a[120];
+  a_at_b_time.utime = b[120].utime;
+  w->process(single(a_at_b_time));
+  CHECK(counters.rejected_count(RejectReason::kDuplicate) == 100);
+  w->commit();
+  for (size_t k = 0; k < 50; ++k) w->process(single(a[k]));
+  w->process(single(a_at_b_time));
+  w->commit();
+  CHECK(counters.rejected_count(RejectReason::kDuplicate) == 151);
+  CHECK(counters.rejected_total() == 151);
+  CHECK(counters.stored == 401);
+  CHECK(stored_rows(tmp.path(), "SAT-A") == 201);
+  CHECK(stored_rows(tmp.path(), "SAT-B") == 200);
+}
