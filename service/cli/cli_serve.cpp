@@ -41,9 +41,8 @@ int run_serve(const ServeArgs& args) {
     return kExitData;
   }
   // The bound port (also when --listen asked for port 0), for scripts and tests.
-  const auto colon = args.listen.rfind(':');
-  std::printf("magcal serve: http://%s:%d/ (database %s, read-only; Ctrl-C stops)\n",
-              args.listen.substr(0, colon).c_str(), server->port(), args.db.c_str());
+  std::printf("magcal serve: %s (database %s, read-only; Ctrl-C stops)\n", server->url().c_str(),
+              args.db.c_str());
   std::fflush(stdout);
   int signal_number = 0;
   sigwait(&stop_signals, &signal_number);

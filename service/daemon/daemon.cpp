@@ -42,6 +42,7 @@ int64_t wall_utime() {
 }
 
 struct RefitRequest {
+  std::string sat_id;                  // data clock: that spacecraft; "" (wall clock): every one
   std::optional<int64_t> t_ref_utime;  // nullopt: each spacecraft's newest sample (wall clock)
   int64_t scheduled_utime = 0;
 };
@@ -140,12 +141,12 @@ struct Daemon::Impl {
                                                : *floors.begin());
   }
 
-  // Worker thread (data clock): t_ref passed and is committed.
-  void on_refit_due(int64_t t_ref) {
+  // Worker thread (data clock): sat's data time passed t_ref, and its samples are committed.
+  void on_refit_due(const std::string& sat, int64_t t_ref) {
     std::unique_lock lock(refit_mutex);
     floors.insert(t_ref - config.window_utime() + 1);
     update_floor_locked();
-    refit_queue.push_back({t_ref, t_ref});
+    refit_queue.push_back({sat, t_ref, t_ref});
     refit_cv.notify_one();
     if (replay) {
       // A replay has no live source to fall behind: wait for the refit so its re-anchoring
@@ -191,8 +192,9 @@ struct Daemon::Impl {
     return t;
   }
 
-  // After the database and LCM are open: empty, or why the server could not start.
-  std::string start_server() {
+  // Before the database is opened: a listen address that cannot be bound must not leave a new,
+  // empty database behind. Empty, or why it could not bind.
+  std::string bind_server() {
     if (config.http.listen.empty()) return "";
     metrics->set_totals_source([this] { return metric_totals(); });
     http::ServerHooks hooks;
@@ -201,16 +203,28 @@ struct Daemon::Impl {
     hooks.ready = [this] { return ready(); };
     hooks.status_window_utime = config.window_utime();
     std::string error;
+    server = http::OperationsServer::bind(config.http.listen, std::move(hooks), &error);
+    if (!server) return "[http] listen " + config.http.listen + ": " + error;
+    return "";
+  }
+
+  // After the database and LCM are open: empty, or why the server could not start.
+  std::string start_server() {
+    if (!server) return "";
+    std::string error;
+    bool served = false;
     // Started from a thread at a lower CPU priority, which every server thread inherits (Linux
     // nice is per thread, inherited at creation): on a saturated machine a client hammering the
     // API gets slower answers instead of slowing ingest (BM_DaemonReplayHttp measures both).
     std::thread starter([&] {
       ::setpriority(PRIO_PROCESS, static_cast<id_t>(::gettid()), kServerNice);
-      server = http::OperationsServer::start(config.http.listen, config.storage.db_path,
-                                             std::move(hooks), &error);
+      served = server->serve(config.storage.db_path, &error);
     });
     starter.join();
-    if (!server) return "[http] listen " + config.http.listen + ": " + error;
+    if (!served) {
+      server.reset();
+      return "[http] listen " + config.http.listen + ": " + error;
+    }
     return "";  // the server logs its URL
   }
 
@@ -229,7 +243,8 @@ struct Daemon::Impl {
 
   void refit_all(const RefitRequest& req) {
     StorageRetry retry("refit", config.storage.max_failure_s, counters);
-    const auto sats = retry.run_blocking([&] { return refits->spacecraft(); });
+    const auto sats = req.sat_id.empty() ? retry.run_blocking([&] { return refits->spacecraft(); })
+                                         : std::vector<std::string>{req.sat_id};
     for (const auto& sat : sats) {
       const auto out = run_refit(retry, sat, req);
       if (out.kind == RefitOutcome::Kind::kSkipped) {
@@ -301,7 +316,7 @@ struct Daemon::Impl {
       }
       if (refit_stop) break;
       if (wall && wall_utime() >= next_wall) {
-        refit_queue.push_back({std::nullopt, next_wall});
+        refit_queue.push_back({"", std::nullopt, next_wall});
         next_wall = next_scheduled_utime(schedule, wall_utime());
         continue;
       }
@@ -395,7 +410,8 @@ std::string Daemon::open() {
   d.lcm = std::make_unique<lcm::LCM>(c.lcm.url);
   if (!d.lcm->good()) {
     return "cannot open LCM URL '" + c.lcm.url + "'" +
-           (d.replay ? " (does the log exist?)" : " (multicast route? see toolchain.md)");
+           (d.replay ? ": " + unreadable_log_reason(c.lcm.url)
+                     : " (multicast route? see toolchain.md)");
   }
   const std::string pub_url = !c.lcm.publish_url.empty() ? c.lcm.publish_url
                               : d.replay                 ? std::string()
@@ -409,12 +425,14 @@ std::string Daemon::open() {
   }
   d.queue = std::make_unique<IngestQueue>(c.service.queue_capacity_samples, d.replay);
   if (!c.http.listen.empty()) d.metrics = std::make_unique<http::DaemonMetrics>(MAGCAL_VERSION);
+  // The listen socket before the database, for the same reason as LCM.
+  if (std::string e = d.bind_server(); !e.empty()) return e;
   try {
     d.worker = std::make_unique<IngestWorker>(
         c, d.counters, std::move(field),
         IngestWorker::Hooks{
             [&d](const std::string& sat, const CalibrationResult& r) { d.on_snapshot(sat, r); },
-            [&d](int64_t t) { d.on_refit_due(t); }},
+            [&d](const std::string& sat, int64_t t) { d.on_refit_due(sat, t); }},
         d.metrics.get());
     d.refit_db = std::make_unique<storage::Database>(
         c.storage.db_path, storage::OpenOptions{.busy_timeout_ms = c.storage.busy_timeout_ms});
@@ -469,7 +487,7 @@ int Daemon::run(const std::atomic<bool>& stop) {
   if (!d.fatal.load()) {
     d.guarded("main", [&d] {
       d.worker->commit_if_due();  // applies re-anchors posted by the last refits
-      d.worker->reject_held();    // uncorroborated times: counted, never dropped silently
+      d.worker->settle_held();    // first samples stored, unconfirmed jumps counted
       d.worker->flush();
       d.worker->save_filter_states();
     });

@@ -4,13 +4,15 @@
 //   worker thread   : IngestQueue -> IngestWorker (validate, UKF, SQLite, snapshots);
 //                     daemon_status_t every [service] status_every_s, counters in the log every
 //                     [log] status_every_s, filter states every 30 s
-//   refit thread    : scheduled refits (wall clock: its own timer; data clock: requests from
-//                     the worker) on its own connection; publishes results and posts accepted
+//   refit thread    : scheduled refits (wall clock: its own timer, every spacecraft; data
+//                     clock: requests from the worker, each spacecraft on its own data time) on
+//                     its own connection; publishes results and posts accepted
 //                     ones back to the worker for re-anchoring. Never blocks ingestion.
 //   http threads    : the operations server ([http] listen, service/http/operations_server.hpp):
 //                     its own read-only connection; /metrics from DaemonMetrics, /-/healthy and
-//                     /-/ready from the flags here. Started by open() (after the database and
-//                     LCM: a port it cannot bind is an error at start), stopped by run().
+//                     /-/ready from the flags here. Bound by open() before the database is
+//                     opened (a port it cannot bind is an error at start that leaves no file
+//                     behind), served once the database is open, stopped by run().
 //
 // run() ends when `stop` is set (SIGINT/SIGTERM) or, for a file:// URL, at the end of the log:
 // stop receiving, drain the queue, commit, finish due refits (replay) or the running one

@@ -36,6 +36,11 @@ ValidatorOptions validator_options(const DaemonConfig& c) {
   return v;
 }
 
+// The key of a pending row in IngestWorker::pending_index_ (equal keys are compared in full).
+uint64_t pending_key(const std::string& sat_id, int64_t utime) {
+  return std::hash<std::string>{}(sat_id) ^ (static_cast<uint64_t>(utime) * 0x9E3779B97F4A7C15ULL);
+}
+
 int64_t snapshot_period_utime(const DaemonConfig& c) {
   return std::max<int64_t>(1, static_cast<int64_t>(c.ukf.snapshot_every_s * 1e6));
 }
@@ -62,7 +67,7 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
   pending_.reserve(static_cast<size_t>(config.storage.commit_every_samples));
   if (config.data_clock()) {
     const auto minute = parse_daily_time_utc(config.refit.daily_at_utc);
-    data_scheduler_.emplace(RefitSchedule{minute.value_or(120), config.refit.every_hours});
+    data_schedule_ = RefitSchedule{minute.value_or(120), config.refit.every_hours};
   }
 }
 
@@ -78,6 +83,7 @@ void IngestWorker::restore() {
     if (!newest) continue;
     SpacecraftTracker& t = tracker(sat, nullptr);
     t.newest_utime = *newest;
+    t.stored_bound_utime = *newest;
     samples_.read_window(sat, *newest, saturating_add(*newest, 1), rows);
     if (!rows.empty()) t.last_seq = rows.back().seq;
 
@@ -103,9 +109,9 @@ void IngestWorker::restore() {
     const auto last_snapshot = history_.latest(sat, "ukf");
     t.next_snapshot_utime = saturating_add(last_snapshot ? last_snapshot->utime : *newest, period);
     data_clock_utime_ = std::max(data_clock_utime_, *newest);
+    if (t.data_refits) t.data_refits->advance(*newest);  // its clock resumes at its stored data
   }
   counters_.n_spacecraft.store(static_cast<int32_t>(fleet_.size()));
-  if (data_scheduler_ && data_clock_utime_ != kNoTime) data_scheduler_->advance(data_clock_utime_);
   if (fleet_.size() > 0) {
     spdlog::info("restored {} spacecraft from {} (UKF re-run over {} stored samples)",
                  fleet_.size(), config_.storage.db_path, rerun);
@@ -116,7 +122,16 @@ void IngestWorker::process(const IngestItem& item) {
   if (have_reanchors_.load(std::memory_order_acquire)) apply_reanchors();
   ++frame_counter_;
   for (const auto& s : item.samples) ingest_sample(s, item.batch_sat_id, item.receive_utime);
-  if (data_scheduler_) check_data_clock();
+  if (data_schedule_) {
+    // A frame holds one spacecraft (a batch) or one sample: one schedule check per run of ids.
+    const std::string* checked = nullptr;
+    for (const auto& s : item.samples) {
+      const std::string& sat = sample_sat_id(s, item.batch_sat_id);
+      if (checked && *checked == sat) continue;
+      checked = &sat;
+      check_data_clock(sat);
+    }
+  }
 }
 
 SpacecraftTracker& IngestWorker::tracker(const std::string& sat_id, bool* created) {
@@ -124,6 +139,7 @@ SpacecraftTracker& IngestWorker::tracker(const std::string& sat_id, bool* create
   SpacecraftTracker& t = fleet_.get(sat_id, &is_new);
   // Its series are looked up once, here; the per-sample path uses the cached pointer.
   if (is_new && metrics_) t.metrics = &metrics_->spacecraft(sat_id);
+  if (is_new && data_schedule_) t.data_refits.emplace(*data_schedule_);
   if (created) *created = is_new;
   return t;
 }
@@ -160,9 +176,27 @@ void IngestWorker::count_stored(size_t begin, size_t end) {
   flush_run(end);
 }
 
-bool IngestWorker::is_duplicate(const std::string& sat_id, int64_t utime) {
-  // Only reached for samples not newer than the spacecraft's newest (rare: recorder playback).
-  for (const auto& p : pending_) {
+void IngestWorker::index_pending() {
+  for (; pending_indexed_ < pending_.size(); ++pending_indexed_) {
+    const auto& p = pending_[pending_indexed_];
+    pending_index_.emplace(pending_key(p.sat_id, p.utime), static_cast<uint32_t>(pending_indexed_));
+  }
+}
+
+void IngestWorker::reset_pending_index() {
+  pending_index_.clear();
+  pending_indexed_ = 0;
+}
+
+bool IngestWorker::is_duplicate(const std::string& sat_id, const SpacecraftTracker& t,
+                                int64_t utime) {
+  // Only reached for samples not newer than the spacecraft's newest (recorder playback, held
+  // samples accepted in arrival order). Nothing stored or pending is newer than the bound.
+  if (utime > t.stored_bound_utime) return false;
+  index_pending();
+  const auto [first, last] = pending_index_.equal_range(pending_key(sat_id, utime));
+  for (auto it = first; it != last; ++it) {
+    const auto& p = pending_[it->second];
     if (p.utime == utime && p.sat_id == sat_id) return true;
   }
   // Reads work through most faults (WAL readers never wait for the writer); one that fails is
@@ -217,7 +251,7 @@ void IngestWorker::accept_sample(const std::string& sat, SpacecraftTracker& t,
       reject_sample(RejectReason::kOlderThanWindow, sat, s);
       return;
     }
-    if (s.utime <= t.newest_utime && is_duplicate(sat, s.utime)) {
+    if (s.utime <= t.newest_utime && is_duplicate(sat, t, s.utime)) {
       reject_sample(RejectReason::kDuplicate, sat, s);
       return;
     }
@@ -233,6 +267,7 @@ void IngestWorker::accept_sample(const std::string& sat, SpacecraftTracker& t,
 
   if (pending_.empty()) first_pending_time_ = std::chrono::steady_clock::now();
   fill_stored_sample(s, sat, *sample, receive_utime, pending_.emplace_back());
+  t.stored_bound_utime = std::max(t.stored_bound_utime, s.utime);
   const bool advanced = s.utime > t.newest_utime;
   if (advanced) {
     t.newest_utime = s.utime;
@@ -265,6 +300,9 @@ void IngestWorker::hold_sample(const std::string& sat, SpacecraftTracker& t, con
                                sat, format_iso8601_utc(s.utime),
                                saturating_sub(s.utime, t.newest_utime) / 1000000,
                                SpacecraftTracker::kCorroborating));
+  }
+  if (t.held.empty() && t.newest_utime == kNoTime) {
+    first_holds_.emplace_back(sat, std::chrono::steady_clock::now());
   }
   t.hold(s, receive_utime, frame_counter_);
   const int64_t base = t.corroborated_utime(config_.max_time_jump_utime());
@@ -300,12 +338,38 @@ void IngestWorker::resolve_held(const std::string& sat, SpacecraftTracker& t) {
   resolving_held_ = false;
 }
 
-void IngestWorker::reject_held() {
+void IngestWorker::base_from_held(const std::string& sat, SpacecraftTracker& t) {
+  const int64_t base = t.likeliest_held_utime(config_.max_time_jump_utime());
+  if (base == kNoTime) return;
+  spdlog::info("{}: time base {} from its {} held first sample(s), uncorroborated (no more came)",
+               sat, format_iso8601_utc(base), t.held.size());
+  t.newest_utime = base;
+  resolve_held(sat, t);
+}
+
+void IngestWorker::release_first_holds(std::chrono::steady_clock::time_point now) {
+  // first_holds_ is in the order of its times: only its front can be due (O(1) per call).
+  const auto max_age = std::chrono::duration<double>(SpacecraftTracker::kFirstHoldMax_s);
+  size_t due = 0;
+  while (due < first_holds_.size() && now - first_holds_[due].second >= max_age) {
+    const std::string& sat = first_holds_[due++].first;
+    SpacecraftTracker* t = fleet_.find(sat);
+    // (Corroborated since, or settled: nothing to do.)
+    if (t && t->newest_utime == kNoTime && !t->held.empty()) base_from_held(sat, *t);
+  }
+  if (due > 0)
+    first_holds_.erase(first_holds_.begin(),
+                       first_holds_.begin() + static_cast<std::ptrdiff_t>(due));
+}
+
+void IngestWorker::settle_held() {
   fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
+    if (t.newest_utime == kNoTime) base_from_held(sat, t);
     for (const auto& h : t.held) reject_sample(RejectReason::kJumpUnconfirmed, sat, h.sample);
     t.held.clear();
     t.held.shrink_to_fit();
   });
+  first_holds_.clear();
 }
 
 int64_t IngestWorker::held_samples() {
@@ -348,6 +412,7 @@ void IngestWorker::maybe_snapshot(const std::string& sat_id, SpacecraftTracker& 
 void IngestWorker::commit_if_due() {
   if (have_reanchors_.load(std::memory_order_acquire)) apply_reanchors();
   const auto now = std::chrono::steady_clock::now();
+  release_first_holds(now);
   if (!pending_.empty() || !pending_snapshots_.empty()) {
     const double age_ms =
         std::chrono::duration<double, std::milli>(now - first_pending_time_).count();
@@ -433,9 +498,11 @@ void IngestWorker::commit_pending() {
   } catch (const storage::StorageError&) {
     // What was committed leaves the batch; the rest stays pending for the retry.
     pending_.erase(pending_.begin(), pending_.begin() + static_cast<std::ptrdiff_t>(done));
+    reset_pending_index();
     throw;
   }
   pending_.clear();
+  reset_pending_index();
 }
 
 void IngestWorker::flush() {
@@ -469,19 +536,22 @@ void IngestWorker::run_retention() {
   retention_dirty_.swap(failed);
 }
 
-void IngestWorker::check_data_clock() {
-  if (data_clock_utime_ == kNoTime) return;
-  const auto due = data_scheduler_->advance(data_clock_utime_);
-  if (data_scheduler_->skipped() != refits_skipped_logged_) {
-    spdlog::warn("data clock jumped to {}: {} scheduled refits skipped, only the latest runs",
-                 format_iso8601_utc(data_clock_utime_),
-                 data_scheduler_->skipped() - refits_skipped_logged_);
-    refits_skipped_logged_ = data_scheduler_->skipped();
+void IngestWorker::check_data_clock(const std::string& sat_id) {
+  SpacecraftTracker* t = fleet_.find(sat_id);
+  if (!t || !t->data_refits || t->newest_utime == kNoTime) return;
+  const int64_t skipped_before = t->data_refits->skipped();
+  const auto due = t->data_refits->advance(t->newest_utime);
+  if (t->data_refits->skipped() != skipped_before) {
+    warnings_.warn("refits_skipped",
+                   fmt::format("{}: data clock jumped to {}: {} scheduled refits skipped, only the "
+                               "latest runs",
+                               sat_id, format_iso8601_utc(t->newest_utime),
+                               t->data_refits->skipped() - skipped_before));
   }
   if (due.empty()) return;
   flush();  // the refit reads what is committed: everything up to t_ref
-  for (const int64_t t : due) {
-    if (hooks_.on_refit_due) hooks_.on_refit_due(t);
+  for (const int64_t t_ref : due) {
+    if (hooks_.on_refit_due) hooks_.on_refit_due(sat_id, t_ref);
   }
 }
 

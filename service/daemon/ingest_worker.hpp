@@ -4,7 +4,8 @@
 // UKF snapshots every `snapshot_every_s` of DATA time (history row + calibration_t);
 // pending rows and snapshot rows are committed together, one transaction per batch
 // (commit_every_samples or commit_every_ms, whichever first); retention runs in small
-// transactions after commits. With the data clock it also decides when refits are due.
+// transactions after commits. With the data clock it also decides when refits are due, for each
+// spacecraft on its own data time.
 //
 // Storage faults (service/daemon/storage_retry.hpp): a failed commit keeps its samples and
 // snapshots pending and is retried with backoff (snapshots are published only once stored); the
@@ -28,6 +29,7 @@
 #include <mutex>
 #include <optional>
 #include <string>
+#include <unordered_map>
 #include <vector>
 
 #include "pipeline/calibration_result.hpp"
@@ -53,8 +55,9 @@ class IngestWorker {
   struct Hooks {
     // A UKF snapshot was committed (publish it).
     std::function<void(const std::string& sat_id, const CalibrationResult&)> on_snapshot;
-    // Data clock: scheduled time t_ref passed and the samples up to it are committed.
-    std::function<void(int64_t t_ref_utime)> on_refit_due;
+    // Data clock: sat_id's own data time passed its scheduled time t_ref, and its samples up to
+    // t_ref are committed.
+    std::function<void(const std::string& sat_id, int64_t t_ref_utime)> on_refit_due;
   };
 
   // Opens its own connection to config.storage.db_path (throws storage::StorageError).
@@ -91,9 +94,13 @@ class IngestWorker {
   // last write (not while samples it has used are uncommitted). A failure is logged and counted;
   // the states are written next time.
   void save_filter_states();
-  // At shutdown, before the last commit: every sample still held for corroboration of its time
-  // (spacecraft_tracker.hpp) is rejected as time_jump_unconfirmed, so it is counted.
-  void reject_held();
+  // At shutdown, before the last commit (spacecraft_tracker.hpp): a spacecraft that never got a
+  // time base takes it from its held samples, which are then stored; every other sample still
+  // held for corroboration of its time is rejected as time_jump_unconfirmed, so it is counted.
+  void settle_held();
+  // The first samples of a new spacecraft held since before `now` - kFirstHoldMax_s give it its
+  // time base and are stored (commit_if_due() calls it; public for tests).
+  void release_first_holds(std::chrono::steady_clock::time_point now);
   // Samples currently held, all spacecraft (in flight, like the pending batch).
   int64_t held_samples();
 
@@ -104,6 +111,7 @@ class IngestWorker {
   // start of a refit that is due but not finished). INT64_MAX = no floor.
   void set_retention_floor(int64_t utime) { retention_floor_.store(utime); }
 
+  // Newest accepted sample of any spacecraft (retention cadence; refits use each spacecraft's).
   int64_t data_clock_utime() const { return data_clock_utime_; }
   size_t n_spacecraft() const { return fleet_.size(); }
   int64_t pending_samples() const { return static_cast<int64_t>(pending_.size()); }
@@ -119,12 +127,21 @@ class IngestWorker {
                    int64_t receive_utime);
   // Re-examines t's held samples after its time base moved (see spacecraft_tracker.hpp).
   void resolve_held(const std::string& sat, SpacecraftTracker& t);
+  // t has no time base: takes it from t's held samples (likeliest_held_utime) and resolves them.
+  void base_from_held(const std::string& sat, SpacecraftTracker& t);
   void reject_sample(RejectReason r, const std::string& sat, const mag_sample_t& s);
-  bool is_duplicate(const std::string& sat_id, int64_t utime);
+  // A row of (sat_id, utime) is pending or stored. O(1) for the pending batch: pending_index_.
+  bool is_duplicate(const std::string& sat_id, const SpacecraftTracker& t, int64_t utime);
+  // Extends pending_index_ over the rows of pending_ added since it was last used.
+  void index_pending();
+  // pending_ lost rows at its front or was cleared: the index starts again.
+  void reset_pending_index();
   void maybe_snapshot(const std::string& sat_id, SpacecraftTracker& t, int64_t utime);
   void apply_reanchors();
   void run_retention();
-  void check_data_clock();
+  // Data clock: advances sat_id's refit schedule to its newest sample; due refits are
+  // committed up to their time, then handed to on_refit_due.
+  void check_data_clock(const std::string& sat_id);
   void commit_pending();
   // Counts the committed rows [begin, end) of pending_ per spacecraft (minus duplicate_rows_).
   void count_stored(size_t begin, size_t end);
@@ -143,21 +160,27 @@ class IngestWorker {
   storage::FilterStateStore filter_states_;
   SpacecraftFleet fleet_;
   ThrottledLog warnings_;
-  std::optional<RefitScheduler> data_scheduler_;
+  std::optional<RefitSchedule> data_schedule_;  // [refit] clock = "data": each tracker's schedule
   StorageRetry commit_retry_;
   StorageRetry read_retry_;
 
   std::vector<storage::StoredSample> pending_;
   std::vector<size_t> duplicate_rows_;  // of the last insert (reused: no allocation per batch)
+  // pending_[0, pending_indexed_) by a hash of (sat_id, utime) -> row; built only when a
+  // duplicate check needs it (out-of-order samples), so in-order ingest pays nothing.
+  std::unordered_multimap<uint64_t, uint32_t> pending_index_;
+  size_t pending_indexed_ = 0;
   std::vector<std::pair<std::string, CalibrationResult>> pending_snapshots_;
   std::chrono::steady_clock::time_point first_pending_time_{};
   std::chrono::steady_clock::time_point last_retention_time_{};
   std::vector<std::string> retention_dirty_;
+  // Spacecraft without a time base whose first samples are held, and since when (wall time),
+  // in that order; one entry per spacecraft (its first hold), dropped once due.
+  std::vector<std::pair<std::string, std::chrono::steady_clock::time_point>> first_holds_;
   int64_t last_retention_data_utime_ = std::numeric_limits<int64_t>::min() / 2;
   int64_t data_clock_utime_ = std::numeric_limits<int64_t>::min();
   int64_t frame_counter_ = 0;    // frames processed (a hold needs more than one to resolve)
   bool resolving_held_ = false;  // resolve_held() is running (no re-entry)
-  int64_t refits_skipped_logged_ = 0;
   std::atomic<int64_t> retention_floor_{std::numeric_limits<int64_t>::max()};
 
   std::mutex reanchor_mutex_;

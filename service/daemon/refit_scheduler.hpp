@@ -3,8 +3,9 @@
 // The schedule is the union of a daily time (daily_at_utc, minutes after 00:00 UTC) and, when
 // every_hours > 0, the times daily_at + k * every_hours (k integer, anchored on the daily time so
 // 02:00 with every_hours = 6 gives 02:00, 08:00, 14:00, 20:00). The clock is either the wall
-// clock or the data clock (the newest sample time seen), so a replayed day produces the refits
-// that day would have had. Pure logic, no threads: the caller feeds it the clock.
+// clock (one scheduler for every spacecraft) or the data clock (one scheduler per spacecraft,
+// fed its newest sample time), so a replayed or backfilled day produces the refits that day
+// would have had. Pure logic, no threads: the caller feeds it the clock.
 #pragma once
 
 #include <cstdint>

@@ -1,5 +1,7 @@
 #include "service/daemon/spacecraft_tracker.hpp"
 
+#include <algorithm>
+
 #include "pipeline/time_utc.hpp"
 
 namespace magcal {
@@ -57,6 +59,27 @@ int64_t SpacecraftTracker::corroborated_utime(int64_t max_time_jump_utime) const
   }
   if (members < kCorroborating + 1 || !several_frames) return kNoTime;
   return newest;
+}
+
+int64_t SpacecraftTracker::likeliest_held_utime(int64_t max_time_jump_utime) const {
+  // Quadratic in the hold (at most kHeldCapacity), run once per spacecraft that needs it.
+  int best_members = 0;
+  int64_t best = kNoTime;
+  for (const auto& c : held) {
+    int members = 0;
+    int64_t newest = kNoTime;
+    for (const auto& h : held) {
+      const int64_t d = saturating_sub(h.sample.utime, c.sample.utime);
+      if (d > max_time_jump_utime || d < -max_time_jump_utime) continue;
+      ++members;
+      newest = std::max(newest, h.sample.utime);
+    }
+    if (members > best_members || (members == best_members && newest > best)) {
+      best_members = members;
+      best = newest;
+    }
+  }
+  return best;
 }
 
 void SpacecraftTracker::hold(const mag_sample_t& s, int64_t receive_utime, int64_t frame) {

@@ -23,19 +23,27 @@
 //                 rejected as time_jump. A sample the old base has caught up with (within
 //                 max_time_jump of it again) is accepted instead.
 //   displaced     the hold is full: the oldest held sample is rejected as time_jump.
-//   shutdown      rejected as time_jump_unconfirmed (IngestWorker::reject_held), never lost
-//                 silently; a replay can re-send them.
+//   no base yet   a new spacecraft that sends too little to corroborate itself (one frame, or
+//                 fewer than kCorroborating + 1 samples): nothing contradicts its samples, so
+//                 after kFirstHoldMax_s of wall time (IngestWorker::release_first_holds), or at
+//                 shutdown, the base is taken from them (likeliest_held_utime) and they are
+//                 stored. A lone rogue among them is still outvoted.
+//   shutdown      (with a base) rejected as time_jump_unconfirmed (IngestWorker::settle_held),
+//                 never lost silently; a replay can re-send them. Storing them would let one
+//                 frame move the stored time base, which a restart then starts from.
 // Samples far in the past need no hold: they never move the base (older_than_window beyond it).
 #pragma once
 
 #include <cstdint>
 #include <limits>
+#include <optional>
 #include <string>
 #include <unordered_map>
 #include <vector>
 
 #include "pipeline/magnetometer_ukf.hpp"
 #include "schemas/magcal_messages.hpp"
+#include "service/daemon/refit_scheduler.hpp"
 
 namespace magcal::http {
 struct SpacecraftMetrics;
@@ -59,9 +67,13 @@ struct SpacecraftTracker {
   // Per spacecraft: room for a whole downlink packet (mag_batch_t stays under ~400 samples,
   // toolchain.md) and the frames that corroborate it; ~200 KB only while samples are held.
   static constexpr int kHeldCapacity = 1024;
+  // A new spacecraft's first samples wait at most this long (wall time) for corroboration.
+  static constexpr double kFirstHoldMax_s = 10.0;
 
   MagnetometerUkf ukf;
   int64_t newest_utime = kNoTime;  // newest accepted sample (the time base); none yet
+  // Newest time stored (restored) or pending for it: a sample after it is no duplicate.
+  int64_t stored_bound_utime = kNoTime;
   int64_t last_seq = std::numeric_limits<int64_t>::min();  // none yet
   int64_t next_snapshot_utime = kNoTime;
   int64_t advances = 0;          // accepted samples that moved newest_utime forward
@@ -69,6 +81,9 @@ struct SpacecraftTracker {
   bool retention_due = false;    // new samples since the last retention pass
   std::vector<HeldSample> held;  // arrival order; at most kHeldCapacity, freed when empty
   http::SpacecraftMetrics* metrics = nullptr;  // its Prometheus series (none without a server)
+  // [refit] clock = "data": this spacecraft's scheduled refits, on its own data time (its
+  // newest_utime): a spacecraft backfilled behind the others gets the refits of its own days.
+  std::optional<RefitScheduler> data_refits;
 
   // Missing samples implied by `seq`: a forward gap counts once the following number confirms
   // it (continues after the gap), so one corrupt seq implies nothing; out-of-order or repeated
@@ -84,6 +99,9 @@ struct SpacecraftTracker {
   // The newest time of the held samples that corroborate the newest held one, or kNoTime while
   // they do not (yet).
   int64_t corroborated_utime(int64_t max_time_jump_utime) const;
+  // For a spacecraft without a base: the newest time of the largest group of held samples
+  // within max_time_jump of one another (ties: the newest group); kNoTime when nothing is held.
+  int64_t likeliest_held_utime(int64_t max_time_jump_utime) const;
   // Copies `s` into the hold (sat_id left empty); the caller makes room first.
   void hold(const mag_sample_t& s, int64_t receive_utime, int64_t frame);
   bool holds_utime(int64_t utime) const;

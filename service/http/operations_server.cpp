@@ -2,10 +2,12 @@
 #include "service/http/operations_server.hpp"
 
 #include <httplib.h>
+#include <unistd.h>
 
 #include <charconv>
 #include <chrono>
 #include <mutex>
+#include <optional>
 #include <set>
 #include <thread>
 
@@ -84,29 +86,53 @@ bool parse_listen(const std::string& listen, std::string* host, int* port, std::
   return true;
 }
 
+std::string http_url(const std::string& host, int port) {
+  const bool ipv6 = host.find(':') != std::string::npos;
+  return "http://" + (ipv6 ? "[" + host + "]" : host) + ":" + std::to_string(port) + "/";
+}
+
 struct OperationsServer::Impl {
   ServerHooks hooks;
-  std::mutex db_mutex;  // the connection belongs to one request thread at a time
-  storage::Database db;
+  std::mutex db_mutex;                  // the connection belongs to one request thread at a time
+  std::optional<storage::Database> db;  // opened by serve(), before any request is taken
   httplib::Server server;
   std::thread thread;
+  std::string host;
   int port = 0;
+  int listen_fd = -1;  // the bound socket: closed here if serve() never ran
   std::once_flag stopped;
 
-  Impl(ServerHooks h, storage::Database&& database)
-      : hooks(std::move(h)), db(std::move(database)) {}
+  explicit Impl(ServerHooks h) : hooks(std::move(h)) {}
 
   void routes();
+  // GET (and HEAD, which cpp-httplib answers from the GET route) on `path`; every other method
+  // there gets 405 with Allow, not 404: the path exists.
+  template <typename Handler>
+  void get(const std::string& path, Handler&& handler);
   void history(const httplib::Request& req, httplib::Response& res);
 };
+
+template <typename Handler>
+void OperationsServer::Impl::get(const std::string& path, Handler&& handler) {
+  server.Get(path, std::forward<Handler>(handler));
+  const auto not_allowed = [](const httplib::Request& req, httplib::Response& res) {
+    res.set_header("Allow", "GET, HEAD");
+    send_error(res, 405, "method " + req.method + " not allowed on " + req.path + " (GET only)");
+  };
+  server.Post(path, not_allowed);
+  server.Put(path, not_allowed);
+  server.Patch(path, not_allowed);
+  server.Delete(path, not_allowed);
+}
 
 void OperationsServer::Impl::routes() {
   server.new_task_queue = [] { return new httplib::ThreadPool(kRequestThreads); };
   // SO_REUSEADDR only: cpp-httplib's default also sets SO_REUSEPORT, which would let a second
   // server (a magcald and a magcal serve) silently share a port and split its requests.
-  server.set_socket_options([](socket_t sock) {
+  server.set_socket_options([this](socket_t sock) {
     int yes = 1;
     ::setsockopt(sock, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof yes);
+    listen_fd = sock;  // cpp-httplib calls this for the listening socket only
   });
   server.set_keep_alive_timeout(1);
   // A client that opens a connection and sends nothing (or trickles a header) holds a request
@@ -116,7 +142,7 @@ void OperationsServer::Impl::routes() {
   server.set_write_timeout(5, 0);
   server.set_payload_max_length(64 * 1024);  // GET only: no request needs a body
 
-  server.Get("/metrics", [this](const httplib::Request&, httplib::Response& res) {
+  get("/metrics", [this](const httplib::Request&, httplib::Response& res) {
     if (!hooks.metrics_text) return send_error(res, 404, "no metrics in this server");
     res.set_content(hooks.metrics_text(), "text/plain; version=0.0.4; charset=utf-8");
   });
@@ -127,20 +153,20 @@ void OperationsServer::Impl::routes() {
       res.set_content(ok ? yes : no, "text/plain; charset=utf-8");
     };
   };
-  server.Get("/-/healthy", probe(hooks.healthy, "magcal is healthy.\n", "magcal is unhealthy.\n"));
-  server.Get("/-/ready", probe(hooks.ready, "magcal is ready.\n", "magcal is not ready.\n"));
-  server.Get("/api/v1/spacecraft", [this](const httplib::Request& req, httplib::Response& res) {
+  get("/-/healthy", probe(hooks.healthy, "magcal is healthy.\n", "magcal is unhealthy.\n"));
+  get("/-/ready", probe(hooks.ready, "magcal is ready.\n", "magcal is not ready.\n"));
+  get("/api/v1/spacecraft", [this](const httplib::Request& req, httplib::Response& res) {
     check_params(req, {});
     std::lock_guard lock(db_mutex);
-    const auto all = read_status(db, hooks.status_window_utime);
+    const auto all = read_status(*db, hooks.status_window_utime);
     res.set_content(status_json_text(all, hooks.status_window_utime), kJson);
   });
-  server.Get("/api/v1/history",
-             [this](const httplib::Request& req, httplib::Response& res) { history(req, res); });
-  server.Get("/", [](const httplib::Request&, httplib::Response& res) {
+  get("/api/v1/history",
+      [this](const httplib::Request& req, httplib::Response& res) { history(req, res); });
+  get("/", [](const httplib::Request&, httplib::Response& res) {
     res.set_content(std::string(kIndexHtml), "text/html; charset=utf-8");
   });
-  server.Get("/static/chart.js", [](const httplib::Request&, httplib::Response& res) {
+  get("/static/chart.js", [](const httplib::Request&, httplib::Response& res) {
     res.set_header("Cache-Control", "max-age=86400");
     res.set_content(std::string(kChartJs), "application/javascript; charset=utf-8");
   });
@@ -196,8 +222,8 @@ void OperationsServer::Impl::history(const httplib::Request& req, httplib::Respo
   std::vector<storage::CalibrationRecord> rows;
   {
     std::lock_guard lock(db_mutex);
-    rows = read_history(db, *query);
-    if (rows.empty() && !spacecraft_known(db, request.sat)) {
+    rows = read_history(*db, *query);
+    if (rows.empty() && !spacecraft_known(*db, request.sat)) {
       throw BadRequest{"no data for spacecraft '" + request.sat + "'"};
     }
   }
@@ -215,6 +241,13 @@ OperationsServer::OperationsServer(std::unique_ptr<Impl> impl) : impl_(std::move
 std::unique_ptr<OperationsServer> OperationsServer::start(const std::string& listen,
                                                           const std::string& db_path,
                                                           ServerHooks hooks, std::string* error) {
+  auto server = bind(listen, std::move(hooks), error);
+  if (!server || !server->serve(db_path, error)) return nullptr;
+  return server;
+}
+
+std::unique_ptr<OperationsServer> OperationsServer::bind(const std::string& listen,
+                                                         ServerHooks hooks, std::string* error) {
   std::string host;
   int port = 0;
   if (!parse_listen(listen, &host, &port, error)) return nullptr;
@@ -222,15 +255,7 @@ std::unique_ptr<OperationsServer> OperationsServer::start(const std::string& lis
     *error = "operations server: status_window_utime must be > 0";
     return nullptr;
   }
-  std::unique_ptr<Impl> impl;
-  try {
-    storage::OpenOptions options;
-    options.read_only = true;
-    impl = std::make_unique<Impl>(std::move(hooks), storage::Database(db_path, options));
-  } catch (const storage::StorageError& e) {
-    *error = std::string("cannot open the database read-only: ") + e.what();
-    return nullptr;
-  }
+  auto impl = std::make_unique<Impl>(std::move(hooks));
   impl->routes();
   if (port == 0) {
     port = impl->server.bind_to_any_port(host);
@@ -242,15 +267,32 @@ std::unique_ptr<OperationsServer> OperationsServer::start(const std::string& lis
     *error = "cannot bind " + listen + " (address in use or not available?)";
     return nullptr;
   }
+  impl->host = host;
   impl->port = port;
-  Impl* raw = impl.get();
-  impl->thread = std::thread([raw] { raw->server.listen_after_bind(); });
+  return std::unique_ptr<OperationsServer>(new OperationsServer(std::move(impl)));
+}
+
+bool OperationsServer::serve(const std::string& db_path, std::string* error) {
+  try {
+    storage::OpenOptions options;
+    options.read_only = true;
+    impl_->db.emplace(db_path, options);
+  } catch (const storage::StorageError& e) {
+    *error = std::string("cannot open the database read-only: ") + e.what();
+    return false;
+  }
+  Impl* raw = impl_.get();
+  impl_->thread = std::thread([raw] { raw->server.listen_after_bind(); });
   // stop() is a no-op until the listener runs: wait for it (it only has to enter its loop).
-  for (int i = 0; i < 5000 && !impl->server.is_running(); ++i) {
+  for (int i = 0; i < 5000 && !impl_->server.is_running(); ++i) {
     std::this_thread::sleep_for(std::chrono::milliseconds(1));
   }
-  spdlog::info("operations server: http://{}:{}/ (database {}, read-only)", host, port, db_path);
-  return std::unique_ptr<OperationsServer>(new OperationsServer(std::move(impl)));
+  spdlog::info("operations server: {} (database {}, read-only)", url(), db_path);
+  return true;
+}
+
+std::string OperationsServer::url() const {
+  return http_url(impl_->host, impl_->port);
 }
 
 int OperationsServer::port() const {
@@ -259,8 +301,12 @@ int OperationsServer::port() const {
 
 void OperationsServer::stop() {
   std::call_once(impl_->stopped, [this] {
-    impl_->server.stop();
-    if (impl_->thread.joinable()) impl_->thread.join();
+    if (impl_->thread.joinable()) {
+      impl_->server.stop();  // closes the socket
+      impl_->thread.join();
+    } else if (impl_->listen_fd >= 0) {
+      ::close(impl_->listen_fd);  // bound, never served: cpp-httplib's stop() would not close it
+    }
   });
 }
 

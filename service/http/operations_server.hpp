@@ -11,6 +11,7 @@
 //   GET /                   the plots page; GET /static/chart.js the plotting library
 // A bad request (missing or unknown spacecraft, bad time, limit, order, method, format or
 // points, an unknown or repeated parameter) gets 400 with {"error": "..."}; an unknown path 404;
+// another method than GET (or HEAD) on a known path 405 with "Allow: GET, HEAD";
 // a database error 503 (transient: locked, I/O) or 500, always with a JSON error body.
 //
 // Threads: the server runs on its own thread (cpp-httplib's listener plus a small pool of
@@ -41,16 +42,27 @@ struct ServerHooks {
 // `magcal serve --listen`, `magcald --http-listen` and the config check of `[http] listen`.
 bool parse_listen(const std::string& listen, std::string* host, int* port, std::string* error);
 
+// "http://HOST:PORT/", IPv6 hosts in brackets ("http://[::1]:9780/").
+std::string http_url(const std::string& host, int port);
+
 class OperationsServer {
  public:
-  // Binds listen = "ADDR:PORT" (IPv6 as "[ADDR]:PORT"; port 0 = any free port), opens db_path
-  // read-only with its own connection (never writes, never creates the file), serves on its
-  // own thread. nullptr and *error set (one line) when it cannot bind or open.
+  // bind() then serve(): nullptr and *error set (one line) when either fails.
   static std::unique_ptr<OperationsServer> start(const std::string& listen,
                                                  const std::string& db_path, ServerHooks hooks,
                                                  std::string* error);
-  int port() const;  // the bound port
-  void stop();       // idempotent; also in the destructor
+  // Binds listen = "ADDR:PORT" (IPv6 as "[ADDR]:PORT"; port 0 = any free port) and nothing
+  // else: no file is touched, so a daemon can find a taken port before it creates its
+  // database. Connections wait in the backlog until serve(). nullptr and *error when it cannot.
+  static std::unique_ptr<OperationsServer> bind(const std::string& listen, ServerHooks hooks,
+                                                std::string* error);
+  // Opens db_path read-only with its own connection (never writes, never creates the file) and
+  // serves on its own thread (created here: it and its request threads inherit the calling
+  // thread's priority). False and *error set when the database cannot be opened.
+  bool serve(const std::string& db_path, std::string* error);
+  int port() const;         // the bound port
+  std::string url() const;  // http_url() of the bound address
+  void stop();              // idempotent; also in the destructor
   ~OperationsServer();
 
   OperationsServer(const OperationsServer&) = delete;

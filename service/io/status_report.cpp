@@ -35,14 +35,20 @@ nlohmann::json job_json(const storage::RefitJob& job) {
   return j;
 }
 
+// "status, verdict", once when they say the same: a result the gates rejected has the status
+// "rejected" as well as the verdict (the page's statusVerdict() does the same).
+std::string status_verdict(const storage::CalibrationRecord& r) {
+  const std::string status = storage::status_name(r.status);
+  return status == r.verdict ? status : status + ", " + r.verdict;
+}
+
 void append_estimate(std::string* text, const char* label, const storage::CalibrationRecord& r) {
   append_printf(text,
                 "  %-16s %s  %-8s bias [%9.2f %9.2f %9.2f] nT  1-sigma [%6.2f %6.2f %6.2f] nT  "
-                "rms %.2f nT  %s, %s\n",
+                "rms %.2f nT  %s\n",
                 label, format_iso8601_utc(r.utime).c_str(), r.method.c_str(), r.bias_nT[0],
                 r.bias_nT[1], r.bias_nT[2], r.bias_sigma_nT[0], r.bias_sigma_nT[1],
-                r.bias_sigma_nT[2], r.residual_rms_nT, storage::status_name(r.status),
-                r.verdict.c_str());
+                r.bias_sigma_nT[2], r.residual_rms_nT, status_verdict(r).c_str());
 }
 
 }  // namespace

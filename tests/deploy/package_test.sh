@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The .deb (issue 12, item 6): cpack on the existing build tree (no rebuild) makes
-# magcal_<version>_<arch>.deb; its control data, file list and maintainer scripts are checked;
+# magcal_<version>_<arch>.deb; its control data, file list, copyright file (copyright_check.py)
+# and maintainer scripts are checked;
 # `dpkg -x` into a scratch root, magcald --version runs from there; the maintainer scripts run
 # against that root (DPKG_ROOT) with the system-changing commands replaced by recorders. With
 # CI=true as root: a real dpkg -i (twice: upgrade path), dpkg -r and dpkg --purge.
@@ -74,7 +75,8 @@ fi
 dpkg-deb -c "$deb" >"$scratch/contents"
 for path in ./usr/bin/magcal ./usr/bin/magcald ./usr/lib/systemd/system/magcald.service \
   ./etc/magcal/magcald.toml ./var/lib/magcal/ ./usr/share/magcal/prometheus/magcal-alerts.yml \
-  ./usr/share/doc/magcal/README.md ./usr/share/doc/magcal/magcald.example.toml; do
+  ./usr/share/doc/magcal/README.md ./usr/share/doc/magcal/magcald.example.toml \
+  ./usr/share/doc/magcal/copyright; do
   awk -v p="$path" '$6 == p { found = 1 } END { exit !found }' "$scratch/contents" ||
     fail "$path not in the package"
 done
@@ -92,6 +94,15 @@ got="$("$root/usr/bin/magcald" --version)"
 got="$("$root/usr/bin/magcal" --version)"
 [ "$got" = "$version" ] || fail "magcal --version says '$got', expected '$version'"
 echo "magcald --version from the extracted package: $got"
+# Debian policy 12.5: /usr/share/doc/magcal/copyright, here in the machine-readable format.
+copyright="$root/usr/share/doc/magcal/copyright"
+[ "$(stat -c %a "$copyright")" = 644 ] || fail "copyright mode $(stat -c %a "$copyright")"
+cmp "$copyright" "$source_dir/deploy/debian/copyright" ||
+  fail "/usr/share/doc/magcal/copyright is not deploy/debian/copyright"
+need_tool python3
+python3 "$(dirname "$0")/copyright_check.py" "$copyright" ||
+  fail "/usr/share/doc/magcal/copyright is not a valid machine-readable copyright file"
+echo "copyright: machine-readable (copyright-format 1.0), $(grep -c '^Files:' "$copyright") Files paragraphs"
 cmp "$root/etc/magcal/magcald.toml" "$source_dir/deploy/magcald.example.toml" ||
   fail "/etc/magcal/magcald.toml is not deploy/magcald.example.toml"
 cmp "$root/usr/lib/systemd/system/magcald.service" "$source_dir/deploy/magcald.service" ||

@@ -11,6 +11,8 @@
 #include <signal.h>
 #include <unistd.h>
 
+#include <chrono>
+#include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <sstream>
@@ -206,6 +208,34 @@ TEST_CASE("live magcald: /-/healthy is 503 while storage fails and is retried, 2
   CHECK(wait_exit(d, 30) == 0);
 }
 
+TEST_CASE("live magcald: a new spacecraft that sends one frame is stored while it runs",
+          "[daemon][http][multicast]") {
+  // One mag_batch_t of 3 samples: too few, and one frame, to corroborate its own time. Nothing
+  // contradicts it either: it is stored within kFirstHoldMax_s (10 s), not held until shutdown.
+  const std::string url = live_url();
+  if (!multicast_or_skip(url)) return;
+  TempDir tmp("magcald_http_lone");
+  write_batch_log(tmp.file("lone.lcm"), "HTTP-LONE", kT0_utime, 3, 1000);
+  const auto [d, port] = start_live(tmp, url);
+  REQUIRE(run({"lcm-logplayer", "-l", url, "-s", "0", tmp.file("lone.lcm")},
+              tmp.file("player.log")) == 0);
+  REQUIRE(wait_until([&] { return scrape(port).sum("magcal_samples_received_total") >= 3; }, 10));
+  const auto received = Clock::now();
+  const bool stored = wait_until(
+      [&] {
+        return scrape(port).value("magcal_samples_stored_total", {{"sat", "HTTP-LONE"}}) == 3;
+      },
+      20);
+  const double after_s = std::chrono::duration<double>(Clock::now() - received).count();
+  INFO(slurp(tmp.file("magcald.log")));
+  CHECK(stored);
+  CHECK(after_s < 15.0);
+  CHECK(scrape(port).sum("magcal_samples_rejected_total") == 0);
+  ::kill(d, SIGTERM);
+  CHECK(wait_exit(d, 30) == 0);
+  std::printf("single-frame spacecraft: stored %.1f s after it was received\n", after_s);
+}
+
 TEST_CASE("a listen port that is taken stops magcald at start: exit 2, a clear message",
           "[daemon][http]") {
   TempDir tmp("magcald_http_taken");
@@ -227,6 +257,8 @@ TEST_CASE("a listen port that is taken stops magcald at start: exit 2, a clear m
   INFO(out);
   CHECK(rc == 2);
   CHECK_THAT(out, Catch::Contains("[http] listen 127.0.0.1:" + std::to_string(port)));
+  // The port is checked before the database is created: no empty file is left behind.
+  CHECK_FALSE(fs::exists(tmp.file("b.db")));
   // A bad value is a usage error (exit 1) naming the flag.
   CHECK(run({kBin + "/magcald", "--db", tmp.file("c.db"), "--lcm-url", replay, "--http-listen",
              "9780"},
@@ -236,6 +268,17 @@ TEST_CASE("a listen port that is taken stops magcald at start: exit 2, a clear m
   CHECK(run({kBin + "/magcald", "--db", tmp.file("d.db"), "--lcm-url", replay, "--http-listen", ""},
             tmp.file("d.log"), 30) == 0);
   CHECK_THAT(slurp(tmp.file("d.log")), !Catch::Contains("operations server:"));
+  // An existing database is not touched by a start that fails on the port.
+  const std::string before = slurp(tmp.file("d.db"));
+  REQUIRE(before.size() > 0);
+  const auto mtime = fs::last_write_time(tmp.file("d.db"));
+  CHECK(run({kBin + "/magcald", "--db", tmp.file("d.db"), "--lcm-url", replay, "--http-listen",
+             "127.0.0.1:" + std::to_string(port)},
+            tmp.file("e.log"), 30) == 2);
+  CHECK(slurp(tmp.file("d.db")) == before);
+  CHECK(fs::last_write_time(tmp.file("d.db")) == mtime);
+  CHECK_FALSE(fs::exists(tmp.file("d.db-wal")));
+  CHECK_FALSE(fs::exists(tmp.file("d.db-shm")));
   ::kill(first, SIGTERM);
   CHECK(wait_exit(first, 30) == 0);
 }

@@ -142,6 +142,44 @@ TEST_CASE("replay a simulated day via file://: all samples, snapshots, data-cloc
   CHECK(kept <= 13 * 360 + 1);
 }
 
+TEST_CASE("a spacecraft backfilled behind another gets the data-clock refits of its own days",
+          "[daemon][integration]") {
+  // SAT-A's day is in the database; then SAT-B's recording of the same day is replayed into it.
+  // Every data time of SAT-B is behind SAT-A's newest sample: a clock shared by the fleet never
+  // moves and SAT-B would get no refit at all.
+  TempDir tmp("backfill");
+  for (const std::string sat : {"SAT-A", "SAT-B"}) {
+    REQUIRE(run({kBin + "/magcal", "sim", "--scenario", "paper", "--hours", "24", "--seed",
+                 sat == "SAT-A" ? "1" : "2", "--sat-id", sat, "--out", tmp / (sat + ".lcm"),
+                 "--batch", "200"},
+                tmp / "sim.log") == 0);
+  }
+  write_config(tmp / "d.toml", "");
+  for (const std::string sat : {"SAT-A", "SAT-B"}) {
+    const int rc = run({kBin + "/magcald", "--http-listen", "", "--config", tmp / "d.toml", "--db",
+                        tmp / "m.db", "--lcm-url", "file://" + tmp / (sat + ".lcm") + "?speed=0"},
+                       tmp / (sat + ".log"));
+    INFO(slurp(tmp / (sat + ".log")));
+    REQUIRE(rc == 0);
+  }
+  const auto refits_a = history(tmp / "m.db", "SAT-A", "twostep");
+  const auto refits_b = history(tmp / "m.db", "SAT-B", "twostep");
+  // 14:00 and 20:00 of the day for each (02:00 and 08:00 lack a full window): the same
+  // scheduled times, each spacecraft's refit on its own data.
+  REQUIRE(refits_a.size() == 2);
+  REQUIRE(refits_b.size() == 2);
+  for (size_t k = 0; k < 2; ++k) {
+    CHECK(refits_b[k].utime == refits_a[k].utime);
+    CHECK(refits_b[k].verdict == "accepted");
+    CHECK(refits_b[k].n_samples >= 4000);
+  }
+  // The second run logged SAT-B's refits (and refitted nothing of SAT-A's).
+  const std::string log_b = slurp(tmp / "SAT-B.log");
+  INFO(log_b);
+  CHECK(log_b.find("refit SAT-B window") != std::string::npos);
+  CHECK(log_b.find("refit SAT-A") == std::string::npos);
+}
+
 TEST_CASE("live over udpm: lcm-logplayer in, lcm-logger records the results",
           "[daemon][integration][multicast]") {
   const int port = 7700 + static_cast<int>(::getpid() % 200);  // not the default bus
@@ -464,6 +502,19 @@ TEST_CASE("bad config and unusable database: clear error, non-zero exit", "[daem
       run({kBin + "/magcald", "--db", tmp / "never.db", "--lcm-url", "file://" + tmp / "none.lcm"},
           tmp / "c2.log") == 2);
   CHECK_THAT(slurp(tmp / "c2.log"), Catch::Contains("cannot open LCM URL"));
+  CHECK_THAT(slurp(tmp / "c2.log"), Catch::Contains("none.lcm: No such file or directory"));
+  CHECK_FALSE(fs::exists(tmp / "never.db"));
+  // A log that exists but is not one (corrupt, or another file) says so, not "missing".
+  {
+    std::ofstream junk(tmp / "corrupt.lcm");
+    for (int i = 0; i < 200; ++i) junk << "not an LCM event log, just text ";
+  }
+  CHECK(run({kBin + "/magcald", "--db", tmp / "never.db", "--lcm-url",
+             "file://" + tmp / "corrupt.lcm"},
+            tmp / "c3.log") == 2);
+  INFO(slurp(tmp / "c3.log"));
+  CHECK_THAT(slurp(tmp / "c3.log"), Catch::Contains("not an LCM log, or corrupt"));
+  CHECK_THAT(slurp(tmp / "c3.log"), !Catch::Contains("No such file"));
   CHECK_FALSE(fs::exists(tmp / "never.db"));
   {
     std::ofstream junk(tmp / "junk.db");
@@ -575,4 +626,44 @@ TEST_CASE("one rogue time tag among 2000 frames: all 2000 kept, the rogue counte
                   static_cast<long long>(st.rejected));
     }
   }
+}
+
+TEST_CASE("a replayed spacecraft that sent one frame, or too few to corroborate: all stored",
+          "[daemon][integration][time]") {
+  // SAT-T streams 200 frames; SAT-ONE sends one sample, SAT-FEW three single-sample frames
+  // (corroboration needs four samples in more than one frame). At the end of the log nothing
+  // contradicts them: stored, none counted as time_jump_unconfirmed.
+  const int64_t t0 = 1704067200000000;  // 2024-01-01T00:00:00Z
+  const int64_t step = 10'000'000;
+  TempDir tmp("lonely");
+  std::vector<magcal::mag_sample_t> frames;
+  for (int k = 0; k < 200; ++k) {
+    frames.push_back(rogue_test_sample(k, t0 + k * step));
+    if (k == 50) {
+      frames.push_back(rogue_test_sample(0, t0 + k * step));
+      frames.back().sat_id = "SAT-ONE";
+    }
+    if (k == 60 || k == 61 || k == 62) {
+      frames.push_back(rogue_test_sample(k - 60, t0 + k * step));
+      frames.back().sat_id = "SAT-FEW";
+    }
+  }
+  write_sample_log(tmp / "in.lcm", frames);
+  const std::string out = tmp / "out.lcm";
+  {
+    std::ofstream cfg(tmp / "d.toml");
+    cfg << "[lcm]\npublish_url = \"file://" << out << "?mode=w\"\n";
+  }
+  const int rc = run({kBin + "/magcald", "--http-listen", "", "--config", tmp / "d.toml", "--db",
+                      tmp / "m.db", "--lcm-url", "file://" + (tmp / "in.lcm") + "?speed=0"},
+                     tmp / "magcald.log");
+  INFO(slurp(tmp / "magcald.log"));
+  REQUIRE(rc == 0);
+  const auto st = read_published(out).statuses.back();
+  CHECK(st.received == 204);
+  CHECK(st.stored == 204);
+  CHECK(st.rejected == 0);
+  CHECK(stored_count(tmp / "m.db", "SAT-ONE") == 1);
+  CHECK(stored_count(tmp / "m.db", "SAT-FEW") == 3);
+  CHECK(stored_count(tmp / "m.db", "SAT-T") == 200);
 }

@@ -2,9 +2,9 @@
 // frames are bit-flipped, truncated, extended, overwritten, given extreme field values
 // (int64 limits in utime and seq, NaN/Inf in every double, huge or negative batch n, empty and
 // 10 000-character sat ids), then driven through the daemon's real path in-process: decode_frame
-// (service/daemon/lcm_ingest.cpp) with the receive side's accounting, then IngestWorker on a temp-file
-// database. CI runs it under ASan+UBSan: no crash, no sanitizer report, and every frame is
-// accounted for: received == stored + rejected (per reason, decode failures included).
+// (service/daemon/lcm_ingest.cpp) with the receive side's accounting, then IngestWorker on a
+// temp-file database. CI runs it under ASan+UBSan: no crash, no sanitizer report, and every frame
+// is accounted for: received == stored + rejected (per reason, decode failures included).
 #include <catch2/catch.hpp>
 
 #include <unistd.h>
@@ -267,7 +267,7 @@ TEST_CASE("mutated frames: no crash, every frame accounted for", "[ingest][fuzz]
     worker.process(item);
     if (f % 1000 == 999) worker.commit();
   }
-  worker.reject_held();  // shutdown: what is still held is counted
+  worker.settle_held();  // shutdown: what is still held is counted
   worker.commit();
   const double elapsed_s =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();

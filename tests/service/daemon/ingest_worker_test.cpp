@@ -279,7 +279,7 @@ IngestItem single(const mag_sample_t& s) {
 // One frame per sample, as a live mag_sample_t feed; then the shutdown step.
 void feed_frames(IngestWorker& w, const std::vector<mag_sample_t>& frames) {
   for (const auto& s : frames) w.process(single(s));
-  w.reject_held();
+  w.settle_held();
   w.commit();
 }
 
@@ -346,7 +346,7 @@ TEST_CASE("a genuine gap is accepted once later samples corroborate it", "[inges
   CHECK(w->fleet().find("SAT-1")->newest_utime == frames[149].utime);
   CHECK(w->data_clock_utime() == frames[149].utime);
   for (size_t k = 152; k < frames.size(); ++k) w->process(single(frames[k]));
-  w->reject_held();
+  w->settle_held();
   w->commit();
   CHECK(counters.stored == 300);
   CHECK(counters.rejected_total() == 0);
@@ -403,15 +403,72 @@ TEST_CASE("the first samples of a spacecraft need corroboration too", "[ingest_w
     w->commit();
     CHECK(counters.stored == 11);
   }
-  SECTION("a spacecraft that only ever sent one frame: counted at shutdown") {
+  SECTION("a spacecraft that only ever sent one frame: stored at shutdown") {
     TempDb tmp("lonely");
     DaemonCounters counters;
     auto w = make_worker(test_config(tmp.path()), counters);
     w->process(batch(valid, 0, 5));
-    w->reject_held();
+    CHECK(w->held_samples() == 5);
+    w->settle_held();
     w->commit();
-    CHECK(counters.stored == 0);
-    CHECK(counters.rejected_count(RejectReason::kJumpUnconfirmed) == 5);
+    CHECK(counters.stored == 5);
+    CHECK(counters.rejected_total() == 0);
+    CHECK(stored_rows(tmp.path()) == 5);
+    CHECK(w->fleet().find("SAT-1")->newest_utime == valid[4].utime);
+  }
+  SECTION("too few single frames to corroborate: stored at shutdown") {
+    TempDb tmp("few");
+    DaemonCounters counters;
+    auto w = make_worker(test_config(tmp.path()), counters);
+    for (size_t k = 0; k < static_cast<size_t>(SpacecraftTracker::kCorroborating); ++k) {
+      w->process(single(valid[k]));
+    }
+    CHECK(w->held_samples() == SpacecraftTracker::kCorroborating);
+    w->settle_held();
+    w->commit();
+    CHECK(counters.stored == SpacecraftTracker::kCorroborating);
+    CHECK(counters.rejected_total() == 0);
+  }
+  SECTION("held first samples are stored after kFirstHoldMax_s, without a shutdown") {
+    TempDb tmp("bounded");
+    DaemonCounters counters;
+    auto w = make_worker(test_config(tmp.path()), counters);
+    w->process(batch(valid, 0, 3));
+    const auto now = std::chrono::steady_clock::now();
+    w->release_first_holds(now);  // not yet
+    CHECK(w->held_samples() == 3);
+    w->release_first_holds(
+        now + std::chrono::duration_cast<std::chrono::nanoseconds>(
+                  std::chrono::duration<double>(SpacecraftTracker::kFirstHoldMax_s + 0.1)));
+    CHECK(w->held_samples() == 0);
+    w->commit();
+    CHECK(counters.stored == 3);
+    // Later samples go on from that base as usual.
+    for (size_t k = 3; k < valid.size(); ++k) w->process(single(valid[k]));
+    w->settle_held();
+    w->commit();
+    CHECK(counters.stored == static_cast<int64_t>(valid.size()));
+    CHECK(counters.rejected_total() == 0);
+  }
+  SECTION("at shutdown a lone rogue among uncorroborated first samples is outvoted") {
+    for (const int64_t offset : {20 * kHour, -20 * kHour}) {
+      TempDb tmp("outvoted");
+      DaemonCounters counters;
+      auto w = make_worker(test_config(tmp.path()), counters);
+      auto rogue = valid[0];
+      rogue.utime += offset;
+      w->process(single(rogue));
+      w->process(single(valid[0]));
+      w->process(single(valid[1]));
+      w->settle_held();
+      w->commit();
+      INFO("offset " << offset / kHour << " h");
+      CHECK(counters.stored == 2);
+      CHECK(counters.rejected_total() == 1);
+      CHECK(counters.rejected_count(offset > 0 ? RejectReason::kJumpUnconfirmed
+                                               : RejectReason::kOlderThanWindow) == 1);
+      CHECK(w->fleet().find("SAT-1")->newest_utime == valid[1].utime);
+    }
   }
 }
 
@@ -430,7 +487,7 @@ TEST_CASE("a whole downlink packet with a shifted time base cannot move the time
   CHECK(w->held_samples() == 200);
   CHECK(w->fleet().find("SAT-1")->newest_utime == s[399].utime);
   for (size_t k = 400; k < s.size(); k += 200) w->process(batch(s, k, k + 200));
-  w->reject_held();
+  w->settle_held();
   w->commit();
   CHECK(counters.stored == 1000);
   CHECK(counters.rejected_count(RejectReason::kTimeJump) == 200);
@@ -455,7 +512,7 @@ TEST_CASE("a shifted batch frame cannot move the time, the hold stays bounded",
   w->process(shifted);
   CHECK(counters.rejected_count(RejectReason::kDuplicate) == 20);
   for (size_t k = 200; k < s.size(); ++k) w->process(single(s[k]));
-  w->reject_held();
+  w->settle_held();
   w->commit();
   CHECK(counters.stored == 400);
   CHECK(counters.rejected_count(RejectReason::kTimeJump) == 20);
@@ -468,7 +525,7 @@ TEST_CASE("a shifted batch frame cannot move the time, the hold stays bounded",
     w->process(single(r));
     CHECK(w->held_samples() <= SpacecraftTracker::kHeldCapacity);
   }
-  w->reject_held();
+  w->settle_held();
   CHECK(counters.rejected_count(RejectReason::kTimeJump) +
             counters.rejected_count(RejectReason::kJumpUnconfirmed) ==
         120);
@@ -575,4 +632,37 @@ TEST_CASE("stored filter state round trip is bit-exact, collecting and started",
     }
   }
   CHECK(ukf.initialized());
+}
+
+TEST_CASE("duplicates are found in the pending batch and in the store, per spacecraft",
+          "[ingest_worker]") {
+  // Two spacecraft on interleaved time grids (B a third of a step after A), one sample per
+  // frame, nothing committed yet: repeats must be found among the pending rows, a sample of A
+  // at one of B's times is new, and after the commit the repeats are found in the store.
+  TempDb tmp("dups");
+  DaemonCounters counters;
+  auto w = make_worker(test_config(tmp.path()), counters);
+  const auto a = simulate(200, 21, "SAT-A");
+  auto b = simulate(200, 22, "SAT-B");
+  for (auto& s : b) s.utime += kStep / 3;
+  for (size_t k = 0; k < a.size(); ++k) {
+    w->process(single(a[k]));
+    w->process(single(b[k]));
+  }
+  REQUIRE(w->pending_samples() == 400);  // nothing committed: the checks below hit the batch
+  for (size_t k = 100; k < 150; ++k) w->process(single(a[k]));
+  for (size_t k = 0; k < 50; ++k) w->process(single(b[k]));
+  auto a_at_b_time = a[120];
+  a_at_b_time.utime = b[120].utime;
+  w->process(single(a_at_b_time));
+  CHECK(counters.rejected_count(RejectReason::kDuplicate) == 100);
+  w->commit();
+  for (size_t k = 0; k < 50; ++k) w->process(single(a[k]));
+  w->process(single(a_at_b_time));
+  w->commit();
+  CHECK(counters.rejected_count(RejectReason::kDuplicate) == 151);
+  CHECK(counters.rejected_total() == 151);
+  CHECK(counters.stored == 401);
+  CHECK(stored_rows(tmp.path(), "SAT-A") == 201);
+  CHECK(stored_rows(tmp.path(), "SAT-B") == 200);
 }

@@ -1,9 +1,16 @@
 // The operations server in-process over a small database written here: every route, the 400s,
 // start errors, downsampling through the API, reading while a writer writes, and that the
 // server never modifies the database file.
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
 #include <sys/stat.h>
+#include <unistd.h>
 
 #include <atomic>
+#include <cerrno>
+#include <chrono>
+#include <cstdio>
 #include <filesystem>
 #include <thread>
 
@@ -17,6 +24,7 @@
 #include "storage/calibration_history.hpp"
 #include "storage/database.hpp"
 #include "tests/service/http_test_support.hpp"
+#include "tests/test_skip.hpp"
 
 using namespace magcal;
 using magcal::test::http_get;
@@ -348,4 +356,133 @@ TEST_CASE("the server never modifies the database file") {
   // SQLite's read-only reader of a WAL database may leave an empty -wal / the -shm index
   // behind (not the database); it never writes a frame into the -wal.
   if (std::filesystem::exists(db + "-wal")) REQUIRE(std::filesystem::file_size(db + "-wal") == 0);
+}
+
+TEST_CASE("another method on a known path is 405 with Allow, an unknown path stays 404") {
+  Fixture f;
+  httplib::Client client("127.0.0.1", f.server->port());
+  for (const char* path : {"/metrics", "/-/healthy", "/-/ready", "/api/v1/spacecraft",
+                           "/api/v1/history", "/", "/static/chart.js"}) {
+    INFO(path);
+    for (int method = 0; method < 4; ++method) {
+      const auto res = method == 0   ? client.Post(path, "x", "text/plain")
+                       : method == 1 ? client.Put(path, "x", "text/plain")
+                       : method == 2 ? client.Patch(path, "x", "text/plain")
+                                     : client.Delete(path);
+      INFO("method " << method);
+      REQUIRE(res);
+      CHECK(res->status == 405);
+      CHECK(res->get_header_value("Allow") == "GET, HEAD");
+      CHECK(res->get_header_value("Content-Type") == "application/json");
+      CHECK(nlohmann::json::parse(res->body).at("error").get<std::string>().find("not allowed") !=
+            std::string::npos);
+    }
+    const auto head = client.Head(path);
+    REQUIRE(head);
+    CHECK(head->status != 405);
+  }
+  const auto post = client.Post("/no/such/path", "x", "text/plain");
+  REQUIRE(post);
+  CHECK(post->status == 404);
+  CHECK(f.get("/no/such/path").status == 404);
+}
+
+TEST_CASE("URLs put IPv6 hosts in brackets") {
+  CHECK(http::http_url("127.0.0.1", 9780) == "http://127.0.0.1:9780/");
+  CHECK(http::http_url("::1", 9780) == "http://[::1]:9780/");
+  CHECK(http::http_url("fe80::1%lo", 80) == "http://[fe80::1%lo]:80/");
+  CHECK(http::http_url("localhost", 1) == "http://localhost:1/");
+  TempDir dir("magcal_http_v6");
+  const std::string db = dir.file("m.db");
+  populate(db);
+  std::string error;
+  auto server = http::OperationsServer::start("[::1]:0", db, default_hooks(), &error);
+  if (!server) {
+    // No IPv6 loopback in this network namespace: the formatting above is what is checked.
+    magcal::test::skip("no IPv6 loopback here: " + error);
+    return;
+  }
+  CHECK(server->url() == "http://[::1]:" + std::to_string(server->port()) + "/");
+  httplib::Client client("::1", server->port());
+  const auto res = client.Get("/-/healthy");
+  REQUIRE(res);
+  CHECK(res->status == 200);
+}
+
+TEST_CASE("a bound server that never serves gives its port back") {
+  TempDir dir("magcal_http_bind");
+  std::string error;
+  auto bound = http::OperationsServer::bind("127.0.0.1:0", default_hooks(), &error);
+  REQUIRE(bound);
+  const std::string listen = "127.0.0.1:" + std::to_string(bound->port());
+  REQUIRE_FALSE(http::OperationsServer::bind(listen, default_hooks(), &error));  // taken
+  bound.reset();  // never served: the socket is closed all the same
+  const std::string db = dir.file("m.db");
+  populate(db);
+  auto again = http::OperationsServer::start(listen, db, default_hooks(), &error);
+  INFO(error);
+  REQUIRE(again);
+  CHECK(http_get(again->port(), "/-/healthy").status == 200);
+}
+
+namespace {
+
+// A raw TCP connection to 127.0.0.1:port (no HTTP client in the way); -1 when it fails.
+int raw_connect(int port) {
+  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  if (fd < 0) return -1;
+  sockaddr_in addr{};
+  addr.sin_family = AF_INET;
+  addr.sin_port = htons(static_cast<uint16_t>(port));
+  addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  if (::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) {
+    ::close(fd);
+    return -1;
+  }
+  return fd;
+}
+
+// Seconds until the server closes `fd` (recv returns 0 or an error), at most limit_s.
+double seconds_until_closed(int fd, double limit_s) {
+  const auto start = std::chrono::steady_clock::now();
+  timeval tv{0, 50'000};
+  ::setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
+  while (true) {
+    char byte = 0;
+    const ssize_t n = ::recv(fd, &byte, 1, 0);
+    const double t =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    if (n == 0 || (n < 0 && errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR)) return t;
+    if (t > limit_s) return t;
+  }
+}
+
+}  // namespace
+
+TEST_CASE("silent connections do not hold request threads: closed within the timeouts") {
+  // More connections that send nothing than the server has request threads: each is dropped
+  // after the 1 s keep-alive wait, so a probe that comes after them is answered in about that.
+  Fixture f;
+  constexpr int kSilent = 24;  // > kRequestThreads (16)
+  std::vector<int> fds;
+  for (int i = 0; i < kSilent; ++i) {
+    const int fd = raw_connect(f.server->port());
+    REQUIRE(fd >= 0);
+    fds.push_back(fd);
+  }
+  const auto t0 = std::chrono::steady_clock::now();
+  CHECK(f.get("/-/healthy").status == 200);
+  const double probe_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  double slowest_close_s = 0.0;
+  for (const int fd : fds) {
+    slowest_close_s = std::max(slowest_close_s, seconds_until_closed(fd, 10.0));
+    ::close(fd);
+  }
+  INFO("probe answered after " << probe_s << " s; silent sockets closed within " << slowest_close_s
+                               << " s");
+  CHECK(probe_s < 4.0);
+  CHECK(slowest_close_s < 4.0);
+  std::printf("%d silent connections: probe answered after %.2f s, all closed within %.2f s\n",
+              kSilent, probe_s, slowest_close_s);
 }

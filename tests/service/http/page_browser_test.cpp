@@ -9,6 +9,8 @@
 
 #include <catch2/catch.hpp>
 
+#include "storage/calibration_history.hpp"
+#include "storage/database.hpp"
 #include "tests/service/http_test_support.hpp"
 #include "tests/test_skip.hpp"
 
@@ -43,8 +45,24 @@ TEST_CASE("the page draws the replayed day in headless Chromium without console 
     magcal::test::skip_or_fail("chromium not installed (deploy/setup-deps.sh --tests)");
     return;
   }
-  const std::string& db = magcal::test::replayed_day_db();
   TempDir dir("magcal_page");
+  // The replayed day plus one rejected refit, newest of all (the summary shows it): every panel
+  // must mark it as rejected.
+  const std::string db = dir.file("day.db");
+  std::filesystem::copy_file(magcal::test::replayed_day_db(), db);
+  {
+    magcal::storage::Database d(db);
+    magcal::storage::CalibrationHistory history(d);
+    auto rejected = history.latest_refit("PAPER-1");
+    REQUIRE(rejected);
+    rejected->utime += 3600LL * 1000000;
+    rejected->window_end_utime = rejected->utime;
+    rejected->bias_nT[1] += 40.0;
+    rejected->status = 4;  // rejected by the gates
+    rejected->verdict = "rejected";
+    rejected->rejection_reasons = {"bias_change: y 40 nT, chi-square 800 > 16.3"};
+    history.append(*rejected);
+  }
   ServeProcess serve(db, dir);
   const std::string url = "http://127.0.0.1:" + std::to_string(serve.port()) + "/";
 
@@ -56,17 +74,25 @@ TEST_CASE("the page draws the replayed day in headless Chromium without console 
   const std::string dom = magcal::test::slurp(dom_file);
   std::smatch m;
   const std::regex marker(
-      "<div id=\"magcal-test\" data-plotted=\"([0-9]+)\" data-errors=\"([0-9]+)\"[^>]*>([^<]*)<");
+      "<div id=\"magcal-test\" data-plotted=\"([0-9]+)\" data-errors=\"([0-9]+)\" "
+      "data-rejected=\"([^\"]*)\"[^>]*>([^<]*)<");
   INFO(dom.substr(0, 4000));
   REQUIRE(std::regex_search(dom, m, marker));
   const int plotted = std::stoi(m[1]);
   const int errors = std::stoi(m[2]);
-  INFO("console errors: " << m[3]);
+  INFO("console errors: " << m[4]);
   REQUIRE(errors == 0);
   // A day of UKF snapshots (<= 600 buckets) on the bias, D, rms and count panels, plus refits.
   REQUIRE(plotted > 2000);
   // The page filled in the spacecraft picker and the summary from /api/v1/spacecraft.
   REQUIRE(dom.find("<option value=\"PAPER-1\">PAPER-1</option>") != std::string::npos);
+  // The rejected refit is drawn as rejected on the three bias panels and for each of the six D
+  // entries; the summary says "rejected" once.
+  const std::string rejected_drawn = m[3];
+  INFO("rejected refit points per chart: " << rejected_drawn);
+  CHECK(rejected_drawn.find("bias0:1 bias1:1 bias2:1 dmat:6") != std::string::npos);
+  CHECK(dom.find("rejected, rejected") == std::string::npos);
+  CHECK(dom.find("nT, rejected</div>") != std::string::npos);
 
   args = chromium_args(chromium, dir.file("profile-screenshot"));
   const std::string png = dir.file("page.png");
