@@ -45,6 +45,7 @@ struct RefitRequest {
   std::string sat_id;                  // data clock: that spacecraft; "" (wall clock): every one
   std::optional<int64_t> t_ref_utime;  // nullopt: each spacecraft's newest sample (wall clock)
   int64_t scheduled_utime = 0;
+  const char* trigger = "scheduled";  // or "first" (IngestWorker::Hooks::on_refit_due)
 };
 
 }  // namespace
@@ -141,12 +142,13 @@ struct Daemon::Impl {
                                                : *floors.begin());
   }
 
-  // Worker thread (data clock): sat's data time passed t_ref, and its samples are committed.
-  void on_refit_due(const std::string& sat, int64_t t_ref) {
+  // Worker thread: a refit of sat's window ending at t_ref is due (its data clock passed a
+  // scheduled time, or its first refit: IngestWorker::Hooks), and its samples are committed.
+  void on_refit_due(const std::string& sat, int64_t t_ref, const char* trigger) {
     std::unique_lock lock(refit_mutex);
     floors.insert(t_ref - config.window_utime() + 1);
     update_floor_locked();
-    refit_queue.push_back({sat, t_ref, t_ref});
+    refit_queue.push_back({sat, t_ref, t_ref, trigger});
     refit_cv.notify_one();
     if (replay) {
       // A replay has no live source to fall behind: wait for the refit so its re-anchoring
@@ -232,7 +234,7 @@ struct Daemon::Impl {
   // row); StorageOutage once storage stays broken.
   RefitOutcome run_refit(StorageRetry& retry, const std::string& sat, const RefitRequest& req) {
     return retry.run_blocking([&] {
-      RefitOutcome out = refits->run(sat, req.t_ref_utime, "scheduled", req.scheduled_utime);
+      RefitOutcome out = refits->run(sat, req.t_ref_utime, req.trigger, req.scheduled_utime);
       if (out.kind == RefitOutcome::Kind::kError && out.transient_error) {
         throw storage::StorageError(storage::StorageError::Kind::kSqlite, out.message,
                                     out.sqlite_code);
@@ -432,7 +434,9 @@ std::string Daemon::open() {
         c, d.counters, std::move(field),
         IngestWorker::Hooks{
             [&d](const std::string& sat, const CalibrationResult& r) { d.on_snapshot(sat, r); },
-            [&d](const std::string& sat, int64_t t) { d.on_refit_due(sat, t); }},
+            [&d](const std::string& sat, int64_t t, const char* trigger) {
+              d.on_refit_due(sat, t, trigger);
+            }},
         d.metrics.get());
     d.refit_db = std::make_unique<storage::Database>(
         c.storage.db_path, storage::OpenOptions{.busy_timeout_ms = c.storage.busy_timeout_ms});

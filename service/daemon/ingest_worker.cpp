@@ -82,6 +82,7 @@ void IngestWorker::restore() {
     const auto newest = samples_.newest_utime(sat);
     if (!newest) continue;
     SpacecraftTracker& t = tracker(sat, nullptr);
+    t.first_refit_requested = history_.latest_refit(sat).has_value();
     t.newest_utime = *newest;
     t.stored_bound_utime = *newest;
     samples_.read_window(sat, *newest, saturating_add(*newest, 1), rows);
@@ -122,15 +123,14 @@ void IngestWorker::process(const IngestItem& item) {
   if (have_reanchors_.load(std::memory_order_acquire)) apply_reanchors();
   ++frame_counter_;
   for (const auto& s : item.samples) ingest_sample(s, item.batch_sat_id, item.receive_utime);
-  if (data_schedule_) {
-    // A frame holds one spacecraft (a batch) or one sample: one schedule check per run of ids.
-    const std::string* checked = nullptr;
-    for (const auto& s : item.samples) {
-      const std::string& sat = sample_sat_id(s, item.batch_sat_id);
-      if (checked && *checked == sat) continue;
-      checked = &sat;
-      check_data_clock(sat);
-    }
+  // A frame holds one spacecraft (a batch) or one sample: one check per run of ids.
+  const std::string* checked = nullptr;
+  for (const auto& s : item.samples) {
+    const std::string& sat = sample_sat_id(s, item.batch_sat_id);
+    if (checked && *checked == sat) continue;
+    checked = &sat;
+    check_first_refit(sat);
+    if (data_schedule_) check_data_clock(sat);
   }
 }
 
@@ -551,8 +551,19 @@ void IngestWorker::check_data_clock(const std::string& sat_id) {
   if (due.empty()) return;
   flush();  // the refit reads what is committed: everything up to t_ref
   for (const int64_t t_ref : due) {
-    if (hooks_.on_refit_due) hooks_.on_refit_due(sat_id, t_ref);
+    if (hooks_.on_refit_due) hooks_.on_refit_due(sat_id, t_ref, "scheduled");
   }
+}
+
+void IngestWorker::check_first_refit(const std::string& sat_id) {
+  SpacecraftTracker* t = fleet_.find(sat_id);
+  if (!t || t->first_refit_requested || !t->ukf.initialized() ||
+      t->ukf.state().moments.n < config_.refit.min_samples || t->newest_utime == kNoTime) {
+    return;
+  }
+  t->first_refit_requested = true;
+  flush();  // the refit reads what is committed
+  if (hooks_.on_refit_due) hooks_.on_refit_due(sat_id, t->newest_utime, "first");
 }
 
 void IngestWorker::save_filter_states() {

@@ -84,6 +84,8 @@ struct SpacecraftTracker {
   // [refit] clock = "data": this spacecraft's scheduled refits, on its own data time (its
   // newest_utime): a spacecraft backfilled behind the others gets the refits of its own days.
   std::optional<RefitScheduler> data_refits;
+  // Its first refit was requested (or the history has one): IngestWorker::check_first_refit.
+  bool first_refit_requested = false;
 
   // Missing samples implied by `seq`: a forward gap counts once the following number confirms
   // it (continues after the gap), so one corrupt seq implies nothing; out-of-order or repeated

@@ -38,13 +38,15 @@ void write_log(const std::string& path, int n, int64_t frame_spacing_us) {
   write_batch_log(path, kSat, kT0_utime, n, frame_spacing_us);
 }
 
-// Data-clock refits (none in these logs), a status message every 0.1 s, and `storage` keys.
+// Data-clock refits (none in these logs: no scheduled time, and the first refit, which a replay
+// waits for, needs more samples than they hold), a status message every 0.1 s, and `storage`
+// keys.
 std::string write_config(const TempDir& tmp, const std::string& name, const std::string& out_lcm,
                          const std::string& storage) {
   const std::string path = tmp.file(name);
   std::ofstream cfg(path);
   cfg << "[lcm]\npublish_url = \"file://" << out_lcm << "?mode=w\"\n"
-      << "[refit]\nclock = \"data\"\n"
+      << "[refit]\nclock = \"data\"\nmin_samples = 1000000\n"
       << "[service]\nstatus_every_s = 0.1\n"
       << "[storage]\n"
       << storage;

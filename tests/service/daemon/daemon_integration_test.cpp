@@ -115,7 +115,9 @@ TEST_CASE("replay a simulated day via file://: all samples, snapshots, data-cloc
   CHECK(last.queue_overflow == 0);
   CHECK(last.missing_by_seq == 0);
   CHECK(last.n_spacecraft == 1);
-  CHECK(last.refits_run == 2);  // 14:00 and 20:00 (02:00 and 08:00 lack a full window)
+  // The first refit once [refit] min_samples (4000 here) are stored and the UKF has started
+  // (trigger "first"), then 14:00 and 20:00 (02:00 and 08:00 lack the samples).
+  CHECK(last.refits_run == 3);
 
   const auto ukf = history(tmp / "m.db", "PAPER-1", "ukf");
   const auto refits = history(tmp / "m.db", "PAPER-1", "twostep");
@@ -124,7 +126,9 @@ TEST_CASE("replay a simulated day via file://: all samples, snapshots, data-cloc
   REQUIRE(ukf.size() >= 2);
   for (size_t k = 1; k < ukf.size(); ++k) CHECK(ukf[k].utime - ukf[k - 1].utime == 60'000'000);
   CHECK(ukf.size() >= 1200);
-  REQUIRE(refits.size() == 2);
+  REQUIRE(refits.size() == 3);
+  CHECK(refits[0].n_samples >= 4000);
+  CHECK(refits[0].n_samples < 4320);  // the first refit: before a full window
   // What was published is what was stored.
   CHECK(pub.calibrations.size() == ukf.size() + refits.size());
 
@@ -164,11 +168,11 @@ TEST_CASE("a spacecraft backfilled behind another gets the data-clock refits of 
   }
   const auto refits_a = history(tmp / "m.db", "SAT-A", "twostep");
   const auto refits_b = history(tmp / "m.db", "SAT-B", "twostep");
-  // 14:00 and 20:00 of the day for each (02:00 and 08:00 lack a full window): the same
-  // scheduled times, each spacecraft's refit on its own data.
-  REQUIRE(refits_a.size() == 2);
-  REQUIRE(refits_b.size() == 2);
-  for (size_t k = 0; k < 2; ++k) {
+  // The first refit (4000 samples stored), 14:00 and 20:00 of the day for each (02:00 and 08:00
+  // lack the samples): the same times, each spacecraft's refit on its own data.
+  REQUIRE(refits_a.size() == 3);
+  REQUIRE(refits_b.size() == 3);
+  for (size_t k = 0; k < 3; ++k) {
     CHECK(refits_b[k].utime == refits_a[k].utime);
     CHECK(refits_b[k].verdict == "accepted");
     CHECK(refits_b[k].n_samples >= 4000);
@@ -275,7 +279,7 @@ TEST_CASE("live over udpm: lcm-logplayer in, lcm-logger records the results",
   CHECK(pub.undecodable == 0);
   const auto ukf = history(tmp / "m.db", "PAPER-1", "ukf");
   const auto refits = history(tmp / "m.db", "PAPER-1", "twostep");
-  CHECK(refits.size() == 2);
+  CHECK(refits.size() == 3);  // the first (4000 samples), 14:00, 20:00
   // The independent recorder saw every published result.
   std::set<std::pair<std::string, int64_t>> seen;
   for (const auto& c : pub.calibrations) seen.insert({c.method, c.utime});
