@@ -491,9 +491,9 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
   // fail; if round-off ever made it, the update is refused and S left untouched.
   const double inv_sqrt_S = 1.0 / std::sqrt(S_gain);
   const Vector9d x_new = state_.x + Pxz * (nu * inv_sqrt_S * inv_sqrt_S);
-  // The sample's score for the reported covariance, from the prior factor: H^T = S^-T Pxz_white.
+  // The sample's score for the reported covariance (H: the measurement Jacobian at the prior).
   const Vector9d score =
-      state_.S.transpose().triangularView<Eigen::Upper>().solve(Pxz_white) * (nu / (S_gain - hph));
+      scalar_measurement_jacobian_at(b_cal, b_sensor_nT).transpose() * (nu / (S_gain - hph));
   if (!x_new.allFinite() || !cholesky_downdate_whitened(state_.S, Pxz_white * inv_sqrt_S)) {
     ++state_.n_rejected_invalid;
     u.status = FilterUpdateStatus::kRejectedNumerical;

@@ -55,7 +55,7 @@
 // effects correlate them over much longer spans (orbit-periodic), and a filter that runs for a
 // day without a re-anchor then claims 2-4x too small sigmas (measured: 24 h paper replays, 38-48 %
 // of ok snapshots more than 3 sigma off). So every accepted sample's score
-//   g_k = H_k^T nu_k / R_gain,k        (H_k^T = S^-T Pxz_white; the weights behind P^-1)
+//   g_k = H_k^T nu_k / R_gain,k        (H_k: dz/dp at the prior x; the weights behind P^-1)
 // is summed over blocks of sandwich_block_samples samples since the start, the last re-anchor or
 // the last re-opening of P, and snapshot() reports the batch-means sandwich (Flegal & Jones 2010)
 //   C = max(P, P (A + sum_b G_b G_b^T) P),   A = P^-1 at that start / re-anchor (trusted),
