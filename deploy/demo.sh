@@ -53,7 +53,7 @@ echo "== 4. UKF converging (history, every 2 h of data; then the last snapshot)"
   | awk 'NR == 1 || (NR - 2) % 120 == 0 { print } { last = $0 } END { print last }'
 
 echo
-echo "== 5. scheduled refits (centered + LM + alignment, acceptance gates)"
+echo "== 5. refits: the first (once [refit] min_samples are stored), then scheduled (centered + LM + alignment, acceptance gates)"
 "$bin/magcal" history --db magcal.db --sat "$sat" --method twostep --format table
 
 echo

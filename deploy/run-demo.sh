@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The main job: installs dependencies if missing, builds (Release), then runs deploy/demo.sh:
 # magcald replays 24 h of simulated paper-scenario telemetry, and magcal shows the UKF
-# converging and the scheduled refits next to the truth.
+# converging and the refits next to the truth.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 deploy/setup-deps.sh

@@ -30,10 +30,10 @@ using magcal::storage::CalibrationRecord;
 
 constexpr double kSigmaBound = 5.0;     // issue 10: 5 sigma ...
 constexpr double kSigmaFloor_nT = 0.5;  // ... + 0.5 nT
-// Issue 10 asks for `ok` within 17 000 s; measured here 32 000-36 000 s (after the first refit
-// that has [refit] min_samples re-anchors the UKF at 08:00): before it, the honest bias 1-sigma
-// on the orbit-normal axis stays above the 10 nT `ok` threshold (the 8 h refit's own HAC sigma
-// is ~9 nT). Asserted: within 10 h of data, i.e. within 2 h of that first re-anchor.
+// Issue 10 asks for `ok` within 17 000 s; measured here 26 800-30 000 s: the honest bias 1-sigma
+// on the orbit-normal axis stays above the 10 nT `ok` threshold until then (the 8 h refit's own
+// HAC sigma is ~9 nT; the first refit, at [refit] min_samples, has ~23 nT). Asserted: within
+// 10 h of data.
 constexpr double kOkWithin_s = 36000.0;
 constexpr double kFinalTolerance_nT = 5.0;    // last snapshot vs truth, per axis
 constexpr int64_t kFullWindowSamples = 4000;  // a 12 h window holds 4320 samples at 10 s
