@@ -207,6 +207,14 @@ void apply_verdict(CalibrationResult& result, const GateVerdict& verdict) {
     result.status = CalibrationStatus::kRejected;
 }
 
+void reject_unless_ok(const CalibrationResult& result, GateVerdict& verdict) {
+  if (result.status == CalibrationStatus::kOk) return;
+  verdict.accepted = false;
+  verdict.reasons.insert(verdict.reasons.begin(),
+                         std::string(to_string(result.status)) +
+                             (result.message.empty() ? "" : ": " + result.message));
+}
+
 Eigen::Vector3d direction_coverage_eigenvalues(const SampleSet& samples) {
   Eigen::Matrix3d scatter = Eigen::Matrix3d::Zero();
   int n = 0;

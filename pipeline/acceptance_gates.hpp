@@ -113,6 +113,11 @@ GateVerdict evaluate_gates(const CalibrationResult& result, const GateInputs& in
 // already holds a lower non-zero status (lowest non-zero wins: a failed fit stays failed).
 void apply_verdict(CalibrationResult& result, const GateVerdict& verdict);
 
+// Online (EKF/UKF) results: an estimate that is not ok (collecting for its start, inconsistent,
+// unobservable, a bias 1-sigma above the convergence threshold) is never accepted, whatever the
+// gates say: operators must not act on it. Its status and message lead the reasons.
+void reject_unless_ok(const CalibrationResult& result, GateVerdict& verdict);
+
 // Eigenvalues (ascending, sum 1) of mean_k d_k d_k^T, d_k = B_k / |B_k| (raw sensor-frame
 // directions; samples with non-finite or zero B are skipped). NaN vector when no sample is
 // usable.

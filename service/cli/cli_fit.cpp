@@ -180,7 +180,9 @@ void finish_filter_result(CalibrationResult& r, const SampleSet& samples) {
   }
   GateInputs in;
   in.min_coverage_eigenvalue = direction_coverage_eigenvalues(samples)(0);
-  apply_verdict(r, evaluate_gates(r, in));
+  GateVerdict verdict = evaluate_gates(r, in);
+  reject_unless_ok(r, verdict);  // as the daemon's snapshots
+  apply_verdict(r, verdict);
 }
 
 void print_text(const CalibrationResult& r, double compute_ms, double convergence_time_s) {

@@ -93,7 +93,9 @@ void IngestWorker::restore() {
       FilterState st;
       if (filter_state_from_stored(*stored, st)) {
         t.ukf.restore(st);
-        if (st.initialized) from = std::max(from, st.last_utime + 1);
+        // Started or still collecting: the state holds every sample up to last_utime (in x
+        // and P, or in the start's moments); re-running them would count them twice.
+        if (st.has_time) from = std::max(from, st.last_utime + 1);
       } else {
         spdlog::warn("{}: stored filter state unreadable; re-running the UKF over the window", sat);
       }
@@ -399,12 +401,7 @@ void IngestWorker::maybe_snapshot(const std::string& sat_id, SpacecraftTracker& 
   // accumulated information, bounds). An estimate that is not ok (still collecting for its
   // start, inconsistent, unobservable) is never accepted: operators must not act on it.
   GateVerdict verdict = evaluate_gates(snap, GateInputs{}, config_.gates);
-  if (snap.status != CalibrationStatus::kOk) {
-    verdict.accepted = false;
-    verdict.reasons.insert(
-        verdict.reasons.begin(),
-        std::string(to_string(snap.status)) + (snap.message.empty() ? "" : ": " + snap.message));
-  }
+  reject_unless_ok(snap, verdict);
   apply_verdict(snap, verdict);
   pending_snapshots_.emplace_back(sat_id, std::move(snap));
 }

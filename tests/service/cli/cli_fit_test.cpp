@@ -199,6 +199,27 @@ TEST_CASE("fit --method ukf|ekf with --trace writes state and 1-sigma per sample
   std::filesystem::remove(trace);
 }
 
+TEST_CASE("fit --method ukf|ekf: a result that is not ok is never accepted", "[cli][fit]") {
+  // 3 h of the paper scenario: the filters start but their bias 1-sigma is still above the
+  // 10 nT convergence threshold (found by a fresh-user trial: `not_converged` yet `accepted`,
+  // 5.8 sigma off).
+  const auto csv = temp_path("short.csv");
+  REQUIRE(run_magcal("sim --scenario paper --hours 3 --seed 1 --out " + csv.string()).exit_code ==
+          0);
+  for (const char* method : {"ukf", "ekf"}) {
+    const Run r = run_magcal("fit --input " + csv.string() + " --method " + method + " --json");
+    INFO(method << ": " << r.err);
+    REQUIRE(r.exit_code == 0);
+    const nlohmann::json j = nlohmann::json::parse(r.out);
+    REQUIRE(j["status"] != "ok");  // the case this test is about
+    CHECK(j["verdict"] == "rejected");
+    REQUIRE(!j["rejection_reasons"].empty());
+    CHECK(j["rejection_reasons"][0].get<std::string>().rfind(j["status"].get<std::string>(), 0) ==
+          0);
+  }
+  std::filesystem::remove(csv);
+}
+
 TEST_CASE("fit errors: one line on stderr, exit 1 usage / 2 data", "[cli][fit]") {
   const auto csv = temp_path("err.csv");
   REQUIRE(write_sample_csv(csv.string(), model_data(600, 3.0, 6)).empty());

@@ -257,6 +257,40 @@ TEST_CASE("restart resumes the filter without a jump", "[ingest_worker]") {
   }
 }
 
+TEST_CASE("restart while the filter still collects for its start: no sample counted twice",
+          "[ingest_worker]") {
+  // A state saved before the start holds its samples in the start's moments: the restart must
+  // not re-run them (found by a fresh-user trial: SIGTERM at 596 samples gave a start at n=1444).
+  const auto s = simulate(2000, 5);
+  TempDb ref_db("collect-ref");
+  DaemonCounters ref_counters;
+  auto reference = make_worker(test_config(ref_db.path()), ref_counters);
+  feed(*reference, s, 0, s.size());
+  const FilterState& want = reference->fleet().find("SAT-1")->ukf.state();
+
+  TempDb tmp("collect");
+  const auto c = test_config(tmp.path());
+  DaemonCounters counters;
+  {
+    auto w = make_worker(c, counters);
+    feed(*w, s, 0, 400);
+    REQUIRE(counters.stored == 400);
+    REQUIRE(w->fleet().find("SAT-1")->ukf.state().moments.n == 400);
+    REQUIRE_FALSE(w->fleet().find("SAT-1")->ukf.initialized());  // still collecting
+    w->save_filter_states();
+  }
+  auto w = make_worker(c, counters);
+  w->restore();
+  REQUIRE(w->fleet().find("SAT-1") != nullptr);
+  CHECK(w->fleet().find("SAT-1")->ukf.state().moments.n == 400);
+  feed(*w, s, 400, s.size());
+  const FilterState& got = w->fleet().find("SAT-1")->ukf.state();
+  CHECK(got.moments.n == want.moments.n);
+  CHECK(got.n_accepted == want.n_accepted);
+  CHECK((got.x - want.x).cwiseQuotient(want.x.cwiseAbs().cwiseMax(1e-3)).cwiseAbs().maxCoeff() <
+        kStateTol);
+}
+
 TEST_CASE("an unwritable database is an error at construction", "[ingest_worker]") {
   DaemonCounters counters;
   auto c = test_config("/nonexistent-dir/sub/m.db");
