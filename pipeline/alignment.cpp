@@ -10,7 +10,6 @@
 #include <Eigen/SVD>
 
 #include "pipeline/hac_covariance.hpp"
-#include "pipeline/model_extension.hpp"
 
 namespace magcal {
 
@@ -149,15 +148,9 @@ std::vector<AlignmentPair> make_alignment_pairs(const SampleSet& samples,
 
 Eigen::Matrix3d alignment_covariance_from_stage1(const SampleSet& samples, const Eigen::Matrix3d& R,
                                                  const Matrix9d& parameter_covariance,
-                                                 const CalibrationParameters* extension_base,
+                                                 const ExtensionInputs* extension,
                                                  const Matrix6d& extension_covariance) {
-  std::vector<Eigen::Vector3d> y, signs;  // the extension's regressor inputs, sample order
-  if (extension_base) {
-    y.resize(samples.size());
-    for (std::size_t k = 0; k < samples.size(); ++k)
-      y[k] = extension_base->apply(samples[k].b_sensor_nT);
-    signs = hysteresis_signs(y);
-  }
+  assert(!extension || extension->y_nT.size() == samples.size());
   Eigen::Matrix3d F = Eigen::Matrix3d::Zero();
   Eigen::Matrix<double, 3, 9> JtUp = Eigen::Matrix<double, 3, 9>::Zero();
   Eigen::Matrix<double, 3, 6> JtUa = Eigen::Matrix<double, 3, 6>::Zero();
@@ -178,11 +171,11 @@ Eigen::Matrix3d alignment_covariance_from_stage1(const SampleSet& samples, const
     dUp(1, 8) = B(2), dUp(2, 8) = B(1);
     F.noalias() += J.transpose() * J;
     JtUp.noalias() += J.transpose() * dUp;
-    if (extension_base) {
+    if (extension) {
       Eigen::Matrix<double, 3, 6> dUa = Eigen::Matrix<double, 3, 6>::Zero();
       for (int i = 0; i < 3; ++i) {
-        dUa(i, i) = -y[k](i) * y[k](i);
-        dUa(i, 3 + i) = -signs[k](i);
+        dUa(i, i) = -extension->y_nT[k](i) * extension->y_nT[k](i);
+        dUa(i, 3 + i) = -extension->signs[k](i);
       }
       JtUa.noalias() += J.transpose() * dUa;
     }
@@ -191,7 +184,7 @@ Eigen::Matrix3d alignment_covariance_from_stage1(const SampleSet& samples, const
   const Eigen::LDLT<Eigen::Matrix3d> F_ldlt(F);
   const Eigen::Matrix<double, 3, 9> Gp = F_ldlt.solve(JtUp);
   Eigen::Matrix3d C = Gp * parameter_covariance * Gp.transpose();
-  if (extension_base) {
+  if (extension) {
     const Eigen::Matrix<double, 3, 6> Ga = F_ldlt.solve(JtUa);
     C += Ga * extension_covariance * Ga.transpose();
   }

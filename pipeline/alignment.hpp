@@ -35,6 +35,7 @@
 
 #include "pipeline/calibration_result.hpp"
 #include "pipeline/calibration_types.hpp"
+#include "pipeline/model_extension.hpp"
 #include "pipeline/rotation.hpp"
 
 namespace magcal {
@@ -56,13 +57,13 @@ std::vector<AlignmentPair> make_alignment_pairs(const SampleSet& samples,
 // What stage-1 errors do to the angles (first order): Cov = G_p C_p G_p^T + G_a C_a G_a^T,
 // G_p = F^-1 sum_k J_k^T du_k/dp, J_k = [(R h_k) x], du_k/dp = 3 x 9 (-I for b, B_k entries for
 // D), over the samples make_alignment_pairs() uses; R = the estimate, C_p = the stage-1 covariance
-// of p. With extension_base (the parameters the extension regressors were built from) the
-// extension's coefficients a = [k; eta] were removed from u too (extension_corrected_vectors):
+// of p. With `extension` (the inputs u was corrected with by extension_corrected_vectors) the
+// extension's coefficients a = [k; eta] were removed from u too:
 // G_a the same with du_k/da = -[diag(y_k^2) diag(s_k)], C_a their covariance (cross-covariance
 // of p and a left out). rad^2, sensor frame. Zero when no sample carries a reference direction.
 Eigen::Matrix3d alignment_covariance_from_stage1(
     const SampleSet& samples, const Eigen::Matrix3d& R, const Matrix9d& parameter_covariance,
-    const CalibrationParameters* extension_base = nullptr,
+    const ExtensionInputs* extension = nullptr,
     const Matrix6d& extension_covariance = Matrix6d::Zero());
 
 struct AlignmentOptions {

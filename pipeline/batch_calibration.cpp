@@ -223,7 +223,8 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
     if (options.model_extension && !options.robust && lm.status == LmStatus::kOk) {
       const RecoveryResult base = recover_parameters(lm.theta, &lm.theta_covariance);
       if (base.ok()) {
-        const std::vector<Vector6d> phi = model_extension_regressors(samples, base.parameters);
+        const std::vector<Vector6d> phi =
+            model_extension_regressors(extension_inputs(samples, base.parameters));
         // From the converged theta and a = 0 (linear in a) plain Gauss-Newton converges in ~3
         // iterations instead of ~5 with the default damping (measured on the paper scenario).
         LmOptions ext_options = lopt;
@@ -324,11 +325,13 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
   if (options.alignment) {
     // With the sensor-model extension fitted, its hysteresis (a lag of the field, much like a
     // rotation about the orbit normal) and nonlinearity are removed before the rotation is fitted.
+    ExtensionInputs extension;
+    if (r.has_nonlinearity) extension = extension_inputs(samples, r.parameters);
     const std::vector<AlignmentPair> pairs =
-        r.has_nonlinearity ? make_alignment_pairs(samples, extension_corrected_vectors(
-                                                               samples, r.parameters,
-                                                               r.nonlinearity_k3, r.hysteresis_nT))
-                           : make_alignment_pairs(samples, r.parameters);
+        r.has_nonlinearity
+            ? make_alignment_pairs(samples, extension_corrected_vectors(
+                                                extension, r.nonlinearity_k3, r.hysteresis_nT))
+            : make_alignment_pairs(samples, r.parameters);
     if (static_cast<int>(pairs.size()) >= options.min_alignment_samples) {
       AlignmentOptions aopt;  // covariance from the residuals' structure (alignment.hpp)
       const AlignmentResult al = align_procrustes(pairs, aopt);
@@ -338,7 +341,7 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
         // The stage-1 estimate's own error moves the rotation too.
         r.alignment.angle_covariance_rad2 += alignment_covariance_from_stage1(
             samples, al.estimate.R_sensor_from_body, r.covariance,
-            r.has_nonlinearity ? &r.parameters : nullptr, r.extension_covariance);
+            r.has_nonlinearity ? &extension : nullptr, r.extension_covariance);
       }
     }
   }

@@ -31,20 +31,23 @@
 
 namespace magcal {
 
-// Hysteresis signs s_k (+-1 per axis) of a vector sequence in sample order: the sign of the last
-// change y_k - y_{k-1} (y_1 - y_0 for the first), held over a zero difference; +1 before any
-// change.
-std::vector<Eigen::Vector3d> hysteresis_signs(const std::vector<Eigen::Vector3d>& y);
+// What the extension terms are built from, one entry per sample (sample order): the calibrated
+// vectors y_k = p.apply(B_k) (sensor frame, nT) and their hysteresis signs s_k (+-1 per axis: the
+// sign of the last change y_k - y_{k-1}, y_1 - y_0 for the first, held over a zero difference;
+// +1 before any change).
+struct ExtensionInputs {
+  std::vector<Eigen::Vector3d> y_nT;
+  std::vector<Eigen::Vector3d> signs;
+};
+ExtensionInputs extension_inputs(const SampleSet& samples, const CalibrationParameters& p);
 
-// phi_k for every sample (order as given) from the 9-parameter estimate p.
-std::vector<Vector6d> model_extension_regressors(const SampleSet& samples,
-                                                 const CalibrationParameters& p);
+// phi_k for every sample, from the inputs of the 9-parameter estimate.
+std::vector<Vector6d> model_extension_regressors(const ExtensionInputs& in);
 
 // Calibrated vectors with a fitted extension removed, x_k = y_k - n(y_k) (the inverse of the model
-// above to first order), y_k = p.apply(B_k), n_i = k_i y_i^2 + eta_i s_i; sensor frame, nT,
-// sample order (k_per_nT: CalibrationResult::nonlinearity_k3, eta_nT: hysteresis_nT).
-std::vector<Eigen::Vector3d> extension_corrected_vectors(const SampleSet& samples,
-                                                         const CalibrationParameters& p,
+// above to first order), n_i = k_i y_i^2 + eta_i s_i; sensor frame, nT, sample order (k_per_nT:
+// CalibrationResult::nonlinearity_k3, eta_nT: hysteresis_nT).
+std::vector<Eigen::Vector3d> extension_corrected_vectors(const ExtensionInputs& in,
                                                          const Eigen::Vector3d& k_per_nT,
                                                          const Eigen::Vector3d& eta_nT);
 

@@ -131,8 +131,10 @@ void IngestWorker::process(const IngestItem& item) {
     const std::string& sat = sample_sat_id(s, item.batch_sat_id);
     if (checked && *checked == sat) continue;
     checked = &sat;
-    check_first_refit(sat);
-    if (data_schedule_) check_data_clock(sat);
+    SpacecraftTracker* t = fleet_.find(sat);
+    if (!t) continue;  // every sample of the run rejected before it had a tracker
+    check_first_refit(sat, *t);
+    if (data_schedule_) check_data_clock(sat, *t);
   }
 }
 
@@ -533,17 +535,16 @@ void IngestWorker::run_retention() {
   retention_dirty_.swap(failed);
 }
 
-void IngestWorker::check_data_clock(const std::string& sat_id) {
-  SpacecraftTracker* t = fleet_.find(sat_id);
-  if (!t || !t->data_refits || t->newest_utime == kNoTime) return;
-  const int64_t skipped_before = t->data_refits->skipped();
-  const auto due = t->data_refits->advance(t->newest_utime);
-  if (t->data_refits->skipped() != skipped_before) {
+void IngestWorker::check_data_clock(const std::string& sat_id, SpacecraftTracker& t) {
+  if (!t.data_refits || t.newest_utime == kNoTime) return;
+  const int64_t skipped_before = t.data_refits->skipped();
+  const auto due = t.data_refits->advance(t.newest_utime);
+  if (t.data_refits->skipped() != skipped_before) {
     warnings_.warn("refits_skipped",
                    fmt::format("{}: data clock jumped to {}: {} scheduled refits skipped, only the "
                                "latest runs",
-                               sat_id, format_iso8601_utc(t->newest_utime),
-                               t->data_refits->skipped() - skipped_before));
+                               sat_id, format_iso8601_utc(t.newest_utime),
+                               t.data_refits->skipped() - skipped_before));
   }
   if (due.empty()) return;
   flush();  // the refit reads what is committed: everything up to t_ref
@@ -552,15 +553,14 @@ void IngestWorker::check_data_clock(const std::string& sat_id) {
   }
 }
 
-void IngestWorker::check_first_refit(const std::string& sat_id) {
-  SpacecraftTracker* t = fleet_.find(sat_id);
-  if (!t || t->first_refit_requested || !t->ukf.initialized() ||
-      t->ukf.state().moments.n < config_.refit.min_samples || t->newest_utime == kNoTime) {
+void IngestWorker::check_first_refit(const std::string& sat_id, SpacecraftTracker& t) {
+  if (t.first_refit_requested || !t.ukf.initialized() ||
+      t.ukf.state().moments.n < config_.refit.min_samples || t.newest_utime == kNoTime) {
     return;
   }
-  t->first_refit_requested = true;
+  t.first_refit_requested = true;
   flush();  // the refit reads what is committed
-  if (hooks_.on_refit_due) hooks_.on_refit_due(sat_id, t->newest_utime, "first");
+  if (hooks_.on_refit_due) hooks_.on_refit_due(sat_id, t.newest_utime, "first");
 }
 
 void IngestWorker::save_filter_states() {

@@ -145,9 +145,9 @@ class IngestWorker {
   void run_retention();
   // Data clock: advances sat_id's refit schedule to its newest sample; due refits are
   // committed up to their time, then handed to on_refit_due.
-  void check_data_clock(const std::string& sat_id);
+  void check_data_clock(const std::string& sat_id, SpacecraftTracker& t);
   // Requests sat_id's first refit once it is due (Hooks::on_refit_due, trigger "first").
-  void check_first_refit(const std::string& sat_id);
+  void check_first_refit(const std::string& sat_id, SpacecraftTracker& t);
   void commit_pending();
   // Counts the committed rows [begin, end) of pending_ per spacecraft (minus duplicate_rows_).
   void count_stored(size_t begin, size_t end);

@@ -269,20 +269,13 @@ bool filter_state_from_stored(const storage::FilterState& in, FilterState& out) 
        get(b, pos, st.period_nis_sum);
   if (!ok) return false;
   if (pos < b.size()) {  // the reported covariance's blocks (see stored_filter_state)
-    FilterState blocks;
-    for (int i = 0; ok && i < blocks.anchor_information.size(); ++i)
-      ok = get(b, pos, blocks.anchor_information(i));
-    for (int i = 0; ok && i < blocks.score_block.size(); ++i)
-      ok = get(b, pos, blocks.score_block(i));
-    ok = ok && get(b, pos, blocks.score_block_n);
-    for (int i = 0; ok && i < blocks.score_meat.size(); ++i) ok = get(b, pos, blocks.score_meat(i));
-    ok = ok && get(b, pos, blocks.score_blocks);
+    for (int i = 0; ok && i < st.anchor_information.size(); ++i)
+      ok = get(b, pos, st.anchor_information(i));
+    for (int i = 0; ok && i < st.score_block.size(); ++i) ok = get(b, pos, st.score_block(i));
+    ok = ok && get(b, pos, st.score_block_n);
+    for (int i = 0; ok && i < st.score_meat.size(); ++i) ok = get(b, pos, st.score_meat(i));
+    ok = ok && get(b, pos, st.score_blocks);
     if (!ok) return false;
-    st.anchor_information = blocks.anchor_information;
-    st.score_block = blocks.score_block;
-    st.score_block_n = blocks.score_block_n;
-    st.score_meat = blocks.score_meat;
-    st.score_blocks = blocks.score_blocks;
   }
   st.has_time = has_time != 0;
   st.has_previous_innovation = has_prev != 0;
