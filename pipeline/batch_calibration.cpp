@@ -17,9 +17,13 @@
 
 namespace magcal {
 
-// See the model-extension decision in calibrate_batch().
+// See the model-extension decision in calibrate_batch_core().
 constexpr double kMaxExtensionResidualRatio = 2.0;
-constexpr double kMaxExtensionEffectFraction = 0.01;
+// Robust fits: a sample whose residual | |B_cal| - |h| | lies more than this many robust sigmas
+// (1.4826 x the median absolute deviation) from the median is an outlier and is left out of the
+// final fit. For Gaussian noise 5 sigmas leave out 6e-7 of clean samples; the spike recordings
+// robust mode exists for have outliers of 10^2-10^4 sigmas.
+constexpr double kOutlierRobustSigmas = 5.0;
 
 const char* to_string(BatchCalibrationOptions::Method m) {
   return m == BatchCalibrationOptions::Method::kCentered ? "centered" : "twostep";
@@ -101,10 +105,9 @@ CalibrationResult fail(CalibrationResult r, CalibrationStatus status, std::strin
   return r;
 }
 
-}  // namespace
-
-CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrationOptions& options,
-                                  const CalibrationResult* previous_accepted) {
+CalibrationResult calibrate_batch_core(const SampleSet& samples,
+                                       const BatchCalibrationOptions& options,
+                                       const CalibrationResult* previous_accepted) {
   CalibrationResult r;
   r.method = to_string(options.method);
   r.n_samples = static_cast<int>(samples.size());
@@ -148,6 +151,7 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
   CenteredOptions copt;
   copt.sigma_nT = options.sigma_nT;
   copt.min_samples = std::min(options.min_samples, r.n_samples);
+  copt.residual_covariance = options.method == BatchCalibrationOptions::Method::kCentered;
   const CenteredResult centered = centered_solution(samples, copt);
   if (centered.status == CenteredStatus::kSingular) {
     return fail(r, CalibrationStatus::kUnobservable, centered.message);
@@ -159,8 +163,7 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
 
   Vector9d theta = centered.theta;
   Matrix9d theta_cov = centered.theta_covariance;
-  Matrix9d theta_cov_white = centered.theta_covariance;
-  std::vector<double> robust_weights;  // robust twostep: u_k (1 = kept)
+  Matrix9d theta_cov_white = centered.theta_covariance_white;
   // With a (nearly) constant reference magnitude the centered solution is degenerate
   // (E = -I, c = 0 fits the centered data exactly, estimation.md section 7): it is no estimate
   // and no start. Relative spread of |h| below 1e-3 (the paper orbit varies by ~30 %; a lab
@@ -185,6 +188,9 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
     }
     r.iterations = 0;
     r.converged = true;
+    r.noise_scale = centered.noise_scale;
+    r.residual_autocorrelation = centered.residual_autocorrelation;
+    r.covariance_lag_window = centered.lag_window;
   } else {
     // Stage 1b: LM from the centered solution; when that is degenerate, not positive definite
     // or does not converge, also from the algebraic ellipsoid fit, keeping the converged
@@ -215,11 +221,11 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
       return fail(r, CalibrationStatus::kUnobservable, lm.message);
     }
     // Model extension (nonlinearity + hysteresis, pipeline/model_extension.hpp) when BIC
-    // prefers it over the converged 9-parameter solution. Not in robust mode: BIC's Gaussian
-    // likelihood does not hold with outliers (measured: spikes made BIC pick the extension and
-    // moved the bias by > 1000 nT). And the extension must move the bias by no more than
-    // 5 (HAC) sigmas of the 9-parameter fit: it explains small unmodelled effects, it does not
-    // relocate the solution.
+    // prefers it over the converged 9-parameter solution. Not in the robust outlier pass: BIC's
+    // Gaussian likelihood does not hold with outliers (measured: spikes made BIC pick the
+    // extension and moved the bias by > 1000 nT); calibrate_batch() refits without them. And the
+    // extension must move the bias by no more than 5 (HAC) sigmas of the 9-parameter fit: it
+    // explains small unmodelled effects, it does not relocate the solution.
     if (options.model_extension && !options.robust && lm.status == LmStatus::kOk) {
       const RecoveryResult base = recover_parameters(lm.theta, &lm.theta_covariance);
       if (base.ok()) {
@@ -241,24 +247,18 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
         // on 6 h, 1.75x on 3 h, where the 9-parameter fit bends b by up to 31 nT to absorb the
         // unmodelled effects), never far worse (ISS Astro Pi, whose effects the extension does
         // not describe: 18 500 vs 3 400 nT, 5.4x).
-        // And the effects it describes must be small sensor effects: per axis, |k_i| |h|^2 and
-        // |eta_i| within kMaxExtensionEffectFraction of the mean |h| (paper sensor, 3-12 h
-        // windows: at most 0.44 %; ISS Astro Pi halves, where the "nonlinearity" soaks up
-        // 500-8 700 nT of what the station does to the field: 1.4-25 %).
+        // And the effects it describes must be small sensor effects (extension_effects_small).
         double mean_h_nT = 0.0;
         for (const CalibrationSample& s : samples) mean_h_nT += s.h_body_nT.norm();
         mean_h_nT /= static_cast<double>(samples.size());
-        const double effect_limit_nT = kMaxExtensionEffectFraction * mean_h_nT;
-        const bool small_effects =
-            (ext.extension.head<3>().cwiseAbs() * (mean_h_nT * mean_h_nT)).maxCoeff() <=
-                effect_limit_nT &&
-            ext.extension.tail<3>().cwiseAbs().maxCoeff() <= effect_limit_nT;
+        const bool small_effects = extension_effects_small(ext.extension, mean_h_nT);
         if (ext.status == LmStatus::kOk && small_effects &&
             (shift.cwiseAbs().array() <= 5.0 * sigma.array()).all() &&
             bic_prefers_extension(2.0 * lm.cost, 2.0 * ext.cost, r.n_samples) &&
             geometric_residual_rms(samples, ext.theta) <=
                 kMaxExtensionResidualRatio * geometric_residual_rms(samples, lm.theta)) {
           lm = std::move(ext);
+          r.model_error = base.parameters.packed() - extended.parameters.packed();
           r.has_nonlinearity = true;
           r.nonlinearity_k3 = lm.extension.head<3>();
           r.hysteresis_nT = lm.extension.tail<3>();
@@ -275,7 +275,6 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
     r.noise_scale = lm.noise_scale;
     r.residual_autocorrelation = lm.residual_autocorrelation;
     r.covariance_lag_window = lm.lag_window;
-    robust_weights = lm.robust_weights;
     r.iterations = lm.iterations;
     r.converged = lm.converged;
     r.n_downweighted = lm.n_downweighted;
@@ -290,22 +289,14 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
   r.covariance_white_noise = recover_parameters(theta, &theta_cov_white).covariance;
 
   // Residual rms of |B_cal| - |h| with the published b, D (what a user of calibration_t gets;
-  // the model extension, when used, shows in noise_scale instead) over all samples, and
-  // (robust mode) over the kept ones: a sample the Huber weighting down-weighted (u_k < 1) is an
-  // outlier the estimate does not rest on.
-  double sum_sq = 0.0, sum_sq_kept = 0.0;
-  int n_kept = 0;
-  for (std::size_t k = 0; k < samples.size(); ++k) {
-    const CalibrationSample& s = samples[k];
+  // the model extension, when used, shows in noise_scale instead).
+  double sum_sq = 0.0;
+  for (const CalibrationSample& s : samples) {
     const double e = r.parameters.apply(s.b_sensor_nT).norm() - s.h_body_nT.norm();
     sum_sq += e * e;
-    if (robust_weights.empty() || robust_weights[k] >= 1.0) {
-      sum_sq_kept += e * e;
-      ++n_kept;
-    }
   }
-  r.residual_rms_all_nT = std::sqrt(sum_sq / static_cast<double>(samples.size()));
-  r.residual_rms_nT = n_kept > 0 ? std::sqrt(sum_sq_kept / n_kept) : r.residual_rms_all_nT;
+  r.residual_rms_nT = std::sqrt(sum_sq / static_cast<double>(samples.size()));
+  r.residual_rms_all_nT = r.residual_rms_nT;
 
   // Observability at the estimate.
   const CrlbResult crlb = compute_crlb(samples, r.parameters, options.sigma_nT);
@@ -323,27 +314,7 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
 
   // Stage 2: alignment on samples that carry a reference direction.
   if (options.alignment) {
-    // With the sensor-model extension fitted, its hysteresis (a lag of the field, much like a
-    // rotation about the orbit normal) and nonlinearity are removed before the rotation is fitted.
-    ExtensionInputs extension;
-    if (r.has_nonlinearity) extension = extension_inputs(samples, r.parameters);
-    const std::vector<AlignmentPair> pairs =
-        r.has_nonlinearity
-            ? make_alignment_pairs(samples, extension_corrected_vectors(
-                                                extension, r.nonlinearity_k3, r.hysteresis_nT))
-            : make_alignment_pairs(samples, r.parameters);
-    if (static_cast<int>(pairs.size()) >= options.min_alignment_samples) {
-      AlignmentOptions aopt;  // covariance from the residuals' structure (alignment.hpp)
-      const AlignmentResult al = align_procrustes(pairs, aopt);
-      if (al.ok()) {
-        r.has_alignment = true;
-        r.alignment = al.estimate;
-        // The stage-1 estimate's own error moves the rotation too.
-        r.alignment.angle_covariance_rad2 += alignment_covariance_from_stage1(
-            samples, al.estimate.R_sensor_from_body, r.covariance,
-            r.has_nonlinearity ? &extension : nullptr, r.extension_covariance);
-      }
-    }
+    estimate_alignment(samples, options.sigma_nT, options.min_alignment_samples, &r);
   }
 
   // Gates.
@@ -352,7 +323,127 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
     in.min_coverage_eigenvalue = coverage(0);
     in.fisher_min_eigenvalue = crlb.min_eigenvalue;
     in.previous_accepted = previous_accepted;
-    apply_verdict(r, evaluate_gates(r, in, options.gate_options));
+    GateVerdict verdict = evaluate_gates(r, in, options.gate_options);
+    // The centered solution cannot take the sensor-model extension. When the data support it,
+    // the effects it describes bias the centered D by more than any covariance derived from the
+    // residuals covers (paper scenario, 12 h: D13 6.8 sigma off with the HAC covariance, pitch
+    // 6 sigma); twostep fits them.
+    if (options.method == BatchCalibrationOptions::Method::kCentered &&
+        fit_extension_at_estimate(samples, extension_inputs(samples, r.parameters),
+                                  options.sigma_nT)
+            .used) {
+      verdict.accepted = false;
+      verdict.reasons.push_back(
+          "centered solution: the residuals show sensor effects it does not model (BIC prefers "
+          "the nonlinearity/hysteresis extension), which bias its D beyond its sigmas: use "
+          "twostep");
+    }
+    apply_verdict(r, verdict);
+  }
+  return r;
+}
+
+}  // namespace
+
+void estimate_alignment(const SampleSet& samples, double sigma_nT, int min_alignment_samples,
+                        CalibrationResult* r) {
+  const ExtensionInputs in = extension_inputs(samples, r->parameters);
+  // The extension removed from the vectors: the one fitted jointly with b, D, else one fitted at
+  // b, D when the data support it (the hysteresis is a lag of the field, much like a rotation
+  // about the orbit normal: left in, it tilts the rotation; measured with the UKF's b, D, paper
+  // scenario: pitch 25 sigma off on 12 h, 63 on 24 h).
+  bool corrected = r->has_nonlinearity;
+  Vector6d a;
+  a << r->nonlinearity_k3, r->hysteresis_nT;
+  Matrix6d a_covariance = r->extension_covariance;
+  if (!corrected) {
+    const ExtensionFitAtEstimate fit = fit_extension_at_estimate(samples, in, sigma_nT);
+    if (fit.used) {
+      corrected = true;
+      a = fit.a;
+      a_covariance = fit.covariance;
+    }
+  }
+  const std::vector<AlignmentPair> pairs = make_alignment_pairs(
+      samples, corrected ? extension_corrected_vectors(in, a.head<3>(), a.tail<3>()) : in.y_nT);
+  if (static_cast<int>(pairs.size()) < min_alignment_samples) return;
+  const AlignmentResult al = align_procrustes(pairs);  // covariance from the residuals' structure
+  if (!al.ok()) return;
+  r->has_alignment = true;
+  r->alignment = al.estimate;
+  // The stage-1 estimate's own error moves the rotation too.
+  r->alignment.angle_covariance_rad2 +=
+      alignment_covariance_from_stage1(samples, al.estimate.R_sensor_from_body, r->covariance,
+                                       corrected ? &in : nullptr, a_covariance);
+}
+
+CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrationOptions& options,
+                                  const CalibrationResult* previous_accepted) {
+  if (!options.robust || options.method != BatchCalibrationOptions::Method::kTwoStep) {
+    return calibrate_batch_core(samples, options, previous_accepted);
+  }
+  // Robust: a Huber IRLS refinement (robust scale) finds the outliers; the fit users get is the
+  // ordinary one (model extension, HAC covariance, alignment, gates) on the samples left, so its
+  // sigmas come from the same residual structure as a clean refit's. Large spikes can drag the
+  // (least-squares) centered start, and with it the first robust refinement, far off: the
+  // outliers are then only the worst ones, so the pass repeats on the samples left until the set
+  // of outliers (judged on all samples) stops changing.
+  constexpr int kMaxOutlierPasses = 8;
+  BatchCalibrationOptions outlier_pass = options;
+  outlier_pass.model_extension = false;
+  outlier_pass.alignment = false;
+  outlier_pass.gates = false;
+  std::vector<char> keep(samples.size(), 1);
+  SampleSet kept = samples;
+  std::vector<double> e(samples.size()), sorted;
+  for (int pass = 0; pass < kMaxOutlierPasses; ++pass) {
+    const CalibrationResult fit = calibrate_batch_core(kept, outlier_pass, nullptr);
+    if (fit.status != CalibrationStatus::kOk && fit.status != CalibrationStatus::kNotConverged) {
+      if (pass == 0) return fit;
+      break;  // keep the last usable outlier set
+    }
+    for (std::size_t k = 0; k < samples.size(); ++k) {
+      e[k] = fit.parameters.apply(samples[k].b_sensor_nT).norm() - samples[k].h_body_nT.norm();
+    }
+    sorted = e;
+    auto mid = sorted.begin() + static_cast<std::ptrdiff_t>(sorted.size() / 2);
+    std::nth_element(sorted.begin(), mid, sorted.end());
+    const double median = *mid;
+    for (double& x : sorted) x = std::abs(x - median);
+    std::nth_element(sorted.begin(), mid, sorted.end());
+    // Never below the nominal noise: on noise-free data the MAD is rounding.
+    const double cut = kOutlierRobustSigmas * std::max(1.4826 * *mid, options.sigma_nT);
+    bool changed = false;
+    for (std::size_t k = 0; k < samples.size(); ++k) {
+      const char in = std::abs(e[k] - median) <= cut ? 1 : 0;
+      changed = changed || in != keep[k];
+      keep[k] = in;
+    }
+    if (!changed) break;
+    kept.clear();
+    for (std::size_t k = 0; k < samples.size(); ++k) {
+      if (keep[k]) kept.push_back(samples[k]);
+    }
+  }
+  BatchCalibrationOptions final_pass = options;
+  final_pass.robust = false;
+  CalibrationResult r = calibrate_batch_core(kept, final_pass, previous_accepted);
+  r.n_downweighted = static_cast<int>(samples.size() - kept.size());
+  r.n_samples = static_cast<int>(samples.size());
+  const auto [t0, t1] = std::minmax_element(
+      samples.begin(), samples.end(),
+      [](const CalibrationSample& a, const CalibrationSample& b) { return a.utime < b.utime; });
+  r.window_start_utime = t0->utime;
+  r.window_end_utime = t1->utime;
+  r.utime = t1->utime;
+  if (r.status == CalibrationStatus::kOk || r.status == CalibrationStatus::kNotConverged ||
+      r.status == CalibrationStatus::kRejected) {
+    double sum_sq = 0.0;
+    for (const CalibrationSample& s : samples) {
+      const double x = r.parameters.apply(s.b_sensor_nT).norm() - s.h_body_nT.norm();
+      sum_sq += x * x;
+    }
+    r.residual_rms_all_nT = std::sqrt(sum_sq / static_cast<double>(samples.size()));
   }
   return r;
 }

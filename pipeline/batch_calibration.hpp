@@ -7,6 +7,7 @@
 //      ellipsoid fit when the centered solution is degenerate), HAC covariance, model
 //      extension when BIC prefers it (estimation.md section 7)
 //   -> recovery of b, D and their covariance (2c)
+//   (robust: that refinement with Huber IRLS finds the outliers, then all of it again without them)
 //   -> residual rms of |B_cal| - |h|,  B_cal = (I + D) B - b  (|R^T v| = |v|)
 //   -> scaled Fisher condition number at the estimate (2d): unobservable above a limit
 //   -> stage 2 alignment, Procrustes, on samples with has_reference_direction (section 4)
@@ -30,7 +31,10 @@ struct BatchCalibrationOptions {
   enum class Method { kCentered, kTwoStep };  // "centered" | "twostep" (centered + LM)
   Method method = Method::kTwoStep;
   double sigma_nT = 3.0;  // magnetometer white noise per axis (weights, covariance)
-  bool robust = false;    // Huber IRLS in the refinement (twostep only)
+  // twostep only: a Huber IRLS refinement (robust scale) finds the outliers (residual more than 5
+  // robust sigmas from the median); the result is the ordinary fit on the samples left
+  // (n_downweighted: how many were left out; residual_rms_all_nT: over all samples).
+  bool robust = false;
   double huber_k = 3.0;
   int max_iterations = 50;   // LM
   double tolerance = 1e-10;  // LM stop on dtheta^T F dtheta
@@ -58,5 +62,15 @@ bool parse_batch_method(const std::string& name, BatchCalibrationOptions::Method
 // window times are taken from the samples' utimes (min/max); utime = window end.
 CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrationOptions& options,
                                   const CalibrationResult* previous_accepted = nullptr);
+
+// Stage 2 (estimation.md section 4) for a result whose parameters and covariance are set (a
+// batch refit, a filter snapshot): Procrustes on the samples with a reference direction, from
+// the calibrated vectors with the sensor-model extension removed (the result's own when it has
+// one, else one fitted at its b, D when BIC supports it: fit_extension_at_estimate), angle
+// covariance from the residuals' structure plus the stage-1 error propagated
+// (alignment_covariance_from_stage1). Sets r->has_alignment and r->alignment; leaves r unchanged
+// when fewer than min_alignment_samples carry a direction or Procrustes fails.
+void estimate_alignment(const SampleSet& samples, double sigma_nT, int min_alignment_samples,
+                        CalibrationResult* r);
 
 }  // namespace magcal

@@ -73,6 +73,12 @@ struct CalibrationResult {
   // Covariance of [nonlinearity_k3; hysteresis_nT] ((1/nT)^2, nT^2; HAC, as `covariance`).
   Matrix6d extension_covariance = Matrix6d::Zero();
 
+  // Batch refits that took the extension: p_9 - p, where the 9-parameter model's optimum lies on
+  // this window relative to the published p (what an estimator without the extension, such as
+  // the online filters, converges to instead). Zero otherwise. Not persisted.
+  Vector9d model_error = Vector9d::Zero();
+  Matrix9d model_error_covariance() const { return model_error * model_error.transpose(); }
+
   // Online filters: mean normalised innovation squared over the snapshot period, and the
   // effective per-axis measurement noise the (adaptive) filter currently uses.
   double nis_mean = std::numeric_limits<double>::quiet_NaN();

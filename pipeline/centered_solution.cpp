@@ -3,9 +3,11 @@
 #include <cmath>
 #include <cstdio>
 #include <limits>
+#include <vector>
 
 #include <Eigen/Dense>
 
+#include "pipeline/hac_covariance.hpp"
 #include "pipeline/outer_product_sum.hpp"
 #include "pipeline/scalar_measurement.hpp"
 
@@ -114,7 +116,33 @@ CenteredResult centered_solution(const SampleSet& samples, const CenteredOptions
                                              eig.eigenvalues().cwiseInverse().asDiagonal() *
                                              eig.eigenvectors().transpose();
   r.theta_covariance = s_inv.asDiagonal() * Fs_inv * s_inv.asDiagonal();
+  r.theta_covariance_white = r.theta_covariance;
   r.theta = r.theta_covariance * g;
+
+  if (options.residual_covariance) {
+    // Pass 3: scores and normalised residuals at theta.
+    std::vector<Vector9d> scores(samples.size());
+    std::vector<double> e(samples.size());
+    double chi2 = 0.0;
+    for (std::size_t k = 0; k < samples.size(); ++k) {
+      const CalibrationSample& s = samples[k];
+      const double w = weight(s.b_sensor_nT);
+      const RowVector9d Lc = scalar_regressor(s.b_sensor_nT) - L_bar;
+      const double residual =
+          scalar_measurement(s.b_sensor_nT, s.h_body_nT.norm()) - mu - z_bar - Lc.dot(r.theta);
+      scores[k] = (w * residual) * Lc.transpose();
+      e[k] = std::sqrt(w) * residual;
+      chi2 += w * residual * residual;
+    }
+    const double n = static_cast<double>(samples.size());
+    const double dof = n - 10.0;  // 9 parameters and the eliminated mean
+    r.noise_scale = std::sqrt(chi2 / dof);
+    r.residual_autocorrelation = lag1_autocorrelation(e);
+    r.lag_window = bartlett_lag_window(r.residual_autocorrelation, r.n_samples);
+    const Matrix9d hac = r.theta_covariance_white * newey_west_meat<9>(scores, r.lag_window) *
+                         r.theta_covariance_white * (n / dof);
+    r.theta_covariance = covariance_not_below(r.theta_covariance_white, hac);
+  }
 
   const Eigen::Matrix3d I_E = Eigen::Matrix3d::Identity() + unpack_symmetric(r.theta.tail<6>());
   const Eigen::Vector3d s_IE =

@@ -14,6 +14,7 @@
 // kInvalidInput).
 #pragma once
 
+#include <limits>
 #include <string>
 
 #include <Eigen/Core>
@@ -27,6 +28,12 @@ struct CenteredOptions {
   int min_samples = 10;   // 9 unknowns + the eliminated mean
   // F~ is treated as singular when its scaled condition number exceeds this.
   double max_condition = 1e14;
+  // Also derive theta_covariance from the residuals' structure (a third pass): the HAC sandwich
+  // F~^-1 Omega F~^-1 (hac_covariance.hpp, scores w_k L~_k^T e~_k, lag window from the
+  // residuals' lag-1 autocorrelation), not below F~^-1. For `magcal fit --method centered`, whose
+  // white F~^-1 leaves out the error the unmodelled sensor effects cause (paper scenario, 12 h:
+  // z bias up to 6 sigma off). Off for the LM start, whose covariance nobody reads.
+  bool residual_covariance = false;
   std::string validate() const;  // empty when valid
 };
 
@@ -44,8 +51,14 @@ struct CenteredResult {
   CenteredStatus status = CenteredStatus::kInvalidInput;
   std::string message;
   Vector9d theta = Vector9d::Zero();             // [c (nT); E11 E22 E33 E12 E13 E23]
-  Matrix9d theta_covariance = Matrix9d::Zero();  // F~^-1
-  double condition_number = 0.0;                 // of the scaled F~
+  Matrix9d theta_covariance = Matrix9d::Zero();  // F~^-1, or the HAC one (residual_covariance)
+  Matrix9d theta_covariance_white = Matrix9d::Zero();  // F~^-1
+  // residual_covariance only: sqrt(sum w e~^2 / (n - 10)), lag-1 autocorrelation of sqrt(w) e~,
+  // and the Bartlett lag window used.
+  double noise_scale = std::numeric_limits<double>::quiet_NaN();
+  double residual_autocorrelation = std::numeric_limits<double>::quiet_NaN();
+  int lag_window = 0;
+  double condition_number = 0.0;  // of the scaled F~
   int n_samples = 0;
 };
 

@@ -84,7 +84,8 @@ bool FilterState::operator==(const FilterState& o) const {
          period_residual_sum2_nT2 == o.period_residual_sum2_nT2 &&
          period_nis_sum == o.period_nis_sum && anchor_information == o.anchor_information &&
          score_block == o.score_block && score_block_n == o.score_block_n &&
-         score_meat == o.score_meat && score_blocks == o.score_blocks;
+         score_meat == o.score_meat && score_blocks == o.score_blocks &&
+         model_error_covariance == o.model_error_covariance;
 }
 
 const char* to_string(FilterUpdateStatus s) {
@@ -220,7 +221,9 @@ void ScalarFilterBase::initialize(const Vector9d& x0, const Matrix9d& P0) {
   update_convergence_time();
 }
 
-void ScalarFilterBase::reanchor(const Vector9d& x, const Matrix9d& P) {
+void ScalarFilterBase::reanchor(const Vector9d& x, const Matrix9d& P,
+                                const Matrix9d& model_error_covariance) {
+  set_model_error_covariance(model_error_covariance);
   state_.x = x;
   set_covariance(P);
   anchor_sandwich();
@@ -234,6 +237,11 @@ void ScalarFilterBase::reanchor(const Vector9d& x, const Matrix9d& P) {
     state_.samples_since_fisher = 0;
   }
   update_convergence_time();
+}
+
+void ScalarFilterBase::set_model_error_covariance(const Matrix9d& model_error_covariance) {
+  state_.model_error_covariance =
+      model_error_covariance.allFinite() ? model_error_covariance : Matrix9d::Zero();
 }
 
 void ScalarFilterBase::seed_noise(double measurement_noise_nT, double residual_autocorrelation) {
@@ -263,9 +271,12 @@ Matrix9d ScalarFilterBase::P() const {
 
 Matrix9d ScalarFilterBase::reported_covariance() const {
   const Matrix9d P = this->P();
-  if (options_.sandwich_block_samples <= 0 || state_.score_blocks == 0) return P;
+  if (options_.sandwich_block_samples <= 0 || state_.score_blocks == 0) {
+    return P + state_.model_error_covariance;
+  }
   const Matrix9d C = P * (state_.anchor_information + state_.score_meat) * P;
-  return covariance_not_below(P, Matrix9d(0.5 * (C + C.transpose())));
+  return covariance_not_below(P, Matrix9d(0.5 * (C + C.transpose()))) +
+         state_.model_error_covariance;
 }
 
 Eigen::Vector3d ScalarFilterBase::bias_sigma_nT() const {

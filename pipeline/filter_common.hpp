@@ -185,6 +185,8 @@ struct FilterState {
   int32_t score_block_n = 0;
   Matrix9d score_meat = Matrix9d::Zero();
   int32_t score_blocks = 0;
+  // Model error (reanchor(), set_model_error_covariance()): added to the reported covariance.
+  Matrix9d model_error_covariance = Matrix9d::Zero();
 
   // Snapshot period (since the start or reset_period()).
   int64_t period_start_utime = 0;
@@ -248,7 +250,17 @@ class ScalarFilterBase {
   // After an accepted batch refit: replace x and P, keep time, counters, the noise estimate and
   // the accumulated information; reset the NIS window and the consistency flag (the refit is
   // trusted). On a filter that has not started yet this starts it (keeping its moments).
-  void reanchor(const Vector9d& x, const Matrix9d& P);
+  // model_error_covariance: the refit's CalibrationResult::model_error_covariance() (zero when
+  // its data showed nothing beyond the 9-parameter model). The filter's own model has 9
+  // parameters: between re-anchors it drifts toward the 9-parameter optimum of the data, which
+  // the refit measured to lie that far from its estimate (paper scenario, 24 h without a
+  // re-anchor: D13 7 sigma off; p_9 - p_ext 8 sigma). Added to the reported covariance until the
+  // next re-anchor or initialize().
+  void reanchor(const Vector9d& x, const Matrix9d& P,
+                const Matrix9d& model_error_covariance = Matrix9d::Zero());
+  // The same model-error term without a re-anchor (a filter run over a window a batch refit
+  // has measured, e.g. `magcal fit --method ukf`).
+  void set_model_error_covariance(const Matrix9d& model_error_covariance);
   // Sets the noise estimate from a refit's effective noise (per axis, nT; e.g. sigma_nT x the
   // refit's noise_scale, or its residual rms). Bounded below by sigma_nT. Ignored if not > 0.
   // residual_autocorrelation (the refit's lag-1 value, if finite) seeds the correlation
@@ -267,7 +279,8 @@ class ScalarFilterBase {
   bool consistent() const { return state_.consistent; }
   const Vector9d& x() const { return state_.x; }
   Matrix9d P() const;  // S S^T
-  // The covariance snapshot() reports: P widened by the residual structure (file comment).
+  // The covariance snapshot() reports: P widened by the residual structure (file comment), plus
+  // the model-error covariance of the last re-anchor.
   Matrix9d reported_covariance() const;
   CalibrationParameters parameters() const { return CalibrationParameters::from_packed(state_.x); }
   Eigen::Vector3d bias_sigma_nT() const;

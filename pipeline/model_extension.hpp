@@ -54,4 +54,29 @@ std::vector<Eigen::Vector3d> extension_corrected_vectors(const ExtensionInputs& 
 // BIC prefers the 6 extra parameters when this is true.
 bool bic_prefers_extension(double chi2_base, double chi2_extended, int n_samples);
 
+// The effects a = [k (1/nT); eta (nT)] describes are small sensor effects: per axis |k_i| |h|^2
+// and |eta_i| within 1 % of the mean |h| (mean_h_nT). Paper sensor, 3-12 h windows: at most
+// 0.44 %; the ISS Astro Pi halves, where the "nonlinearity" soaks up 500-8 700 nT of what the
+// station does to the field: 1.4-25 %. Beyond it the extension is not a sensor effect and is
+// not used.
+bool extension_effects_small(const Vector6d& a, double mean_h_nT);
+
+// The extension fitted with b, D held at the estimate the inputs were computed from (linear
+// least squares, estimation.md section 7): for the alignment of an estimate that did not fit it
+// jointly (the centered solution, the online filters), whose calibrated vectors still carry the
+// hysteresis lag (a rotation about the orbit normal, to first order).
+//   r_k = |y_k|^2 - |h_k|^2 - mu = phi_k^T a + v_k,  w_k = 1 / sigma_k^2  (scalar_measurement.hpp)
+//   a = (sum w phi phi^T)^-1 sum w phi r,  covariance: the HAC sandwich not below the white
+//   inverse information (hac_covariance.hpp), as the joint fit's.
+// `used` is true when BIC prefers a over a = 0 and extension_effects_small(a) holds; a and its
+// covariance are then what extension_corrected_vectors() and alignment_covariance_from_stage1()
+// take. Shapes: in and samples one entry per sample, same order; sigma_nT per-axis noise.
+struct ExtensionFitAtEstimate {
+  bool used = false;
+  Vector6d a = Vector6d::Zero();
+  Matrix6d covariance = Matrix6d::Zero();
+};
+ExtensionFitAtEstimate fit_extension_at_estimate(const SampleSet& samples,
+                                                 const ExtensionInputs& in, double sigma_nT);
+
 }  // namespace magcal

@@ -159,7 +159,7 @@ FilterRun run_filter(Filter& filter, const SampleSet& samples, std::FILE* trace)
   return run;
 }
 
-void finish_filter_result(CalibrationResult& r, const SampleSet& samples) {
+void finish_filter_result(CalibrationResult& r, const SampleSet& samples, double sigma_nT) {
   r.n_samples = static_cast<int>(samples.size());
   r.window_start_utime = samples.front().utime;
   r.window_end_utime = samples.back().utime;
@@ -170,14 +170,7 @@ void finish_filter_result(CalibrationResult& r, const SampleSet& samples) {
   }
   r.residual_rms_nT = std::sqrt(sum_sq / static_cast<double>(samples.size()));
   r.converged = r.status == CalibrationStatus::kOk;
-  const std::vector<AlignmentPair> pairs = make_alignment_pairs(samples, r.parameters);
-  if (pairs.size() >= 10) {
-    const AlignmentResult al = align_procrustes(pairs);
-    if (al.ok()) {
-      r.has_alignment = true;
-      r.alignment = al.estimate;
-    }
-  }
+  estimate_alignment(samples, sigma_nT, BatchCalibrationOptions{}.min_alignment_samples, &r);
   GateInputs in;
   in.min_coverage_eigenvalue = direction_coverage_eigenvalues(samples)(0);
   GateVerdict verdict = evaluate_gates(r, in);
@@ -338,16 +331,27 @@ int run_fit(const FitArgs& args) {
           "noise_nT,innovation_rho,fisher_condition\n",
           trace);
     }
+    // The filters' model has 9 parameters; where the data show more (the batch refit takes the
+    // sensor-model extension), they converge to the 9-parameter optimum, a distance the batch
+    // refit measures (CalibrationResult::model_error). It is in their reported covariance, as the
+    // daemon's re-anchor passes it (MagnetometerUkf::reanchor).
+    BatchCalibrationOptions batch;
+    batch.sigma_nT = args.sigma_nT;
+    batch.alignment = false;
+    batch.gates = false;
+    const Matrix9d model_error = calibrate_batch(samples, batch).model_error_covariance();
     FilterRun run;
     if (args.method == "ekf") {
       MagnetometerEkf::Options o;
       o.sigma_nT = args.sigma_nT;
       MagnetometerEkf f(o);
+      f.set_model_error_covariance(model_error);
       run = run_filter(f, samples, trace);
     } else {
       MagnetometerUkf::Options o;
       o.sigma_nT = args.sigma_nT;
       MagnetometerUkf f(o);
+      f.set_model_error_covariance(model_error);
       run = run_filter(f, samples, trace);
     }
     if (trace) {
@@ -362,7 +366,7 @@ int run_fit(const FitArgs& args) {
     }
     r = run.result;
     convergence_time_s = run.convergence_time_s;
-    finish_filter_result(r, samples);
+    finish_filter_result(r, samples, args.sigma_nT);
   }
   const double compute_ms =
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_start).count();

@@ -612,7 +612,7 @@ void IngestWorker::apply_reanchors() {
     // used its model extension, that scale describes a smaller (extended-model) residual, and a
     // filter seeded with it finds itself inconsistent and re-opens its covariance (measured:
     // noise 3.7 nT seeded vs 6.5 nT seen, NIS 3-5, then a 20 nT drift on the orbit normal).
-    t->ukf.reanchor(refit.parameters.packed(), refit.covariance);
+    t->ukf.reanchor(refit.parameters.packed(), refit.covariance, refit.model_error_covariance());
     if (std::isfinite(refit.residual_rms_nT) && refit.residual_rms_nT > 0.0) {
       t->ukf.seed_noise(refit.residual_rms_nT);
     }

@@ -214,6 +214,7 @@ storage::FilterState stored_filter_state(const std::string& sat_id, const std::s
   put(b, st.score_block_n);
   for (int i = 0; i < st.score_meat.size(); ++i) put(b, st.score_meat(i));
   put(b, st.score_blocks);
+  for (int i = 0; i < st.model_error_covariance.size(); ++i) put(b, st.model_error_covariance(i));
   return out;
 }
 
@@ -275,6 +276,11 @@ bool filter_state_from_stored(const storage::FilterState& in, FilterState& out) 
     ok = ok && get(b, pos, st.score_block_n);
     for (int i = 0; ok && i < st.score_meat.size(); ++i) ok = get(b, pos, st.score_meat(i));
     ok = ok && get(b, pos, st.score_blocks);
+    if (!ok) return false;
+  }
+  if (pos < b.size()) {  // appended after the blocks: the model-error covariance
+    for (int i = 0; ok && i < st.model_error_covariance.size(); ++i)
+      ok = get(b, pos, st.model_error_covariance(i));
     if (!ok) return false;
   }
   st.has_time = has_time != 0;

@@ -212,7 +212,7 @@ TEST_CASE("robust refit of a cheap sensor (600 nT noise, 28 spikes up to 3 G) is
   INFO("bias error " << err.transpose() << " sigma " << r.bias_sigma_nT().transpose());
   CHECK(err.cwiseQuotient(r.bias_sigma_nT()).cwiseAbs().maxCoeff() < 4.0);
   CHECK(r.bias_sigma_nT().maxCoeff() < 30.0);
-  CHECK_FALSE(r.has_nonlinearity);  // no model extension in robust mode
+  CHECK_FALSE(r.has_nonlinearity);  // white noise: BIC keeps the 9-parameter model
   CHECK(r.n_downweighted >= 20);
   CHECK(r.residual_rms_nT < 1.5 * 600.0);
   CHECK(r.residual_rms_all_nT > 5.0 * r.residual_rms_nT);  // the spikes, reported beside it

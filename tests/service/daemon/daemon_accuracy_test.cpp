@@ -30,7 +30,7 @@ using magcal::storage::CalibrationRecord;
 
 constexpr double kSigmaBound = 5.0;     // issue 10: 5 sigma ...
 constexpr double kSigmaFloor_nT = 0.5;  // ... + 0.5 nT
-// Issue 10 asks for `ok` within 17 000 s; measured here 26 800-30 000 s: the honest bias 1-sigma
+// Issue 10 asks for `ok` within 17 000 s; measured here 30 000-31 500 s: the honest bias 1-sigma
 // on the orbit-normal axis stays above the 10 nT `ok` threshold until then (the 8 h refit's own
 // HAC sigma is ~9 nT; the first refit, at [refit] min_samples, has ~23 nT). Asserted: within
 // 10 h of data.
@@ -56,7 +56,7 @@ TEST_CASE("magcald on its embedded defaults: honest UKF snapshots, accepted full
   using namespace magcal::test;
   const std::string bin = MAGCAL_BIN_DIR;
   int worst_seed = 0;
-  double worst_ratio = 0.0;
+  double worst_ratio = 0.0, worst_D_ratio = 0.0;
   for (const int seed : {11, 23, 1, 2, 3}) {
     INFO("seed " << seed);
     TempDir tmp("magcald_accuracy");
@@ -75,12 +75,14 @@ TEST_CASE("magcald on its embedded defaults: honest UKF snapshots, accepted full
     std::ifstream tin(tmp.file("truth.json"));
     const nlohmann::json truth = nlohmann::json::parse(tin);
     const std::vector<double> b_true = truth.at("bias_nT").get<std::vector<double>>();
+    const auto D_m = truth.at("D").get<std::vector<std::vector<double>>>();
+    const double D_true[6] = {D_m[0][0], D_m[1][1], D_m[2][2], D_m[0][1], D_m[0][2], D_m[1][2]};
 
     const auto ukf = history(db, "ukf");
     REQUIRE(ukf.size() > 1000);
     const int64_t t0 = ukf.front().window_start_utime;
     double first_ok_s = -1.0;
-    int n_ok = 0, n_dishonest = 0;
+    int n_ok = 0, n_dishonest = 0, n_dishonest_D = 0;
     for (const auto& r : ukf) {
       const bool ok = r.status == 0;
       CHECK((r.verdict == "accepted") == ok);  // not ok is never accepted
@@ -96,6 +98,14 @@ TEST_CASE("magcald on its embedded defaults: honest UKF snapshots, accepted full
           worst_seed = seed;
         }
       }
+      // D as well: the filter's 9-parameter model drifts toward the 9-parameter optimum between
+      // re-anchors (before the refit's model-error term: D13 up to 7 sigma off, `ok`).
+      for (int i = 0; i < 6; ++i) {
+        const double sd = std::sqrt(r.cov[magcal::storage::cov_index(3 + i, 3 + i)]);
+        const double err = std::abs(r.D[i] - D_true[i]);
+        if (err > kSigmaBound * sd) ++n_dishonest_D;
+        if (sd > 0 && err / sd > worst_D_ratio) worst_D_ratio = err / sd;
+      }
     }
     const auto& last = ukf.back();
     std::ostringstream end;
@@ -105,6 +115,7 @@ TEST_CASE("magcald on its embedded defaults: honest UKF snapshots, accepted full
                  << last.bias_sigma_nT[0] << " " << last.bias_sigma_nT[1] << " "
                  << last.bias_sigma_nT[2] << "] nT");
     CHECK(n_dishonest == 0);
+    CHECK(n_dishonest_D == 0);
     CHECK(first_ok_s >= 0.0);
     CHECK(first_ok_s <= kOkWithin_s);
     CHECK(last.status == 0);
@@ -123,5 +134,9 @@ TEST_CASE("magcald on its embedded defaults: honest UKF snapshots, accepted full
     CHECK(n_full >= 2);  // 14:00 and 20:00 on the data clock
   }
   WARN("worst |error| / sigma of an ok snapshot: " << worst_ratio << " (seed " << worst_seed
-                                                   << ")");
+                                                   << "), of its D: " << worst_D_ratio);
+  // Tighter than the issue's 5 sigma: measured 1.83 (bias) and 1.56 (D) with the refits'
+  // model-error term in the re-anchor, 3.84 and 4.07 without it.
+  CHECK(worst_ratio <= 3.0);
+  CHECK(worst_D_ratio <= 3.0);
 }
