@@ -265,8 +265,9 @@ EvaluationReport run_evaluation(const EvaluationOptions& options) {
       run_filter(cold, all, 0, acc[4], truth, crlb_on);
       if (have_warm) {
         MagnetometerEkf w(o);
-        w.initialize(lm_result.parameters.packed(), lm_result.covariance);
-        w.set_model_error_covariance(lm_result.model_error_covariance());  // as reanchor()
+        // Started as the daemon re-anchors: the refit's state, covariance and model error.
+        w.reanchor(lm_result.parameters.packed(), lm_result.covariance,
+                   lm_result.model_error_covariance());
         // What the daemon does on a re-anchor (service/daemon/ingest_worker.cpp): the noise from
         // the refit's 9-parameter residual; not its autocorrelation, which describes the extended
         // model's (whitened) residual when the refit used the model extension.
@@ -281,8 +282,8 @@ EvaluationReport run_evaluation(const EvaluationOptions& options) {
       run_filter(cold, all, 0, acc[6], truth, crlb_on);
       if (have_warm) {
         MagnetometerUkf w(o);
-        w.initialize(lm_result.parameters.packed(), lm_result.covariance);
-        w.set_model_error_covariance(lm_result.model_error_covariance());
+        w.reanchor(lm_result.parameters.packed(), lm_result.covariance,
+                   lm_result.model_error_covariance());
         w.seed_noise(lm_result.residual_rms_nT);  // as above
         run_filter(w, all, n_off, acc[7], truth, crlb_on);
       }
