@@ -342,7 +342,7 @@ TEST_CASE("fit: a file that is no LCM log, or a log without our samples, says so
   std::filesystem::remove(log);
 }
 
-TEST_CASE("fit: repeated rows count once (same sigma); a conflicting repeat is a data error",
+TEST_CASE("fit: repeated rows count once (same sigma), a conflicting repeat is a data error",
           "[cli][fit]") {
   // Found by a fresh-user trial: every row twice shrank the reported sigma by sqrt(2).
   const auto once = temp_path("once.csv");
