@@ -48,6 +48,16 @@ struct Loaded {
   int exit_code = kExitOk;
 };
 
+// The one-line note on repeats the readers dropped (sample_files.hpp: one time tag holds one
+// sample; counted twice, they would shrink every reported sigma).
+void note_duplicates(const std::string& input, int64_t dropped, const char* what, const char* key) {
+  if (dropped == 0) return;
+  std::cerr << fmt::format(
+      "magcal fit: {}: dropped {} exact duplicate {} (same {} and values; one time tag holds "
+      "one sample)\n",
+      input, dropped, what, key);
+}
+
 Loaded load_samples(const FitArgs& args) {
   Loaded out;
   if (ends_with(args.input, ".csv")) {
@@ -57,6 +67,7 @@ Loaded load_samples(const FitArgs& args) {
       out.exit_code = kExitData;
       return out;
     }
+    note_duplicates(args.input, csv.duplicates_dropped, "rows", "t_s");
     out.samples.reserve(csv.rows.size());
     for (const CsvSampleRow& row : csv.rows) out.samples.push_back(row.sample);
     return out;
@@ -86,10 +97,23 @@ Loaded load_samples(const FitArgs& args) {
     out.exit_code = kExitData;
     return out;
   }
+  note_duplicates(args.input, lcm.duplicates_dropped, "samples", "spacecraft, utime");
   std::unique_ptr<ReferenceField> field;
   out.samples.reserve(lcm.samples.size());
   for (std::size_t k = 0; k < lcm.samples.size(); ++k) {
     const mag_sample_t& msg = lcm.samples[k];
+    for (int i = 0; i < 6; ++i) {
+      const bool is_b = i < 3;
+      const double v = is_b ? msg.b_sensor_nT[i] : msg.h_body_nT[i - 3];
+      if ((is_b || msg.has_reference) && std::abs(v) > kMaxFieldComponent_nT) {
+        out.error = fmt::format(
+            "{}: sample {} (seq {}): {}[{}] = {:g} nT is beyond any magnetometer's range "
+            "(|value| <= 1e7 nT)",
+            args.input, k, msg.seq, is_b ? "b_sensor_nT" : "h_body_nT", i % 3, v);
+        out.exit_code = kExitData;
+        return out;
+      }
+    }
     CalibrationSample s = to_calibration_sample(msg);
     if (!msg.has_reference) {
       if (!msg.has_position) {
@@ -234,6 +258,11 @@ int run_fit(const FitArgs& args) {
   }
   if (!(args.sigma_nT > 0.0) || !std::isfinite(args.sigma_nT)) {
     std::cerr << "magcal fit: --sigma-nT must be positive\n";
+    return kExitUsage;
+  }
+  if (args.expected_residual_nT &&
+      !(*args.expected_residual_nT > 0.0 && std::isfinite(*args.expected_residual_nT))) {
+    std::cerr << "magcal fit: --expected-residual-nT must be positive\n";
     return kExitUsage;
   }
   if (!args.trace_file.empty() && !filter) {

@@ -1,10 +1,78 @@
 // magcal: the operator's command-line tool. Parses arguments (the only CLI11 translation unit)
 // and dispatches to the subcommands in cli_*.cpp. Exit codes: 0 ok, 1 usage, 2 data/database.
+#include <charconv>
+#include <cmath>
+#include <cstdint>
 #include <iostream>
+#include <limits>
+#include <string>
 
 #include <CLI/CLI.hpp>
 
 #include "service/cli/cli_commands.hpp"
+
+namespace {
+
+// Checks of numeric option text, run by CLI11 before it converts: a bad value gets one clear
+// sentence ("--limit must be at least 1 (got 0)") instead of CLI11's raw range text or
+// "Could not convert", and a negative seed is refused instead of wrapping to 2^64 - 1. What a
+// value must be beyond this (a positive duration, a valid angle) is checked by the run_*
+// functions, which know why.
+
+// `text` (with an optional leading '+') read as one T, all of it: std::errc() on success,
+// invalid_argument when it is no such number, result_out_of_range when it is one beyond T.
+template <typename T>
+std::errc parse_number_text(const std::string& text, T* value) {
+  std::string_view digits(text);
+  if (!digits.empty() && digits.front() == '+') digits.remove_prefix(1);
+  const auto [end, ec] = std::from_chars(digits.data(), digits.data() + digits.size(), *value);
+  if (digits.empty() || end != digits.data() + digits.size()) return std::errc::invalid_argument;
+  return ec;
+}
+
+CLI::Validator whole_number(int64_t min, int64_t max) {
+  return CLI::Validator(
+      [min, max](std::string& text) -> std::string {
+        int64_t value = 0;
+        const std::errc ec = parse_number_text(text, &value);
+        if (ec == std::errc::invalid_argument) return "must be a whole number (got '" + text + "')";
+        const bool below_int64 = ec == std::errc::result_out_of_range && text.front() == '-';
+        if (below_int64 || (ec == std::errc() && value < min))
+          return "must be at least " + std::to_string(min) + " (got " + text + ")";
+        if (ec != std::errc() || value > max)
+          return "must be at most " + std::to_string(max) + " (got " + text + ")";
+        return "";
+      },
+      "INT");
+}
+
+// A seed: any whole number in [0, 2^64 - 1].
+CLI::Validator seed_number() {
+  return CLI::Validator(
+      [](std::string& text) -> std::string {
+        uint64_t value = 0;
+        if (parse_number_text(text, &value) != std::errc())
+          return "must be a whole number from 0 to 18446744073709551615 (got '" + text + "')";
+        return "";
+      },
+      "SEED");
+}
+
+// A finite decimal number (the run_* functions check its range).
+CLI::Validator real_number() {
+  return CLI::Validator(
+      [](std::string& text) -> std::string {
+        double value = 0.0;
+        if (parse_number_text(text, &value) != std::errc() || !std::isfinite(value))
+          return "must be a finite number (got '" + text + "')";
+        return "";
+      },
+      "NUMBER");
+}
+
+constexpr int64_t kIntMax = std::numeric_limits<int>::max();
+
+}  // namespace
 
 int main(int argc, char** argv) {
   using namespace magcal::cli;
@@ -15,13 +83,19 @@ int main(int argc, char** argv) {
   FieldArgs field;
   auto* field_cmd = app.add_subcommand("field", "IGRF field at a point");
   field_cmd->add_option("--time", field.time_iso, "UTC time, ISO 8601")->required();
-  auto* r_opt = field_cmd->add_option("--r-km", field.r_km, "geocentric radius, km");
+  auto* r_opt =
+      field_cmd->add_option("--r-km", field.r_km, "geocentric radius, km")->check(real_number());
   auto* colat_opt =
-      field_cmd->add_option("--colat-deg", field.colat_deg, "geocentric colatitude, deg");
+      field_cmd->add_option("--colat-deg", field.colat_deg, "geocentric colatitude, deg")
+          ->check(real_number());
   auto* lat_opt =
-      field_cmd->add_option("--lat-deg", field.lat_deg, "geodetic (WGS-84) latitude, deg");
-  auto* alt_opt = field_cmd->add_option("--alt-km", field.alt_km, "altitude above WGS-84, km");
-  field_cmd->add_option("--lon-deg", field.lon_deg, "longitude, deg east")->required();
+      field_cmd->add_option("--lat-deg", field.lat_deg, "geodetic (WGS-84) latitude, deg")
+          ->check(real_number());
+  auto* alt_opt = field_cmd->add_option("--alt-km", field.alt_km, "altitude above WGS-84, km")
+                      ->check(real_number());
+  field_cmd->add_option("--lon-deg", field.lon_deg, "longitude, deg east")
+      ->required()
+      ->check(real_number());
   field_cmd->add_option("--coefficients", field.coefficients_file,
                         "IGRF coefficient file (official .txt or .shc); default built-in IGRF-14");
   field_cmd->add_flag("--json", field.json, "print JSON");
@@ -31,47 +105,58 @@ int main(int argc, char** argv) {
   SimArgs sim;
   auto* sim_cmd = app.add_subcommand("sim", "simulate a spacecraft magnetometer");
   sim_cmd->add_option("--scenario", sim.scenario, "preset name (paper) or scenario FILE.toml");
-  sim_cmd->add_option("--hours", sim.hours, "duration, hours (overrides the scenario)");
-  sim_cmd->add_option("--seed", sim.seed, "random seed (overrides the scenario)");
+  sim_cmd->add_option("--hours", sim.hours, "duration, hours (overrides the scenario)")
+      ->check(real_number());
+  sim_cmd->add_option("--seed", sim.seed, "random seed (overrides the scenario)")
+      ->check(seed_number());
   sim_cmd->add_option("--out", sim.out, "output FILE.lcm (LCM log) or FILE.csv")->required();
   sim_cmd->add_option("--truth", sim.truth, "write the true parameters to FILE.json");
   sim_cmd->add_option("--sat-id", sim.sat_id, "spacecraft id (overrides the scenario)");
-  sim_cmd->add_option("--batch", sim.batch_size,
-                      "LCM output: mag_batch_t packets of N samples on MAGCAL_BATCH");
+  sim_cmd
+      ->add_option("--batch", sim.batch_size,
+                   "LCM output: mag_batch_t packets of N samples on MAGCAL_BATCH")
+      ->check(whole_number(0, kIntMax));
 
   FitArgs fit;
   auto* fit_cmd = app.add_subcommand("fit", "calibrate from a file");
   fit_cmd->add_option("--input", fit.input, "FILE.csv or FILE.lcm")->required();
   fit_cmd->add_option("--method", fit.method, "centered|twostep|ekf|ukf")
       ->check(CLI::IsMember({"centered", "twostep", "ekf", "ukf"}));
-  fit_cmd->add_option("--sigma-nT", fit.sigma_nT, "measurement noise, nT per axis (default 3)");
+  fit_cmd->add_option("--sigma-nT", fit.sigma_nT, "measurement noise, nT per axis (default 3)")
+      ->check(real_number());
   fit_cmd->add_flag("--robust", fit.robust, "outlier-resistant weighting");
   fit_cmd->add_option("--sat", fit.sat, "spacecraft id (required when a log holds several)");
   fit_cmd->add_option("--trace", fit.trace_file,
                       "ekf/ukf: write state and 1-sigma per sample (CSV)");
   fit_cmd->add_flag("--json", fit.json, "print JSON");
   fit_cmd->add_option("--field-unit", fit.field_unit, "recording CSV: field unit nT|uT|G|mG");
-  fit_cmd->add_option("--alt-km", fit.alt_km, "recording CSV: assumed altitude (km) when absent");
-  fit_cmd->add_option("--skip-first", fit.skip_first, "recording CSV: drop the first N rows");
+  fit_cmd->add_option("--alt-km", fit.alt_km, "recording CSV: assumed altitude (km) when absent")
+      ->check(real_number());
+  fit_cmd->add_option("--skip-first", fit.skip_first, "recording CSV: drop the first N rows")
+      ->check(whole_number(0, kIntMax));
   fit_cmd->add_flag("--estimate-time-offset", fit.estimate_time_offset,
                     "recording CSV: estimate the time-tag offset of the position stream");
   fit_cmd->add_option("--offset-range-s", fit.offset_range_s,
                       "MIN:MAX search range of the offset (default -1000:1000)");
-  fit_cmd->add_option("--time-offset-s", fit.time_offset_s,
-                      "recording CSV: apply this offset (reference at t + tau)");
+  fit_cmd
+      ->add_option("--time-offset-s", fit.time_offset_s,
+                   "recording CSV: apply this offset (reference at t + tau)")
+      ->check(real_number());
   fit_cmd->add_option("--reference-magnitude", fit.reference_magnitude,
                       "recording CSV: constant field magnitude, auto|VALUE_nT");
   fit_cmd->add_flag("--split-halves", fit.split_halves,
                     "recording CSV: also fit the two halves separately");
-  fit_cmd->add_option(
-      "--expected-residual-nT", fit.expected_residual_nT,
-      "expected residual rms for the acceptance gate (default max(7.5, --sigma-nT))");
+  fit_cmd
+      ->add_option("--expected-residual-nT", fit.expected_residual_nT,
+                   "expected residual rms for the acceptance gate (default max(7.5, --sigma-nT))")
+      ->check(real_number());
 
   EvaluateArgs evaluate;
   auto* eval_cmd = app.add_subcommand("evaluate", "Monte-Carlo evaluation against the paper");
   eval_cmd->add_option("--scenario", evaluate.scenario, "preset name (paper, pure) or FILE.toml");
-  eval_cmd->add_option("--runs", evaluate.runs, "Monte-Carlo runs")->check(CLI::PositiveNumber);
-  eval_cmd->add_option("--seed", evaluate.seed, "first random seed");
+  eval_cmd->add_option("--runs", evaluate.runs, "Monte-Carlo runs")
+      ->check(whole_number(1, kIntMax));
+  eval_cmd->add_option("--seed", evaluate.seed, "first random seed")->check(seed_number());
   eval_cmd->add_flag("--json", evaluate.json, "print JSON");
 
   RefitArgs refit;
@@ -88,7 +173,8 @@ int main(int argc, char** argv) {
   hist_cmd->add_option("--method", history.method, "ukf|ekf|centered|twostep");
   hist_cmd->add_option("--since", history.since, "ISO 8601 UTC, inclusive");
   hist_cmd->add_option("--until", history.until, "ISO 8601 UTC, inclusive");
-  hist_cmd->add_option("--limit", history.limit, "only the N newest")->check(CLI::PositiveNumber);
+  hist_cmd->add_option("--limit", history.limit, "only the N newest")
+      ->check(whole_number(1, kIntMax));
   hist_cmd->add_option("--order", history.order, "asc|desc (default asc)")
       ->check(CLI::IsMember({"asc", "desc"}));
   hist_cmd->add_option("--format", history.format, "table|csv|json")
@@ -114,6 +200,12 @@ int main(int argc, char** argv) {
     return app.exit(e);
   } catch (const CLI::CallForVersion& e) {
     return app.exit(e);
+  } catch (const CLI::ValidationError& e) {
+    // "--limit: must be at least 1 (got 0)" from the checks above: said as one sentence.
+    std::string text = e.what();
+    if (const auto colon = text.find(": "); colon != std::string::npos) text.erase(colon, 1);
+    std::cerr << "magcal: " << text << "\n";
+    return kExitUsage;
   } catch (const CLI::ParseError& e) {
     std::cerr << "magcal: " << e.what() << " (see magcal --help)\n";
     return kExitUsage;

@@ -1,13 +1,9 @@
 #include "service/daemon/lcm_ingest.hpp"
 
-#include <sys/stat.h>
-
-#include <cerrno>
 #include <chrono>
-#include <cstdio>
-#include <cstring>
 
 #include "schemas/magcal_messages.hpp"
+#include "service/io/sample_files.hpp"
 
 namespace magcal {
 namespace {
@@ -83,19 +79,7 @@ bool is_file_url(const std::string& url) {
 std::string unreadable_log_reason(const std::string& file_url) {
   std::string path = file_url.substr(std::string("file://").size());
   path = path.substr(0, path.find('?'));  // the provider's options
-  struct stat st {};
-  if (::stat(path.c_str(), &st) != 0) return path + ": " + std::strerror(errno);
-  if (S_ISDIR(st.st_mode)) return path + ": is a directory, not an LCM log";
-  if (FILE* f = std::fopen(path.c_str(), "rb")) {
-    std::fclose(f);
-  } else {
-    return path + ": " + std::strerror(errno);
-  }
-  if (st.st_size == 0) return path + ": empty file, not an LCM log";
-  lcm::LogFile log(path, "r");
-  if (!log.good() || log.readNextEvent() == nullptr) {
-    return path + ": no LCM event can be read at its start (not an LCM log, or corrupt)";
-  }
+  if (std::string why = unreadable_lcm_log_reason(path); !why.empty()) return why;
   return path + ": LCM refused the URL (check its options)";
 }
 

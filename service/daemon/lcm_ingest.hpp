@@ -67,9 +67,9 @@ class LcmIngest {
 // True for file:// URLs (replay mode).
 bool is_file_url(const std::string& url);
 
-// Why LCM could not open the log of a file:// URL, for the start error: the OS error (missing,
-// unreadable, a directory), an empty file, or a file whose first event cannot be read (not an
-// LCM log, or corrupt).
+// Why LCM could not open the log of a file:// URL, for the start error: what
+// unreadable_lcm_log_reason (service/io/sample_files.hpp) says of its file, else that LCM
+// refused the URL's options.
 std::string unreadable_log_reason(const std::string& file_url);
 
 }  // namespace magcal

@@ -40,6 +40,12 @@ void send_error(httplib::Response& res, int status, const std::string& message) 
   res.set_content(nlohmann::json{{"error", message}}.dump() + "\n", kJson);
 }
 
+// Another method on a path that only GET (and HEAD) serves: 405 with Allow.
+void not_allowed(const httplib::Request& req, httplib::Response& res) {
+  res.set_header("Allow", "GET, HEAD");
+  send_error(res, 405, "method " + req.method + " not allowed on " + req.path + " (GET only)");
+}
+
 // A whole decimal integer in [lo, hi], else BadRequest naming the parameter.
 int parse_int_param(const std::string& name, const std::string& text, int lo, int hi) {
   int value = 0;
@@ -109,16 +115,14 @@ struct OperationsServer::Impl {
   // there gets 405 with Allow, not 404: the path exists.
   template <typename Handler>
   void get(const std::string& path, Handler&& handler);
+  std::set<std::string> get_paths;  // every path get() registered
   void history(const httplib::Request& req, httplib::Response& res);
 };
 
 template <typename Handler>
 void OperationsServer::Impl::get(const std::string& path, Handler&& handler) {
   server.Get(path, std::forward<Handler>(handler));
-  const auto not_allowed = [](const httplib::Request& req, httplib::Response& res) {
-    res.set_header("Allow", "GET, HEAD");
-    send_error(res, 405, "method " + req.method + " not allowed on " + req.path + " (GET only)");
-  };
+  get_paths.insert(path);
   server.Post(path, not_allowed);
   server.Put(path, not_allowed);
   server.Patch(path, not_allowed);
@@ -141,6 +145,24 @@ void OperationsServer::Impl::routes() {
   server.set_read_timeout(1, 0);
   server.set_write_timeout(5, 0);
   server.set_payload_max_length(64 * 1024);  // GET only: no request needs a body
+  // A request without Content-Length or Transfer-Encoding has no body (RFC 9112 6.3), but
+  // cpp-httplib 0.11 reads a POST/PUT/PATCH/DELETE's body without a length until the client
+  // closes its side (read_content_without_length): a client that waits for the answer (curl
+  // -X POST) got 400 after the 1 s read timeout, never the route's 405. Such requests are
+  // answered here, before the library reads: 405 with Allow on a path of ours, else 404. A
+  // request with a length or chunked body goes on to the routes (its body read, the
+  // connection kept in step).
+  server.set_pre_routing_handler([this](const httplib::Request& req, httplib::Response& res) {
+    if (req.method == "GET" || req.method == "HEAD" || req.has_header("Content-Length") ||
+        req.has_header("Transfer-Encoding"))
+      return httplib::Server::HandlerResponse::Unhandled;
+    if (get_paths.count(req.path) != 0) {
+      not_allowed(req, res);
+    } else {
+      res.status = 404;  // the error handler says "no such path"
+    }
+    return httplib::Server::HandlerResponse::Handled;
+  });
 
   get("/metrics", [this](const httplib::Request&, httplib::Response& res) {
     if (!hooks.metrics_text) return send_error(res, 404, "no metrics in this server");

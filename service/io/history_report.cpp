@@ -61,7 +61,7 @@ std::optional<storage::HistoryQuery> parse_history_request(const HistoryRequest&
     }
   }
   if (request.limit && *request.limit <= 0) {
-    *error = option_prefix + "limit must be positive";
+    *error = option_prefix + "limit must be at least 1";
     return std::nullopt;
   }
   if (request.order != "asc" && request.order != "desc") {

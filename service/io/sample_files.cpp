@@ -1,12 +1,17 @@
 #include "service/io/sample_files.hpp"
 
+#include <sys/stat.h>
+
 #include <algorithm>
 #include <array>
+#include <cerrno>
 #include <charconv>
 #include <cmath>
+#include <cstring>
 #include <fstream>
 #include <memory>
 #include <set>
+#include <unordered_map>
 
 #include <lcm/lcm-cpp.hpp>
 
@@ -45,6 +50,32 @@ void append_number(std::string& out, double v) {
   std::array<char, 32> buf{};
   const auto [ptr, ec] = std::to_chars(buf.data(), buf.data() + buf.size(), v);
   out.append(buf.data(), ec == std::errc() ? ptr : buf.data());
+}
+
+std::string join_names(const std::set<std::string>& names) {
+  std::string out;
+  for (const std::string& n : names) out += (out.empty() ? "" : ", ") + n;
+  return out.empty() ? "none" : out;
+}
+
+// Same measurement and reference (the transport's seq aside: a re-sent frame may be renumbered).
+bool same_measurement(const mag_sample_t& a, const mag_sample_t& b) {
+  auto same = [](const double* x, const double* y, int n) { return std::equal(x, x + n, y); };
+  return same(a.b_sensor_nT, b.b_sensor_nT, 3) && a.has_position == b.has_position &&
+         (!a.has_position || same(a.r_ecef_m, b.r_ecef_m, 3)) && a.has_attitude == b.has_attitude &&
+         (!a.has_attitude || same(a.q_body_from_eci, b.q_body_from_eci, 4)) &&
+         a.has_reference == b.has_reference &&
+         (!a.has_reference || same(a.h_body_nT, b.h_body_nT, 3)) &&
+         (a.temperature_C == b.temperature_C ||
+          (std::isnan(a.temperature_C) && std::isnan(b.temperature_C)));
+}
+
+bool same_extras(const CsvSampleExtras& a, const CsvSampleExtras& b) {
+  auto same = [](const auto& x, const auto& y) {
+    return x.has_value() == y.has_value() && (!x || *x == *y);
+  };
+  return same(a.q_body_from_eci, b.q_body_from_eci) && same(a.r_ecef_m, b.r_ecef_m) &&
+         same(a.temperature_C, b.temperature_C);
 }
 
 constexpr std::array<const char*, 7> kRequired = {"t_s",   "bx_nT", "by_nT", "bz_nT",
@@ -94,6 +125,8 @@ CsvReadResult read_sample_csv(const std::string& path) {
   for (size_t i = 0; i < 4; ++i) has_q = (q[i] = column(kQuat[i])) >= 0 && has_q;
   for (size_t i = 0; i < 3; ++i) has_r = (r[i] = column(kPos[i])) >= 0 && has_r;
   const int temp = column("temperature_C");
+  // utime -> index in rows and the line of that row, for the one-sample-per-time-tag rule.
+  std::unordered_map<int64_t, std::pair<size_t, int>> row_of_utime;
 
   while (std::getline(in, line)) {
     ++line_no;
@@ -101,6 +134,7 @@ CsvReadResult read_sample_csv(const std::string& path) {
     const auto fields = split_commas(line);
     auto fail = [&](const std::string& what) {
       result.rows.clear();
+      result.duplicates_dropped = 0;
       result.error = path + " line " + std::to_string(line_no) + ": " + what;
       return result;
     };
@@ -115,6 +149,14 @@ CsvReadResult read_sample_csv(const std::string& path) {
         return fail(std::string("column ") + kRequired[i] + ": not a finite number");
     }
     if (std::abs(v[0]) > 1e11) return fail("column t_s: out of range");
+    for (size_t i = 1; i < 7; ++i) {
+      if (std::abs(v[i]) > kMaxFieldComponent_nT) {
+        char value[32];
+        std::snprintf(value, sizeof value, "%g", v[i]);
+        return fail(std::string("column ") + kRequired[i] + ": " + value +
+                    " nT is beyond any magnetometer's range (|value| <= 1e7 nT)");
+      }
+    }
     CsvSampleRow row;
     row.sample.utime = utime_from_seconds(v[0]);
     row.sample.b_sensor_nT = Eigen::Vector3d(v[1], v[2], v[3]);
@@ -135,6 +177,19 @@ CsvReadResult read_sample_csv(const std::string& path) {
     }
     double tc = 0.0;
     if (temp >= 0 && field(temp, &tc)) row.extras.temperature_C = tc;
+    const auto [seen, first] =
+        row_of_utime.try_emplace(row.sample.utime, result.rows.size(), line_no);
+    if (!first) {
+      const CsvSampleRow& earlier = result.rows[seen->second.first];
+      if (earlier.sample.b_sensor_nT == row.sample.b_sensor_nT &&
+          earlier.sample.h_body_nT == row.sample.h_body_nT &&
+          same_extras(earlier.extras, row.extras)) {
+        ++result.duplicates_dropped;
+        continue;
+      }
+      return fail("same t_s as line " + std::to_string(seen->second.second) +
+                  " but other values (one time tag holds one sample)");
+    }
     result.rows.push_back(std::move(row));
   }
   if (in.bad()) {
@@ -276,14 +331,28 @@ std::string SampleLcmLogWriter::close() {
   return e;
 }
 
+std::string unreadable_lcm_log_reason(const std::string& path) {
+  struct stat st {};
+  if (::stat(path.c_str(), &st) != 0) return path + ": " + std::strerror(errno);
+  if (S_ISDIR(st.st_mode)) return path + ": is a directory, not an LCM log";
+  if (FILE* f = std::fopen(path.c_str(), "rb")) {
+    std::fclose(f);
+  } else {
+    return path + ": " + std::strerror(errno);
+  }
+  if (st.st_size == 0) return path + ": empty file, not an LCM log";
+  lcm::LogFile log(path, "r");
+  if (!log.good() || log.readNextEvent() == nullptr) {
+    return path + ": no LCM event can be read at its start (not an LCM log, or corrupt)";
+  }
+  return "";
+}
+
 LcmReadResult read_sample_lcm_log(const std::string& path, const LcmReadOptions& options) {
   LcmReadResult result;
-  {
-    std::ifstream probe(path, std::ios::binary);
-    if (!probe) {
-      result.error = path + ": cannot open";
-      return result;
-    }
+  if (std::string why = unreadable_lcm_log_reason(path); !why.empty()) {
+    result.error = why;
+    return result;
   }
   lcm::LogFile log(path, "r");
   if (!log.good()) {
@@ -291,9 +360,31 @@ LcmReadResult read_sample_lcm_log(const std::string& path, const LcmReadOptions&
     return result;
   }
   std::set<std::string> ids;
+  std::set<std::string> other_channels;
+  // utime -> index in samples (several spacecraft may share a utime), for the
+  // one-sample-per-time-tag rule; the first conflict found is the error.
+  std::unordered_multimap<int64_t, size_t> sample_of_utime;
+  std::string conflict;
   auto keep = [&](mag_sample_t&& s) {
     ids.insert(s.sat_id);
-    if (!options.sat_id || *options.sat_id == s.sat_id) result.samples.push_back(std::move(s));
+    if (options.sat_id && *options.sat_id != s.sat_id) return;
+    const auto [first, last] = sample_of_utime.equal_range(s.utime);
+    for (auto it = first; it != last; ++it) {
+      const mag_sample_t& earlier = result.samples[it->second];
+      if (earlier.sat_id != s.sat_id) continue;
+      if (same_measurement(earlier, s)) {
+        ++result.duplicates_dropped;
+      } else if (conflict.empty()) {
+        conflict = path + ": samples " + std::to_string(it->second) + " (seq " +
+                   std::to_string(earlier.seq) + ") and " + std::to_string(result.samples.size()) +
+                   " (seq " + std::to_string(s.seq) + ") of spacecraft '" + s.sat_id +
+                   "' share utime " + std::to_string(s.utime) +
+                   " with other values (one time tag holds one sample)";
+      }
+      return;
+    }
+    sample_of_utime.emplace(s.utime, result.samples.size());
+    result.samples.push_back(std::move(s));
   };
   while (const lcm::LogEvent* ev = log.readNextEvent()) {
     if (ev->channel == kSamplesChannel) {
@@ -312,9 +403,24 @@ LcmReadResult read_sample_lcm_log(const std::string& path, const LcmReadOptions&
         continue;
       }
       for (auto& s : b.samples) keep(std::move(s));
+    } else if (other_channels.size() < 10) {
+      other_channels.insert(ev->channel);
     }
   }
   result.sat_ids.assign(ids.begin(), ids.end());
+  if (result.events == 0) {
+    result.error = path + ": an LCM log, but without events on " + kSamplesChannel + " or " +
+                   kBatchChannel + " (channels in it: " + join_names(other_channels) + ")";
+  } else if (result.events == result.undecodable) {
+    result.error = path + ": none of its " + std::to_string(result.events) + " events on " +
+                   kSamplesChannel + "/" + kBatchChannel +
+                   " decodes as magcal.mag_sample_t/mag_batch_t (another message type?)";
+  }
+  if (result.ok() && !conflict.empty()) result.error = conflict;
+  if (!result.ok()) {
+    result.samples.clear();
+    result.duplicates_dropped = 0;
+  }
   return result;
 }
 

@@ -45,14 +45,28 @@ struct CsvSampleRow {
   CsvSampleExtras extras;
 };
 
+// The largest |component| of a field (b or h) a sample file may hold, nT: 1e7 nT = 10 mT.
+// Earth's field is below ~67 000 nT everywhere at the surface and weaker in orbit, and
+// spacecraft magnetometers saturate at ~1e5 nT (fluxgates) to ~1e6 nT (wide-range AMR/Hall
+// parts); a value beyond 1e7 nT is no measurement of any sensor but a corrupt number, which
+// would otherwise only surface as a singular fit.
+inline constexpr double kMaxFieldComponent_nT = 1e7;
+
 struct CsvReadResult {
   std::vector<CsvSampleRow> rows;
   std::string error;  // empty = ok; e.g. "file.csv line 17: column bz_nT: not a number"
+  int64_t duplicates_dropped = 0;  // exact repeats of an earlier row (see read_sample_csv)
   bool ok() const { return error.empty(); }
 };
 
-// Reads a sample CSV. Blank lines are skipped; any unparsable or non-finite required field is
-// an error naming the line (no partial result is returned then: rows is empty).
+// Reads a sample CSV. Blank lines are skipped; any unparsable or non-finite required field, or a
+// field component beyond kMaxFieldComponent_nT, is an error naming the line and column (no
+// partial result is returned then: rows is empty).
+// One time tag holds one sample (as magcald's ingest, which keeps the first sample of a
+// spacecraft's utime and drops later ones): a row repeating an earlier row's utime with
+// identical values (b, h and the extras) is dropped and counted in duplicates_dropped (counted
+// twice, it would shrink every reported sigma by sqrt(2)); a row with the same utime but other
+// values is an error naming both lines (which of the two is the measurement is unknowable).
 CsvReadResult read_sample_csv(const std::string& path);
 
 // Streaming CSV writer. Writes the header on open, one row per write(); close() flushes and
@@ -97,6 +111,12 @@ class SampleLcmLogWriter {
   Impl* impl_;
 };
 
+// Why `path` cannot be read as an LCM log: the OS error (missing, unreadable, a directory), an
+// empty file, or a file in which no LCM event can be read (no valid event header: not an LCM
+// log, or corrupt). Empty when its first event reads. Shared by `magcal fit` and magcald's
+// replay start error.
+std::string unreadable_lcm_log_reason(const std::string& path);
+
 struct LcmReadOptions {
   std::optional<std::string> sat_id;  // keep only this spacecraft when set
 };
@@ -106,12 +126,19 @@ struct LcmReadResult {
   std::vector<std::string> sat_ids;           // every sat id seen (before filtering), sorted
   int64_t events = 0;                         // events on our two channels
   int64_t undecodable = 0;                    // events on our channels that failed to decode
+  int64_t duplicates_dropped = 0;             // exact repeats of a kept sample (see below)
   std::string error;                          // empty = ok (file could not be opened, ...)
   bool ok() const { return error.empty(); }
 };
 
 // Reads mag_sample_t from MAGCAL_SAMPLES and mag_batch_t from MAGCAL_BATCH; other channels
-// are ignored.
+// are ignored. Errors: the file is no readable LCM log (unreadable_lcm_log_reason), or it is
+// one without a single decodable sample on these channels (naming the channels it holds).
+// A log that holds samples, but none of options.sat_id, is not an error here (samples empty,
+// sat_ids says who is there). One time tag holds one sample, as in read_sample_csv: a kept
+// sample repeating an earlier one's spacecraft and utime with the same measurement and
+// reference (seq aside) is dropped and counted; with other values it is an error naming both
+// (their indices in `samples` order and their seq).
 LcmReadResult read_sample_lcm_log(const std::string& path, const LcmReadOptions& options = {});
 
 // Conversion used by `magcal fit`: has_reference => h_body_nT with direction; otherwise

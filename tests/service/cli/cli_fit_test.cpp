@@ -13,6 +13,7 @@
 #include <string>
 
 #include <catch2/catch.hpp>
+#include <lcm/lcm-cpp.hpp>
 #include <nlohmann/json.hpp>
 
 #include "pipeline/rotation.hpp"
@@ -98,6 +99,26 @@ mag_sample_t to_msg(const CalibrationSample& s, const std::string& sat, int64_t 
   m.has_reference = true;
   m.q_body_from_eci[0] = 1.0;
   return m;
+}
+
+std::vector<std::string> read_lines(const std::filesystem::path& path) {
+  std::ifstream in(path);
+  std::vector<std::string> lines;
+  for (std::string line; std::getline(in, line);) lines.push_back(line);
+  return lines;
+}
+
+void write_lines(const std::filesystem::path& path, const std::vector<std::string>& lines) {
+  std::ofstream out(path);
+  for (const std::string& line : lines) out << line << "\n";
+}
+
+// `line` with its comma-separated field `column` (0-based) replaced by `value`.
+std::string with_field(const std::string& line, int column, const std::string& value) {
+  size_t start = 0;
+  for (int c = 0; c < column; ++c) start = line.find(',', start) + 1;
+  const size_t end = line.find(',', start);
+  return line.substr(0, start) + value + (end == std::string::npos ? "" : line.substr(end));
 }
 
 void check_bias(const nlohmann::json& j) {
@@ -252,4 +273,130 @@ TEST_CASE("fit errors: one line on stderr, exit 1 usage / 2 data", "[cli][fit]")
   CHECK(nan_run.exit_code == 2);
   CHECK(nan_run.out.empty());
   std::filesystem::remove(csv);
+}
+
+TEST_CASE("fit: a field beyond any magnetometer's range is a data error naming line and column",
+          "[cli][fit]") {
+  // Found by a fresh-user trial: 1e300 in a field column read as "centered normal matrix is
+  // singular".
+  const auto csv = temp_path("range.csv");
+  const auto trace = temp_path("range_trace.csv");
+  REQUIRE(write_sample_csv(csv.string(), model_data(600, 3.0, 9)).empty());
+  std::vector<std::string> lines = read_lines(csv);
+  lines[50] = with_field(lines[50], 2, "1e300");  // line 51, column by_nT
+  write_lines(csv, lines);
+  require_one_line_error(run_magcal("fit --input " + csv.string() + " --method twostep"), 2,
+                         "line 51: column by_nT: 1e+300 nT is beyond any magnetometer's range");
+  // Nothing written half: no trace file from a filter run on it.
+  require_one_line_error(
+      run_magcal("fit --input " + csv.string() + " --method ukf --trace " + trace.string()), 2,
+      "line 51: column by_nT");
+  CHECK_FALSE(std::filesystem::exists(trace));
+
+  // The same limit on an LCM log's samples.
+  const auto log = temp_path("range.lcm");
+  {
+    SampleLcmLogWriter w;
+    REQUIRE(w.open(log.string(), 0).empty());
+    const SampleSet a = model_data(100, 3.0, 10);
+    for (int k = 0; k < 100; ++k) {
+      mag_sample_t m = to_msg(a[k], "SAT-A", k);
+      if (k == 42) m.h_body_nT[2] = -2e7;
+      REQUIRE(w.write(m).empty());
+    }
+    REQUIRE(w.close().empty());
+  }
+  require_one_line_error(run_magcal("fit --input " + log.string() + " --method twostep"), 2,
+                         "sample 42 (seq 42): h_body_nT[2] = -2e+07 nT is beyond");
+  std::filesystem::remove(csv);
+  std::filesystem::remove(log);
+}
+
+TEST_CASE("fit: a file that is no LCM log, or a log without our samples, says so", "[cli][fit]") {
+  const auto log = temp_path("garbage.lcm");
+  {
+    std::ofstream f(log, std::ios::binary);
+    std::mt19937 rng(3);
+    for (int i = 0; i < 5000; ++i) f.put(static_cast<char>(rng() & 0xFF));
+  }
+  require_one_line_error(run_magcal("fit --input " + log.string() + " --method twostep"), 2,
+                         "not an LCM log, or corrupt");
+  // A valid log whose events are all on another channel.
+  std::filesystem::remove(log);
+  {
+    lcm::LogFile out(log.string(), "w");
+    REQUIRE(out.good());
+    const mag_sample_t m = to_msg(model_data(1, 3.0, 11)[0], "SAT-A", 0);
+    std::vector<uint8_t> buf(static_cast<size_t>(m.getEncodedSize()));
+    m.encode(buf.data(), 0, static_cast<int>(buf.size()));
+    lcm::LogEvent ev{};
+    ev.channel = "SOMETHING_ELSE";
+    ev.timestamp = m.utime;
+    ev.datalen = static_cast<int32_t>(buf.size());
+    ev.data = buf.data();
+    REQUIRE(out.writeEvent(&ev) == 0);
+  }
+  require_one_line_error(run_magcal("fit --input " + log.string() + " --method twostep"), 2,
+                         "without events on MAGCAL_SAMPLES or MAGCAL_BATCH (channels in it: "
+                         "SOMETHING_ELSE)");
+  std::filesystem::remove(log);
+}
+
+TEST_CASE("fit: repeated rows count once (same sigma), a conflicting repeat is a data error",
+          "[cli][fit]") {
+  // Found by a fresh-user trial: every row twice shrank the reported sigma by sqrt(2).
+  const auto once = temp_path("once.csv");
+  const auto twice = temp_path("twice.csv");
+  REQUIRE(write_sample_csv(once.string(), model_data(600, 3.0, 12)).empty());
+  std::vector<std::string> lines = read_lines(once);
+  std::vector<std::string> doubled = lines;
+  doubled.insert(doubled.end(), lines.begin() + 1, lines.end());
+  write_lines(twice, doubled);
+  for (const char* method : {"twostep", "ukf"}) {
+    INFO(method);
+    const std::string tail = std::string(" --method ") + method + " --json";
+    const Run a = run_magcal("fit --input " + once.string() + tail);
+    const Run b = run_magcal("fit --input " + twice.string() + tail);
+    REQUIRE(a.exit_code == 0);
+    REQUIRE(b.exit_code == 0);
+    CHECK(a.err.empty());
+    CHECK(b.err.find("dropped 600 exact duplicate rows") != std::string::npos);
+    const nlohmann::json ja = nlohmann::json::parse(a.out), jb = nlohmann::json::parse(b.out);
+    CHECK(jb["n_samples"] == ja["n_samples"]);
+    CHECK(jb["bias_nT"] == ja["bias_nT"]);
+    CHECK(jb["bias_sigma_nT"] == ja["bias_sigma_nT"]);
+  }
+  // The same rule for an LCM log whose every frame was recorded twice.
+  const auto log_once = temp_path("once.lcm");
+  const auto log_twice = temp_path("twice.lcm");
+  {
+    const SampleSet set = model_data(600, 3.0, 12);
+    SampleLcmLogWriter a, b;
+    REQUIRE(a.open(log_once.string(), 0).empty());
+    REQUIRE(b.open(log_twice.string(), 0).empty());
+    for (int k = 0; k < 600; ++k) {
+      REQUIRE(a.write(to_msg(set[k], "SAT-A", k)).empty());
+      REQUIRE(b.write(to_msg(set[k], "SAT-A", k)).empty());
+      REQUIRE(b.write(to_msg(set[k], "SAT-A", k)).empty());
+    }
+    REQUIRE(a.close().empty());
+    REQUIRE(b.close().empty());
+  }
+  const Run la = run_magcal("fit --input " + log_once.string() + " --method twostep --json");
+  const Run lb = run_magcal("fit --input " + log_twice.string() + " --method twostep --json");
+  REQUIRE(la.exit_code == 0);
+  REQUIRE(lb.exit_code == 0);
+  CHECK(lb.err.find("dropped 600 exact duplicate samples") != std::string::npos);
+  CHECK(nlohmann::json::parse(lb.out)["bias_sigma_nT"] ==
+        nlohmann::json::parse(la.out)["bias_sigma_nT"]);
+  std::filesystem::remove(log_once);
+  std::filesystem::remove(log_twice);
+
+  // The same time tag with another value: which one is the measurement is unknowable.
+  lines.push_back(with_field(lines[100], 1, "12345.5"));  // line 602 repeats line 101's t_s
+  write_lines(twice, lines);
+  require_one_line_error(run_magcal("fit --input " + twice.string() + " --method twostep"), 2,
+                         "line 602: same t_s as line 101 but other values");
+  std::filesystem::remove(once);
+  std::filesystem::remove(twice);
 }

@@ -457,7 +457,67 @@ double seconds_until_closed(int fd, double limit_s) {
   }
 }
 
+// Sends `request` on a raw connection and returns what the server answers until it closes or
+// stays silent for limit_s (the client does not close its side: it waits, as a real one does).
+std::string raw_exchange(int port, const std::string& request, double limit_s) {
+  const int fd = raw_connect(port);
+  REQUIRE(fd >= 0);
+  REQUIRE(::send(fd, request.data(), request.size(), 0) == static_cast<ssize_t>(request.size()));
+  timeval tv{0, 50'000};
+  ::setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
+  std::string answer;
+  const auto start = std::chrono::steady_clock::now();
+  while (std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() <
+         limit_s) {
+    char buf[4096];
+    const ssize_t n = ::recv(fd, buf, sizeof buf, 0);
+    if (n > 0) {
+      answer.append(buf, static_cast<size_t>(n));
+      // The whole answer is in once its JSON body (Content-Length) has arrived.
+      const auto head_end = answer.find("\r\n\r\n");
+      const auto len_at = answer.find("Content-Length: ");
+      if (head_end != std::string::npos && len_at != std::string::npos &&
+          answer.size() >= head_end + 4 + std::stoul(answer.substr(len_at + 16)))
+        break;
+    } else if (n == 0 || (errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR)) {
+      break;
+    }
+  }
+  ::close(fd);
+  return answer;
+}
+
 }  // namespace
+
+TEST_CASE("a method without a body (no Content-Length) on a known path is 405 at once") {
+  // RFC 9112 6.3: a request without Content-Length or Transfer-Encoding has no body. The
+  // client keeps its side open and waits for the answer, as curl -X POST does.
+  Fixture f;
+  for (const char* method : {"POST", "PUT", "PATCH", "DELETE", "OPTIONS"}) {
+    INFO(method);
+    const auto t0 = std::chrono::steady_clock::now();
+    const std::string answer = raw_exchange(
+        f.server->port(),
+        std::string(method) + " /api/v1/spacecraft HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n", 5.0);
+    const double answered_s =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    INFO(answer);
+    CHECK(answer.rfind("HTTP/1.1 405", 0) == 0);
+    CHECK(answer.find("Allow: GET, HEAD\r\n") != std::string::npos);
+    CHECK(answer.find("not allowed") != std::string::npos);
+    CHECK(answered_s < 0.5);  // not after the server's 1 s read timeout
+  }
+  const std::string unknown =
+      raw_exchange(f.server->port(), "POST /no/such/path HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n", 5.0);
+  INFO(unknown);
+  CHECK(unknown.rfind("HTTP/1.1 404", 0) == 0);
+  CHECK(unknown.find("no such path") != std::string::npos);
+  // A body with its length still works, and the connection stays usable after it.
+  const std::string with_body = raw_exchange(
+      f.server->port(), "POST /metrics HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 3\r\n\r\nabc",
+      5.0);
+  CHECK(with_body.rfind("HTTP/1.1 405", 0) == 0);
+}
 
 TEST_CASE("silent connections do not hold request threads: closed within the timeouts") {
   // More connections that send nothing than the server has request threads: each is dropped

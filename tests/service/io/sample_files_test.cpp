@@ -108,6 +108,67 @@ TEST_CASE("CSV reader errors name the file, line and column") {
   CHECK(read_sample_csv(path).error.find("cannot open") != std::string::npos);
 }
 
+TEST_CASE(
+    "CSV reader: a field beyond any magnetometer's range is an error naming line and column") {
+  const std::string path = temp_file("range.csv");
+  const std::string header = "t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT\n";
+  // At the limit: read.
+  write_text(path, header + "1,1e7,-1e7,3,4,5,6\n2,1,2,3,1e7,5,-1e7\n");
+  CsvReadResult r = read_sample_csv(path);
+  REQUIRE(r.ok());
+  CHECK(r.rows.size() == 2);
+  // Beyond it, in any of the six field columns: the line and the column are named.
+  const char* columns[] = {"bx_nT", "by_nT", "bz_nT", "hx_nT", "hy_nT", "hz_nT"};
+  for (int c = 0; c < 6; ++c) {
+    std::string row = "3";
+    for (int i = 0; i < 6; ++i) row += i == c ? (c % 2 ? ",-1e300" : ",1.0000001e7") : ",5";
+    write_text(path, header + "1,1,2,3,4,5,6\n\n" + row + "\n2,1,2,3,4,5,6\n");
+    r = read_sample_csv(path);
+    INFO(r.error);
+    CHECK(r.error.find("line 4") != std::string::npos);
+    CHECK(r.error.find(std::string("column ") + columns[c]) != std::string::npos);
+    CHECK(r.error.find("range") != std::string::npos);
+    CHECK(r.rows.empty());
+  }
+  std::filesystem::remove(path);
+}
+
+TEST_CASE(
+    "CSV reader: an exact repeat of a row is dropped and counted, a conflicting one is an error") {
+  const std::string path = temp_file("dup.csv");
+  const std::string header =
+      "t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT,qw,qx,qy,qz,r_ecef_x_m,r_ecef_y_m,r_ecef_z_m,"
+      "temperature_C\n";
+  std::string body;
+  for (int k = 0; k < 5; ++k) {
+    body += std::to_string(1577836800 + 10 * k) + "," + std::to_string(1000 + k) +
+            ",2,3,4,5,6,1,0,0,0,7e6,0,0,20\n";
+  }
+  write_text(path, header + body + body);
+  CsvReadResult r = read_sample_csv(path);
+  REQUIRE(r.ok());
+  CHECK(r.rows.size() == 5);
+  CHECK(r.duplicates_dropped == 5);
+  for (int k = 0; k < 5; ++k)
+    CHECK(r.rows[static_cast<size_t>(k)].sample.b_sensor_nT.x() == 1000 + k);
+
+  // Same time tag, another value (here only the temperature extra): which row is the
+  // measurement is unknowable, so the file is refused, naming both lines.
+  write_text(path, header + body + "1577836820,1002,2,3,4,5,6,1,0,0,0,7e6,0,0,21\n");
+  r = read_sample_csv(path);
+  INFO(r.error);
+  CHECK(r.error.find("line 7") != std::string::npos);
+  CHECK(r.error.find("line 4") != std::string::npos);
+  CHECK(r.rows.empty());
+  CHECK(r.duplicates_dropped == 0);
+  // A distinct time tag below the reader's microsecond resolution is the same time tag.
+  write_text(path, header + body + "1577836820.0000001,1002,2,3,4,5,6,1,0,0,0,7e6,0,0,20\n");
+  r = read_sample_csv(path);
+  REQUIRE(r.ok());
+  CHECK(r.duplicates_dropped == 1);
+  std::filesystem::remove(path);
+}
+
 TEST_CASE("LCM log: samples and batches read back, every event decodes with lcm::LogFile") {
   const std::string path = temp_file("log.lcm");
   for (int batch : {0, 7}) {
@@ -188,4 +249,96 @@ TEST_CASE("LCM log reader counts undecodable events and survives a truncated fil
   CHECK(r.samples.size() == 1);
   std::filesystem::remove(path);
   CHECK(!read_sample_lcm_log(path).ok());
+}
+
+TEST_CASE("LCM log reader: not an LCM log, or a log without our samples, is an error saying so") {
+  const std::string path = temp_file("garbage.lcm");
+  {
+    std::ofstream f(path, std::ios::binary);
+    for (int i = 0; i < 5000; ++i) f.put(static_cast<char>((i * 7919) % 251));
+  }
+  LcmReadResult r = read_sample_lcm_log(path);
+  INFO(r.error);
+  CHECK(r.error.find("not an LCM log") != std::string::npos);
+  CHECK(r.error.find(path) != std::string::npos);
+  // The same words as magcald's replay start error (one helper).
+  CHECK(r.error == unreadable_lcm_log_reason(path));
+
+  write_text(path, "");
+  CHECK(read_sample_lcm_log(path).error.find("empty file") != std::string::npos);
+
+  // A valid log, but only another channel: says which channels it holds.
+  std::filesystem::remove(path);
+  const mag_sample_t m = make_sample(1, "A");
+  std::vector<uint8_t> buf(static_cast<size_t>(m.getEncodedSize()));
+  m.encode(buf.data(), 0, static_cast<int>(buf.size()));
+  auto write_log = [&](const char* channel, int count) {
+    lcm::LogFile log(path, "w");
+    REQUIRE(log.good());
+    for (int i = 0; i < count; ++i) {
+      lcm::LogEvent ev{};
+      ev.eventnum = i;
+      ev.channel = channel;
+      ev.timestamp = m.utime;
+      ev.datalen = static_cast<int32_t>(buf.size());
+      ev.data = buf.data();
+      REQUIRE(log.writeEvent(&ev) == 0);
+    }
+  };
+  write_log("POSE", 3);
+  CHECK(unreadable_lcm_log_reason(path).empty());
+  r = read_sample_lcm_log(path);
+  INFO(r.error);
+  CHECK(r.error.find("without events on MAGCAL_SAMPLES or MAGCAL_BATCH") != std::string::npos);
+  CHECK(r.error.find("POSE") != std::string::npos);
+  CHECK(r.samples.empty());
+
+  // Our channel, but another message type in it (mag_sample_t on the batch channel).
+  write_log(kBatchChannel, 2);
+  r = read_sample_lcm_log(path);
+  CHECK(r.error.find("none of its 2 events") != std::string::npos);
+  CHECK(r.samples.empty());
+  std::filesystem::remove(path);
+}
+
+TEST_CASE(
+    "LCM log reader: an exact repeat of a sample is dropped and counted, a conflict is an error") {
+  const std::string path = temp_file("dup.lcm");
+  auto write = [&](const std::vector<mag_sample_t>& samples, int batch) {
+    SampleLcmLogWriter w;
+    REQUIRE(w.open(path, batch).empty());
+    for (const mag_sample_t& m : samples) REQUIRE(w.write(m).empty());
+    REQUIRE(w.close().empty());
+  };
+  std::vector<mag_sample_t> twice;
+  for (int pass = 0; pass < 2; ++pass) {
+    for (int k = 0; k < 10; ++k) {
+      twice.push_back(make_sample(k, "A"));
+      twice.back().seq = k + 100 * pass;     // a re-sent frame may be renumbered
+      twice.push_back(make_sample(k, "B"));  // another spacecraft at the same utime: kept
+    }
+  }
+  for (int batch : {0, 4}) {
+    write(twice, batch);
+    LcmReadResult r = read_sample_lcm_log(path);
+    INFO(r.error);
+    REQUIRE(r.ok());
+    CHECK(r.samples.size() == 20);
+    CHECK(r.duplicates_dropped == 20);
+    LcmReadOptions only_a;
+    only_a.sat_id = "A";
+    r = read_sample_lcm_log(path, only_a);
+    CHECK(r.samples.size() == 10);
+    CHECK(r.duplicates_dropped == 10);
+  }
+  std::vector<mag_sample_t> conflicting = {make_sample(0, "A"), make_sample(1, "A"),
+                                           make_sample(1, "A")};
+  conflicting[2].h_body_nT[1] += 1.0;
+  conflicting[2].seq = 7;
+  write(conflicting, 0);
+  const LcmReadResult r = read_sample_lcm_log(path);
+  INFO(r.error);
+  CHECK(r.error.find("samples 1 (seq 1) and 2 (seq 7) of spacecraft 'A'") != std::string::npos);
+  CHECK(r.samples.empty());
+  std::filesystem::remove(path);
 }
