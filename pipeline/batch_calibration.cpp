@@ -19,6 +19,12 @@ namespace magcal {
 
 // See the model-extension decision in calibrate_batch_core().
 constexpr double kMaxExtensionResidualRatio = 2.0;
+// A refused extension's disagreement with the 9-parameter fit joins the covariance when its
+// effects are of a sensor's size (per axis within 2.5 % of |h|): paper scenario, 3 h windows the
+// extension is refused on, 1.0-1.6 %. Beyond it the "extension" soaks up what is no sensor
+// effect and says nothing about the 9-parameter fit's error (ISS Astro Pi: 3.7-220 %; with the
+// term its bias sigma went from (300, 600, 220) to (1330, 6360, 1290) nT).
+constexpr double kMaxAmbiguityEffectFraction = 0.025;
 // Robust fits: a sample whose residual | |B_cal| - |h| | lies more than this many robust sigmas
 // (1.4826 x the median absolute deviation) from the median is an outlier and is left out of the
 // final fit. For Gaussian noise 5 sigmas leave out 6e-7 of clean samples; the spike recordings
@@ -164,6 +170,7 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
   Vector9d theta = centered.theta;
   Matrix9d theta_cov = centered.theta_covariance;
   Matrix9d theta_cov_white = centered.theta_covariance_white;
+  Vector9d refused_extension_shift = Vector9d::Zero();  // p_ext - p_9 when BIC's pick is refused
   // With a (nearly) constant reference magnitude the centered solution is degenerate
   // (E = -I, c = 0 fits the centered data exactly, estimation.md section 7): it is no estimate
   // and no start. Relative spread of |h| below 1e-3 (the paper orbit varies by ~30 %; a lab
@@ -252,9 +259,9 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
         for (const CalibrationSample& s : samples) mean_h_nT += s.h_body_nT.norm();
         mean_h_nT /= static_cast<double>(samples.size());
         const bool small_effects = extension_effects_small(ext.extension, mean_h_nT);
-        if (ext.status == LmStatus::kOk && small_effects &&
-            (shift.cwiseAbs().array() <= 5.0 * sigma.array()).all() &&
-            bic_prefers_extension(2.0 * lm.cost, 2.0 * ext.cost, r.n_samples) &&
+        const bool supported = ext.status == LmStatus::kOk && extended.ok() &&
+                               bic_prefers_extension(2.0 * lm.cost, 2.0 * ext.cost, r.n_samples);
+        if (supported && small_effects && (shift.cwiseAbs().array() <= 5.0 * sigma.array()).all() &&
             geometric_residual_rms(samples, ext.theta) <=
                 kMaxExtensionResidualRatio * geometric_residual_rms(samples, lm.theta)) {
           lm = std::move(ext);
@@ -263,6 +270,14 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
           r.nonlinearity_k3 = lm.extension.head<3>();
           r.hysteresis_nT = lm.extension.tail<3>();
           r.extension_covariance = lm.extension_covariance;
+        } else if (supported &&
+                   extension_effects_small(ext.extension, mean_h_nT, kMaxAmbiguityEffectFraction)) {
+          // The data show sensor-sized effects the 9-parameter model leaves out, but the
+          // extension is not a description we publish: the two models disagree by p_ext - p_9
+          // and the data cannot say which is right, so that disagreement joins the covariance
+          // (below). Measured, paper scenario, 40 seeds of 3 h: in the 4 where this happened the
+          // bias was 3.5-4.4 sigma off on x with the HAC covariance alone, 0.96-1.19 with it.
+          refused_extension_shift = extended.parameters.packed() - base.parameters.packed();
         }
       }
     }
@@ -285,7 +300,7 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
   const RecoveryResult rec = recover_parameters(theta, &theta_cov);
   if (!rec.ok()) return fail(r, CalibrationStatus::kFailed, rec.message);
   r.parameters = rec.parameters;
-  r.covariance = rec.covariance;
+  r.covariance = rec.covariance + refused_extension_shift * refused_extension_shift.transpose();
   r.covariance_white_noise = recover_parameters(theta, &theta_cov_white).covariance;
 
   // Residual rms of |B_cal| - |h| with the published b, D (what a user of calibration_t gets;

@@ -55,9 +55,8 @@ bool bic_prefers_extension(double chi2_base, double chi2_extended, int n_samples
   return n * std::log(chi2_base / chi2_extended) > 6.0 * std::log(n);
 }
 
-bool extension_effects_small(const Vector6d& a, double mean_h_nT) {
-  constexpr double kMaxEffectFraction = 0.01;
-  const double limit_nT = kMaxEffectFraction * mean_h_nT;
+bool extension_effects_small(const Vector6d& a, double mean_h_nT, double max_fraction) {
+  const double limit_nT = max_fraction * mean_h_nT;
   return (a.head<3>().cwiseAbs() * (mean_h_nT * mean_h_nT)).maxCoeff() <= limit_nT &&
          a.tail<3>().cwiseAbs().maxCoeff() <= limit_nT;
 }

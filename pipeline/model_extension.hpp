@@ -58,8 +58,8 @@ bool bic_prefers_extension(double chi2_base, double chi2_extended, int n_samples
 // and |eta_i| within 1 % of the mean |h| (mean_h_nT). Paper sensor, 3-12 h windows: at most
 // 0.44 %; the ISS Astro Pi halves, where the "nonlinearity" soaks up 500-8 700 nT of what the
 // station does to the field: 1.4-25 %. Beyond it the extension is not a sensor effect and is
-// not used.
-bool extension_effects_small(const Vector6d& a, double mean_h_nT);
+// not used. max_fraction: the limit (default 1 %).
+bool extension_effects_small(const Vector6d& a, double mean_h_nT, double max_fraction = 0.01);
 
 // The extension fitted with b, D held at the estimate the inputs were computed from (linear
 // least squares, estimation.md section 7): for the alignment of an estimate that did not fit it
