@@ -23,53 +23,6 @@ bool has_fingerprint(const void* data, int size, int64_t hash) {
   return static_cast<int64_t>(v) == hash;
 }
 
-int32_t read_int32_be(const uint8_t* b) {
-  uint32_t v = 0;
-  for (int i = 0; i < 4; ++i) v = (v << 8) | b[i];
-  return static_cast<int32_t>(v);
-}
-
-// Bytes of an encoded mag_sample_t after its sat_id: seq, b_sensor_nT, has_position,
-// r_ecef_m, has_attitude, q_body_from_eci, has_reference, h_body_nT, temperature_C.
-constexpr int64_t kSampleTailBytes = 8 + 3 * 8 + 1 + 3 * 8 + 1 + 4 * 8 + 1 + 3 * 8 + 4;
-constexpr int64_t kMinEncodedSampleBytes = 8 + 4 + 1 + kSampleTailBytes;  // sat_id ""
-
-// An LCM string at pos (int32 length including the NUL, then the bytes) that fits.
-bool skip_string(const uint8_t* b, int64_t size, int64_t& pos) {
-  if (size - pos < 4) return false;
-  const int32_t len = read_int32_be(b + pos);
-  pos += 4;
-  if (len < 1 || len > size - pos) return false;
-  pos += len;
-  return true;
-}
-
-bool skip_sample(const uint8_t* b, int64_t size, int64_t& pos) {
-  if (size - pos < 8) return false;
-  pos += 8;  // utime
-  if (!skip_string(b, size, pos) || size - pos < kSampleTailBytes) return false;
-  pos += kSampleTailBytes;
-  return true;
-}
-
-// lcmgen's decoders trust the lengths inside the frame: a string length <= 0 overflows
-// `length - 1` (undefined behaviour) and std::string::assign throws; a batch's n is used to
-// size `samples` before any sample is read (2^31 - 1 would ask for hundreds of GB). So the
-// frame's layout is walked first; only a frame whose every length fits the bytes is decoded.
-bool well_formed_frame(const void* data, int size, bool batch) {
-  const auto* b = static_cast<const uint8_t*>(data);
-  int64_t pos = 8;  // fingerprint, checked by the caller
-  if (!batch) return skip_sample(b, size, pos) && pos == size;
-  if (!skip_string(b, size, pos) || size - pos < 4) return false;
-  const int32_t n = read_int32_be(b + pos);
-  pos += 4;
-  if (n < 0 || n > (size - pos) / kMinEncodedSampleBytes) return false;
-  for (int32_t i = 0; i < n; ++i) {
-    if (!skip_sample(b, size, pos)) return false;
-  }
-  return pos == size;
-}
-
 }  // namespace
 
 bool is_file_url(const std::string& url) {
@@ -90,7 +43,7 @@ DecodeOutcome decode_frame(const void* data, int size, bool expect_batch, Ingest
   out.batch_sat_id.clear();
   const int64_t hash = expect_batch ? mag_batch_t::getHash() : mag_sample_t::getHash();
   if (!has_fingerprint(data, size, hash)) return DecodeOutcome::kWrongType;
-  if (!well_formed_frame(data, size, expect_batch)) return DecodeOutcome::kDecodeError;
+  if (!well_formed_lcm_frame(data, size, expect_batch)) return DecodeOutcome::kDecodeError;
   if (expect_batch) {
     mag_batch_t batch;
     if (batch.decode(data, 0, size) != size) return DecodeOutcome::kDecodeError;

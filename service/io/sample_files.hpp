@@ -117,6 +117,14 @@ class SampleLcmLogWriter {
 // replay start error.
 std::string unreadable_lcm_log_reason(const std::string& path);
 
+// True when an encoded magcal.mag_sample_t (batch false) or mag_batch_t (batch true) frame of
+// `size` bytes (from its 8-byte fingerprint on, which is not checked here) has every length
+// inside it fitting the bytes. lcm-gen's decoders trust those lengths: a string length <= 0
+// overflows `length - 1` (undefined behaviour) and std::string::assign throws; a batch's n
+// sizes `samples` before any sample is read (2^31 - 1 would ask for hundreds of GB). Decode only
+// frames for which this holds (magcald's ingest, `magcal fit` on a log).
+bool well_formed_lcm_frame(const void* data, int size, bool batch);
+
 struct LcmReadOptions {
   std::optional<std::string> sat_id;  // keep only this spacecraft when set
 };

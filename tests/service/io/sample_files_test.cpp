@@ -251,6 +251,48 @@ TEST_CASE("LCM log reader counts undecodable events and survives a truncated fil
   CHECK(!read_sample_lcm_log(path).ok());
 }
 
+TEST_CASE("LCM log reader: frames whose lengths lie are counted, never decoded (no throw)") {
+  // Found by a trial: zeroed bytes inside a log made lcm-gen's decoder throw std::length_error
+  // (a string length of 0) and `magcal fit` abort. magcald walked the layout first; now both do.
+  const std::string path = temp_file("lying_lengths.lcm");
+  {
+    lcm::LogFile log(path, "w");
+    REQUIRE(log.good());
+    const mag_sample_t m = make_sample(1, "A");
+    std::vector<uint8_t> buf(static_cast<size_t>(m.getEncodedSize()));
+    m.encode(buf.data(), 0, static_cast<int>(buf.size()));
+    lcm::LogEvent ev{};
+    ev.channel = kSamplesChannel;
+    ev.timestamp = m.utime;
+    ev.datalen = static_cast<int32_t>(buf.size());
+    ev.data = buf.data();
+    log.writeEvent(&ev);
+    std::vector<uint8_t> zero_len = buf;  // sat_id length (after fingerprint and utime) = 0
+    std::fill(zero_len.begin() + 16, zero_len.begin() + 20, 0);
+    ev.data = zero_len.data();
+    log.writeEvent(&ev);
+    mag_batch_t batch;
+    batch.sat_id = "A";
+    batch.n = 1;
+    batch.samples = {make_sample(2, "A")};
+    std::vector<uint8_t> bbuf(static_cast<size_t>(batch.getEncodedSize()));
+    batch.encode(bbuf.data(), 0, static_cast<int>(bbuf.size()));
+    const std::size_t n_at = 8 + 4 + batch.sat_id.size() + 1;  // after fingerprint and sat_id
+    std::fill(bbuf.begin() + static_cast<std::ptrdiff_t>(n_at),
+              bbuf.begin() + static_cast<std::ptrdiff_t>(n_at) + 4, 0x7F);  // n = 2^31 - 1
+    ev.channel = kBatchChannel;
+    ev.datalen = static_cast<int32_t>(bbuf.size());
+    ev.data = bbuf.data();
+    log.writeEvent(&ev);
+  }
+  const LcmReadResult r = read_sample_lcm_log(path);
+  REQUIRE(r.ok());
+  CHECK(r.samples.size() == 1);
+  CHECK(r.undecodable == 2);
+  CHECK(r.events == 3);
+  std::filesystem::remove(path);
+}
+
 TEST_CASE("LCM log reader: not an LCM log, or a log without our samples, is an error saying so") {
   const std::string path = temp_file("garbage.lcm");
   {
