@@ -85,7 +85,8 @@ bool FilterState::operator==(const FilterState& o) const {
          period_nis_sum == o.period_nis_sum && anchor_information == o.anchor_information &&
          score_block == o.score_block && score_block_n == o.score_block_n &&
          score_meat == o.score_meat && score_blocks == o.score_blocks &&
-         model_error_covariance == o.model_error_covariance;
+         model_error_covariance == o.model_error_covariance &&
+         model_error_known == o.model_error_known;
 }
 
 const char* to_string(FilterUpdateStatus s) {
@@ -242,6 +243,7 @@ void ScalarFilterBase::reanchor(const Vector9d& x, const Matrix9d& P,
 void ScalarFilterBase::set_model_error_covariance(const Matrix9d& model_error_covariance) {
   state_.model_error_covariance =
       model_error_covariance.allFinite() ? model_error_covariance : Matrix9d::Zero();
+  state_.model_error_known = true;
 }
 
 void ScalarFilterBase::seed_noise(double measurement_noise_nT, double residual_autocorrelation) {
@@ -285,6 +287,7 @@ Eigen::Vector3d ScalarFilterBase::bias_sigma_nT() const {
 
 bool ScalarFilterBase::converged() const {
   return state_.initialized && state_.consistent &&
+         (state_.model_error_known || !options_.ok_needs_model_error) &&
          state_.fisher_condition <= options_.max_fisher_condition &&
          (bias_sigma_nT().array() < options_.converged_bias_sigma_nT).all();
 }
@@ -352,6 +355,9 @@ CalibrationResult ScalarFilterBase::snapshot() const {
     std::snprintf(buf, sizeof buf, "inconsistent innovations (mean NIS %.3g), covariance re-opened",
                   state_.last_window_mean_nis);
     r.message = buf;
+  } else if (options_.ok_needs_model_error && !state_.model_error_known) {
+    r.status = CalibrationStatus::kNotConverged;
+    r.message = "waiting for the first refit to measure the model error";
   } else if (!(bias_sigma.array() < options_.converged_bias_sigma_nT).all()) {
     r.status = CalibrationStatus::kNotConverged;
     std::snprintf(buf, sizeof buf, "bias 1-sigma above %.3g nT", options_.converged_bias_sigma_nT);

@@ -126,6 +126,12 @@ struct FilterOptions {
   // Snapshot status: ok once every bias 1-sigma is below this (and the filter is consistent
   // and observable).
   double converged_bias_sigma_nT = 10.0;
+  // `ok` also needs the model error measured (reanchor() or set_model_error_covariance()). A
+  // filter started from its own first samples (a 9-parameter batch) cannot know what the model
+  // leaves out: on a tumbling spacecraft, whose first samples observe everything, its D was up to
+  // 7 sigma off while `ok`, until the first refit. Off in the library (pure-model studies); the
+  // daemon turns it on ([ukf] ok_needs_refit).
+  bool ok_needs_model_error = false;
   // Observability: scaled Fisher condition above this is `unobservable` (the acceptance gates'
   // max_fisher_condition default).
   double max_fisher_condition = 1e4;
@@ -187,6 +193,7 @@ struct FilterState {
   int32_t score_blocks = 0;
   // Model error (reanchor(), set_model_error_covariance()): added to the reported covariance.
   Matrix9d model_error_covariance = Matrix9d::Zero();
+  bool model_error_known = false;  // set by reanchor() / set_model_error_covariance()
 
   // Snapshot period (since the start or reset_period()).
   int64_t period_start_utime = 0;

@@ -183,7 +183,8 @@ FilterRun run_filter(Filter& filter, const SampleSet& samples, std::FILE* trace)
   return run;
 }
 
-void finish_filter_result(CalibrationResult& r, const SampleSet& samples, double sigma_nT) {
+void finish_filter_result(CalibrationResult& r, const SampleSet& samples, double sigma_nT,
+                          const CalibrationResult& refit) {
   r.n_samples = static_cast<int>(samples.size());
   r.window_start_utime = samples.front().utime;
   r.window_end_utime = samples.back().utime;
@@ -194,7 +195,8 @@ void finish_filter_result(CalibrationResult& r, const SampleSet& samples, double
   }
   r.residual_rms_nT = std::sqrt(sum_sq / static_cast<double>(samples.size()));
   r.converged = r.status == CalibrationStatus::kOk;
-  estimate_alignment(samples, sigma_nT, BatchCalibrationOptions{}.min_alignment_samples, &r);
+  estimate_alignment(samples, sigma_nT, BatchCalibrationOptions{}.min_alignment_samples, &r,
+                     &refit);
   GateInputs in;
   in.min_coverage_eigenvalue = direction_coverage_eigenvalues(samples)(0);
   GateVerdict verdict = evaluate_gates(r, in);
@@ -363,12 +365,14 @@ int run_fit(const FitArgs& args) {
     // The filters' model has 9 parameters; where the data show more (the batch refit takes the
     // sensor-model extension), they converge to the 9-parameter optimum, a distance the batch
     // refit measures (CalibrationResult::model_error). It is in their reported covariance, as the
-    // daemon's re-anchor passes it (MagnetometerUkf::reanchor).
+    // daemon's re-anchor passes it (MagnetometerUkf::reanchor); the refit's extension is what
+    // their alignment removes (estimate_alignment).
     BatchCalibrationOptions batch;
     batch.sigma_nT = args.sigma_nT;
     batch.alignment = false;
     batch.gates = false;
-    const Matrix9d model_error = calibrate_batch(samples, batch).model_error_covariance();
+    const CalibrationResult refit = calibrate_batch(samples, batch);
+    const Matrix9d model_error = refit.model_error_covariance();
     FilterRun run;
     if (args.method == "ekf") {
       MagnetometerEkf::Options o;
@@ -395,7 +399,7 @@ int run_fit(const FitArgs& args) {
     }
     r = run.result;
     convergence_time_s = run.convergence_time_s;
-    finish_filter_result(r, samples, args.sigma_nT);
+    finish_filter_result(r, samples, args.sigma_nT, refit);
   }
   const double compute_ms =
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_start).count();

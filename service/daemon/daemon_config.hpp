@@ -52,8 +52,14 @@ struct DaemonConfig {
     bool robust = false;  // outlier-resistant weighting in the batch fit
   } refit;
   struct Ukf {
-    MagnetometerUkf::Options filter;  // sigma_nT, process_noise, tuning, consistency monitor
-    double snapshot_every_s = 60.0;   // of data time
+    // sigma_nT, process_noise, tuning, consistency monitor; `ok` only after a refit measured the
+    // model error (FilterOptions::ok_needs_model_error).
+    MagnetometerUkf::Options filter = [] {
+      MagnetometerUkf::Options o;
+      o.ok_needs_model_error = true;
+      return o;
+    }();
+    double snapshot_every_s = 60.0;  // of data time
   } ukf;
   GateOptions gates;
   struct Sensor {

@@ -215,6 +215,7 @@ storage::FilterState stored_filter_state(const std::string& sat_id, const std::s
   for (int i = 0; i < st.score_meat.size(); ++i) put(b, st.score_meat(i));
   put(b, st.score_blocks);
   for (int i = 0; i < st.model_error_covariance.size(); ++i) put(b, st.model_error_covariance(i));
+  put(b, static_cast<uint8_t>(st.model_error_known ? 1 : 0));
   return out;
 }
 
@@ -281,7 +282,10 @@ bool filter_state_from_stored(const storage::FilterState& in, FilterState& out) 
   if (pos < b.size()) {  // appended after the blocks: the model-error covariance
     for (int i = 0; ok && i < st.model_error_covariance.size(); ++i)
       ok = get(b, pos, st.model_error_covariance(i));
+    uint8_t known = 0;
+    ok = ok && get(b, pos, known);
     if (!ok) return false;
+    st.model_error_known = known != 0;
   }
   st.has_time = has_time != 0;
   st.has_previous_innovation = has_prev != 0;

@@ -288,48 +288,53 @@ TEST_CASE(
 }
 
 TEST_CASE(
-    "online filters over 24 h: the model-error term covers D, and the alignment of their "
-    "estimate removes the hysteresis") {
+    "online filters over 24 h: the model-error term covers b and D, and the alignment of "
+    "their estimate removes the hysteresis") {
   // The filters' 9-parameter model converges to the 9-parameter optimum; before, their 24 h D13
-  // was 7 sigma off and `magcal fit --method ukf|ekf` aligned vectors with the hysteresis left
-  // in (pitch 63 sigma off at 24 h).
-  AxisStats stats;
-  Eigen::Vector3d sum_d_z2 = Eigen::Vector3d::Zero();  // D12, D13, D23 (err / sigma)^2
-  const int runs = 6;
-  for (int run = 0; run < runs; ++run) {
-    const SimulatedSet set = simulate("paper", 8000 + static_cast<uint64_t>(run), 24.0);
-    BatchCalibrationOptions batch;
-    batch.alignment = false;
-    batch.gates = false;
-    const CalibrationResult refit = calibrate_batch(set.samples, batch);
-    REQUIRE(refit.has_nonlinearity);
-    MagnetometerUkf ukf{MagnetometerUkf::Options{}};
-    ukf.set_model_error_covariance(refit.model_error_covariance());
-    for (const CalibrationSample& s : set.samples) {
-      ukf.update(s.b_sensor_nT, s.h_body_nT.norm(), s.utime);
+  // was 7 sigma off on the paper scenario and `magcal fit --method ukf|ekf` aligned vectors with
+  // the hysteresis left in (pitch 63 sigma off at 24 h); on a tumbling spacecraft bias 12, D 19
+  // and yaw 35 sigma off, all accepted. As `magcal fit --method ukf` runs it: a batch refit of
+  // the same samples gives the model error and the extension the alignment removes.
+  for (const char* preset : {"paper", "tumbling"}) {
+    AxisStats stats;
+    double worst_d_z = 0.0;
+    const int runs = 5;
+    for (int run = 0; run < runs; ++run) {
+      const SimulatedSet set = simulate(preset, 8000 + static_cast<uint64_t>(run), 24.0);
+      BatchCalibrationOptions batch;
+      batch.alignment = false;
+      batch.gates = false;
+      const CalibrationResult refit = calibrate_batch(set.samples, batch);
+      REQUIRE(refit.has_nonlinearity);
+      MagnetometerUkf ukf{MagnetometerUkf::Options{}};
+      ukf.set_model_error_covariance(refit.model_error_covariance());
+      for (const CalibrationSample& s : set.samples) {
+        ukf.update(s.b_sensor_nT, s.h_body_nT.norm(), s.utime);
+      }
+      CalibrationResult r = ukf.snapshot();
+      INFO(preset << " run " << run << ": " << r.message);
+      REQUIRE(r.status == CalibrationStatus::kOk);
+      estimate_alignment(set.samples, 3.0, 10, &r, &refit);
+      REQUIRE(r.has_alignment);
+      stats.add(r, set.truth, nullptr);
+      stats.add_alignment(r, set.truth);
+      CalibrationParameters truth_p;
+      truth_p.bias_nT = set.truth.bias_nT;
+      truth_p.D = set.truth.D;
+      const Vector9d d_z = (r.parameters.packed() - truth_p.packed())
+                               .cwiseQuotient(r.covariance.diagonal().cwiseSqrt());
+      worst_d_z = std::max(worst_d_z, d_z.tail<6>().cwiseAbs().maxCoeff());
     }
-    CalibrationResult r = ukf.snapshot();
-    INFO("run " << run << ": " << r.message);
-    REQUIRE(r.status == CalibrationStatus::kOk);
-    estimate_alignment(set.samples, 3.0, 10, &r);
-    REQUIRE(r.has_alignment);
-    stats.add(r, set.truth, nullptr);
-    stats.add_alignment(r, set.truth);
-    const Vector9d sd = r.covariance.diagonal().cwiseSqrt();
-    const Eigen::Vector3d d_err(r.parameters.D(0, 1) - set.truth.D(0, 1),
-                                r.parameters.D(0, 2) - set.truth.D(0, 2),
-                                r.parameters.D(1, 2) - set.truth.D(1, 2));
-    sum_d_z2 += d_err.cwiseQuotient(sd.tail<3>()).cwiseAbs2();
+    const Eigen::Vector3d z = stats.rms_z(), za = stats.align_rms_z();
+    std::printf(
+        "ukf %s 24 h x %d: RMS(err/sigma) bias (%.3f, %.3f, %.3f), alignment (%.3f, "
+        "%.3f, %.3f), worst D entry %.2f sigma\n",
+        preset, runs, z(0), z(1), z(2), za(0), za(1), za(2), worst_d_z);
+    INFO(preset);
+    CHECK(z.maxCoeff() <= 1.5);
+    CHECK(za.maxCoeff() <= 1.5);
+    CHECK(worst_d_z <= 3.0);
   }
-  const Eigen::Vector3d z = stats.rms_z(), za = stats.align_rms_z();
-  const Eigen::Vector3d zd = (sum_d_z2 / runs).cwiseSqrt();
-  std::printf(
-      "ukf 24 h x %d: RMS(err/sigma) bias (%.3f, %.3f, %.3f), D12 D13 D23 (%.3f, %.3f, "
-      "%.3f), alignment (%.3f, %.3f, %.3f)\n",
-      runs, z(0), z(1), z(2), zd(0), zd(1), zd(2), za(0), za(1), za(2));
-  CHECK(z.maxCoeff() <= 1.5);
-  CHECK(zd.maxCoeff() <= 2.0);
-  CHECK(za.maxCoeff() <= 1.5);
 }
 
 TEST_CASE("3 h windows: where the extension is refused, its disagreement covers the tail") {
