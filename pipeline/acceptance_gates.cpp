@@ -107,6 +107,14 @@ void bounds_gate(const CalibrationResult& r, const GateOptions& o, GateVerdict& 
                                  diagonal ? "scale_bound" : "nonorthogonality_bound", kDName[j],
                                  value, limit));
   }
+  if (r.has_alignment &&
+      !(r.alignment.residual_fraction <= o.max_alignment_residual_fraction)) {
+    v.reasons.push_back(
+        format("alignment_mismatch: after the best rotation the calibrated and reference "
+               "directions differ by %.0f %% of |h| (> %.0f %%): check the sensor axes' signs and "
+               "order (a left-handed frame) and the attitude",
+               100.0 * r.alignment.residual_fraction, 100.0 * o.max_alignment_residual_fraction));
+  }
 }
 
 // d^T (P1 + P2)^-1 d for one block of the parameter difference; NaN when P1 + P2 is not

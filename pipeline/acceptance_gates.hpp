@@ -73,6 +73,10 @@ struct GateOptions {
   double max_bias_nT = 100000.0;
   double max_scale = 0.3;             // |D11|, |D22|, |D33|
   double max_nonorthogonality = 0.1;  // |D12|, |D13|, |D23|
+  // Alignment residual (AlignmentEstimate::residual_fraction): 0.1 ~ sin 5.7 deg; the paper
+  // scenario leaves 2e-4, a 1-deg attitude error 0.017; a sign-flipped or swapped sensor axis
+  // (left-handed frame, which no rotation fits) ~1.
+  double max_alignment_residual_fraction = 0.1;
 
   bool change_enabled = true;
   // Tail probability of the chi-square change test: 1e-4 (chi2(3) > 21.1, chi2(6) > 27.9, like

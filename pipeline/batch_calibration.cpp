@@ -392,6 +392,10 @@ void estimate_alignment(const SampleSet& samples, double sigma_nT, int min_align
   if (!al.ok()) return;
   r->has_alignment = true;
   r->alignment = al.estimate;
+  double sum_h2 = 0.0;
+  for (const AlignmentPair& p : pairs) sum_h2 += p.h_body_nT.squaredNorm();
+  r->alignment.residual_fraction =
+      al.residual_rms_nT / std::sqrt(sum_h2 / static_cast<double>(pairs.size()));
   // The stage-1 estimate's own error moves the rotation too.
   r->alignment.angle_covariance_rad2 +=
       alignment_covariance_from_stage1(samples, al.estimate.R_sensor_from_body, r->covariance,

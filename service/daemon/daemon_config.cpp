@@ -174,6 +174,7 @@ std::map<std::string, Section> key_table(DaemonConfig& c) {
         {"max_bias_nT", bind(g.max_bias_nT)},
         {"max_scale", bind(g.max_scale)},
         {"max_nonorthogonality", bind(g.max_nonorthogonality)},
+        {"max_alignment_residual_fraction", bind(g.max_alignment_residual_fraction)},
         {"change_enabled", bind(g.change_enabled)},
         {"change_tail_probability", bind(g.change_tail_probability)},
         {"bias_change_floor_nT", bind(g.bias_change_floor_nT)},

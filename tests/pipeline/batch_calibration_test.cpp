@@ -221,3 +221,30 @@ TEST_CASE("robust refit of a cheap sensor (600 nT noise, 28 spikes up to 3 G) is
   const CalibrationResult plain = calibrate_batch(s, o);
   CHECK_FALSE(plain.accepted);
 }
+
+TEST_CASE("a sign-flipped or swapped sensor axis (left-handed frame) is refused by the alignment") {
+  // Found by a trial: with bx negated the fit was accepted with yaw -177 deg; with bx and by
+  // swapped, yaw -87 deg. The scalar fit cannot see it (|B| is the same); no rotation maps the
+  // vectors on the reference directions.
+  const CalibrationParameters p = truth_parameters();
+  const SampleSet clean = model_data(p, 600, 3.0, 21);
+  BatchCalibrationOptions o = options(BatchCalibrationOptions::Method::kTwoStep);
+  const CalibrationResult good = calibrate_batch(clean, o);
+  REQUIRE(good.has_alignment);
+  CHECK(good.accepted);
+  CHECK(good.alignment.residual_fraction < 1e-3);
+  SampleSet flipped = clean, swapped = clean;
+  for (CalibrationSample& s : flipped) s.b_sensor_nT.x() = -s.b_sensor_nT.x();
+  for (CalibrationSample& s : swapped) std::swap(s.b_sensor_nT.x(), s.b_sensor_nT.y());
+  for (const SampleSet* bad : {&flipped, &swapped}) {
+    const CalibrationResult r = calibrate_batch(*bad, o);
+    REQUIRE(r.has_alignment);
+    CHECK_FALSE(r.accepted);
+    CHECK(r.alignment.residual_fraction > 0.3);
+    bool named = false;
+    for (const std::string& reason : r.rejection_reasons) {
+      named = named || reason.find("alignment_mismatch") != std::string::npos;
+    }
+    CHECK(named);
+  }
+}
