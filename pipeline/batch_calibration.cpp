@@ -239,8 +239,8 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
     if (options.model_extension && !options.robust && lm.status == LmStatus::kOk) {
       const RecoveryResult base = recover_parameters(lm.theta, &lm.theta_covariance);
       if (base.ok()) {
-        const std::vector<Vector6d> phi =
-            model_extension_regressors(extension_inputs(samples, base.parameters));
+        const std::vector<Vector6d> phi = model_extension_regressors(
+            extension_inputs(samples, base.parameters, options.sigma_nT));
         // From the converged theta and a = 0 (linear in a) plain Gauss-Newton converges in ~3
         // iterations instead of ~5 with the default damping (measured on the paper scenario).
         LmOptions ext_options = lopt;
@@ -345,8 +345,8 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
     // residuals covers (paper scenario, 12 h: D13 6.8 sigma off with the HAC covariance, pitch
     // 6 sigma); twostep fits them.
     if (options.method == BatchCalibrationOptions::Method::kCentered &&
-        fit_extension_at_estimate(samples, extension_inputs(samples, r.parameters),
-                                  options.sigma_nT)
+        fit_extension_at_estimate(
+            samples, extension_inputs(samples, r.parameters, options.sigma_nT), options.sigma_nT)
             .used) {
       verdict.accepted = false;
       verdict.reasons.push_back(
@@ -363,7 +363,7 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
 
 void estimate_alignment(const SampleSet& samples, double sigma_nT, int min_alignment_samples,
                         CalibrationResult* r, const CalibrationResult* refit) {
-  const ExtensionInputs in = extension_inputs(samples, r->parameters);
+  const ExtensionInputs in = extension_inputs(samples, r->parameters, sigma_nT);
   // The extension removed from the vectors: the one fitted jointly with b, D, else one fitted at
   // b, D when the data support it (the hysteresis is a lag of the field, much like a rotation
   // about the orbit normal: left in, it tilts the rotation; measured with the UKF's b, D, paper

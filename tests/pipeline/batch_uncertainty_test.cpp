@@ -27,10 +27,7 @@ struct SimulatedSet {
   TruthParameters truth;
 };
 
-SimulatedSet simulate(const char* preset, uint64_t seed, double hours = 12.0) {
-  Scenario sc = *scenario_preset(preset);
-  sc.seed = seed;
-  sc.duration_s = hours * 3600.0;
+SimulatedSet simulate(const Scenario& sc) {
   Simulator sim(sc);
   SimulatedSet out;
   out.truth = sim.truth();
@@ -38,6 +35,13 @@ SimulatedSet simulate(const char* preset, uint64_t seed, double hours = 12.0) {
   out.samples.reserve(static_cast<std::size_t>(sim.sample_count()));
   while (sim.next(&s)) out.samples.push_back(s.calibration_sample());
   return out;
+}
+
+SimulatedSet simulate(const char* preset, uint64_t seed, double hours = 12.0) {
+  Scenario sc = *scenario_preset(preset);
+  sc.seed = seed;
+  sc.duration_s = hours * 3600.0;
+  return simulate(sc);
 }
 
 // Per-axis statistics over runs.
@@ -171,6 +175,41 @@ TEST_CASE("paper scenario, short windows (4 h and 6 h): sigmas still cover the e
   }
 }
 
+TEST_CASE("fast spin (3 deg/s about body z, 1 s samples), 20 x 3 h: sigmas cover the error") {
+  // The paper sensor on a craft spinning about its axis of least inertia (a stable spin): the
+  // spin axis sees a slow field, so its hysteresis turning points come at the spin period and
+  // the sign of each sample-to-sample change flips with the noise near them, phase-locked to the
+  // spin. Measured with those signs (these seeds): bias RMS(err/sigma) (2.82, 2.21, 0.91),
+  // alignment (3.65, 4.24, 1.77).
+  AxisStats stats;
+  const int runs = 20;
+  for (int run = 0; run < runs; ++run) {
+    Scenario sc = *scenario_preset("tumbling");
+    sc.seed = 9000 + static_cast<uint64_t>(run);
+    sc.duration_s = 3.0 * 3600.0;
+    sc.sample_period_s = 1.0;
+    sc.attitude.omega0_body_rad_s = Eigen::Vector3d(0.0, 0.0, 3.0) * kDegToRad;
+    const SimulatedSet set = simulate(sc);
+    const CalibrationResult r = calibrate_batch(set.samples, BatchCalibrationOptions());
+    INFO("run " << run << ": " << r.message);
+    REQUIRE(r.status == CalibrationStatus::kOk);
+    CHECK(r.has_nonlinearity);
+    stats.add(r, set.truth, nullptr);
+    stats.add_alignment(r, set.truth);
+  }
+  const Eigen::Vector3d z = stats.rms_z();
+  const Eigen::Vector3d za = stats.align_rms_z();
+  std::printf(
+      "fast spin 3 h x %d: RMS(err/sigma) bias (%.3f, %.3f, %.3f), alignment (%.3f, %.3f, "
+      "%.3f), bias MSE %.4f nT^2\n",
+      runs, z(0), z(1), z(2), za(0), za(1), za(2), stats.bias_mse());
+  INFO("bias " << z.transpose() << ", alignment " << za.transpose());
+  CHECK(z.maxCoeff() <= 1.5);
+  CHECK(z.minCoeff() >= 0.25);
+  CHECK(za.maxCoeff() <= 1.5);
+  CHECK(za.minCoeff() >= 0.25);
+}
+
 TEST_CASE("pure model, 50 x 12 h: error <= 1.1x CRLB, sigma within 1.2x CRLB, 9 parameters") {
   AxisStats stats;
   const int runs = 50;
@@ -226,10 +265,14 @@ TEST_CASE("robust mode, paper scenario with spikes: the clean data's fit and hon
     CHECK(r.n_downweighted >= n_spikes - 2);  // a pick may repeat
     CHECK(r.n_downweighted <= n_spikes + 5);
     CHECK(r.residual_rms_all_nT > 10.0 * r.residual_rms_nT);
-    // The same estimate as the clean data's, to a small fraction of its sigma.
+    // The same estimate as the clean data's, to a fraction of its sigma. Not closer: the robust
+    // fit is the clean data's without the spiked samples, and a sample at a hysteresis turning
+    // point of the largest field moves b by up to 0.40 sigma on its own (seed 5001, every sample
+    // left out in turn: 0.40 max, 0.32 at the 99.9 % point, 0.019 RMS; 0.23 / 0.15 / 0.016 with
+    // the sample-to-sample hysteresis signs). Here run 1 has a spike on such a sample: 0.32.
     const Eigen::Vector3d d =
         (r.parameters.bias_nT - clean.parameters.bias_nT).cwiseQuotient(clean.bias_sigma_nT());
-    CHECK(d.cwiseAbs().maxCoeff() < 0.2);
+    CHECK(d.cwiseAbs().maxCoeff() < 0.45);
     stats.add(r, set.truth, nullptr);
     stats.add_alignment(r, set.truth);
   }
