@@ -248,6 +248,9 @@ TEST_CASE("fit errors: one line on stderr, exit 1 usage / 2 data", "[cli][fit]")
                          "--method");
   require_one_line_error(run_magcal("fit --input /nonexistent/x.csv --method twostep"), 2,
                          "does not exist");
+  // The centered solution has no outlier pass: --robust with it was silently ignored (trial).
+  require_one_line_error(run_magcal("fit --input " + csv.string() + " --method centered --robust"),
+                         1, "--robust applies to --method twostep only");
 
   REQUIRE(write_sample_csv(csv.string(), model_data(12, 3.0, 7)).empty());
   require_one_line_error(run_magcal("fit --input " + csv.string() + " --method twostep"), 2,
