@@ -426,9 +426,7 @@ void estimate_alignment(const SampleSet& samples, double sigma_nT, int min_align
 
 CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrationOptions& options,
                                   const CalibrationResult* previous_accepted) {
-  if (!options.robust || options.method != BatchCalibrationOptions::Method::kTwoStep) {
-    return calibrate_batch_core(samples, options, previous_accepted);
-  }
+  if (!options.robust) return calibrate_batch_core(samples, options, previous_accepted);
   // Robust: a Huber IRLS refinement (robust scale) finds the outliers; the fit users get is the
   // ordinary one (model extension, HAC covariance, alignment, gates) on the samples left, so its
   // sigmas come from the same residual structure as a clean refit's. Large spikes can drag the
@@ -437,6 +435,7 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
   // of outliers (judged on all samples) stops changing.
   constexpr int kMaxOutlierPasses = 8;
   BatchCalibrationOptions outlier_pass = options;
+  outlier_pass.method = BatchCalibrationOptions::Method::kTwoStep;  // the IRLS is in the LM
   outlier_pass.model_extension = false;
   outlier_pass.alignment = false;
   outlier_pass.gates = false;

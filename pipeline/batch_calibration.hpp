@@ -31,9 +31,10 @@ struct BatchCalibrationOptions {
   enum class Method { kCentered, kTwoStep };  // "centered" | "twostep" (centered + LM)
   Method method = Method::kTwoStep;
   double sigma_nT = 3.0;  // magnetometer white noise per axis (weights, covariance)
-  // twostep only: a Huber IRLS refinement (robust scale) finds the outliers (residual more than 5
-  // robust sigmas from the median); the result is the ordinary fit on the samples left
-  // (n_downweighted: how many were left out; residual_rms_all_nT: over all samples).
+  // A Huber IRLS refinement (robust scale) finds the outliers (residual more than 5 robust
+  // sigmas from the median; gross spikes screened first on |B| - |h|); the result is the
+  // ordinary fit of `method` on the samples left (n_downweighted: how many were left out;
+  // residual_rms_all_nT: over all samples).
   bool robust = false;
   double huber_k = 3.0;
   int max_iterations = 50;   // LM

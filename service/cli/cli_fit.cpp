@@ -271,9 +271,8 @@ int run_fit(const FitArgs& args) {
     std::cerr << "magcal fit: --trace is only available for --method ekf|ukf\n";
     return kExitUsage;
   }
-  if (args.robust && args.method != "twostep") {
-    // The centered solution is one linear least-squares solve, with no outlier pass.
-    std::cerr << "magcal fit: --robust applies to --method twostep only\n";
+  if (args.robust && !batch) {
+    std::cerr << "magcal fit: --robust applies to centered/twostep only\n";
     return kExitUsage;
   }
   if (!std::filesystem::exists(args.input)) {

@@ -125,7 +125,7 @@ int main(int argc, char** argv) {
   fit_cmd->add_option("--sigma-nT", fit.sigma_nT, "measurement noise, nT per axis (default 3)")
       ->check(real_number());
   fit_cmd->add_flag("--robust", fit.robust,
-                    "twostep: find outliers (Huber IRLS, robust scale), refit without them");
+                    "centered/twostep: find outliers (Huber IRLS, robust scale), fit without them");
   fit_cmd->add_option("--sat", fit.sat, "spacecraft id (required when a log holds several)");
   fit_cmd->add_option("--trace", fit.trace_file,
                       "ekf/ukf: write state and 1-sigma per sample (CSV)");
