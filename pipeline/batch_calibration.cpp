@@ -395,10 +395,12 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
     // the effects it describes bias the centered D by more than any covariance derived from the
     // residuals covers (paper scenario, 12 h: D13 6.8 sigma off with the HAC covariance, pitch
     // 6 sigma); twostep fits them.
+    // Whatever the size of the effects BIC finds (paper, 2.2-2.6 h windows: larger than a sensor's,
+    // so not `used`, and D 5-6 sigma off, accepted; trial).
     if (options.method == BatchCalibrationOptions::Method::kCentered &&
         fit_extension_at_estimate(
             samples, extension_inputs(samples, r.parameters, options.sigma_nT), options.sigma_nT)
-            .used) {
+            .supported) {
       verdict.accepted = false;
       verdict.reasons.push_back(
           "centered solution: the residuals show sensor effects it does not model (BIC prefers "

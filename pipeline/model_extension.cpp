@@ -236,9 +236,9 @@ ExtensionFitAtEstimate fit_extension_at_estimate(const SampleSet& samples,
   const Matrix6d hac =
       F_inv * newey_west_meat<6>(scores, lag) * F_inv * (static_cast<double>(n) / dof);
   fit.covariance = covariance_not_below(F_inv, hac);
-  fit.used = fit.a.allFinite() &&
-             bic_prefers_extension(sum(6, 6), chi2_extended, static_cast<int>(n)) &&
-             extension_effects_small(fit.a, mean_h_nT);
+  fit.supported =
+      fit.a.allFinite() && bic_prefers_extension(sum(6, 6), chi2_extended, static_cast<int>(n));
+  fit.used = fit.supported && extension_effects_small(fit.a, mean_h_nT);
   return fit;
 }
 

@@ -81,6 +81,7 @@ bool extension_effects_small(const Vector6d& a, double mean_h_nT, double max_fra
 // take. Shapes: in and samples one entry per sample, same order; sigma_nT per-axis noise.
 struct ExtensionFitAtEstimate {
   bool used = false;
+  bool supported = false;  // BIC prefers a over a = 0, whatever the size of its effects
   Vector6d a = Vector6d::Zero();
   Matrix6d covariance = Matrix6d::Zero();
 };

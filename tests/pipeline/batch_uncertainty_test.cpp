@@ -308,6 +308,17 @@ TEST_CASE(
     CHECK(r.covariance_lag_window > 0);
     paper.add(r, set.truth, nullptr);
   }
+  // 2.2-2.6 h windows: the effects BIC finds there are larger than a sensor's (so the extension
+  // fitted at the centered b, D is not `used`), and the centered D was 5-6 sigma off, accepted
+  // (second trial). Any effect BIC finds now rejects it.
+  for (int run = 0; run < 4; ++run) {
+    const SimulatedSet set = simulate("paper", 1 + static_cast<uint64_t>(run), 2.5);
+    const CalibrationResult r = calibrate_batch(set.samples, o);
+    INFO("paper 2.5 h run " << run << ": " << r.message);
+    CHECK_FALSE(r.accepted);
+    REQUIRE_FALSE(r.rejection_reasons.empty());
+    CHECK(r.rejection_reasons.back().find("use twostep") != std::string::npos);
+  }
   BatchCalibrationOptions o_pure = o;
   o_pure.gate_options.expected_residual_nT = 3.0;
   for (int run = 0; run < runs; ++run) {
