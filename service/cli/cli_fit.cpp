@@ -98,6 +98,14 @@ Loaded load_samples(const FitArgs& args) {
     return out;
   }
   note_duplicates(args.input, lcm.duplicates_dropped, "samples", "spacecraft, utime");
+  if (lcm.undecodable > 0) {
+    // What magcald counts as decode_error: the fit goes on without those frames' samples, but
+    // the user must know data were lost (second trial: one lost batch of 200 went unmentioned).
+    std::cerr << fmt::format(
+        "magcal fit: {}: {} of {} frames on the sample channels could not be decoded (corrupt); "
+        "their samples are left out\n",
+        args.input, lcm.undecodable, lcm.events);
+  }
   std::unique_ptr<ReferenceField> field;
   out.samples.reserve(lcm.samples.size());
   for (std::size_t k = 0; k < lcm.samples.size(); ++k) {
