@@ -479,12 +479,16 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
   for (std::size_t k = 0; k < samples.size(); ++k) {
     e[k] = samples[k].b_sensor_nT.norm() - samples[k].h_body_nT.norm();
   }
-  mark_outliers(e, 2.0 * kOutlierRobustSigmas, options.sigma_nT, &sorted, &keep);
   SampleSet kept;
   kept.reserve(samples.size());
-  for (std::size_t k = 0; k < samples.size(); ++k) {
-    if (keep[k]) kept.push_back(samples[k]);
-  }
+  auto keep_marked = [&] {
+    kept.clear();
+    for (std::size_t k = 0; k < samples.size(); ++k) {
+      if (keep[k]) kept.push_back(samples[k]);
+    }
+  };
+  mark_outliers(e, 2.0 * kOutlierRobustSigmas, options.sigma_nT, &sorted, &keep);
+  keep_marked();
   for (int pass = 0; pass < kMaxOutlierPasses; ++pass) {
     const CalibrationResult fit = calibrate_batch_core(kept, outlier_pass, nullptr);
     if (fit.status != CalibrationStatus::kOk && fit.status != CalibrationStatus::kNotConverged) {
@@ -496,10 +500,7 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
     }
     const bool changed = mark_outliers(e, kOutlierRobustSigmas, options.sigma_nT, &sorted, &keep);
     if (!changed) break;
-    kept.clear();
-    for (std::size_t k = 0; k < samples.size(); ++k) {
-      if (keep[k]) kept.push_back(samples[k]);
-    }
+    keep_marked();
   }
   BatchCalibrationOptions final_pass = options;
   final_pass.robust = false;

@@ -5,6 +5,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <vector>
 
 #include <lcm/lcm-cpp.hpp>
 
@@ -32,6 +33,26 @@ mag_sample_t make_sample(int64_t k, const std::string& sat) {
   m.has_position = m.has_attitude = m.has_reference = true;
   m.temperature_C = 20.5f;
   return m;
+}
+
+// An lcm-gen message's encoded bytes (fingerprint first).
+template <typename Message>
+std::vector<uint8_t> encoded(const Message& m) {
+  std::vector<uint8_t> bytes(static_cast<size_t>(m.getEncodedSize()));
+  m.encode(bytes.data(), 0, static_cast<int>(bytes.size()));
+  return bytes;
+}
+
+// Writes `bytes` as one event on `channel`; 0 on success.
+int write_event(lcm::LogFile& log, const std::string& channel, int64_t timestamp,
+                std::vector<uint8_t>& bytes, int64_t eventnum = 0) {
+  lcm::LogEvent ev{};
+  ev.eventnum = eventnum;
+  ev.channel = channel;
+  ev.timestamp = timestamp;
+  ev.datalen = static_cast<int32_t>(bytes.size());
+  ev.data = bytes.data();
+  return log.writeEvent(&ev);
 }
 }  // namespace
 
@@ -225,18 +246,11 @@ TEST_CASE("LCM log reader counts undecodable events and survives a truncated fil
     lcm::LogFile log(path, "w");
     REQUIRE(log.good());
     const mag_sample_t m = make_sample(1, "A");
-    std::vector<uint8_t> buf(static_cast<size_t>(m.getEncodedSize()));
-    m.encode(buf.data(), 0, static_cast<int>(buf.size()));
-    lcm::LogEvent ev{};
-    ev.channel = kSamplesChannel;
-    ev.timestamp = m.utime;
-    ev.datalen = static_cast<int32_t>(buf.size());
-    ev.data = buf.data();
-    log.writeEvent(&ev);
+    std::vector<uint8_t> buf = encoded(m);
+    write_event(log, kSamplesChannel, m.utime, buf);
     buf[3] ^= 0xFF;  // corrupt the fingerprint
-    log.writeEvent(&ev);
-    ev.channel = "OTHER";  // ignored channel
-    log.writeEvent(&ev);
+    write_event(log, kSamplesChannel, m.utime, buf);
+    write_event(log, "OTHER", m.utime, buf);  // ignored channel
   }
   LcmReadResult r = read_sample_lcm_log(path);
   REQUIRE(r.ok());
@@ -259,31 +273,20 @@ TEST_CASE("LCM log reader: frames whose lengths lie are counted, never decoded (
     lcm::LogFile log(path, "w");
     REQUIRE(log.good());
     const mag_sample_t m = make_sample(1, "A");
-    std::vector<uint8_t> buf(static_cast<size_t>(m.getEncodedSize()));
-    m.encode(buf.data(), 0, static_cast<int>(buf.size()));
-    lcm::LogEvent ev{};
-    ev.channel = kSamplesChannel;
-    ev.timestamp = m.utime;
-    ev.datalen = static_cast<int32_t>(buf.size());
-    ev.data = buf.data();
-    log.writeEvent(&ev);
+    std::vector<uint8_t> buf = encoded(m);
+    write_event(log, kSamplesChannel, m.utime, buf);
     std::vector<uint8_t> zero_len = buf;  // sat_id length (after fingerprint and utime) = 0
     std::fill(zero_len.begin() + 16, zero_len.begin() + 20, 0);
-    ev.data = zero_len.data();
-    log.writeEvent(&ev);
+    write_event(log, kSamplesChannel, m.utime, zero_len);
     mag_batch_t batch;
     batch.sat_id = "A";
     batch.n = 1;
     batch.samples = {make_sample(2, "A")};
-    std::vector<uint8_t> bbuf(static_cast<size_t>(batch.getEncodedSize()));
-    batch.encode(bbuf.data(), 0, static_cast<int>(bbuf.size()));
+    std::vector<uint8_t> bbuf = encoded(batch);
     const std::size_t n_at = 8 + 4 + batch.sat_id.size() + 1;  // after fingerprint and sat_id
     std::fill(bbuf.begin() + static_cast<std::ptrdiff_t>(n_at),
               bbuf.begin() + static_cast<std::ptrdiff_t>(n_at) + 4, 0x7F);  // n = 2^31 - 1
-    ev.channel = kBatchChannel;
-    ev.datalen = static_cast<int32_t>(bbuf.size());
-    ev.data = bbuf.data();
-    log.writeEvent(&ev);
+    write_event(log, kBatchChannel, m.utime, bbuf);
   }
   const LcmReadResult r = read_sample_lcm_log(path);
   REQUIRE(r.ok());
@@ -312,20 +315,11 @@ TEST_CASE("LCM log reader: not an LCM log, or a log without our samples, is an e
   // A valid log, but only another channel: says which channels it holds.
   std::filesystem::remove(path);
   const mag_sample_t m = make_sample(1, "A");
-  std::vector<uint8_t> buf(static_cast<size_t>(m.getEncodedSize()));
-  m.encode(buf.data(), 0, static_cast<int>(buf.size()));
+  std::vector<uint8_t> buf = encoded(m);
   auto write_log = [&](const char* channel, int count) {
     lcm::LogFile log(path, "w");
     REQUIRE(log.good());
-    for (int i = 0; i < count; ++i) {
-      lcm::LogEvent ev{};
-      ev.eventnum = i;
-      ev.channel = channel;
-      ev.timestamp = m.utime;
-      ev.datalen = static_cast<int32_t>(buf.size());
-      ev.data = buf.data();
-      REQUIRE(log.writeEvent(&ev) == 0);
-    }
+    for (int i = 0; i < count; ++i) REQUIRE(write_event(log, channel, m.utime, buf, i) == 0);
   };
   write_log("POSE", 3);
   CHECK(unreadable_lcm_log_reason(path).empty());
