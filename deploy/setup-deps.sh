@@ -3,8 +3,22 @@
 #   deploy/setup-deps.sh           build and run
 #   deploy/setup-deps.sh --tests   also what only the tests use (chromium for the page test:
 #                                  ~48 s to install on the dev machine, large)
+#   deploy/setup-deps.sh --list [--tests]
+#                                  prints the package names, one a line, and installs nothing
+#                                  (tests/deploy/dependency_test.sh checks that every file the
+#                                  build uses and every program the tests and the demo run
+#                                  comes from one of them or from what they depend on)
 # Idempotent: does nothing (no apt-get at all) when every package is already installed.
 set -euo pipefail
+
+with_tests=0 list_only=0
+for arg in "$@"; do
+  case "$arg" in
+    --tests) with_tests=1 ;;
+    --list) list_only=1 ;;
+    *) echo "setup-deps: unknown option '$arg' (use --tests, --list)" >&2; exit 2 ;;
+  esac
+done
 
 packages=(
   build-essential cmake ninja-build pkg-config ccache
@@ -18,14 +32,20 @@ packages=(
   liberfa-dev
   # systemd notify (sd_notify); cpack's dpkg-shlibdeps for the .deb
   libsystemd-dev dpkg-dev
-  # the operations server (cpp-httplib) and the page's plotting library (Chart.js, embedded)
-  libcpp-httplib-dev libjs-chart.js
+  # the operations server (cpp-httplib), its metrics exposition (prometheus-cpp) and the page's
+  # plotting library (Chart.js, embedded)
+  libcpp-httplib-dev prometheus-cpp-dev libjs-chart.js
 )
 # Only for the tests (deploy/run-tests.sh passes --tests): the browser test's Chromium; the
 # .deb (cpack's dpkg-shlibdeps); the tests of deploy/: systemd-analyze, promtool (prometheus:
 # ~13 s to install, 12 packages), shellcheck, PyYAML.
-if [ "${1:-}" = "--tests" ]; then
-  packages+=(chromium systemd prometheus shellcheck python3-yaml)
+if [ "$with_tests" = 1 ]; then
+  packages+=(chromium systemd prometheus shellcheck python3 python3-yaml)
+fi
+
+if [ "$list_only" = 1 ]; then
+  printf '%s\n' "${packages[@]}"
+  exit 0
 fi
 
 missing=()
