@@ -73,10 +73,15 @@ fi
 
 # --- file list
 dpkg-deb -c "$deb" >"$scratch/contents"
+# The documents README.md links to (docs/), so its links work in the installed copy too.
+linked_docs=()
+for doc in "$source_dir"/docs/*.md "$source_dir"/docs/*.png; do
+  linked_docs+=("./usr/share/doc/magcal/docs/$(basename "$doc")")
+done
 for path in ./usr/bin/magcal ./usr/bin/magcald ./usr/lib/systemd/system/magcald.service \
   ./etc/magcal/magcald.toml ./var/lib/magcal/ ./usr/share/magcal/prometheus/magcal-alerts.yml \
   ./usr/share/doc/magcal/README.md ./usr/share/doc/magcal/magcald.example.toml \
-  ./usr/share/doc/magcal/copyright; do
+  ./usr/share/doc/magcal/copyright "${linked_docs[@]}"; do
   awk -v p="$path" '$6 == p { found = 1 } END { exit !found }' "$scratch/contents" ||
     fail "$path not in the package"
 done
