@@ -45,7 +45,7 @@ struct RefitRequest {
   std::string sat_id;                  // data clock: that spacecraft; "" (wall clock): every one
   std::optional<int64_t> t_ref_utime;  // nullopt: each spacecraft's newest sample (wall clock)
   int64_t scheduled_utime = 0;
-  const char* trigger = "scheduled";  // or "first" (IngestWorker::Hooks::on_refit_due)
+  const char* trigger = "scheduled";  // or "first" / "early" (IngestWorker::Hooks::on_refit_due)
 };
 
 }  // namespace
