@@ -274,9 +274,11 @@ struct Daemon::Impl {
       publisher->publish(message_from_result(sat, r));
       const Eigen::Vector3d sb = r.bias_sigma_nT();
       spdlog::info(
-          "refit {} window {} .. {} ({} samples): {}, bias [{:.1f} {:.1f} {:.1f}] +- "
+          "refit {}{} window {} .. {} ({} samples): {}, bias [{:.1f} {:.1f} {:.1f}] +- "
           "[{:.1f} {:.1f} {:.1f}] nT, residual {:.2f} nT{}{}",
-          sat, format_iso8601_utc(r.window_start_utime), format_iso8601_utc(r.window_end_utime),
+          sat,
+          std::string_view(req.trigger) == "scheduled" ? "" : fmt::format(" ({})", req.trigger),
+          format_iso8601_utc(r.window_start_utime), format_iso8601_utc(r.window_end_utime),
           r.n_samples, r.accepted ? to_string(r.status) : "rejected", r.parameters.bias_nT.x(),
           r.parameters.bias_nT.y(), r.parameters.bias_nT.z(), sb.x(), sb.y(), sb.z(),
           r.residual_rms_nT, r.rejection_reasons.empty() ? "" : ": ",
