@@ -194,7 +194,9 @@ TEST_CASE("a new spacecraft on the embedded schedule: UKF ok within 9 h, honest,
   // 00:00, so the 02:00 refit has too few samples and the next is 26 h later: within the 14 h
   // replayed here only the early refits (1 000 samples and each sqrt(2) more until the first
   // full 12 h window) refit the spacecraft. Before them the UKF was not `ok` within the whole
-  // 24 h replay (issue 20: 23.8 h).
+  // 24 h replay (issue 20: 23.8 h). Measured over seeds 1-8, 11, 23: ok after 30 000 s, or
+  // 40 020 s on seeds 4 and 7, where hourly refits are no faster: the UKF's orbit-normal sigma
+  // (the refit's with its model-error term) stays at 12-13 nT until the 11 h window.
   constexpr double kOkWithin9h_s = 9 * 3600.0;
   constexpr double kHonestBound = 3.0;  // no ok snapshot beyond 3 sigma, bias or D
   for (const int seed : {11, 23, 1}) {
