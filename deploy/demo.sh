@@ -26,7 +26,9 @@ echo "== 1. simulate 24 h of the paper scenario (one spacecraft, 10 s samples, 2
 # Everything else is magcald's embedded default: the only setting is what a replay needs, the
 # data clock (refits scheduled by sample time), here every 6 h of data. The 02:00 slot of the
 # first day has too few samples ([refit] min_samples) and is skipped; 08:00 (an 8 h window),
-# 14:00 and 20:00 run. The UKF starts from a batch solution of its first samples once they
+# 14:00 and 20:00 run. On top of the schedule a new spacecraft gets early refits, at
+# [refit] min_samples stored samples and each time they grow by [refit] early_growth (sqrt 2),
+# until its data span the 12 h window. The UKF starts from a batch solution of its first samples once they
 # observe the parameters, adapts its noise to what the data show, and is re-anchored on every
 # accepted refit.
 cat > magcald.toml <<'TOML'
@@ -53,7 +55,7 @@ echo "== 4. UKF converging (history, every 2 h of data; then the last snapshot)"
   | awk 'NR == 1 || (NR - 2) % 120 == 0 { print } { last = $0 } END { print last }'
 
 echo
-echo "== 5. refits: the first (once [refit] min_samples are stored), then scheduled (centered + LM + alignment, acceptance gates)"
+echo "== 5. refits: early (at [refit] min_samples stored samples, then each x sqrt 2 until a full window) and scheduled (centered + LM + alignment, acceptance gates)"
 "$bin/magcal" history --db magcal.db --sat "$sat" --method twostep --format table
 
 echo

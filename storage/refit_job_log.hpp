@@ -26,7 +26,7 @@ constexpr const char* kInterrupted = "interrupted";  // process died while runni
 struct RefitJob {
   int64_t id = 0;
   std::string sat_id;
-  std::string trigger;  // "scheduled" | "manual" | "first" (a spacecraft's first refit)
+  std::string trigger;  // "scheduled" | "manual" | "first" | "early" (a new spacecraft's refits)
   int64_t scheduled_utime = 0;
   std::optional<int64_t> started_utime;
   std::optional<int64_t> finished_utime;

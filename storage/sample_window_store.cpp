@@ -32,6 +32,8 @@ SampleWindowStore::SampleWindowStore(Database& db)
           db, "SELECT count(*) FROM samples WHERE sat_id = ?1 AND utime >= ?2 AND utime < ?3"),
       newest_(db, "SELECT max(utime) FROM samples WHERE sat_id = ?1"),
       count_(db, "SELECT count(*) FROM samples WHERE sat_id = ?1"),
+      utime_at_rank_(
+          db, "SELECT utime FROM samples WHERE sat_id = ?1 ORDER BY utime LIMIT 1 OFFSET ?2"),
       // Skip-scan over the primary key: one b-tree seek per spacecraft, not a full scan.
       spacecraft_(db,
                   "WITH RECURSIVE s(id) AS (SELECT min(sat_id) FROM samples UNION ALL "
@@ -134,6 +136,14 @@ int64_t SampleWindowStore::count(std::string_view sat_id) {
   auto use = count_.use();
   count_.bind(1, sat_id);
   return count_.step() ? count_.column_int64(0) : 0;
+}
+
+std::optional<int64_t> SampleWindowStore::utime_at_rank(std::string_view sat_id, int64_t rank) {
+  if (rank < 0) return std::nullopt;
+  auto use = utime_at_rank_.use();
+  utime_at_rank_.bind(1, sat_id).bind(2, rank);
+  if (!utime_at_rank_.step()) return std::nullopt;
+  return utime_at_rank_.column_int64(0);
 }
 
 std::vector<std::string> SampleWindowStore::spacecraft() {

@@ -70,6 +70,9 @@ class SampleWindowStore {
   int64_t count_in_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime);
   std::optional<int64_t> newest_utime(std::string_view sat_id);
   int64_t count(std::string_view sat_id);
+  // Time of the stored sample of `sat_id` with `rank` older ones (0 = the oldest); nullopt when
+  // fewer are stored. Keys a refit by the sample count it covers (an early refit).
+  std::optional<int64_t> utime_at_rank(std::string_view sat_id, int64_t rank);
   // Spacecraft with at least one stored sample, sorted.
   std::vector<std::string> spacecraft();
 
@@ -89,6 +92,7 @@ class SampleWindowStore {
   Statement count_window_;
   Statement newest_;
   Statement count_;
+  Statement utime_at_rank_;
   Statement spacecraft_;
   Statement delete_chunk_;
 };

@@ -8,6 +8,7 @@
 #include <optional>
 #include <string>
 
+#include "pipeline/roll_pitch_yaw_report.hpp"
 #include "service/io/exit_codes.hpp"
 
 namespace magcal::cli {
@@ -58,6 +59,8 @@ struct FitArgs {
   std::string reference_magnitude;  // "auto" | value in nT (constant field); empty: IGRF
   bool split_halves = false;
   std::optional<double> expected_residual_nT;  // residual gate's expected rms
+  // Roll/pitch/yaw within this of pitch +-90 deg are reported singular (roll_pitch_yaw_report).
+  double gimbal_lock_margin_deg = kDefaultGimbalLockMargin_deg;
 };
 int run_fit(const FitArgs& args);
 // Dispatched from run_fit when the CSV is not the design's sample format.

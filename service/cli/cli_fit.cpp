@@ -27,6 +27,7 @@
 #include "pipeline/batch_calibration.hpp"
 #include "pipeline/magnetometer_ekf.hpp"
 #include "pipeline/magnetometer_ukf.hpp"
+#include "pipeline/roll_pitch_yaw_report.hpp"
 #include "pipeline/rotation.hpp"
 #include "service/cli/cli_commands.hpp"
 #include "service/io/field_recording.hpp"
@@ -212,7 +213,8 @@ void finish_filter_result(CalibrationResult& r, const SampleSet& samples, double
   apply_verdict(r, verdict);
 }
 
-void print_text(const CalibrationResult& r, double compute_ms, double convergence_time_s) {
+void print_text(const CalibrationResult& r, double compute_ms, double convergence_time_s,
+                double gimbal_lock_margin_deg) {
   const Eigen::Vector3d b = r.parameters.bias_nT, s = r.bias_sigma_nT();
   const Eigen::Matrix3d& D = r.parameters.D;
   const Vector9d sd = r.covariance.diagonal().cwiseMax(0.0).cwiseSqrt();
@@ -238,10 +240,18 @@ void print_text(const CalibrationResult& r, double compute_ms, double convergenc
       line(i == 0 ? "R_sensor_from_body" : "",
            fmt::format("{:12.8f} {:12.8f} {:12.8f}", R(i, 0), R(i, 1), R(i, 2)));
     }
-    const RollPitchYaw rpy = roll_pitch_yaw_from_dcm(R);
+    const RollPitchYawReport a = roll_pitch_yaw_report(R, r.alignment.angle_covariance_rad2,
+                                                       gimbal_lock_margin_deg * kDegToRad);
     line("alignment_deg",
-         fmt::format("roll {:.4f}  pitch {:.4f}  yaw {:.4f}", rpy.roll_rad * kRadToDeg,
-                     rpy.pitch_rad * kRadToDeg, rpy.yaw_rad * kRadToDeg));
+         fmt::format("roll {:.4f}  pitch {:.4f}  yaw {:.4f}", a.rpy.roll_rad * kRadToDeg,
+                     a.rpy.pitch_rad * kRadToDeg, a.rpy.yaw_rad * kRadToDeg));
+    if (a.singular) {
+      line("gimbal_lock",
+           fmt::format("pitch within {:g} deg of +-90: roll 0 by convention, {} {:.4f} +- {:.2g} "
+                       "deg",
+                       gimbal_lock_margin_deg, a.combination_name, a.combination_rad * kRadToDeg,
+                       a.combination_sigma_rad * kRadToDeg));
+    }
   } else {
     line("alignment", "not estimated (no reference directions)");
   }
@@ -418,13 +428,13 @@ int run_fit(const FitArgs& args) {
     return kExitData;
   }
   if (args.json) {
-    nlohmann::json j = calibration_result_to_json(r);
+    nlohmann::json j = calibration_result_to_json(r, args.gimbal_lock_margin_deg);
     j["compute_ms"] = compute_ms;
     j["input"] = args.input;
     if (filter) j["convergence_time_s"] = json_number(convergence_time_s);
     std::cout << j.dump(2) << "\n";
   } else {
-    print_text(r, compute_ms, convergence_time_s);
+    print_text(r, compute_ms, convergence_time_s, args.gimbal_lock_margin_deg);
   }
   return kExitOk;
 }

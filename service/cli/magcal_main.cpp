@@ -130,6 +130,11 @@ int main(int argc, char** argv) {
   fit_cmd->add_option("--trace", fit.trace_file,
                       "ekf/ukf: write state and 1-sigma per sample (CSV)");
   fit_cmd->add_flag("--json", fit.json, "print JSON");
+  fit_cmd
+      ->add_option("--gimbal-lock-margin-deg", fit.gimbal_lock_margin_deg,
+                   "roll/yaw reported as a canonical split (roll 0) within this of pitch +-90 deg "
+                   "(default 2)")
+      ->check(CLI::Range(0.0, 45.0));
   fit_cmd->add_option("--field-unit", fit.field_unit, "recording CSV: field unit nT|uT|G|mG");
   fit_cmd->add_option("--alt-km", fit.alt_km, "recording CSV: assumed altitude (km) when absent")
       ->check(real_number());

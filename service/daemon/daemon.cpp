@@ -45,7 +45,7 @@ struct RefitRequest {
   std::string sat_id;                  // data clock: that spacecraft; "" (wall clock): every one
   std::optional<int64_t> t_ref_utime;  // nullopt: each spacecraft's newest sample (wall clock)
   int64_t scheduled_utime = 0;
-  const char* trigger = "scheduled";  // or "first" (IngestWorker::Hooks::on_refit_due)
+  const char* trigger = "scheduled";  // or "first" / "early" (IngestWorker::Hooks::on_refit_due)
 };
 
 }  // namespace
@@ -274,9 +274,11 @@ struct Daemon::Impl {
       publisher->publish(message_from_result(sat, r));
       const Eigen::Vector3d sb = r.bias_sigma_nT();
       spdlog::info(
-          "refit {} window {} .. {} ({} samples): {}, bias [{:.1f} {:.1f} {:.1f}] +- "
+          "refit {}{} window {} .. {} ({} samples): {}, bias [{:.1f} {:.1f} {:.1f}] +- "
           "[{:.1f} {:.1f} {:.1f}] nT, residual {:.2f} nT{}{}",
-          sat, format_iso8601_utc(r.window_start_utime), format_iso8601_utc(r.window_end_utime),
+          sat,
+          std::string_view(req.trigger) == "scheduled" ? "" : fmt::format(" ({})", req.trigger),
+          format_iso8601_utc(r.window_start_utime), format_iso8601_utc(r.window_end_utime),
           r.n_samples, r.accepted ? to_string(r.status) : "rejected", r.parameters.bias_nT.x(),
           r.parameters.bias_nT.y(), r.parameters.bias_nT.z(), sb.x(), sb.y(), sb.z(),
           r.residual_rms_nT, r.rejection_reasons.empty() ? "" : ": ",

@@ -129,6 +129,7 @@ std::map<std::string, Section> key_table(DaemonConfig& c) {
         {"every_hours", bind(c.refit.every_hours)},
         {"clock", bind(c.refit.clock)},
         {"min_samples", bind(c.refit.min_samples)},
+        {"early_growth", bind(c.refit.early_growth)},
         {"robust", bind(c.refit.robust)}}},
       {"ukf",
        {{"sigma_nT", bind(f.sigma_nT)},
@@ -242,6 +243,9 @@ std::string DaemonConfig::validate() const {
     return "[refit] clock: expected \"wall\" or \"data\", got \"" + refit.clock + "\"";
   }
   if (refit.min_samples < 10) return "[refit] min_samples: must be >= 10";
+  if (!(refit.early_growth == 0.0 || (refit.early_growth >= 1.1 && refit.early_growth <= 100.0))) {
+    return "[refit] early_growth: must be 0 (only the first refit) or within [1.1, 100]";
+  }
   if (auto e = ukf.filter.validate(); !e.empty()) return "[ukf] " + e;
   if (!(ukf.snapshot_every_s > 0.0)) return "[ukf] snapshot_every_s: must be > 0";
   if (auto e = gates.validate(); !e.empty()) return "[gates] " + e;

@@ -82,7 +82,11 @@ void IngestWorker::restore() {
     const auto newest = samples_.newest_utime(sat);
     if (!newest) continue;
     SpacecraftTracker& t = tracker(sat, nullptr);
-    t.first_refit_requested = history_.latest_refit(sat).has_value();
+    // The next early refit follows from the database: the latest refit's sample count.
+    const auto latest_refit = history_.latest_refit(sat);
+    t.n_samples = samples_.count(sat);
+    t.next_early_refit_samples =
+        config_.early_refits().next_after(latest_refit ? latest_refit->n_samples : 0);
     t.newest_utime = *newest;
     t.stored_bound_utime = *newest;
     samples_.read_window(sat, *newest, saturating_add(*newest, 1), rows);
@@ -133,7 +137,7 @@ void IngestWorker::process(const IngestItem& item) {
     checked = &sat;
     SpacecraftTracker* t = fleet_.find(sat);
     if (!t) continue;  // every sample of the run rejected before it had a tracker
-    check_first_refit(sat, *t);
+    check_early_refit(sat, *t);
     if (data_schedule_) check_data_clock(sat, *t);
   }
 }
@@ -144,6 +148,7 @@ SpacecraftTracker& IngestWorker::tracker(const std::string& sat_id, bool* create
   // Its series are looked up once, here; the per-sample path uses the cached pointer.
   if (is_new && metrics_) t.metrics = &metrics_->spacecraft(sat_id);
   if (is_new && data_schedule_) t.data_refits.emplace(*data_schedule_);
+  if (is_new) t.next_early_refit_samples = config_.early_refits().next_after(0);
   if (created) *created = is_new;
   return t;
 }
@@ -271,6 +276,7 @@ void IngestWorker::accept_sample(const std::string& sat, SpacecraftTracker& t,
 
   if (pending_.empty()) first_pending_time_ = std::chrono::steady_clock::now();
   fill_stored_sample(s, sat, *sample, receive_utime, pending_.emplace_back());
+  ++t.n_samples;
   t.stored_bound_utime = std::max(t.stored_bound_utime, s.utime);
   const bool advanced = s.utime > t.newest_utime;
   if (advanced) {
@@ -553,14 +559,38 @@ void IngestWorker::check_data_clock(const std::string& sat_id, SpacecraftTracker
   }
 }
 
-void IngestWorker::check_first_refit(const std::string& sat_id, SpacecraftTracker& t) {
-  if (t.first_refit_requested || !t.ukf.initialized() ||
-      t.ukf.state().moments.n < config_.refit.min_samples || t.newest_utime == kNoTime) {
+void IngestWorker::check_early_refit(const std::string& sat_id, SpacecraftTracker& t) {
+  if (t.next_early_refit_samples <= 0 || t.n_samples < t.next_early_refit_samples ||
+      !t.ukf.initialized() || t.newest_utime == kNoTime) {
     return;
   }
-  t.first_refit_requested = true;
-  flush();  // the refit reads what is committed
-  if (hooks_.on_refit_due) hooks_.on_refit_due(sat_id, t.newest_utime, "first");
+  flush();  // the refit reads what is committed; so does its key below
+  const EarlyRefitPlan plan = config_.early_refits();
+  const int64_t n = plan.latest_within(t.n_samples);
+  std::optional<int64_t> first_utime, t_ref;
+  try {
+    first_utime = samples_.utime_at_rank(sat_id, 0);
+    t_ref = samples_.utime_at_rank(sat_id, n - 1);
+    if (!t_ref) {
+      // Fewer stored than counted (duplicates only the insert saw): due once they are.
+      t.n_samples = samples_.count(sat_id);
+      return;
+    }
+  } catch (const storage::StorageError& e) {
+    counters_.storage_failures.fetch_add(1, std::memory_order_relaxed);
+    warnings_.warn("early_refit", fmt::format("{}: early refit not requested, retried with its "
+                                              "next samples: {}",
+                                              sat_id, e.what()));
+    return;
+  }
+  t.next_early_refit_samples = plan.next_after(n);
+  if (*t_ref - *first_utime >= config_.window_utime()) {
+    t.next_early_refit_samples = 0;  // a full window: the schedule's from now on
+    return;
+  }
+  if (hooks_.on_refit_due) {
+    hooks_.on_refit_due(sat_id, *t_ref, n == plan.min_samples ? "first" : "early");
+  }
 }
 
 void IngestWorker::save_filter_states() {

@@ -57,9 +57,11 @@ class IngestWorker {
     std::function<void(const std::string& sat_id, const CalibrationResult&)> on_snapshot;
     // A refit of sat_id's window ending at t_ref is due, and its samples up to t_ref are
     // committed. trigger "scheduled" (data clock: sat_id's own data time passed its scheduled
-    // time t_ref) or "first" (its UKF started from data and [refit] min_samples are stored, and
-    // it has no refit yet: the first refit re-anchors the filter with a covariance from the
-    // residuals' structure, instead of the start's, hours before the schedule would).
+    // time t_ref), or "first" / "early" (EarlyRefitPlan: its UKF started from data and the
+    // stored samples reached min_samples, or grew by [refit] early_growth since, while they span
+    // less than window_hours; t_ref is the time of the N-th stored sample, so the window holds
+    // exactly N: each refit re-anchors the filter with a covariance from the residuals'
+    // structure, hours before the schedule would).
     std::function<void(const std::string& sat_id, int64_t t_ref_utime, const char* trigger)>
         on_refit_due;
   };
@@ -146,8 +148,8 @@ class IngestWorker {
   // Data clock: advances sat_id's refit schedule to its newest sample; due refits are
   // committed up to their time, then handed to on_refit_due.
   void check_data_clock(const std::string& sat_id, SpacecraftTracker& t);
-  // Requests sat_id's first refit once it is due (Hooks::on_refit_due, trigger "first").
-  void check_first_refit(const std::string& sat_id, SpacecraftTracker& t);
+  // Requests sat_id's first or next early refit once it is due (Hooks::on_refit_due).
+  void check_early_refit(const std::string& sat_id, SpacecraftTracker& t);
   void commit_pending();
   // Counts the committed rows [begin, end) of pending_ per spacecraft (minus duplicate_rows_).
   void count_stored(size_t begin, size_t end);

@@ -82,10 +82,32 @@ bool RefitRunner::accept_corroborated_change(const std::string& sat_id,
   return true;
 }
 
+std::optional<storage::RefitJob> RefitRunner::finished_early_refit(const std::string& sat_id,
+                                                                   const std::string& trigger,
+                                                                   int64_t scheduled_utime) {
+  if (trigger != "first" && trigger != "early") return std::nullopt;
+  // A spacecraft's early refits are few (about five in its first window): the recent jobs hold
+  // them.
+  for (auto& job : jobs_.recent(sat_id, 32)) {
+    if (job.trigger == trigger && job.scheduled_utime == scheduled_utime &&
+        job.calibration_id.has_value()) {
+      return std::move(job);
+    }
+  }
+  return std::nullopt;
+}
+
 RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> t_ref_utime,
                               const std::string& trigger, int64_t scheduled_utime) {
   RefitOutcome out;
   try {
+    if (const auto done = finished_early_refit(sat_id, trigger, scheduled_utime)) {
+      out.kind = RefitOutcome::Kind::kSkipped;
+      out.job_id = done->id;
+      out.message = "the " + trigger + " refit ending at " + format_iso8601_utc(scheduled_utime) +
+                    " already ran (job " + std::to_string(done->id) + ")";
+      return out;
+    }
     out.job_id = jobs_.start(sat_id, trigger, scheduled_utime, wall_utime());
   } catch (const storage::StorageError& e) {
     out.message = std::string("cannot write the job row: ") + e.what();

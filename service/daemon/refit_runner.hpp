@@ -55,7 +55,9 @@ class RefitRunner {
   RefitRunner(const DaemonConfig& config, storage::Database& db);
 
   // t_ref: end of the window (data clock: the scheduled time); nullopt = the newest stored
-  // sample of the spacecraft. trigger: "scheduled" | "manual". Never throws.
+  // sample of the spacecraft. trigger: "scheduled" | "manual" | "first" | "early". An early
+  // refit ("first" | "early", keyed by its window end: IngestWorker::Hooks::on_refit_due) whose
+  // job already produced a result is skipped without a job row: each runs once. Never throws.
   RefitOutcome run(const std::string& sat_id, std::optional<int64_t> t_ref_utime,
                    const std::string& trigger, int64_t scheduled_utime);
 
@@ -67,6 +69,10 @@ class RefitRunner {
   // (a real change seen by two windows). True when it changed the verdict.
   bool accept_corroborated_change(const std::string& sat_id, const CalibrationResult& reference,
                                   CalibrationResult& result);
+  // The finished job of the early refit (sat_id, trigger, scheduled_utime), if there is one.
+  std::optional<storage::RefitJob> finished_early_refit(const std::string& sat_id,
+                                                        const std::string& trigger,
+                                                        int64_t scheduled_utime);
 
   const DaemonConfig config_;  // a copy: callers may pass a temporary
   BatchCalibrationOptions options_;

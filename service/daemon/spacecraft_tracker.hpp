@@ -84,8 +84,11 @@ struct SpacecraftTracker {
   // [refit] clock = "data": this spacecraft's scheduled refits, on its own data time (its
   // newest_utime): a spacecraft backfilled behind the others gets the refits of its own days.
   std::optional<RefitScheduler> data_refits;
-  // Its first refit was requested (or the history has one): IngestWorker::check_first_refit.
-  bool first_refit_requested = false;
+  // Early refits (EarlyRefitPlan, IngestWorker::check_early_refit): samples accepted for
+  // storage (restored: the stored count), and the count at which the next one is due (0 = none:
+  // its data span window_hours, the schedule's business from then on).
+  int64_t n_samples = 0;
+  int64_t next_early_refit_samples = 0;
 
   // Missing samples implied by `seq`: a forward gap counts once the following number confirms
   // it (continues after the gap), so one corrupt seq implies nothing; out-of-order or repeated

@@ -6,7 +6,9 @@
 #include <limits>
 #include <tuple>
 
+#include "pipeline/roll_pitch_yaw_report.hpp"
 #include "pipeline/time_utc.hpp"
+#include "service/io/calibration_record.hpp"
 #include "service/io/printf_string.hpp"
 #include "service/io/result_json.hpp"
 #include "storage/sample_window_store.hpp"
@@ -109,7 +111,7 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
       "R31,R32,R33,residual_rms_nT,iterations,status,verdict,rejection_reasons,"
       "software_version,id,noise_scale,residual_autocorrelation,covariance_lag_window,"
       "residual_rms_all_nT,has_nonlinearity,k3_x,k3_y,k3_z,nis_mean,"
-      "measurement_noise_nT\n";
+      "measurement_noise_nT,alignment_singular\n";
   for (const auto& r : rows) {
     std::string line = history_time(r.utime) + ',' + std::to_string(r.utime) + ',' +
                        csv_quoted(r.sat_id) + ',' + csv_quoted(r.method) + ',' +
@@ -135,6 +137,15 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
             (r.has_nonlinearity >= 0 ? std::to_string(r.has_nonlinearity) : "");
     for (const double v : r.k3) line += ',' + (r.has_nonlinearity == 1 ? csv_number(v) : "");
     line += ',' + csv_number(r.nis_mean) + ',' + csv_number(r.measurement_noise_nT);
+    // Appended (issue 20): 1 when roll/yaw are the canonical split near pitch +-90 deg.
+    line += ',';
+    if (r.has_alignment) {
+      const bool singular =
+          roll_pitch_yaw_report(result_from_record(r).alignment.R_sensor_from_body,
+                                Eigen::Matrix3d::Zero(), kDefaultGimbalLockMargin_deg * kDegToRad)
+              .singular;
+      line += singular ? "1" : "0";
+    }
     text += line + '\n';
   }
   return text;

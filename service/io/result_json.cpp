@@ -2,7 +2,7 @@
 
 #include <cmath>
 
-#include "pipeline/rotation.hpp"
+#include "pipeline/roll_pitch_yaw_report.hpp"
 #include "pipeline/time_utc.hpp"
 #include "service/io/calibration_record.hpp"
 
@@ -31,7 +31,8 @@ nlohmann::json json_matrix(const Mat& m) {
 
 }  // namespace
 
-nlohmann::json calibration_result_to_json(const CalibrationResult& result) {
+nlohmann::json calibration_result_to_json(const CalibrationResult& result,
+                                          double gimbal_lock_margin_deg) {
   nlohmann::json j;
   j["method"] = result.method;
   j["utime"] = result.utime;
@@ -47,14 +48,20 @@ nlohmann::json calibration_result_to_json(const CalibrationResult& result) {
   if (result.has_alignment) {
     const Eigen::Matrix3d& R = result.alignment.R_sensor_from_body;
     j["R_sensor_from_body"] = json_matrix(R);
-    const RollPitchYaw rpy = roll_pitch_yaw_from_dcm(R);
-    j["alignment_deg"] = {{"roll", json_number(rpy.roll_rad * kRadToDeg)},
-                          {"pitch", json_number(rpy.pitch_rad * kRadToDeg)},
-                          {"yaw", json_number(rpy.yaw_rad * kRadToDeg)}};
-    const Eigen::Vector3d s =
-        result.alignment.angle_covariance_rad2.diagonal().cwiseMax(0.0).cwiseSqrt() * kRadToDeg;
+    const RollPitchYawReport a = roll_pitch_yaw_report(R, result.alignment.angle_covariance_rad2,
+                                                       gimbal_lock_margin_deg * kDegToRad);
+    j["alignment_deg"] = {{"roll", json_number(a.rpy.roll_rad * kRadToDeg)},
+                          {"pitch", json_number(a.rpy.pitch_rad * kRadToDeg)},
+                          {"yaw", json_number(a.rpy.yaw_rad * kRadToDeg)}};
+    const Eigen::Vector3d s = a.sigma_rad * kRadToDeg;
     j["alignment_sigma_deg"] = {
         {"roll", json_number(s(0))}, {"pitch", json_number(s(1))}, {"yaw", json_number(s(2))}};
+    j["alignment_singular"] = a.singular;
+    if (a.singular) {
+      j["alignment_determined_deg"] = {{a.combination_name, a.combination_rad * kRadToDeg}};
+      j["alignment_determined_sigma_deg"] = {
+          {a.combination_name, json_number(a.combination_sigma_rad * kRadToDeg)}};
+    }
   }
   j["residual_rms_nT"] = json_number(result.residual_rms_nT);
   j["iterations"] = result.iterations;
@@ -91,8 +98,8 @@ std::string history_time(int64_t utime) {
 nlohmann::json history_record_json(const storage::CalibrationRecord& rec) {
   nlohmann::json j = calibration_result_to_json(result_from_record(rec));
   // Not stored in the database: leave them out rather than print defaults as if measured.
-  for (const char* key : {"alignment_sigma_deg", "fisher_condition_number", "n_downweighted",
-                          "message", "converged"}) {
+  for (const char* key : {"alignment_sigma_deg", "alignment_determined_sigma_deg",
+                          "fisher_condition_number", "n_downweighted", "message", "converged"}) {
     j.erase(key);
   }
   j["id"] = rec.id;

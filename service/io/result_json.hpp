@@ -7,19 +7,25 @@
 // iterations, converged, status ("ok", "not_converged", ...), verdict ("accepted" |
 // "rejected"), rejection_reasons [strings], fisher_condition_number, n_downweighted, message.
 // When result.has_alignment: R_sensor_from_body [[3],[3],[3]] (row-major rows),
-// alignment_deg {roll, pitch, yaw} (estimation.md section 0) and alignment_sigma_deg
-// {roll, pitch, yaw}. Non-finite numbers become null (JSON has no NaN).
+// alignment_deg {roll, pitch, yaw} (estimation.md section 0), alignment_sigma_deg
+// {roll, pitch, yaw} and alignment_singular (pipeline/roll_pitch_yaw_report.hpp): within
+// gimbal_lock_margin_deg of pitch +-90 deg the angles are the canonical split (roll 0, yaw = the
+// determined combination), roll and yaw sigma null, and alignment_determined_deg /
+// alignment_determined_sigma_deg {yaw_minus_roll | yaw_plus_roll} give the combination.
+// Non-finite numbers become null (JSON has no NaN).
 // Callers add their own keys (compute_ms, time strings, ...) to the returned object.
 #pragma once
 
 #include <nlohmann/json.hpp>
 
 #include "pipeline/calibration_result.hpp"
+#include "pipeline/roll_pitch_yaw_report.hpp"
 #include "storage/calibration_history.hpp"
 
 namespace magcal {
 
-nlohmann::json calibration_result_to_json(const CalibrationResult& result);
+nlohmann::json calibration_result_to_json(
+    const CalibrationResult& result, double gimbal_lock_margin_deg = kDefaultGimbalLockMargin_deg);
 
 // A finite double as a JSON number, anything else as null.
 nlohmann::json json_number(double value);

@@ -165,6 +165,13 @@ TEST_CASE("window query: t0 <= t < t1, ascending time, only the asked spacecraft
   const int64_t t_ref = a[300].utime;
   const int64_t w = a[300].utime - a[100].utime;
   CHECK(store.count_in_window("SAT-A", t_ref - w + 1, t_ref + 1) == 200);
+  // By rank, in time order whatever the arrival order (the key of an early refit).
+  CHECK(store.utime_at_rank("SAT-A", 0) == a.front().utime);
+  CHECK(store.utime_at_rank("SAT-A", 299) == a[299].utime);
+  CHECK(store.utime_at_rank("SAT-B", 499) == b.back().utime);
+  CHECK_FALSE(store.utime_at_rank("SAT-A", 500).has_value());
+  CHECK_FALSE(store.utime_at_rank("SAT-A", -1).has_value());
+  CHECK_FALSE(store.utime_at_rank("SAT-C", 0).has_value());
 }
 
 TEST_CASE("a batch that fails stores nothing of itself") {

@@ -10,8 +10,10 @@
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
+#include <numbers>
 #include <sstream>
 
+#include "pipeline/rotation.hpp"
 #include "pipeline/time_utc.hpp"
 #include "storage/calibration_history.hpp"
 #include "storage/database.hpp"
@@ -347,4 +349,47 @@ TEST_CASE("history and status read while a writer is writing") {
   ::close(fds[0]);
   Database after(db);
   CHECK(after.integrity_check() == "ok");
+}
+
+TEST_CASE("history flags roll/yaw near gimbal lock in JSON and CSV (canonical split, roll 0)") {
+  TempDir dir;
+  const std::string db = dir.file("m.db");
+  populate(db);
+  CalibrationRecord side = make_record("SIDE", "twostep", kT0 + 2 * kHour + 1, 2);
+  const Eigen::Matrix3d R =
+      magcal::dcm_from_roll_pitch_yaw({0.3, 0.5 * std::numbers::pi, -0.2});  // pitch 90 deg
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) side.R_sensor_from_body[static_cast<size_t>(3 * i + j)] = R(i, j);
+  {
+    Database d(db);
+    CalibrationHistory(d).append(side);
+  }
+  const Run js = run_magcal("history --db " + db + " --sat SIDE --format json", dir);
+  REQUIRE(js.exit_code == 0);
+  const auto row = nlohmann::json::parse(js.out).at(0);
+  CHECK(row["alignment_singular"] == true);
+  CHECK(row["alignment_deg"]["roll"].get<double>() == 0.0);
+  const double combination_deg = (-0.2 - 0.3) * 180.0 / std::numbers::pi;
+  CHECK(row["alignment_deg"]["yaw"].get<double>() == Approx(combination_deg));
+  CHECK(row["alignment_determined_deg"]["yaw_minus_roll"].get<double>() == Approx(combination_deg));
+  CHECK_FALSE(row.contains("alignment_determined_sigma_deg"));  // the covariance is not stored
+
+  const Run ok =
+      run_magcal("history --db " + db + " --sat SAT1 --method twostep --format json", dir);
+  for (const auto& o : nlohmann::json::parse(ok.out)) {
+    CHECK(o.contains("alignment_singular") == o.contains("R_sensor_from_body"));
+    if (o.contains("alignment_singular")) CHECK(o["alignment_singular"] == false);
+  }
+
+  for (const auto& [sat, want] : {std::pair{"SIDE", "1"}, std::pair{"SAT2", ""}}) {
+    const Run csv =
+        run_magcal(std::string("history --db ") + db + " --sat " + sat + " --format csv", dir);
+    REQUIRE(csv.exit_code == 0);
+    const auto lines = lines_of(csv.out);
+    REQUIRE(lines.size() == 2);
+    const auto header = split_csv(lines[0]);
+    const auto f = split_csv(lines[1]);
+    REQUIRE(header.back() == "alignment_singular");
+    CHECK(f.back() == want);
+  }
 }

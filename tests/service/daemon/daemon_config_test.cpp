@@ -2,6 +2,8 @@
 // values (design.md "The daemon's command line and config").
 #include <catch2/catch.hpp>
 
+#include <cmath>
+
 #include "service/daemon/daemon_config.hpp"
 
 using magcal::parse_daemon_config;
@@ -17,6 +19,7 @@ TEST_CASE("defaults are valid and match design.md", "[daemon_config]") {
   CHECK(c.refit.every_hours == 0.0);
   CHECK(c.refit.clock == "wall");
   CHECK(c.refit.min_samples == 1000);
+  CHECK(c.refit.early_growth == Approx(std::sqrt(2.0)));
   CHECK(c.ukf.filter.sigma_nT == 3.0);
   CHECK(c.ukf.snapshot_every_s == 60.0);
   CHECK(c.sensor.range_nT == 100000.0);
@@ -48,6 +51,7 @@ TEST_CASE("the example config lists every key with exactly the defaults", "[daem
   CHECK(c.storage.max_failure_s == d.storage.max_failure_s);
   CHECK(c.storage.max_pending_samples == d.storage.max_pending_samples);
   CHECK(c.refit.robust == d.refit.robust);
+  CHECK(c.refit.early_growth == d.refit.early_growth);
   CHECK(c.ukf.filter.process_noise_per_sqrt_hour == d.ukf.filter.process_noise_per_sqrt_hour);
   CHECK(c.ukf.filter.alpha == d.ukf.filter.alpha);
   CHECK(c.ukf.filter.beta == d.ukf.filter.beta);
@@ -134,6 +138,8 @@ TEST_CASE("unknown keys, bad types and bad values name the key", "[daemon_config
       {"[refit]\ndaily_at_utc = \"2:00\"\n", "[refit] daily_at_utc"},
       {"[refit]\ndaily_at_utc = \"24:00\"\n", "[refit] daily_at_utc"},
       {"[refit]\nmin_samples = 1.5\n", "[refit] min_samples: expected an integer"},
+      {"[refit]\nearly_growth = 1.05\n", "[refit] early_growth: must be 0"},
+      {"[refit]\nearly_growth = -2\n", "[refit] early_growth: must be 0"},
       {"[ukf]\nsigma_nT = 0\n", "[ukf]"},
       {"[ukf]\nprocess_noise = [1, 2]\n", "[ukf] process_noise"},
       {"[ukf]\ncold_start = \"warm\"\n", "[ukf] cold_start: expected one of"},

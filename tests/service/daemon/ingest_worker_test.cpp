@@ -703,3 +703,67 @@ TEST_CASE("duplicates are found in the pending batch and in the store, per space
   CHECK(stored_rows(tmp.path(), "SAT-A") == 201);
   CHECK(stored_rows(tmp.path(), "SAT-B") == 200);
 }
+
+TEST_CASE(
+    "a new spacecraft's early refits: due by stored count, keyed by it, once across a restart",
+    "[ingest_worker][refit]") {
+  TempDb tmp("early");
+  const auto c = test_config(tmp.path());
+  const EarlyRefitPlan plan = c.early_refits();
+  // 12 h at 10 s: the stored span reaches window_hours at sample 4321.
+  const auto s = simulate(6000, 5, "SAT-1", 0.05);
+  const int64_t full_window_samples = c.window_utime() / kStep + 1;
+  std::vector<int64_t> expected;  // the plan's counts below a full window
+  for (int64_t n = plan.next_after(0); n > 0 && n < full_window_samples; n = plan.next_after(n)) {
+    expected.push_back(n);
+  }
+  REQUIRE(expected.size() >= 3);
+
+  struct Due {
+    int64_t t_ref;
+    std::string trigger;
+  };
+  std::vector<Due> due;
+  IngestWorker::Hooks hooks;
+  hooks.on_refit_due = [&](const std::string&, int64_t t_ref, const char* trigger) {
+    due.push_back({t_ref, trigger});
+  };
+  DaemonCounters counters;
+  const size_t split = static_cast<size_t>(expected[2]) + 300;  // after the third
+  {
+    IngestWorker w(c, counters, std::make_unique<ReferenceField>(), hooks);
+    w.restore();
+    feed(w, s, 0, split);
+  }
+  REQUIRE(due.size() == 3);
+  // The refit thread ran the first two only (the third was lost with the process).
+  {
+    storage::Database db(c.storage.db_path);
+    storage::CalibrationHistory history(db);
+    for (int k = 0; k < 2; ++k) {
+      CalibrationResult r;
+      r.method = "twostep";
+      r.utime = due[static_cast<size_t>(k)].t_ref;
+      r.n_samples = static_cast<int>(expected[static_cast<size_t>(k)]);
+      history.append(record_from_result("SAT-1", r));
+    }
+  }
+  {
+    IngestWorker w(c, counters, std::make_unique<ReferenceField>(), hooks);
+    w.restore();
+    feed(w, s, split, s.size());
+  }
+  // The third again (its result is not in the database), then the rest, and none after the
+  // stored span reached window_hours.
+  REQUIRE(due.size() == expected.size() + 1);
+  std::vector<int64_t> counts;
+  for (size_t k = 0; k < due.size(); ++k) {
+    INFO("request " << k);
+    CHECK(due[k].trigger == (k == 0 ? "first" : "early"));
+    // Keyed by the count: its window ends at the N-th stored sample.
+    counts.push_back((due[k].t_ref - kT0) / kStep + 1);
+  }
+  std::vector<int64_t> want = expected;
+  want.insert(want.begin() + 3, expected[2]);
+  CHECK(counts == want);
+}

@@ -39,6 +39,13 @@ TruthParameters store_simulation(storage::Database& db, const Scenario& sc, cons
   return sim.truth();
 }
 
+Scenario paper_scenario(uint64_t seed, double hours) {
+  Scenario sc = *scenario_preset("paper");
+  sc.seed = seed;
+  sc.duration_s = hours * 3600.0;
+  return sc;
+}
+
 }  // namespace
 
 TEST_CASE("refits: the short first window is no reference, every full-window refit is accepted") {
@@ -47,9 +54,7 @@ TEST_CASE("refits: the short first window is no reference, every full-window ref
   config.storage.db_path = dir.file("day.db");
   storage::Database db(config.storage.db_path);
 
-  Scenario sc = *scenario_preset("paper");
-  sc.seed = 11;
-  sc.duration_s = 24.0 * 3600.0;
+  const Scenario sc = paper_scenario(11, 24.0);
   int64_t seq = 0;
   const TruthParameters truth = store_simulation(db, sc, "PAPER-1", &seq);
 
@@ -107,8 +112,7 @@ TEST_CASE("refits: a real bias change is accepted once two windows corroborate i
   const int64_t hour = 3'600'000'000LL;
   const Eigen::Vector3d step_nT(60.0, 0.0, 0.0);
 
-  Scenario sc = *scenario_preset("paper");
-  sc.duration_s = 24.0 * 3600.0;
+  const Scenario sc = paper_scenario(1, 24.0);  // the seed is set per day below
   const int64_t t0 = sc.epoch_utime;
   Eigen::Vector3d b0 = Eigen::Vector3d::Zero();
   int64_t seq = 0;
@@ -152,4 +156,28 @@ TEST_CASE("refits: a real bias change is accepted once two windows corroborate i
   CHECK(corroborated >= 1);
   CHECK(max_rejected_in_a_row <= 2);  // the straddling window and the first one after it
   CHECK(last_accepted);
+}
+
+TEST_CASE("an early refit runs once: the same key again is skipped without a job row") {
+  test::TempDir dir("magcal_refit_runner_early");
+  DaemonConfig config;
+  config.storage.db_path = dir.file("early.db");
+  storage::Database db(config.storage.db_path);
+  int64_t seq = 0;
+  store_simulation(db, paper_scenario(3, 3.0), "PAPER-1", &seq);
+  storage::SampleWindowStore samples(db);
+  const int64_t t_ref = *samples.utime_at_rank("PAPER-1", config.refit.min_samples - 1);
+
+  RefitRunner runner(config, db);
+  const RefitOutcome first = runner.run("PAPER-1", t_ref, "first", t_ref);
+  REQUIRE(first.kind == RefitOutcome::Kind::kComputed);
+  CHECK(first.result.n_samples == config.refit.min_samples);  // keyed by its count
+  const RefitOutcome again = runner.run("PAPER-1", t_ref, "first", t_ref);
+  CHECK(again.kind == RefitOutcome::Kind::kSkipped);
+  CHECK(again.job_id == first.job_id);
+  CHECK_THAT(again.message, Catch::Contains("already ran"));
+  storage::RefitJobLog jobs(db);
+  CHECK(jobs.recent("PAPER-1", 10).size() == 1);
+  // A scheduled refit of the same end is not an early one: it runs.
+  CHECK(runner.run("PAPER-1", t_ref, "scheduled", t_ref).kind == RefitOutcome::Kind::kComputed);
 }

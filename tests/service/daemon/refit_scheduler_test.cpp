@@ -1,6 +1,7 @@
 // Refit schedule: daily time plus every N hours, wall or data clock.
 #include <catch2/catch.hpp>
 
+#include <cmath>
 #include <limits>
 
 #include "pipeline/time_utc.hpp"
@@ -109,4 +110,30 @@ TEST_CASE("a clock jump of more than a day runs only the latest refit", "[refit_
     CHECK(s.advance(std::numeric_limits<int64_t>::max()).size() == 1);
     CHECK(s.advance(std::numeric_limits<int64_t>::min()).empty());
   }
+}
+
+TEST_CASE("early refits: min_samples, then each time the stored samples grow by the factor",
+          "[refit_scheduler]") {
+  const EarlyRefitPlan doubling{1000, 2.0};
+  CHECK(doubling.next_after(0) == 1000);
+  CHECK(doubling.next_after(999) == 1000);
+  CHECK(doubling.next_after(1000) == 2000);
+  CHECK(doubling.next_after(1500) == 2000);  // after a scheduled refit of 1 500 samples
+  CHECK(doubling.next_after(2000) == 4000);
+  CHECK(doubling.latest_within(999) == 0);
+  CHECK(doubling.latest_within(1000) == 1000);
+  CHECK(doubling.latest_within(3999) == 2000);
+  CHECK(doubling.latest_within(9000) == 8000);  // several due at once: only the latest
+  // Both walk the same sequence: every count next_after names is one latest_within finds.
+  const EarlyRefitPlan root2{1000, std::sqrt(2.0)};
+  for (int64_t n = root2.next_after(0); n < 100000; n = root2.next_after(n)) {
+    INFO(n);
+    CHECK(root2.latest_within(n) == n);
+    CHECK(root2.latest_within(n - 1) < n);
+    CHECK(root2.next_after(n) > n);
+  }
+  const EarlyRefitPlan first_only{1000, 0.0};
+  CHECK(first_only.next_after(0) == 1000);
+  CHECK(first_only.next_after(1000) == 0);
+  CHECK(first_only.latest_within(5000) == 1000);
 }
