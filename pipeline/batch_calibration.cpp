@@ -676,10 +676,20 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
   if (!options.robust) return calibrate_batch_core(samples, options, previous_accepted);
   // Zero field vectors (a sensor's dropouts) carry no measurement: left out before anything
   // else, and counted with the outliers.
+  // Any other unusable sample (NaN, a wrapped or mis-scaled |B|) is no outlier of a measurement
+  // but a broken input: refused, named, as without --robust.
   SampleSet measured;
   measured.reserve(samples.size());
-  for (const CalibrationSample& s : samples) {
-    if (!is_zero_field_vector(s)) measured.push_back(s);
+  for (std::size_t k = 0; k < samples.size(); ++k) {
+    const CalibrationSample& s = samples[k];
+    if (is_zero_field_vector(s)) continue;
+    if (std::string problem = sample_input_problem(s, options.max_field_nT); !problem.empty()) {
+      CalibrationResult r;
+      r.method = to_string(options.method);
+      r.n_samples = static_cast<int>(samples.size());
+      return fail(r, CalibrationStatus::kFailed, "sample " + std::to_string(k) + ": " + problem);
+    }
+    measured.push_back(s);
   }
   if (static_cast<int>(measured.size()) < options.min_samples) {
     if (measured.size() == samples.size()) return calibrate_batch_core(samples, options, nullptr);
