@@ -40,8 +40,8 @@ constexpr double kOutlierGateRobustSigmas = 10.0;
 // The estimator-bias bootstrap (correct_estimator_bias()) runs where the noise (residual rms) is
 // above kBootstrapNoiseFraction of |h| and a scale factor's sigma above kBootstrapScaleSigma: the
 // O(sigma^2) terms are then a sizeable part of a sigma on weak coverage (bench, 150 nT, tilt
-// +-45 deg: 3e-3 and 2.2e-3, bias 2-2.5 sigma; 30 nT: 6e-4, bias within 0.5 sigma). The paper
-// scenario (2e-4 of |h|, sigma(D) 3e-4 on 12 h, 3e-3 on 3 h) and well-covered captures
+// +-45 deg: 3e-3 and 2.2e-3, bias 2-2.5 sigma; at 30 nT, 6e-4, the uncorrected fit covers). The
+// paper scenario (2e-4 of |h|, sigma(D) 3e-4 on 12 h, 3e-3 on 3 h) and well-covered captures
 // (sigma(D) 5e-5 tumbled or turned over at 30 nT) never pay for it.
 constexpr double kBootstrapNoiseFraction = 1e-3;
 constexpr double kBootstrapScaleSigma = 1e-4;
