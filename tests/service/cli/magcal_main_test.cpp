@@ -88,7 +88,7 @@ TEST_CASE("an unknown subcommand is named, with the ones there are") {
         "history, status, serve)\n");
 }
 
-TEST_CASE("sim: --help lists every preset; an empty --sat-id is refused, nothing written") {
+TEST_CASE("sim: --help lists every preset, an empty --sat-id is refused and nothing written") {
   TempDir dir("magcal_main_sim");
   const Run help = run_magcal("sim --help", dir);
   CHECK(help.exit_code == 0);

@@ -87,7 +87,7 @@ std::string rejected_point_label(const nlohmann::json& chart, double x_ms, doubl
 
 TEST_CASE(
     "a day where nothing after the first refit is accepted: every estimate on the axis or "
-    "an explicit, counted off-scale marker; rejected ones on every panel") {
+    "an explicit, counted off-scale marker, rejected ones on every panel") {
   const std::string chromium = find_chromium();
   if (chromium.empty()) {
     magcal::test::skip_or_fail("chromium not installed (deploy/setup-deps.sh --tests)");
