@@ -20,6 +20,7 @@
 #pragma once
 
 #include <cstdint>
+#include <optional>
 #include <stdexcept>
 #include <string>
 #include <string_view>
@@ -60,9 +61,17 @@ class StorageError : public std::runtime_error {
 // SQLITE_READONLY_DBMOVED, used for a database file deleted, renamed or replaced while open
 // (Database::check_file_in_place()); equals SQLite's own code.
 constexpr int kSqliteReadonlyDbMoved = 8 | (4 << 8);
+// SQLITE_BUSY: what a read spoiled by a writer reports (a retry heals it).
+constexpr int kSqliteBusy = 5;
 
 struct OpenOptions {
-  // Read-only never creates, migrates or writes a file (the CLI's history/status use it).
+  // Read-only never creates, migrates or writes a file (magcal status/history/serve use it),
+  // also in a directory the user cannot write. A WAL database is read through its -shm file
+  // (the index its writers share), which SQLite creates when the directory is writable and
+  // otherwise needs present and readable. When it is absent and cannot be created, no
+  // connection has the file open (a WAL connection keeps -shm while open), so it is opened
+  // immutable: no locks, no -shm (see immutable()). A -wal file holding commits without its
+  // -shm (a writer crashed) cannot be read safely that way: refused, naming the file.
   bool read_only = false;
   // Migrate up to this version only (-1: the newest this code knows). For tests that build an
   // old database; production code leaves it alone.
@@ -88,6 +97,14 @@ class Database {
 
   const std::string& path() const { return path_; }
   bool read_only() const { return read_only_; }
+  // Read-only open without locks or -shm (see OpenOptions::read_only): nothing stops a writer
+  // from opening the file meanwhile, so a reader checks changed_since_open() after reading.
+  bool immutable() const { return immutable_file_.has_value(); }
+  // Immutable opens only (false otherwise): a writer has opened the file since this connection
+  // did (its -wal or -shm exists, or the file's size, time or inode changed), so what was read
+  // may mix two states of the file. Reopen and read again: the new connection reads through
+  // the writer's -shm.
+  bool changed_since_open() const;
 
   // Runs one or more SQL statements without results (DDL, pragmas, tests).
   void exec(std::string_view sql);
@@ -107,9 +124,20 @@ class Database {
   void configure(const OpenOptions& options);
   void check_and_migrate(const OpenOptions& options);
 
+  // What identifies the file's content without reading it: an immutable connection's check.
+  struct FileIdentity {
+    uint64_t device = 0, inode = 0;
+    int64_t size = 0, mtime_ns = 0;
+    bool operator==(const FileIdentity&) const = default;
+  };
+  static std::optional<FileIdentity> identity_of(const std::string& path);
+  // Opens db_ read-only: shared (through -shm) or immutable (see OpenOptions::read_only).
+  int open_read_only(int flags);
+
   sqlite3* db_ = nullptr;
   std::string path_;
   bool read_only_ = false;
+  std::optional<FileIdentity> immutable_file_;  // set for an immutable open
 };
 
 // RAII transaction: BEGIN IMMEDIATE (takes the write lock up front, so a writer waits on the

@@ -97,6 +97,17 @@ std::optional<storage::RefitJob> RefitRunner::finished_early_refit(const std::st
   return std::nullopt;
 }
 
+std::string RefitRunner::skip_reason(const std::string& sat_id,
+                                     std::optional<int64_t> t_ref_utime) {
+  if (!t_ref_utime) t_ref_utime = samples_.newest_utime(sat_id);
+  if (!t_ref_utime) return "no stored samples for '" + sat_id + "'";
+  const int64_t n =
+      samples_.count_in_window(sat_id, *t_ref_utime - config_.window_utime() + 1, *t_ref_utime + 1);
+  if (n >= config_.refit.min_samples) return "";
+  return std::to_string(n) + " samples in the window, " +
+         std::to_string(config_.refit.min_samples) + " needed ([refit] min_samples)";
+}
+
 RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> t_ref_utime,
                               const std::string& trigger, int64_t scheduled_utime) {
   RefitOutcome out;
@@ -117,24 +128,16 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
   }
   try {
     if (!t_ref_utime) t_ref_utime = samples_.newest_utime(sat_id);
-    if (!t_ref_utime) {
+    if (std::string why = skip_reason(sat_id, t_ref_utime); !why.empty()) {
       out.kind = RefitOutcome::Kind::kSkipped;
       out.job_outcome = storage::job_outcome::kSkipped;
-      out.message = "no stored samples for '" + sat_id + "'";
+      out.message = std::move(why);
       jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message);
       return out;
     }
     const int64_t t_ref = *t_ref_utime;
     samples_.read_window(sat_id, t_ref - config_.window_utime() + 1, t_ref + 1, rows_);
     out.n_window_samples = static_cast<int>(rows_.size());
-    if (out.n_window_samples < config_.refit.min_samples) {
-      out.kind = RefitOutcome::Kind::kSkipped;
-      out.job_outcome = storage::job_outcome::kSkipped;
-      out.message = std::to_string(out.n_window_samples) + " samples in the window, " +
-                    std::to_string(config_.refit.min_samples) + " needed ([refit] min_samples)";
-      jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message);
-      return out;
-    }
     window_.clear();
     window_.reserve(rows_.size());
     for (const auto& r : rows_) window_.push_back(calibration_sample_from_stored(r));

@@ -63,6 +63,11 @@ class RefitRunner {
 
   std::vector<std::string> spacecraft();  // with stored samples
 
+  // Why run() would skip this refit ("" when it would not): no stored samples of sat_id, or
+  // fewer than [refit] min_samples in the window. Reads only: `magcal refit` refuses such a
+  // refit before writing anything, where the daemon records it as a 'skipped' job.
+  std::string skip_reason(const std::string& sat_id, std::optional<int64_t> t_ref_utime);
+
  private:
   // Accepts `result` when it failed only the change gate against `reference` and the previous
   // full-window refit (newer than the reference) failed only that gate too and agrees with it
