@@ -69,6 +69,7 @@ class SampleWindowStore {
 
   int64_t count_in_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime);
   std::optional<int64_t> newest_utime(std::string_view sat_id);
+  std::optional<int64_t> oldest_utime(std::string_view sat_id);
   int64_t count(std::string_view sat_id);
   // Spacecraft with at least one stored sample, sorted.
   std::vector<std::string> spacecraft();
@@ -88,6 +89,7 @@ class SampleWindowStore {
   Statement window_;
   Statement count_window_;
   Statement newest_;
+  Statement oldest_;
   Statement count_;
   Statement spacecraft_;
   Statement delete_chunk_;
