@@ -165,6 +165,11 @@ TEST_CASE("window query: t0 <= t < t1, ascending time, only the asked spacecraft
   const int64_t t_ref = a[300].utime;
   const int64_t w = a[300].utime - a[100].utime;
   CHECK(store.count_in_window("SAT-A", t_ref - w + 1, t_ref + 1) == 200);
+  // The ends of a spacecraft's stored window, whatever the order of arrival.
+  CHECK(store.oldest_utime("SAT-A") == a.front().utime);
+  CHECK(store.newest_utime("SAT-A") == a.back().utime);
+  CHECK_FALSE(store.oldest_utime("SAT-C").has_value());
+  CHECK_FALSE(store.newest_utime("SAT-C").has_value());
 }
 
 TEST_CASE("a batch that fails stores nothing of itself") {
