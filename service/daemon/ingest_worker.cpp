@@ -143,6 +143,8 @@ int64_t IngestWorker::restore_filter(const std::string& sat, SpacecraftTracker& 
   t.anchor_calibration_id = anchor_id.value_or(reanchor_id.value_or(0));
   if (reanchor_id && *reanchor_id > t.anchor_calibration_id) {
     if (const auto rec = history_.get(*reanchor_id)) {
+      spdlog::info("{}: the stored UKF state predates the accepted refit of {}: re-anchoring now",
+                   sat, format_iso8601_utc(rec->utime));
       reanchor(sat, t, result_from_record(*rec), rec->id);
     }
   }
