@@ -48,7 +48,7 @@ class RefitJobLog {
   // 'interrupted' (finished at now_utime). Returns how many.
   int mark_running_interrupted(int64_t now_utime);
 
-  // What a restarting daemon resumes from (issue 21), per spacecraft:
+  // What a restarting daemon resumes from, per spacecraft:
   //   the calibration of its newest refit that ended 'ok' (accepted) and was not 'manual' (the
   //   daemon re-anchors its filter on those, never on a `magcal refit`);
   //   the newest scheduled time of a 'scheduled' refit that ran to its end (any outcome but
