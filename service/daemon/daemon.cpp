@@ -285,7 +285,7 @@ struct Daemon::Impl {
           fmt::format("{}", fmt::join(r.rejection_reasons, "; ")));
       if (out.accepted()) {
         counters.refits_accepted.fetch_add(1);
-        worker->post_reanchor(sat, r);
+        worker->post_reanchor(sat, r, out.calibration_id);
       }
     }
   }

@@ -34,6 +34,7 @@ BatchCalibrationOptions batch_options_from_config(const DaemonConfig& config) {
 RefitRunner::RefitRunner(const DaemonConfig& config, storage::Database& db)
     : config_(config),
       options_(batch_options_from_config(config)),
+      db_(db),
       samples_(db),
       history_(db),
       jobs_(db) {}
@@ -155,8 +156,10 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
     out.result = calibrate_batch(window_, options_, previous ? &*previous : nullptr);
     out.result.utime = t_ref;  // the time the refit refers to: its scheduled window end
     if (previous) accept_corroborated_change(sat_id, *previous, out.result);
+    // The result and its job's outcome in one transaction: a restart after a crash finds a
+    // refit either done (both) or interrupted (neither), and runs only the latter again.
+    storage::Transaction tx(db_);
     out.calibration_id = history_.append(record_from_result(sat_id, out.result));
-    out.kind = RefitOutcome::Kind::kComputed;
     if (out.result.accepted && out.result.status == CalibrationStatus::kOk) {
       out.job_outcome = storage::job_outcome::kOk;
     } else if (out.result.status == CalibrationStatus::kRejected) {
@@ -166,8 +169,11 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
       out.message = out.result.message.empty() ? to_string(out.result.status) : out.result.message;
     }
     jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message, out.calibration_id);
+    tx.commit();
+    out.kind = RefitOutcome::Kind::kComputed;
   } catch (const storage::StorageError& e) {
     out.kind = RefitOutcome::Kind::kError;
+    out.calibration_id = 0;  // rolled back
     out.job_outcome = storage::job_outcome::kFailed;
     out.message = e.what();
     out.sqlite_code = e.sqlite_code();
