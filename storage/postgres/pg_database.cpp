@@ -318,6 +318,7 @@ void PgDatabase::check_and_migrate(const OpenOptions& options) {
     }
   };
 
+  if (target == 0) return;  // no schema wanted: nothing to check (see OpenOptions::migrate_to)
   SchemaState state = read_schema_state(*this);
   check(state);
   if (state.version >= target) return;

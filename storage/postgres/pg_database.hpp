@@ -49,9 +49,10 @@ class PgDatabase {
  public:
   // `uri`: any libpq connection URI (postgresql:// or postgres://, e.g. with ?host=/socket/dir).
   // Options as for SQLite: read_only never migrates or writes (the session is read-only);
-  // migrate_to builds an old schema for tests; busy_timeout_ms becomes lock_timeout (a row or
-  // table lock not granted in time fails transient, as SQLite's busy timeout does).
-  // Throws StorageError.
+  // migrate_to builds an old schema for tests (0: connects without reading or checking the
+  // schema, for administration such as CREATE DATABASE); busy_timeout_ms becomes lock_timeout (a
+  // row or table lock not granted in time fails transient, as SQLite's busy timeout does). Throws
+  // StorageError.
   explicit PgDatabase(const std::string& uri, const OpenOptions& options = {});
   ~PgDatabase();
   PgDatabase(PgDatabase&& other) noexcept;
