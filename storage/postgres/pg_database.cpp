@@ -3,7 +3,6 @@
 #include <libpq-fe.h>
 
 #include <chrono>
-#include <regex>
 #include <utility>
 
 #include "storage/postgres/pg_migrations.hpp"
@@ -28,10 +27,21 @@ std::string trimmed(std::string text) {
 }
 
 // The URI with any password replaced (user:PASSWORD@host, ?password=...).
-std::string without_password(const std::string& uri) {
-  static const std::regex kUserInfo(R"(^(postgres(?:ql)?://[^:@/?]*):[^@/?]*@)");
-  static const std::regex kParam(R"(([?&]password=)[^&]*)");
-  return std::regex_replace(std::regex_replace(uri, kUserInfo, "$1:***@"), kParam, "$1***");
+std::string without_password(std::string uri) {
+  const std::size_t authority = uri.find("://") + 3;  // is_postgres_uri() was checked
+  const std::size_t authority_end = uri.find_first_of("/?", authority);
+  const std::size_t at = uri.rfind('@', authority_end);
+  if (at != std::string::npos && at >= authority) {
+    const std::size_t colon = uri.find(':', authority);
+    if (colon < at) uri.replace(colon + 1, at - colon - 1, "***");
+  }
+  for (std::size_t key = uri.find("password=", authority); key != std::string::npos;
+       key = uri.find("password=", key + 1)) {
+    if (uri[key - 1] != '?' && uri[key - 1] != '&') continue;
+    const std::size_t value = key + 9;
+    uri.replace(value, uri.find('&', value) - value, "***");
+  }
+  return uri;
 }
 
 int64_t now_utime() {
@@ -55,7 +65,7 @@ CREATE TABLE magcal_schema_version (
 
 PgDatabase::PgDatabase(const std::string& uri, const OpenOptions& options)
     : uri_(uri),
-      name_(without_password(uri)),
+      name_(is_postgres_uri(uri) ? without_password(uri) : uri),
       read_only_(options.read_only),
       lock_timeout_ms_(options.busy_timeout_ms) {
   char* error = nullptr;

@@ -221,6 +221,8 @@ TEST_CASE("PostgreSQL schema: migrations, re-open, foreign / newer / older schem
     PgDatabase db(with_password);
     CHECK(db.name().find("s3cret") == std::string::npos);
     CHECK_THAT(db.name(), Catch::Contains(":***@"));
+    PgDatabase by_parameter(uri + "&password=s3cret&application_name=t");
+    CHECK(by_parameter.name() == uri + "&password=***&application_name=t");
 
     const StorageError bad = open_error("postgresql://magcal@/x?nonsense=1");
     CHECK(bad.kind() == StorageError::Kind::kInvalidArgument);
