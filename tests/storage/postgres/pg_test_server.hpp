@@ -1,5 +1,6 @@
-// A throwaway PostgreSQL server for tests (toolchain.md "PostgreSQL"): initdb into a fresh
-// temporary directory (as the postgres user when running as root: initdb refuses root), started
+// A throwaway PostgreSQL server for tests (toolchain.md "PostgreSQL"): a cluster made by initdb
+// (as the postgres user when running as root: initdb refuses root; made once per build tree and
+// copied) in a fresh temporary directory, started
 // with pg_ctl on a Unix socket in that directory and on 127.0.0.1 at a free port, fsync off.
 // Stopped and removed by the destructor, and by a watchdog process when the test process dies
 // without it (a crash, a CTest timeout): pg_ctl detaches the server, which would otherwise
@@ -18,6 +19,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cstdlib>
 #include <filesystem>
 #include <memory>
@@ -63,13 +65,8 @@ class PgTestServer {
       as_server_user_ = {"/usr/sbin/runuser", "-u", "postgres", "--"};
     }
     start_watchdog();
-    const std::string log = file("initdb.log");
-    if (run(server_command({pg_tool("initdb"), "-D", data(), "-U", "magcal", "--auth=trust", "-E",
-                            "UTF8", "--locale=C.UTF-8", "--no-sync", "--no-instructions"}),
-            log, 120) != 0) {
-      error_ = "initdb failed: " + slurp(log);
-      return;
-    }
+    make_cluster();
+    if (!error_.empty()) return;
     start();
   }
 
@@ -145,6 +142,37 @@ class PgTestServer {
  private:
   std::string file(const std::string& name) const { return dir_ + "/" + name; }
   std::string data() const { return file("data"); }
+
+  // initdb takes 1-4 s and its result depends only on the PostgreSQL build and the options:
+  // made once per build tree and PostgreSQL version and copied for each server (~0.2 s; cp -a
+  // keeps the owner and the modes the server insists on). Processes racing to make it each
+  // copy their own; the first rename wins.
+  void make_cluster() {
+    std::string version = bindir_;
+    std::replace(version.begin(), version.end(), '/', '_');
+    const std::string cache = std::string(MAGCAL_BIN_DIR) + "/../pg-test-clusters";
+    const std::string cached = cache + "/v1" + version;
+    if (std::filesystem::exists(cached)) {
+      if (run({"cp", "-a", cached, data()}, file("cp.log"), 60) != 0) {
+        error_ = "cannot copy " + cached + ": " + slurp(file("cp.log"));
+      }
+      return;
+    }
+    const std::string log = file("initdb.log");
+    if (run(server_command({pg_tool("initdb"), "-D", data(), "-U", "magcal", "--auth=trust", "-E",
+                            "UTF8", "--locale=C.UTF-8", "--no-sync", "--no-instructions"}),
+            log, 120) != 0) {
+      error_ = "initdb failed: " + slurp(log);
+      return;
+    }
+    std::error_code ignored;  // without a cache the next server runs initdb again
+    std::filesystem::create_directories(cache, ignored);
+    const std::string copy = cached + ".tmp" + std::to_string(::getpid());
+    if (run({"cp", "-a", data(), copy}, file("cp.log"), 60) == 0) {
+      std::filesystem::rename(copy, cached, ignored);
+    }
+    std::filesystem::remove_all(copy, ignored);
+  }
 
   std::vector<std::string> server_command(std::vector<std::string> args) const {
     args.insert(args.begin(), as_server_user_.begin(), as_server_user_.end());
