@@ -48,7 +48,7 @@ class StorageError : public std::runtime_error {
   StorageError(Kind kind, const std::string& what, int sqlite_code = 0)
       : std::runtime_error(what), kind_(kind), sqlite_code_(sqlite_code) {}
   // A PostgreSQL failure (storage/postgres): its SQLSTATE ("40P01", "08006", ...) and whether
-  // a retry can heal it, which storage/postgres/pg_error.cpp decides from the SQLSTATE.
+  // a retry can heal it, which storage/postgres/pg_database.cpp decides from the SQLSTATE.
   StorageError(Kind kind, const std::string& what, std::string sqlstate, bool transient)
       : std::runtime_error(what),
         kind_(kind),
