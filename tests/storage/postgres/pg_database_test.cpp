@@ -245,13 +245,16 @@ TEST_CASE("PostgreSQL errors: what a retry heals is transient, the rest is not")
   SECTION("a terminated session: transient, and the next statement reconnects") {
     PgDatabase admin(uri);
     const int pid = db.backend_pid();
+    const std::string count = "SELECT count(*) FROM meta";
+    CHECK(db.execute_prepared(count).get_int64(0, 0) == 2);
     admin.exec("SELECT pg_terminate_backend(" + std::to_string(pid) + ")");
-    const StorageError lost = error_of([&] { db.execute("SELECT 1"); });
+    const StorageError lost = error_of([&] { db.execute_prepared(count); });
     INFO(lost.what());
     CHECK(lost.transient());
     CHECK(lost.kind() == StorageError::Kind::kPostgres);
     CHECK((lost.sqlstate() == "57P01" || lost.sqlstate() == "08006"));
-    CHECK(query_int(db, "SELECT count(*) FROM meta") == 2);
+    // A new session: the statement is prepared again there.
+    CHECK(db.execute_prepared(count).get_int64(0, 0) == 2);
     CHECK(db.backend_pid() != pid);
 
     // Inside a transaction the work is gone with the connection: every statement of that
