@@ -191,6 +191,7 @@ Database& Database::operator=(Database&& other) noexcept {
 }
 
 bool StorageError::transient() const {
+  if (!sqlstate_.empty()) return postgres_transient_;
   switch (sqlite_code_ & 0xff) {
     case SQLITE_BUSY:
     case SQLITE_LOCKED:

@@ -24,6 +24,7 @@
 #include <stdexcept>
 #include <string>
 #include <string_view>
+#include <utility>
 
 struct sqlite3;  // <sqlite3.h> stays out of public headers
 
@@ -40,22 +41,35 @@ class StorageError : public std::runtime_error {
     kNewerSchema,  // user_version newer than this code: refuse rather than guess
     kOlderSchema,  // read-only open of a database that needs a migration first
     kInvalidArgument,
-    kSqlite,  // any other SQLite error (I/O, corrupt, busy after the timeout, ...)
+    kSqlite,    // any other SQLite error (I/O, corrupt, busy after the timeout, ...)
+    kPostgres,  // any other PostgreSQL error (connection, SQL, deadlock, ...): see sqlstate()
   };
   // sqlite_code: SQLite's extended result code (SQLITE_BUSY, SQLITE_IOERR_WRITE, ...), 0 when
   // the failure is not SQLite's (kNotFound, kNewerSchema, ...).
   StorageError(Kind kind, const std::string& what, int sqlite_code = 0)
       : std::runtime_error(what), kind_(kind), sqlite_code_(sqlite_code) {}
+  // A PostgreSQL failure (storage/postgres): its SQLSTATE ("40P01", "08006", ...) and whether
+  // a retry can heal it, which storage/postgres/pg_database.cpp decides from the SQLSTATE.
+  StorageError(Kind kind, const std::string& what, std::string sqlstate, bool transient)
+      : std::runtime_error(what),
+        kind_(kind),
+        sqlstate_(std::move(sqlstate)),
+        postgres_transient_(transient) {}
   Kind kind() const { return kind_; }
   int sqlite_code() const { return sqlite_code_; }
+  // "" unless the failure is PostgreSQL's.
+  const std::string& sqlstate() const { return sqlstate_; }
   // May heal by itself: SQLITE_BUSY, SQLITE_LOCKED, SQLITE_IOERR, SQLITE_FULL, SQLITE_READONLY,
   // SQLITE_CANTOPEN, SQLITE_PROTOCOL (each with its extended codes). Everything else is
-  // permanent for this file and this code.
+  // permanent for this file and this code. PostgreSQL: as decided at the throw (connection
+  // lost, serialization failure, deadlock, server shutting down, ...).
   bool transient() const;
 
  private:
   Kind kind_;
   int sqlite_code_ = 0;
+  std::string sqlstate_;
+  bool postgres_transient_ = false;
 };
 
 // SQLITE_READONLY_DBMOVED, used for a database file deleted, renamed or replaced while open
