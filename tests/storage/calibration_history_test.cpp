@@ -202,7 +202,7 @@ TEST_CASE("uncertainty evidence (schema 3) round-trips, unknown values stay NULL
   CHECK(std::isnan(b->k3[0]));
 }
 
-TEST_CASE("a refit's model error (schema 4) round-trips, zero stays NULL; rows by id") {
+TEST_CASE("a refit's model error (schema 4) round-trips, zero stays NULL, rows read by id") {
   Database db(":memory:");
   CalibrationHistory history(db);
   CalibrationRecord extended = make_record("SAT1", "twostep", kT0, 1);

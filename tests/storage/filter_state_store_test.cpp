@@ -69,7 +69,7 @@ TEST_CASE("filter state round-trips bit for bit and is replaced per (sat, method
 }
 
 TEST_CASE(
-    "the refit a state was re-anchored on round-trips; a state from before schema 4 has none") {
+    "the refit a state was re-anchored on round-trips, a state from before schema 4 has none") {
   Database db(":memory:");
   FilterStateStore store(db);
   std::mt19937_64 rng(5);

@@ -349,7 +349,7 @@ TEST_CASE("fit: a field beyond any magnetometer's range is a data error naming l
 }
 
 TEST_CASE(
-    "fit: zero vectors are sensor dropouts (left out by --robust); a wrapped |B| names itself",
+    "fit: zero vectors are sensor dropouts (left out by --robust), a wrapped |B| names itself",
     "[cli][fit]") {
   // 18 % of the rows (0, 0, 0): before, "NaN/Inf in input", and --robust refused too.
   SampleSet dropouts = model_data(600, 3.0, 11);
