@@ -3,11 +3,14 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
+#include <Eigen/LU>
 
 #include "pipeline/hac_covariance.hpp"
+#include "pipeline/parameter_recovery.hpp"
 #include "pipeline/scalar_measurement.hpp"
 #include "pipeline/time_utc.hpp"
 
@@ -24,6 +27,8 @@ constexpr double kRelativeEigenFloor = 1e-14;
 constexpr double kTinyVariance = 1e-300;
 // Start attempts regardless of the pre-check at n = this x start_attempt_every x 2^k.
 constexpr int64_t kUnconditionalAttemptMultiple = 16;
+// Gauss-Newton steps of a block's bias (linear in c but for |b|^2: a few steps converge).
+constexpr int kBlockBiasIterations = 4;
 
 bool is_finite(const Eigen::Vector3d& v) {
   return v.allFinite();
@@ -57,6 +62,8 @@ std::string FilterOptions::validate() const {
     return "noise_adaptation_samples must be >= 1";
   if (!(max_fisher_condition > 1.0)) return "max_fisher_condition must be > 1";
   if (fisher_every < 1) return "fisher_every must be >= 1";
+  if (std::isnan(bias_motion_block_hours)) return "bias_motion_block_hours must not be NaN";
+  if (!(bias_motion_significance >= 0.0)) return "bias_motion_significance must be >= 0";
   return {};
 }
 
@@ -86,7 +93,15 @@ bool FilterState::operator==(const FilterState& o) const {
          score_block == o.score_block && score_block_n == o.score_block_n &&
          score_meat == o.score_meat && score_blocks == o.score_blocks &&
          model_error_covariance == o.model_error_covariance &&
-         model_error_known == o.model_error_known;
+         model_error_known == o.model_error_known &&
+         bias_block_start_moments == o.bias_block_start_moments &&
+         bias_block_start_utime == o.bias_block_start_utime &&
+         bias_block_bias_nT[0] == o.bias_block_bias_nT[0] &&
+         bias_block_bias_nT[1] == o.bias_block_bias_nT[1] &&
+         bias_blocks_in_chain == o.bias_blocks_in_chain &&
+         bias_motion_sum_nT2 == o.bias_motion_sum_nT2 &&
+         bias_motion_sum2_nT4 == o.bias_motion_sum2_nT4 && bias_motion_n == o.bias_motion_n &&
+         bias_random_walk_nT2_per_hour == o.bias_random_walk_nT2_per_hour;
 }
 
 const char* to_string(FilterUpdateStatus s) {
@@ -360,7 +375,15 @@ CalibrationResult ScalarFilterBase::snapshot() const {
     r.message = "waiting for the first refit to measure the model error";
   } else if (!(bias_sigma.array() < options_.converged_bias_sigma_nT).all()) {
     r.status = CalibrationStatus::kNotConverged;
-    std::snprintf(buf, sizeof buf, "bias 1-sigma above %.3g nT", options_.converged_bias_sigma_nT);
+    if (state_.bias_random_walk_nT2_per_hour > 0.0) {
+      std::snprintf(buf, sizeof buf,
+                    "bias 1-sigma above %.3g nT: the bias moves (random walk %.3g nT/sqrt(h) "
+                    "measured) faster than the data observe it",
+                    options_.converged_bias_sigma_nT, bias_random_walk_nT_per_sqrt_hour());
+    } else {
+      std::snprintf(buf, sizeof buf, "bias 1-sigma above %.3g nT",
+                    options_.converged_bias_sigma_nT);
+    }
     r.message = buf;
   } else {
     r.status = CalibrationStatus::kOk;
@@ -404,7 +427,8 @@ bool ScalarFilterBase::begin_update(FilterUpdate& u, const Eigen::Vector3d& b_se
     if (state_.initialized) {
       const double dt_s =
           static_cast<double>(saturating_sub(utime, state_.last_utime)) / kMicrosecondsPerSecond;
-      const Vector9d q = process_noise_diagonal(options_.process_noise_per_sqrt_hour, dt_s);
+      Vector9d q = process_noise_diagonal(options_.process_noise_per_sqrt_hour, dt_s);
+      q.head<3>().array() += state_.bias_random_walk_nT2_per_hour * (dt_s / kSecondsPerHour);
       if ((q.array() > 0.0).any()) {
         // P + Q re-factorised (one 9x9 LLT is cheaper than nine serial rank-1 updates).
         Matrix9d P = state_.S * state_.S.transpose();
@@ -529,6 +553,7 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
   ++state_.n_accepted;
   u.status = FilterUpdateStatus::kAccepted;
   state_.moments.add(b_sensor_nT, y, 1.0 / scalar_noise_variance(b_sensor_nT, sigma), false);
+  track_bias_motion();
   if (++state_.samples_since_fisher >= options_.fisher_every) {
     state_.fisher_condition = moments_fisher_condition(state_.moments.matrix(), state_.x);
     state_.samples_since_fisher = 0;
@@ -566,6 +591,87 @@ void ScalarFilterBase::monitor(FilterUpdate& u) {
   }
   anchor_sandwich();  // the re-opened P forgets; so do the blocks
   update_convergence_time();
+}
+
+bool ScalarFilterBase::block_bias_given_scale(const ScalarMoments& block, Eigen::Vector3d& bias_nT,
+                                              Eigen::Vector3d& variance_nT2) const {
+  // Gauss-Newton on c = (I + D) b with E (the scale and non-orthogonality) held at the filter's
+  // estimate: its memory is long, and a short block solving all nine parameters trades b
+  // against D (measured, 2 h nadir blocks: block biases tens of nT apart, far beyond their
+  // sigmas).
+  const CalibrationParameters current = parameters();
+  Vector9d theta = theta_from_parameters(current);
+  const Matrix11d M = block.matrix();
+  Matrix9d F;
+  Vector9d g;
+  for (int iteration = 0; iteration < kBlockBiasIterations; ++iteration) {
+    if (!moments_cost(M, theta, nullptr, &F, &g)) return false;
+    const Eigen::LDLT<Eigen::Matrix3d> ldlt(F.topLeftCorner<3, 3>());
+    if (ldlt.info() != Eigen::Success || !(ldlt.vectorD().array() > 0.0).all()) return false;
+    theta.head<3>() -= ldlt.solve(g.head<3>());
+  }
+  if (!moments_cost(M, theta, nullptr, &F, nullptr) || !theta.allFinite()) return false;
+  const Eigen::Matrix3d I_plus_D_inv = (Eigen::Matrix3d::Identity() + current.D).inverse();
+  const Eigen::Matrix3d F_cc = F.topLeftCorner<3, 3>();
+  const Eigen::Matrix3d cov = I_plus_D_inv * F_cc.inverse() * I_plus_D_inv.transpose();
+  bias_nT = I_plus_D_inv * theta.head<3>();
+  variance_nT2 = cov.diagonal();
+  return bias_nT.allFinite() && (variance_nT2.array() > 0.0).all();
+}
+
+void ScalarFilterBase::track_bias_motion() {
+  if (!(options_.bias_motion_block_hours > 0.0)) return;
+  if (state_.bias_block_start_utime < 0) {
+    state_.bias_block_start_moments = state_.moments;
+    state_.bias_block_start_utime = state_.last_utime;
+    return;
+  }
+  const double block_hours = options_.bias_motion_block_hours;
+  const double elapsed_h = static_cast<double>(state_.last_utime - state_.bias_block_start_utime) /
+                           (kMicrosecondsPerSecond * kSecondsPerHour);
+  if (elapsed_h < block_hours) return;
+  // The block's own moments: the sums since its start (no lag-1 products: the structure
+  // function does not use the block's covariance scale).
+  ScalarMoments block;
+  block.m = state_.moments.m - state_.bias_block_start_moments.m;
+  block.n = state_.moments.n - state_.bias_block_start_moments.n;
+  state_.bias_block_start_moments = state_.moments;
+  state_.bias_block_start_utime = state_.last_utime;
+  // A gap longer than a block breaks the chain: the differences assume adjacent blocks.
+  const bool adjacent = elapsed_h < 1.5 * block_hours;
+  Eigen::Vector3d m0;
+  Eigen::Vector3d variance;
+  const bool solved = block_bias_given_scale(block, m0, variance);
+  if (!solved || !adjacent) {
+    state_.bias_blocks_in_chain = solved ? 1 : 0;
+    state_.bias_block_bias_nT[0] = m0;
+    return;
+  }
+  if (state_.bias_blocks_in_chain >= 2) {
+    const Eigen::Array3d d1 = (m0 - state_.bias_block_bias_nT[0]).array();
+    const Eigen::Array3d d2 = (m0 - state_.bias_block_bias_nT[1]).array();
+    const Eigen::Array3d w = variance.array().square().inverse();
+    const double excess_nT2 = (w * (d2.square() - d1.square())).sum() / w.sum();
+    if (std::isfinite(excess_nT2)) {
+      state_.bias_motion_sum_nT2 += excess_nT2;
+      state_.bias_motion_sum2_nT4 += excess_nT2 * excess_nT2;
+      ++state_.bias_motion_n;
+    }
+  }
+  state_.bias_block_bias_nT[1] = state_.bias_block_bias_nT[0];
+  state_.bias_block_bias_nT[0] = m0;
+  state_.bias_blocks_in_chain = std::min(state_.bias_blocks_in_chain + 1, 3);
+  const int n = state_.bias_motion_n;
+  if (n < 3) return;
+  const double mean = state_.bias_motion_sum_nT2 / n;
+  const double var = std::max(0.0, state_.bias_motion_sum2_nT4 / n - mean * mean) * n / (n - 1);
+  const double standard_error = std::sqrt(var / n);
+  state_.bias_random_walk_nT2_per_hour =
+      mean > options_.bias_motion_significance * standard_error ? mean / block_hours : 0.0;
+}
+
+double ScalarFilterBase::bias_random_walk_nT_per_sqrt_hour() const {
+  return std::sqrt(state_.bias_random_walk_nT2_per_hour);
 }
 
 void ScalarFilterBase::update_convergence_time() {

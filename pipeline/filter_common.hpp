@@ -65,6 +65,32 @@
 // stamp read P (cheap, per sample). With process noise (q > 0) A and old blocks are not forgotten
 // as P forgets them: C is then conservative.
 //
+// Bias motion (issue 20: drift, thermal swing without a temperature channel): a static filter
+// estimates the bias averaged over its memory; when the bias moves it stays close to that
+// average and its P (and the sandwich, which describes the scatter around the average) claims
+// the current bias to a fraction of the lag (measured: 1.5 nT/h drift + 10 nT thermal swing,
+// 24 h nadir, ok snapshots 5-6 sigma RMS off the current bias). So the filter measures how
+// fast the bias moves and gives the bias that random walk as process noise: P then grows by
+// the motion, the filter follows it, and where the data observe the bias too weakly to follow
+// (the orbit normal in nadir pointing) the sigma stays above converged_bias_sigma_nT:
+// not_converged, with the measured rate in the message. The measurement: every
+// bias_motion_block_hours the batch problem of that block alone (the moments since the block
+// started, filter_start.hpp) is solved; with block biases m_k, the structure function
+//   E|m_k - m_{k-2}|^2 - E|m_k - m_{k-1}|^2 = q^2 L          (random walk q^2 per hour, L hours;
+//                                                            a drift r gives 3 r^2 L^2)
+// cancels what is the same in every block (each block's noise and the stationary model error:
+// nonlinearity, hysteresis), so it does not mistake those for motion. Per block the three axes
+// are pooled with inverse-variance weights (1 / C_ii^2 of the block solution) into one
+// isotropic q^2 (the weakly observed axis gets the motion of the well-observed ones: the same
+// physics moves all three); q^2 is the mean over blocks, used once it exceeds
+// bias_motion_significance standard errors (at least 3 increments, i.e. 4 blocks).
+// Blind spot: a bias oscillating within one block (an orbit-synchronous thermal swing) averages
+// out of the block means; that needs the temperature in the model.
+// Off by default (bias_motion_block_hours = 0): on the 24 h nadir test of
+// filter_slow_bias_test (1.5 nT/h drift + 10 nT swing) the excess, 40-80 nT^2 per 1-2 h block
+// with D held at the filter's estimate, stays below 2 standard errors (the swing's aliasing into
+// the block means dominates its scatter), so the process noise never switches on there yet.
+//
 // Evidence (estimation.md 7, "online results carry evidence"): over the snapshot period (since
 // the filter started or reset_period()) the rms of |B_cal| - |h| (prior estimate, valid samples),
 // the mean NIS; the effective noise; and the scaled Fisher condition number of the information
@@ -143,6 +169,13 @@ struct FilterOptions {
   // share > 3 sigma on some axis: P alone 2.17 / 42 %; blocks of 60: 1.55 / 1.5 %; 120: 1.53 / 0;
   // 240: 1.54 / 0 (worst 2.90 sigma); 480: 1.60 / 3.3 %; 960: 1.83 / 9.3 %.
   int sandwich_block_samples = 240;
+  // Bias random walk measured from the data (file comment): batch solutions of consecutive
+  // blocks of this many hours; <= 0 (the default, file comment) turns it off (the bias is then
+  // static unless process_noise_per_sqrt_hour says otherwise).
+  double bias_motion_block_hours = 0.0;
+  // The measured random walk is used only when its excess is above this many standard errors
+  // (a stationary sensor must not get process noise from the scatter of its block solutions).
+  double bias_motion_significance = 2.0;
 
   // Empty when valid, else what is wrong.
   std::string validate() const;
@@ -194,6 +227,18 @@ struct FilterState {
   // Model error (reanchor(), set_model_error_covariance()): added to the reported covariance.
   Matrix9d model_error_covariance = Matrix9d::Zero();
   bool model_error_known = false;  // set by reanchor() / set_model_error_covariance()
+
+  // Bias motion (file comment): the moments at the start of the current block, the bias of the
+  // last two solved blocks (newest first), the increments of the structure-function excess and
+  // the random-walk variance they imply (nT^2 per hour, isotropic; 0 = static).
+  ScalarMoments bias_block_start_moments;
+  int64_t bias_block_start_utime = -1;  // -1: no block open
+  Eigen::Vector3d bias_block_bias_nT[2] = {Eigen::Vector3d::Zero(), Eigen::Vector3d::Zero()};
+  int32_t bias_blocks_in_chain = 0;  // consecutive solved blocks (up to 3 matter)
+  double bias_motion_sum_nT2 = 0.0;
+  double bias_motion_sum2_nT4 = 0.0;
+  int32_t bias_motion_n = 0;
+  double bias_random_walk_nT2_per_hour = 0.0;
 
   // Snapshot period (since the start or reset_period()).
   int64_t period_start_utime = 0;
@@ -299,6 +344,8 @@ class ScalarFilterBase {
   // Current effective white-equivalent noise per axis (nT) and innovation lag-1 correlation.
   double measurement_noise_nT() const;
   double innovation_autocorrelation() const;
+  // The bias random walk measured from the data (nT per sqrt(hour), isotropic; 0 = static).
+  double bias_random_walk_nT_per_sqrt_hour() const;
 
   // The current estimate with its evidence (file comment). method "ekf"/"ukf".
   CalibrationResult snapshot() const;
@@ -333,6 +380,11 @@ class ScalarFilterBase {
   void anchor_sandwich();
   void monitor(FilterUpdate& u);
   void update_convergence_time();
+  void track_bias_motion();
+  // The bias of one block's moments with D held at the current estimate, and its variances
+  // (white noise at sigma_nT: only their ratios are used). False when not solvable.
+  bool block_bias_given_scale(const ScalarMoments& block, Eigen::Vector3d& bias_nT,
+                              Eigen::Vector3d& variance_nT2) const;
   double correlation_inflation() const;
 };
 
