@@ -3,7 +3,6 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
-#include <cstdlib>
 
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
@@ -29,6 +28,8 @@ constexpr double kTinyVariance = 1e-300;
 constexpr int64_t kUnconditionalAttemptMultiple = 16;
 // Gauss-Newton steps of a block's bias (linear in c but for |b|^2: a few steps converge).
 constexpr int kBlockBiasIterations = 4;
+// Blocks before the bias trend is tested (its standard error has n - 2 degrees of freedom).
+constexpr int kBiasMotionMinBlocks = 6;
 
 bool is_finite(const Eigen::Vector3d& v) {
   return v.allFinite();
@@ -63,7 +64,7 @@ std::string FilterOptions::validate() const {
   if (!(max_fisher_condition > 1.0)) return "max_fisher_condition must be > 1";
   if (fisher_every < 1) return "fisher_every must be >= 1";
   if (std::isnan(bias_motion_block_hours)) return "bias_motion_block_hours must not be NaN";
-  if (!(bias_motion_significance >= 0.0)) return "bias_motion_significance must be >= 0";
+  if (!(bias_motion_chi2 >= 0.0)) return "bias_motion_chi2 must be >= 0";
   return {};
 }
 
@@ -95,12 +96,12 @@ bool FilterState::operator==(const FilterState& o) const {
          model_error_covariance == o.model_error_covariance &&
          model_error_known == o.model_error_known &&
          bias_block_start_moments == o.bias_block_start_moments &&
-         bias_block_start_utime == o.bias_block_start_utime &&
-         bias_block_bias_nT[0] == o.bias_block_bias_nT[0] &&
-         bias_block_bias_nT[1] == o.bias_block_bias_nT[1] &&
-         bias_blocks_in_chain == o.bias_blocks_in_chain &&
-         bias_motion_sum_nT2 == o.bias_motion_sum_nT2 &&
-         bias_motion_sum2_nT4 == o.bias_motion_sum2_nT4 && bias_motion_n == o.bias_motion_n &&
+         bias_block_start_utime == o.bias_block_start_utime && bias_motion_n == o.bias_motion_n &&
+         bias_motion_sum_t_h == o.bias_motion_sum_t_h &&
+         bias_motion_sum_t2_h2 == o.bias_motion_sum_t2_h2 &&
+         bias_motion_sum_nT == o.bias_motion_sum_nT &&
+         bias_motion_sum_tm_nT_h == o.bias_motion_sum_tm_nT_h &&
+         bias_motion_sum_m2_nT2 == o.bias_motion_sum_m2_nT2 &&
          bias_random_walk_nT2_per_hour == o.bias_random_walk_nT2_per_hour;
 }
 
@@ -593,12 +594,9 @@ void ScalarFilterBase::monitor(FilterUpdate& u) {
   update_convergence_time();
 }
 
-bool ScalarFilterBase::block_bias_given_scale(const ScalarMoments& block, Eigen::Vector3d& bias_nT,
-                                              Eigen::Vector3d& variance_nT2) const {
-  // Gauss-Newton on c = (I + D) b with E (the scale and non-orthogonality) held at the filter's
-  // estimate: its memory is long, and a short block solving all nine parameters trades b
-  // against D (measured, 2 h nadir blocks: block biases tens of nT apart, far beyond their
-  // sigmas).
+bool ScalarFilterBase::block_bias_given_scale(const ScalarMoments& block,
+                                              Eigen::Vector3d& bias_nT) const {
+  // Gauss-Newton on c = (I + D) b with E held at the filter's estimate (file comment).
   const CalibrationParameters current = parameters();
   Vector9d theta = theta_from_parameters(current);
   const Matrix11d M = block.matrix();
@@ -610,13 +608,8 @@ bool ScalarFilterBase::block_bias_given_scale(const ScalarMoments& block, Eigen:
     if (ldlt.info() != Eigen::Success || !(ldlt.vectorD().array() > 0.0).all()) return false;
     theta.head<3>() -= ldlt.solve(g.head<3>());
   }
-  if (!moments_cost(M, theta, nullptr, &F, nullptr) || !theta.allFinite()) return false;
-  const Eigen::Matrix3d I_plus_D_inv = (Eigen::Matrix3d::Identity() + current.D).inverse();
-  const Eigen::Matrix3d F_cc = F.topLeftCorner<3, 3>();
-  const Eigen::Matrix3d cov = I_plus_D_inv * F_cc.inverse() * I_plus_D_inv.transpose();
-  bias_nT = I_plus_D_inv * theta.head<3>();
-  variance_nT2 = cov.diagonal();
-  return bias_nT.allFinite() && (variance_nT2.array() > 0.0).all();
+  bias_nT = (Eigen::Matrix3d::Identity() + current.D).inverse() * theta.head<3>();
+  return bias_nT.allFinite();
 }
 
 void ScalarFilterBase::track_bias_motion() {
@@ -630,44 +623,46 @@ void ScalarFilterBase::track_bias_motion() {
   const double elapsed_h = static_cast<double>(state_.last_utime - state_.bias_block_start_utime) /
                            (kMicrosecondsPerSecond * kSecondsPerHour);
   if (elapsed_h < block_hours) return;
-  // The block's own moments: the sums since its start (no lag-1 products: the structure
-  // function does not use the block's covariance scale).
+  // The block's own moments: the sums since its start (the lag-1 products are not needed).
   ScalarMoments block;
   block.m = state_.moments.m - state_.bias_block_start_moments.m;
   block.n = state_.moments.n - state_.bias_block_start_moments.n;
   state_.bias_block_start_moments = state_.moments;
   state_.bias_block_start_utime = state_.last_utime;
-  // A gap longer than a block breaks the chain: the differences assume adjacent blocks.
-  const bool adjacent = elapsed_h < 1.5 * block_hours;
-  Eigen::Vector3d m0;
-  Eigen::Vector3d variance;
-  const bool solved = block_bias_given_scale(block, m0, variance);
-  if (!solved || !adjacent) {
-    state_.bias_blocks_in_chain = solved ? 1 : 0;
-    state_.bias_block_bias_nT[0] = m0;
+  Eigen::Vector3d m;
+  if (!block_bias_given_scale(block, m)) return;
+  const double t_h = static_cast<double>(state_.last_utime - state_.first_utime) /
+                         (kMicrosecondsPerSecond * kSecondsPerHour) -
+                     0.5 * elapsed_h;  // block centre
+  state_.bias_motion_n += 1;
+  state_.bias_motion_sum_t_h += t_h;
+  state_.bias_motion_sum_t2_h2 += t_h * t_h;
+  state_.bias_motion_sum_nT += m;
+  state_.bias_motion_sum_tm_nT_h += t_h * m;
+  state_.bias_motion_sum_m2_nT2 += m.cwiseAbs2();
+  const int n = state_.bias_motion_n;
+  if (n < kBiasMotionMinBlocks) return;
+  // Per axis: the least-squares trend of the block biases and its standard error from their own
+  // scatter about it (block noise, stationary model error and aliased fast motion alike).
+  const double Stt =
+      state_.bias_motion_sum_t2_h2 - state_.bias_motion_sum_t_h * state_.bias_motion_sum_t_h / n;
+  if (!(Stt > 0.0)) return;
+  const Eigen::Array3d Stm = state_.bias_motion_sum_tm_nT_h.array() -
+                             state_.bias_motion_sum_t_h * state_.bias_motion_sum_nT.array() / n;
+  const Eigen::Array3d Smm =
+      state_.bias_motion_sum_m2_nT2.array() - state_.bias_motion_sum_nT.array().square() / n;
+  const Eigen::Array3d rate = Stm / Stt;
+  const Eigen::Array3d se2 = ((Smm - rate * Stm) / (n - 2)).max(1e-300) / Stt;
+  const double chi2 = (rate.square() / se2).sum();
+  if (!(chi2 > options_.bias_motion_chi2)) {
+    state_.bias_random_walk_nT2_per_hour = 0.0;
     return;
   }
-  if (state_.bias_blocks_in_chain >= 2) {
-    const Eigen::Array3d d1 = (m0 - state_.bias_block_bias_nT[0]).array();
-    const Eigen::Array3d d2 = (m0 - state_.bias_block_bias_nT[1]).array();
-    const Eigen::Array3d w = variance.array().square().inverse();
-    const double excess_nT2 = (w * (d2.square() - d1.square())).sum() / w.sum();
-    if (std::isfinite(excess_nT2)) {
-      state_.bias_motion_sum_nT2 += excess_nT2;
-      state_.bias_motion_sum2_nT4 += excess_nT2 * excess_nT2;
-      ++state_.bias_motion_n;
-    }
-  }
-  state_.bias_block_bias_nT[1] = state_.bias_block_bias_nT[0];
-  state_.bias_block_bias_nT[0] = m0;
-  state_.bias_blocks_in_chain = std::min(state_.bias_blocks_in_chain + 1, 3);
-  const int n = state_.bias_motion_n;
-  if (n < 3) return;
-  const double mean = state_.bias_motion_sum_nT2 / n;
-  const double var = std::max(0.0, state_.bias_motion_sum2_nT4 / n - mean * mean) * n / (n - 1);
-  const double standard_error = std::sqrt(var / n);
-  state_.bias_random_walk_nT2_per_hour =
-      mean > options_.bias_motion_significance * standard_error ? mean / block_hours : 0.0;
+  // Inverse-variance pooled rate^2 (unbiased: minus its variance), as the random walk with the
+  // same block-to-block excess: q^2 = 3 r^2 L (file comment).
+  const Eigen::Array3d w = se2.inverse();
+  const double rate2 = std::max(0.0, (w * (rate.square() - se2)).sum() / w.sum());
+  state_.bias_random_walk_nT2_per_hour = 3.0 * rate2 * block_hours;
 }
 
 double ScalarFilterBase::bias_random_walk_nT_per_sqrt_hour() const {
