@@ -94,8 +94,8 @@ bool FilterState::operator==(const FilterState& o) const {
          score_block == o.score_block && score_block_n == o.score_block_n &&
          score_meat == o.score_meat && score_blocks == o.score_blocks &&
          model_error_covariance == o.model_error_covariance &&
-         model_error_known == o.model_error_known &&
-         bias_block_start_moments == o.bias_block_start_moments &&
+         model_error_known == o.model_error_known && bias_block_start_m == o.bias_block_start_m &&
+         bias_block_start_n == o.bias_block_start_n &&
          bias_block_start_utime == o.bias_block_start_utime && bias_motion_n == o.bias_motion_n &&
          bias_motion_sum_t_h == o.bias_motion_sum_t_h &&
          bias_motion_sum_t2_h2 == o.bias_motion_sum_t2_h2 &&
@@ -615,7 +615,8 @@ bool ScalarFilterBase::block_bias_given_scale(const ScalarMoments& block,
 void ScalarFilterBase::track_bias_motion() {
   if (!(options_.bias_motion_block_hours > 0.0)) return;
   if (state_.bias_block_start_utime < 0) {
-    state_.bias_block_start_moments = state_.moments;
+    state_.bias_block_start_m = state_.moments.m;
+    state_.bias_block_start_n = state_.moments.n;
     state_.bias_block_start_utime = state_.last_utime;
     return;
   }
@@ -625,9 +626,10 @@ void ScalarFilterBase::track_bias_motion() {
   if (elapsed_h < block_hours) return;
   // The block's own moments: the sums since its start (the lag-1 products are not needed).
   ScalarMoments block;
-  block.m = state_.moments.m - state_.bias_block_start_moments.m;
-  block.n = state_.moments.n - state_.bias_block_start_moments.n;
-  state_.bias_block_start_moments = state_.moments;
+  block.m = state_.moments.m - state_.bias_block_start_m;
+  block.n = state_.moments.n - state_.bias_block_start_n;
+  state_.bias_block_start_m = state_.moments.m;
+  state_.bias_block_start_n = state_.moments.n;
   state_.bias_block_start_utime = state_.last_utime;
   Eigen::Vector3d m;
   if (!block_bias_given_scale(block, m)) return;

@@ -232,7 +232,8 @@ struct FilterState {
   // Bias motion (file comment): the moments at the start of the current block, the running sums
   // of the block-bias trend and the random-walk variance it implies (nT^2 per hour, isotropic;
   // 0 = static).
-  ScalarMoments bias_block_start_moments;
+  PackedSymmetric11 bias_block_start_m = PackedSymmetric11::Zero();  // moments.m, .n then
+  int64_t bias_block_start_n = 0;
   int64_t bias_block_start_utime = -1;  // -1: no block open
   int32_t bias_motion_n = 0;  // solved blocks; sums over them of t (block centre, hours since
   double bias_motion_sum_t_h = 0.0;  // first_utime), t^2, the block bias m, t m, m^2
