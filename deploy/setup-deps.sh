@@ -25,6 +25,8 @@ packages=(
   libeigen3-dev
   liblcm-dev liblcm-bin
   libsqlite3-dev sqlite3
+  # the PostgreSQL backend (fleet mode): libpq and its pg_config
+  libpq-dev
   libspdlog-dev libfmt-dev
   catch2
   libtomlplusplus-dev libcli11-dev nlohmann-json3-dev
@@ -38,9 +40,12 @@ packages=(
 )
 # Only for the tests (deploy/run-tests.sh passes --tests): the browser test's Chromium; the
 # .deb (cpack's dpkg-shlibdeps); the tests of deploy/: systemd-analyze, promtool (prometheus:
-# ~13 s to install, 12 packages), shellcheck, PyYAML.
+# ~13 s to install, 12 packages), shellcheck, PyYAML; the PostgreSQL server the storage and fleet
+# tests start in a temporary directory (initdb, pg_ctl; installing it starts no server when
+# services may not start, see policy-rc.d below) and psql to look into it.
 if [ "$with_tests" = 1 ]; then
-  packages+=(chromium systemd prometheus shellcheck python3 python3-yaml)
+  packages+=(chromium systemd prometheus shellcheck python3 python3-yaml
+    postgresql-15 postgresql-client-15)
 fi
 
 if [ "$list_only" = 1 ]; then

@@ -14,7 +14,7 @@ constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 template <typename... Args>
 std::string format(const char* fmt, Args... args) {
-  char buf[256];
+  char buf[512];
   std::snprintf(buf, sizeof(buf), fmt, args...);
   return buf;
 }
@@ -107,8 +107,7 @@ void bounds_gate(const CalibrationResult& r, const GateOptions& o, GateVerdict& 
                                  diagonal ? "scale_bound" : "nonorthogonality_bound", kDName[j],
                                  value, limit));
   }
-  if (r.has_alignment &&
-      !(r.alignment.residual_fraction <= o.max_alignment_residual_fraction)) {
+  if (r.has_alignment && !(r.alignment.residual_fraction <= o.max_alignment_residual_fraction)) {
     v.reasons.push_back(
         format("alignment_mismatch: after the best rotation the calibrated and reference "
                "directions differ by %.0f %% of |h| (> %.0f %%): check the sensor axes' signs and "
@@ -169,6 +168,23 @@ void change_gate(const CalibrationResult& r, const GateInputs& in, const GateOpt
   }
 }
 
+void outlier_gate(const GateInputs& in, GateVerdict& v) {
+  const GateInputs::Outliers& o = in.outliers;
+  if (o.count <= 0) return;
+  v.reasons.push_back(format(
+      "outliers: %d samples' residuals lie more than %.0f robust sigmas from the median (the "
+      "largest, sample %lld, %.4g nT): the fit is pulled by them; a robust fit (magcal fit "
+      "--robust, [refit] robust = true) leaves them out",
+      o.count, o.robust_sigmas, static_cast<long long>(o.largest_sample), o.largest_residual_nT));
+}
+
+void unmodelled_gate(const GateInputs& in, GateVerdict& v) {
+  if (!in.unmodelled_effects) return;
+  v.reasons.push_back(
+      "centered solution: the residuals show sensor effects it does not model (BIC prefers the "
+      "nonlinearity/hysteresis extension), which bias its D beyond its sigmas: use twostep");
+}
+
 }  // namespace
 
 std::string GateOptions::validate() const {
@@ -204,6 +220,8 @@ GateVerdict evaluate_gates(const CalibrationResult& result, const GateInputs& in
   if (options.coverage_enabled) coverage_gate(inputs, options, v);
   if (options.bounds_enabled) bounds_gate(result, options, v);
   if (options.change_enabled) change_gate(result, inputs, options, v);
+  if (options.outliers_enabled) outlier_gate(inputs, v);
+  if (options.unmodelled_enabled) unmodelled_gate(inputs, v);
   v.accepted = v.reasons.empty();
   return v;
 }

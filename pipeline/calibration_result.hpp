@@ -79,9 +79,12 @@ struct CalibrationResult {
 
   // Batch refits that took the extension: p_9 - p, where the 9-parameter model's optimum lies on
   // this window relative to the published p (what an estimator without the extension, such as
-  // the online filters, converges to instead). Zero otherwise. Not persisted.
+  // the online filters, converges to instead). Zero otherwise.
   Vector9d model_error = Vector9d::Zero();
   Matrix9d model_error_covariance() const { return model_error * model_error.transpose(); }
+  // Batch refits whose estimator bias was measured (bootstrap, pipeline/batch_calibration.hpp)
+  // and removed from `parameters`: that bias. Zero otherwise. Not persisted.
+  Vector9d estimator_bias = Vector9d::Zero();
 
   // Online filters: mean normalised innovation squared over the snapshot period, and the
   // effective per-axis measurement noise the (adaptive) filter currently uses.

@@ -119,7 +119,9 @@ void hysteresis_signs(const std::vector<Eigen::Vector3d>& y, int axis, double de
   // the turning point.
   auto end_run = [&](std::size_t m, double before) {
     const std::size_t last = turning_point(y, axis, run, m, window_nT, sigma_nT, before, &expected);
-    const std::size_t next = std::max(run + 1, last + 1);
+    // A turning point fitted beyond the samples seen so far can leave run at the end: never
+    // past it.
+    const std::size_t next = std::min(y.size(), std::max(run + 1, last + 1));
     for (std::size_t j = run; j < next; ++j) (*signs)[j](axis) = before;
     run = next;
     sign = -before;

@@ -24,8 +24,8 @@ constexpr const char* kSelect =
     "D11, D22, D33, D12, D13, D23, cov, has_alignment, R11, R12, R13, R21, R22, R23, R31, R32, "
     "R33, residual_rms_nT, status, verdict, rejection_reasons, iterations, software_version, "
     "created_utime, noise_scale, residual_autocorrelation, covariance_lag_window, "
-    "residual_rms_all_nT, has_nonlinearity, k3_x, k3_y, k3_z, nis_mean, measurement_noise_nT "
-    "FROM calibrations ";
+    "residual_rms_all_nT, has_nonlinearity, k3_x, k3_y, k3_z, nis_mean, measurement_noise_nT, "
+    "model_error FROM calibrations ";
 constexpr const char* kRefitMethods = "method IN ('centered', 'twostep')";
 
 std::string sql(const std::string& tail) {
@@ -148,15 +148,16 @@ CalibrationHistory::CalibrationHistory(Database& db)
               "has_alignment, R11, R12, R13, R21, R22, R23, R31, R32, R33, residual_rms_nT, "
               "status, verdict, rejection_reasons, iterations, software_version, created_utime, "
               "noise_scale, residual_autocorrelation, covariance_lag_window, residual_rms_all_nT, "
-              "has_nonlinearity, k3_x, k3_y, k3_z, nis_mean, measurement_noise_nT) "
+              "has_nonlinearity, k3_x, k3_y, k3_z, nis_mean, measurement_noise_nT, model_error) "
               "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, "
               "?17, ?18, ?19, ?20, ?21, ?22, ?23, ?24, ?25, ?26, ?27, ?28, ?29, ?30, ?31, ?32, "
-              "?33, ?34, ?35, ?36, ?37, ?38, ?39, ?40, ?41, ?42, ?43, ?44, ?45, ?46)"),
+              "?33, ?34, ?35, ?36, ?37, ?38, ?39, ?40, ?41, ?42, ?43, ?44, ?45, ?46, ?47)"),
       query_all_(db, sql("WHERE sat_id = ?1 AND utime >= ?2 AND utime <= ?3 "
                          "ORDER BY utime DESC, id DESC LIMIT ?4")),
       query_method_(db, sql("WHERE sat_id = ?1 AND utime >= ?2 AND utime <= ?3 AND method = ?5 "
                             "ORDER BY utime DESC, id DESC LIMIT ?4")),
       latest_(db, sql("WHERE sat_id = ?1 AND method = ?2 ORDER BY utime DESC, id DESC LIMIT 1")),
+      get_(db, sql("WHERE id = ?1")),
       refits_(db, sql(std::string("WHERE sat_id = ?1 AND ") + kRefitMethods +
                       " ORDER BY utime DESC, id DESC LIMIT 2")),
       accepted_refit_(
@@ -210,6 +211,10 @@ int64_t CalibrationHistory::append(const CalibrationRecord& r) {
       insert_.bind_null(42 + i);
   }
   insert_.bind(45, r.nis_mean).bind(46, r.measurement_noise_nT);
+  if (std::any_of(r.model_error.begin(), r.model_error.end(), [](double v) { return v != 0.0; }))
+    insert_.bind_blob(47, r.model_error.data(), sizeof(double) * r.model_error.size());
+  else
+    insert_.bind_null(47);
   insert_.execute();
   return db_.last_insert_id();
 }
@@ -256,6 +261,14 @@ CalibrationRecord CalibrationHistory::read_row(Statement& st) {
   for (int i = 0; i < 3; ++i) r.k3[static_cast<size_t>(i)] = st.column_double(42 + i);
   r.nis_mean = st.column_double(45);
   r.measurement_noise_nT = st.column_double(46);
+  if (const auto model_error = st.column_blob(47); !model_error.empty()) {  // NULL: zero
+    if (model_error.size() != sizeof(double) * r.model_error.size()) {
+      throw StorageError(StorageError::Kind::kSqlite,
+                         "calibrations.model_error of row " + std::to_string(r.id) + " has " +
+                             std::to_string(model_error.size()) + " bytes, expected 72");
+    }
+    std::memcpy(r.model_error.data(), model_error.data(), model_error.size());
+  }
   return r;
 }
 
@@ -286,6 +299,12 @@ std::optional<CalibrationRecord> CalibrationHistory::latest(std::string_view sat
   auto use = latest_.use();
   latest_.bind(1, sat_id).bind(2, method);
   return first(latest_);
+}
+
+std::optional<CalibrationRecord> CalibrationHistory::get(int64_t id) {
+  auto use = get_.use();
+  get_.bind(1, id);
+  return first(get_);
 }
 
 std::optional<CalibrationRecord> CalibrationHistory::latest_refit(std::string_view sat_id) {

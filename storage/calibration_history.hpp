@@ -51,6 +51,9 @@ struct CalibrationRecord {
                            std::numeric_limits<double>::quiet_NaN()};
   double nis_mean = std::numeric_limits<double>::quiet_NaN();
   double measurement_noise_nT = std::numeric_limits<double>::quiet_NaN();
+  // Refits (schema 4): p_9 - p, the model error an online filter re-anchored on it takes
+  // (CalibrationResult::model_error); zero when none or unknown.
+  std::array<double, 9> model_error{};
   std::string software_version;  // empty: this build's MAGCAL_VERSION
   int64_t created_utime = 0;     // 0: wall-clock now
 };
@@ -86,6 +89,7 @@ class CalibrationHistory {
   std::vector<CalibrationRecord> query(const HistoryQuery& q);
 
   std::optional<CalibrationRecord> latest(std::string_view sat_id, std::string_view method);
+  std::optional<CalibrationRecord> get(int64_t id);
   // Newest refit (centered or twostep), any verdict / only accepted ones.
   std::optional<CalibrationRecord> latest_refit(std::string_view sat_id);
   std::optional<CalibrationRecord> latest_accepted_refit(std::string_view sat_id);
@@ -107,6 +111,7 @@ class CalibrationHistory {
   Statement query_all_;
   Statement query_method_;
   Statement latest_;
+  Statement get_;
   Statement refits_;
   Statement accepted_refit_;
   Statement spacecraft_;

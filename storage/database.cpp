@@ -1,8 +1,13 @@
 #include "storage/database.hpp"
 
 #include <sqlite3.h>
+#include <sys/stat.h>
+#include <unistd.h>
 
+#include <cerrno>
+#include <cstring>
 #include <filesystem>
+#include <fstream>
 #include <string>
 #include <utility>
 
@@ -12,9 +17,62 @@
 namespace magcal::storage {
 namespace {
 
+namespace fs = std::filesystem;
+
 int64_t pragma_int(Database& db, const char* pragma) {
   Statement st(db, std::string("PRAGMA ") + pragma);
   return st.step() ? st.column_int64(0) : 0;
+}
+
+bool file_exists(const std::string& path) {
+  std::error_code ec;
+  return fs::exists(path, ec);
+}
+
+// A -wal file with content (a zero-length one holds no commit).
+bool wal_has_frames(const std::string& path) {
+  std::error_code ec;
+  const auto size = fs::file_size(path + "-wal", ec);
+  return !ec && size > 0;
+}
+
+// SQLite's header says WAL mode: file format write and read versions (bytes 18, 19) are 2.
+bool wal_mode_header(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  char header[20] = {};
+  return in.read(header, sizeof header) && header[18] == 2 && header[19] == 2;
+}
+
+std::string directory_of(const std::string& path) {
+  const fs::path dir = fs::path(path).parent_path();
+  return dir.empty() ? "." : dir.string();
+}
+
+// The path in an SQLite URI ("file:PATH?..."): '%', '?' and '#' are escaped.
+std::string uri_path(const std::string& path) {
+  std::string out;
+  for (const char c : path) {
+    if (c == '%' || c == '?' || c == '#') {
+      static const char kHex[] = "0123456789ABCDEF";
+      out += '%';
+      out += kHex[(c >> 4) & 0xf];
+      out += kHex[c & 0xf];
+    } else {
+      out += c;
+    }
+  }
+  return out;
+}
+
+// What the file system says against reading `path` and its WAL files ("" when nothing): the
+// cause behind SQLite's "unable to open database file" of a read-only open.
+std::string unreadable_cause(const std::string& path) {
+  for (const std::string& file : {path, path + "-wal", path + "-shm"}) {
+    if (file_exists(file) && ::access(file.c_str(), R_OK) != 0) {
+      return file + ": " + std::strerror(errno);
+    }
+  }
+  return "";
 }
 
 }  // namespace
@@ -22,32 +80,91 @@ int64_t pragma_int(Database& db, const char* pragma) {
 Database::Database(const std::string& path, const OpenOptions& options)
     : path_(path), read_only_(options.read_only) {
   const bool memory = path == ":memory:" || path.empty();
-  if (options.read_only && !memory && !std::filesystem::exists(path)) {
-    // Never create a file by reading: report it as missing.
+  if (options.read_only && !memory && !file_exists(path)) {
+    // Never create a file by reading: report it as missing (or why it cannot be seen).
+    struct stat st {};
+    if (::stat(path.c_str(), &st) != 0 && errno != ENOENT) {
+      throw StorageError(StorageError::Kind::kSqlite,
+                         "cannot open database " + path + ": " + std::strerror(errno),
+                         SQLITE_CANTOPEN);
+    }
     throw StorageError(StorageError::Kind::kNotFound, "database not found: " + path);
   }
   const int flags =
       (options.read_only ? SQLITE_OPEN_READONLY : SQLITE_OPEN_READWRITE | SQLITE_OPEN_CREATE) |
       SQLITE_OPEN_NOMUTEX;  // one thread per connection (see header)
-  const int rc = sqlite3_open_v2(path.c_str(), &db_, flags, nullptr);
-  if (rc != SQLITE_OK) {
-    std::string msg = db_ ? sqlite3_errmsg(db_) : sqlite3_errstr(rc);
-    const int code = db_ ? sqlite3_extended_errcode(db_) : rc;
+  const int rc = options.read_only && !memory ? open_read_only(flags)
+                                              : sqlite3_open_v2(path.c_str(), &db_, flags, nullptr);
+  // Every failure of the open names the file once, and for a read-only open what the file
+  // system says against it.
+  const auto fail = [&](StorageError::Kind kind, std::string msg, int code) {
     sqlite3_close(db_);
     db_ = nullptr;
-    throw StorageError(StorageError::Kind::kSqlite, "cannot open database " + path + ": " + msg,
-                       code);
+    if (msg.find(path_) == std::string::npos) msg = "cannot open database " + path_ + ": " + msg;
+    if (options.read_only) {
+      if (const std::string cause = unreadable_cause(path_); !cause.empty()) {
+        msg += " (" + cause + ")";
+      }
+    }
+    throw StorageError(kind, msg, code);
+  };
+  if (rc != SQLITE_OK) {
+    fail(StorageError::Kind::kSqlite, db_ ? sqlite3_errmsg(db_) : sqlite3_errstr(rc),
+         db_ ? sqlite3_extended_errcode(db_) : rc);
   }
   // Every error carries its extended code (SQLITE_IOERR_WRITE, SQLITE_BUSY_SNAPSHOT, ...).
   sqlite3_extended_result_codes(db_, 1);
   try {
     configure(options);
     check_and_migrate(options);
-  } catch (...) {
-    sqlite3_close(db_);
-    db_ = nullptr;
-    throw;
+  } catch (const StorageError& e) {
+    if ((e.sqlite_code() & 0xff) == SQLITE_NOTADB) {
+      fail(e.kind(), path_ + " is not a database (SQLite: " + sqlite3_errstr(SQLITE_NOTADB) + ")",
+           e.sqlite_code());
+    }
+    fail(e.kind(), e.what(), e.sqlite_code());
   }
+}
+
+int Database::open_read_only(int flags) {
+  const std::string directory = directory_of(path_);
+  if (!wal_mode_header(path_) || file_exists(path_ + "-shm") ||
+      ::access(directory.c_str(), W_OK) == 0) {
+    return sqlite3_open_v2(path_.c_str(), &db_, flags, nullptr);
+  }
+  // A WAL database without -shm in a directory we cannot write: no connection has it open.
+  const std::string why_no_shm = directory + ": " + std::strerror(errno);
+  if (wal_has_frames(path_)) {
+    throw StorageError(StorageError::Kind::kSqlite,
+                       "cannot read " + path_ + ": its " + path_ +
+                           "-wal holds commits not yet in the file, and SQLite cannot create " +
+                           path_ + "-shm to read them (" + why_no_shm +
+                           "); open it once with write access (magcald or magcal refit), or "
+                           "read a copy in a writable directory",
+                       SQLITE_READONLY);
+  }
+  // The identity first: a writer that opens the file from here on is seen by
+  // changed_since_open().
+  immutable_file_ = identity_of(path_);
+  if (!immutable_file_) {
+    throw StorageError(StorageError::Kind::kNotFound, "database not found: " + path_);
+  }
+  const std::string uri = "file:" + uri_path(path_) + "?immutable=1";
+  return sqlite3_open_v2(uri.c_str(), &db_, flags | SQLITE_OPEN_URI, nullptr);
+}
+
+std::optional<Database::FileIdentity> Database::identity_of(const std::string& path) {
+  struct stat st {};
+  if (::stat(path.c_str(), &st) != 0) return std::nullopt;
+  return FileIdentity{static_cast<uint64_t>(st.st_dev), static_cast<uint64_t>(st.st_ino),
+                      static_cast<int64_t>(st.st_size),
+                      static_cast<int64_t>(st.st_mtim.tv_sec) * 1'000'000'000 + st.st_mtim.tv_nsec};
+}
+
+bool Database::changed_since_open() const {
+  if (!immutable_file_) return false;
+  return file_exists(path_ + "-shm") || wal_has_frames(path_) ||
+         identity_of(path_) != immutable_file_;
 }
 
 Database::~Database() {
@@ -59,7 +176,8 @@ Database::~Database() {
 Database::Database(Database&& other) noexcept
     : db_(std::exchange(other.db_, nullptr)),
       path_(std::move(other.path_)),
-      read_only_(other.read_only_) {}
+      read_only_(other.read_only_),
+      immutable_file_(other.immutable_file_) {}
 
 Database& Database::operator=(Database&& other) noexcept {
   if (this != &other) {
@@ -67,11 +185,13 @@ Database& Database::operator=(Database&& other) noexcept {
     db_ = std::exchange(other.db_, nullptr);
     path_ = std::move(other.path_);
     read_only_ = other.read_only_;
+    immutable_file_ = other.immutable_file_;
   }
   return *this;
 }
 
 bool StorageError::transient() const {
+  if (!sqlstate_.empty()) return postgres_transient_;
   switch (sqlite_code_ & 0xff) {
     case SQLITE_BUSY:
     case SQLITE_LOCKED:
@@ -87,6 +207,7 @@ bool StorageError::transient() const {
 }
 
 static_assert(kSqliteReadonlyDbMoved == SQLITE_READONLY_DBMOVED);
+static_assert(kSqliteBusy == SQLITE_BUSY);
 
 void Database::configure(const OpenOptions& options) {
   // A reader (the CLI, the sqlite3 shell) or a second writer (`magcal refit`) holding a lock

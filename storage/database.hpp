@@ -20,9 +20,11 @@
 #pragma once
 
 #include <cstdint>
+#include <optional>
 #include <stdexcept>
 #include <string>
 #include <string_view>
+#include <utility>
 
 struct sqlite3;  // <sqlite3.h> stays out of public headers
 
@@ -39,30 +41,51 @@ class StorageError : public std::runtime_error {
     kNewerSchema,  // user_version newer than this code: refuse rather than guess
     kOlderSchema,  // read-only open of a database that needs a migration first
     kInvalidArgument,
-    kSqlite,  // any other SQLite error (I/O, corrupt, busy after the timeout, ...)
+    kSqlite,    // any other SQLite error (I/O, corrupt, busy after the timeout, ...)
+    kPostgres,  // any other PostgreSQL error (connection, SQL, deadlock, ...): see sqlstate()
   };
   // sqlite_code: SQLite's extended result code (SQLITE_BUSY, SQLITE_IOERR_WRITE, ...), 0 when
   // the failure is not SQLite's (kNotFound, kNewerSchema, ...).
   StorageError(Kind kind, const std::string& what, int sqlite_code = 0)
       : std::runtime_error(what), kind_(kind), sqlite_code_(sqlite_code) {}
+  // A PostgreSQL failure (storage/postgres): its SQLSTATE ("40P01", "08006", ...) and whether
+  // a retry can heal it, which storage/postgres/pg_database.cpp decides from the SQLSTATE.
+  StorageError(Kind kind, const std::string& what, std::string sqlstate, bool transient)
+      : std::runtime_error(what),
+        kind_(kind),
+        sqlstate_(std::move(sqlstate)),
+        postgres_transient_(transient) {}
   Kind kind() const { return kind_; }
   int sqlite_code() const { return sqlite_code_; }
+  // "" unless the failure is PostgreSQL's.
+  const std::string& sqlstate() const { return sqlstate_; }
   // May heal by itself: SQLITE_BUSY, SQLITE_LOCKED, SQLITE_IOERR, SQLITE_FULL, SQLITE_READONLY,
   // SQLITE_CANTOPEN, SQLITE_PROTOCOL (each with its extended codes). Everything else is
-  // permanent for this file and this code.
+  // permanent for this file and this code. PostgreSQL: as decided at the throw (connection
+  // lost, serialization failure, deadlock, server shutting down, ...).
   bool transient() const;
 
  private:
   Kind kind_;
   int sqlite_code_ = 0;
+  std::string sqlstate_;
+  bool postgres_transient_ = false;
 };
 
 // SQLITE_READONLY_DBMOVED, used for a database file deleted, renamed or replaced while open
 // (Database::check_file_in_place()); equals SQLite's own code.
 constexpr int kSqliteReadonlyDbMoved = 8 | (4 << 8);
+// SQLITE_BUSY: what a read spoiled by a writer reports (a retry heals it).
+constexpr int kSqliteBusy = 5;
 
 struct OpenOptions {
-  // Read-only never creates, migrates or writes a file (the CLI's history/status use it).
+  // Read-only never creates, migrates or writes a file (magcal status/history/serve use it),
+  // also in a directory the user cannot write. A WAL database is read through its -shm file
+  // (the index its writers share), which SQLite creates when the directory is writable and
+  // otherwise needs present and readable. When it is absent and cannot be created, no
+  // connection has the file open (a WAL connection keeps -shm while open), so it is opened
+  // immutable: no locks, no -shm (see immutable()). A -wal file holding commits without its
+  // -shm (a writer crashed) cannot be read safely that way: refused, naming the file.
   bool read_only = false;
   // Migrate up to this version only (-1: the newest this code knows). For tests that build an
   // old database; production code leaves it alone.
@@ -88,6 +111,14 @@ class Database {
 
   const std::string& path() const { return path_; }
   bool read_only() const { return read_only_; }
+  // Read-only open without locks or -shm (see OpenOptions::read_only): nothing stops a writer
+  // from opening the file meanwhile, so a reader checks changed_since_open() after reading.
+  bool immutable() const { return immutable_file_.has_value(); }
+  // Immutable opens only (false otherwise): a writer has opened the file since this connection
+  // did (its -wal or -shm exists, or the file's size, time or inode changed), so what was read
+  // may mix two states of the file. Reopen and read again: the new connection reads through
+  // the writer's -shm.
+  bool changed_since_open() const;
 
   // Runs one or more SQL statements without results (DDL, pragmas, tests).
   void exec(std::string_view sql);
@@ -107,9 +138,20 @@ class Database {
   void configure(const OpenOptions& options);
   void check_and_migrate(const OpenOptions& options);
 
+  // What identifies the file's content without reading it: an immutable connection's check.
+  struct FileIdentity {
+    uint64_t device = 0, inode = 0;
+    int64_t size = 0, mtime_ns = 0;
+    bool operator==(const FileIdentity&) const = default;
+  };
+  static std::optional<FileIdentity> identity_of(const std::string& path);
+  // Opens db_ read-only: shared (through -shm) or immutable (see OpenOptions::read_only).
+  int open_read_only(int flags);
+
   sqlite3* db_ = nullptr;
   std::string path_;
   bool read_only_ = false;
+  std::optional<FileIdentity> immutable_file_;  // set for an immutable open
 };
 
 // RAII transaction: BEGIN IMMEDIATE (takes the write lock up front, so a writer waits on the

@@ -1,10 +1,19 @@
 # Build step: turns storage/migrations/NNNN_name.sql into a C++ table of raw strings, so the
 # binary carries the migrations (it never needs the source tree) and the .sql files stay the
 # one copy. Run as: cmake -DSQL_DIR=... -DOUT=... -P embed_migrations.cmake
+# Another backend's migrations (storage/postgres/migrations) add -DHEADER=<its declaration> and
+# -DFUNCTION=<the function returning them>.
+if(NOT DEFINED HEADER)
+  set(HEADER "storage/migrations.hpp")
+endif()
+if(NOT DEFINED FUNCTION)
+  set(FUNCTION "migrations")
+endif()
+file(RELATIVE_PATH sql_dir_name "${CMAKE_CURRENT_LIST_DIR}/.." "${SQL_DIR}")
 file(GLOB sql_files "${SQL_DIR}/[0-9][0-9][0-9][0-9]_*.sql")
 list(SORT sql_files)
-set(body "// Generated from storage/migrations/*.sql by storage/embed_migrations.cmake. Do not edit.\n")
-string(APPEND body "#include \"storage/migrations.hpp\"\n\n#include <array>\n\nnamespace magcal::storage {\nnamespace {\n")
+set(body "// Generated from ${sql_dir_name}/*.sql by storage/embed_migrations.cmake. Do not edit.\n")
+string(APPEND body "#include \"${HEADER}\"\n\n#include <array>\n\nnamespace magcal::storage {\nnamespace {\n")
 set(entries "")
 set(expected 1)
 foreach(f IN LISTS sql_files)
@@ -21,6 +30,6 @@ foreach(f IN LISTS sql_files)
 endforeach()
 list(LENGTH sql_files count)
 string(APPEND body "\nconstexpr std::array<Migration, ${count}> kMigrations = {{\n${entries}}};\n")
-string(APPEND body "\n}  // namespace\n\nstd::span<const Migration> migrations() { return kMigrations; }\n\n}  // namespace magcal::storage\n")
+string(APPEND body "\n}  // namespace\n\nstd::span<const Migration> ${FUNCTION}() { return kMigrations; }\n\n}  // namespace magcal::storage\n")
 file(WRITE "${OUT}.tmp" "${body}")
 file(COPY_FILE "${OUT}.tmp" "${OUT}" ONLY_IF_DIFFERENT)

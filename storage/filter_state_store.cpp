@@ -26,15 +26,17 @@ void read_doubles(std::span<const unsigned char> blob, std::array<double, N>& ou
 
 FilterStateStore::FilterStateStore(Database& db)
     : db_(db),
-      upsert_(db,
-              "INSERT OR REPLACE INTO filter_states (sat_id, method, x, P, last_utime, "
-              "n_samples, counters, updated_utime) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)"),
+      upsert_(
+          db,
+          "INSERT OR REPLACE INTO filter_states (sat_id, method, x, P, last_utime, "
+          "n_samples, counters, updated_utime, anchor_calibration_id) VALUES (?1, ?2, ?3, ?4, ?5, "
+          "?6, ?7, ?8, ?9)"),
       load_(db,
-            "SELECT sat_id, method, x, P, last_utime, n_samples, counters, updated_utime FROM "
-            "filter_states WHERE sat_id = ?1 AND method = ?2"),
+            "SELECT sat_id, method, x, P, last_utime, n_samples, counters, updated_utime, "
+            "anchor_calibration_id FROM filter_states WHERE sat_id = ?1 AND method = ?2"),
       load_all_(db,
-                "SELECT sat_id, method, x, P, last_utime, n_samples, counters, updated_utime "
-                "FROM filter_states ORDER BY sat_id, method") {}
+                "SELECT sat_id, method, x, P, last_utime, n_samples, counters, updated_utime, "
+                "anchor_calibration_id FROM filter_states ORDER BY sat_id, method") {}
 
 void FilterStateStore::save(const FilterState& s) {
   const int64_t updated = s.updated_utime != 0
@@ -48,7 +50,7 @@ void FilterStateStore::save(const FilterState& s) {
   upsert_.bind_blob(4, s.P.data(), sizeof(double) * s.P.size());
   upsert_.bind(5, s.last_utime).bind(6, s.n_samples);
   upsert_.bind_blob(7, s.counters.data(), s.counters.size());
-  upsert_.bind(8, updated);
+  upsert_.bind(8, updated).bind(9, s.anchor_calibration_id);
   upsert_.execute();
 }
 
@@ -63,6 +65,8 @@ FilterState FilterStateStore::read_row(Statement& st) {
   const auto counters = st.column_blob(6);
   s.counters.assign(counters.begin(), counters.end());
   s.updated_utime = st.column_int64(7);
+  s.anchor_calibration_id =
+      st.is_null(8) ? std::nullopt : std::optional<int64_t>(st.column_int64(8));
   return s;
 }
 

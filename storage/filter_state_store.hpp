@@ -1,6 +1,6 @@
 // Table `filter_states`: the latest online filter state per (sat_id, method), so the daemon
-// resumes exactly after a restart. x and P are stored as BLOBs of raw little-endian IEEE-754
-// doubles: the round trip is bit-exact.
+// resumes exactly after a restart (with the refit it was last re-anchored on). x and P are stored
+// as BLOBs of raw little-endian IEEE-754 doubles: the round trip is bit-exact.
 #pragma once
 
 #include <array>
@@ -23,7 +23,10 @@ struct FilterState {
   int64_t last_utime = 0;         // newest sample the state includes
   int64_t n_samples = 0;          // samples processed
   std::vector<uint8_t> counters;  // opaque to storage (the filter's own counters)
-  int64_t updated_utime = 0;      // wall time of the save; 0: now
+  // calibrations.id of the refit the state was last re-anchored on, 0 if none; nullopt: saved
+  // before schema 4 (unknown).
+  std::optional<int64_t> anchor_calibration_id = 0;
+  int64_t updated_utime = 0;  // wall time of the save; 0: now
 };
 
 class FilterStateStore {

@@ -12,6 +12,14 @@ std::optional<int64_t> optional_int(const Statement& st, int col) {
   return st.column_int64(col);
 }
 
+// The one value of a query on sat_id (?1); nullopt when NULL (max() of no rows).
+std::optional<int64_t> single_int(Statement& st, std::string_view sat_id) {
+  auto use = st.use();
+  st.bind(1, sat_id);
+  if (!st.step()) return std::nullopt;
+  return optional_int(st, 0);
+}
+
 RefitJob read_row(const Statement& st) {
   RefitJob j;
   j.id = st.column_int64(0);
@@ -40,7 +48,14 @@ RefitJobLog::RefitJobLog(Database& db)
                  "UPDATE refit_jobs SET outcome = 'interrupted', finished_utime = ?1, error = "
                  "'process ended while the refit was running' WHERE outcome = 'running'"),
       get_(db, std::string(kSelect) + "WHERE id = ?1"),
-      recent_(db, std::string(kSelect) + "WHERE sat_id = ?1 ORDER BY id DESC LIMIT ?2") {}
+      recent_(db, std::string(kSelect) + "WHERE sat_id = ?1 ORDER BY id DESC LIMIT ?2"),
+      newest_reanchor_(db,
+                       "SELECT max(calibration_id) FROM refit_jobs WHERE sat_id = ?1 AND "
+                       "outcome = 'ok' AND trigger_kind <> 'manual'"),
+      newest_scheduled_(db,
+                        "SELECT max(scheduled_utime) FROM refit_jobs WHERE sat_id = ?1 AND "
+                        "trigger_kind = 'scheduled' AND outcome NOT IN ('running', "
+                        "'interrupted')") {}
 
 int64_t RefitJobLog::start(std::string_view sat_id, std::string_view trigger,
                            int64_t scheduled_utime, int64_t started_utime) {
@@ -65,6 +80,14 @@ int RefitJobLog::mark_running_interrupted(int64_t now_utime) {
   auto use = interrupt_.use();
   interrupt_.bind(1, now_utime);
   return interrupt_.execute();
+}
+
+std::optional<int64_t> RefitJobLog::newest_reanchor_calibration_id(std::string_view sat_id) {
+  return single_int(newest_reanchor_, sat_id);
+}
+
+std::optional<int64_t> RefitJobLog::newest_finished_scheduled_utime(std::string_view sat_id) {
+  return single_int(newest_scheduled_, sat_id);
 }
 
 std::optional<RefitJob> RefitJobLog::get(int64_t job_id) {

@@ -48,6 +48,14 @@ class RefitJobLog {
   // 'interrupted' (finished at now_utime). Returns how many.
   int mark_running_interrupted(int64_t now_utime);
 
+  // What a restarting daemon resumes from, per spacecraft:
+  //   the calibration of its newest refit that ended 'ok' (accepted) and was not 'manual' (the
+  //   daemon re-anchors its filter on those, never on a `magcal refit`);
+  //   the newest scheduled time of a 'scheduled' refit that ran to its end (any outcome but
+  //   'running' / 'interrupted'): later due times were not run.
+  std::optional<int64_t> newest_reanchor_calibration_id(std::string_view sat_id);
+  std::optional<int64_t> newest_finished_scheduled_utime(std::string_view sat_id);
+
   std::optional<RefitJob> get(int64_t job_id);
   std::optional<RefitJob> latest(std::string_view sat_id);
   std::vector<RefitJob> recent(std::string_view sat_id, int limit);
@@ -59,6 +67,8 @@ class RefitJobLog {
   Statement interrupt_;
   Statement get_;
   Statement recent_;
+  Statement newest_reanchor_;
+  Statement newest_scheduled_;
 };
 
 }  // namespace magcal::storage

@@ -15,6 +15,14 @@ std::string select_window_sql() {
          " FROM samples WHERE sat_id = ?1 AND utime >= ?2 AND utime < ?3 ORDER BY utime";
 }
 
+// The one value of `st` (a min/max over sat_id = ?1); nullopt when NULL (no rows).
+std::optional<int64_t> single_utime(Statement& st, std::string_view sat_id) {
+  auto use = st.use();
+  st.bind(1, sat_id);
+  if (!st.step() || st.is_null(0)) return std::nullopt;
+  return st.column_int64(0);
+}
+
 }  // namespace
 
 SampleWindowStore::SampleWindowStore(Database& db)
@@ -31,6 +39,7 @@ SampleWindowStore::SampleWindowStore(Database& db)
       count_window_(
           db, "SELECT count(*) FROM samples WHERE sat_id = ?1 AND utime >= ?2 AND utime < ?3"),
       newest_(db, "SELECT max(utime) FROM samples WHERE sat_id = ?1"),
+      oldest_(db, "SELECT min(utime) FROM samples WHERE sat_id = ?1"),
       count_(db, "SELECT count(*) FROM samples WHERE sat_id = ?1"),
       utime_at_rank_(
           db, "SELECT utime FROM samples WHERE sat_id = ?1 ORDER BY utime LIMIT 1 OFFSET ?2"),
@@ -126,10 +135,11 @@ int64_t SampleWindowStore::count_in_window(std::string_view sat_id, int64_t t0_u
 }
 
 std::optional<int64_t> SampleWindowStore::newest_utime(std::string_view sat_id) {
-  auto use = newest_.use();
-  newest_.bind(1, sat_id);
-  if (!newest_.step() || newest_.is_null(0)) return std::nullopt;
-  return newest_.column_int64(0);
+  return single_utime(newest_, sat_id);
+}
+
+std::optional<int64_t> SampleWindowStore::oldest_utime(std::string_view sat_id) {
+  return single_utime(oldest_, sat_id);
 }
 
 int64_t SampleWindowStore::count(std::string_view sat_id) {

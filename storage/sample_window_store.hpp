@@ -69,6 +69,7 @@ class SampleWindowStore {
 
   int64_t count_in_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime);
   std::optional<int64_t> newest_utime(std::string_view sat_id);
+  std::optional<int64_t> oldest_utime(std::string_view sat_id);
   int64_t count(std::string_view sat_id);
   // Time of the stored sample of `sat_id` with `rank` older ones (0 = the oldest); nullopt when
   // fewer are stored. Keys a refit by the sample count it covers (an early refit).
@@ -91,6 +92,7 @@ class SampleWindowStore {
   Statement window_;
   Statement count_window_;
   Statement newest_;
+  Statement oldest_;
   Statement count_;
   Statement utime_at_rank_;
   Statement spacecraft_;

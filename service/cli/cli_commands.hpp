@@ -33,9 +33,9 @@ struct SimArgs {
   std::string scenario = "paper";  // preset name or FILE.toml
   std::optional<double> hours;
   std::optional<uint64_t> seed;
-  std::string out;     // FILE.lcm or FILE.csv
-  std::string truth;   // FILE.json, optional
-  std::string sat_id;  // overrides the scenario's
+  std::string out;                    // FILE.lcm or FILE.csv
+  std::string truth;                  // FILE.json, optional
+  std::optional<std::string> sat_id;  // overrides the scenario's (given empty: refused)
   int batch_size = 0;  // > 0: mag_batch_t packets of this many samples on MAGCAL_BATCH
 };
 int run_sim(const SimArgs& args);

@@ -350,8 +350,9 @@ int run_fit(const FitArgs& args) {
       return kExitData;
     }
     for (std::size_t k = 0; k < samples.size(); ++k) {
-      if (!samples[k].b_sensor_nT.allFinite() || !samples[k].h_body_nT.allFinite()) {
-        std::cerr << "magcal fit: sample " << k << ": non-finite field (NaN/Inf in input)\n";
+      if (std::string problem = sample_input_problem(samples[k], check.max_field_nT);
+          !problem.empty()) {
+        std::cerr << "magcal fit: sample " << k << ": " << problem << "\n";
         return kExitData;
       }
     }

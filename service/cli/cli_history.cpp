@@ -8,7 +8,7 @@
 
 #include "service/cli/cli_commands.hpp"
 #include "service/io/history_report.hpp"
-#include "storage/database.hpp"
+#include "service/io/read_only_database.hpp"
 
 namespace magcal::cli {
 
@@ -30,14 +30,16 @@ int run_history(const HistoryArgs& args) {
 
   std::vector<storage::CalibrationRecord> rows;
   try {
-    storage::OpenOptions options;
-    options.read_only = true;
-    storage::Database db(args.db, options);
-    rows = read_history(db, *query);
+    bool known = true;
+    rows = read_consistently(args.db, [&](storage::Database& db) {
+      auto found = read_history(db, *query);
+      known = !found.empty() || spacecraft_known(db, args.sat);
+      return found;
+    });
     // Unknown spacecraft (nothing stored at all): a data error (exit 2), as the API's 400 — a
     // script must not take an empty answer for success. A known one with no rows in the asked
     // range is a valid, empty answer.
-    if (rows.empty() && !spacecraft_known(db, args.sat)) {
+    if (!known) {
       std::cerr << "magcal history: no data for spacecraft '" << args.sat << "' in " << args.db
                 << "\n";
       return kExitData;

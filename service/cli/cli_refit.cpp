@@ -4,7 +4,8 @@
 // result to the history and a 'manual' job row, prints the result. The config supplies the
 // window length, min_samples, sigma and the gates (the daemon's defaults without one).
 // Exit: 0 a result was computed and stored (accepted or rejected), 2 missing database, no or
-// too few samples, failed fit, database error; 1 bad config.
+// too few samples (refused: nothing written), failed fit, database error; 1 bad config.
+#include <algorithm>
 #include <chrono>
 #include <filesystem>
 #include <iostream>
@@ -34,6 +35,21 @@ int run_refit(const RefitArgs& args) {
   try {
     storage::Database db(args.db);
     RefitRunner runner(config, db);
+    // A refit that would only be skipped is refused here, before its job row is written.
+    if (const std::string why = runner.skip_reason(args.sat, std::nullopt); !why.empty()) {
+      // An unknown id (a typo?) is answered with the ones stored.
+      const auto all = runner.spacecraft();
+      std::string stored;
+      for (size_t k = 0; k < all.size() && k < 10; ++k) stored += (k ? ", " : "") + all[k];
+      if (all.size() > 10) stored += ", ... (" + std::to_string(all.size()) + " in all)";
+      const bool known = std::find(all.begin(), all.end(), args.sat) != all.end();
+      std::cerr << "magcal refit: " << why << " in " << args.db
+                << (known         ? ""
+                    : all.empty() ? " (no spacecraft stored)"
+                                  : " (spacecraft stored: " + stored + ")")
+                << "; nothing written\n";
+      return kExitData;
+    }
     const auto now = std::chrono::duration_cast<std::chrono::microseconds>(
                          std::chrono::system_clock::now().time_since_epoch())
                          .count();

@@ -13,6 +13,7 @@
 #include "service/daemon/daemon_config.hpp"
 #include "service/http/metrics.hpp"
 #include "service/http/operations_server.hpp"
+#include "service/io/read_only_database.hpp"
 
 namespace magcal::cli {
 
@@ -29,10 +30,9 @@ int run_serve(const ServeArgs& args) {
   // The same window as `magcal status` (the daemon's default [storage] window_hours).
   hooks.status_window_utime = DaemonConfig{}.window_utime();
   hooks.metrics_text = [db_path = args.db] {
-    storage::OpenOptions read_only;
-    read_only.read_only = true;
-    storage::Database db(db_path, read_only);
-    return http::database_metrics_text(db, MAGCAL_VERSION);
+    return read_consistently(db_path, [](storage::Database& db) {
+      return http::database_metrics_text(db, MAGCAL_VERSION);
+    });
   };
   std::string error;
   auto server = http::OperationsServer::start(args.listen, args.db, std::move(hooks), &error);

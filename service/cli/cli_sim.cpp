@@ -135,8 +135,14 @@ int run_sim(const SimArgs& args) {
     scenario.duration_s = *args.hours * 3600.0;
   }
   if (args.seed) scenario.seed = *args.seed;
-  if (!args.sat_id.empty()) scenario.sat_id = args.sat_id;
-  if (std::string e = scenario.validate(); !e.empty()) return fail(e, kExitUsage, {});
+  if (args.sat_id) scenario.sat_id = *args.sat_id;
+  if (std::string e = scenario.validate(); !e.empty()) {
+    // "sat_id: must be 1..64 characters" about the flag's value names the flag.
+    if (args.sat_id && e.rfind("sat_id:", 0) == 0) {
+      e = "--sat-id" + e.substr(7) + " (got \"" + *args.sat_id + "\")";
+    }
+    return fail(e, kExitUsage, {});
+  }
 
   Simulator sim(scenario);
   const std::string out_tmp = temp_path_for(args.out);

@@ -5,8 +5,8 @@
 
 #include "service/cli/cli_commands.hpp"
 #include "service/daemon/daemon_config.hpp"
+#include "service/io/read_only_database.hpp"
 #include "service/io/status_report.hpp"
-#include "storage/database.hpp"
 
 namespace magcal::cli {
 
@@ -15,10 +15,8 @@ int run_status(const StatusArgs& args) {
   const int64_t window_utime = DaemonConfig{}.window_utime();
   std::vector<SpacecraftStatus> all;
   try {
-    storage::OpenOptions options;
-    options.read_only = true;
-    storage::Database db(args.db, options);
-    all = read_status(db, window_utime);
+    all = read_consistently(args.db,
+                            [&](storage::Database& db) { return read_status(db, window_utime); });
   } catch (const storage::StorageError& e) {
     std::cerr << "magcal status: " << e.what() << "\n";
     return kExitData;

@@ -9,6 +9,7 @@
 
 #include <CLI/CLI.hpp>
 
+#include "pipeline/scenario.hpp"
 #include "service/cli/cli_commands.hpp"
 
 namespace {
@@ -72,6 +73,28 @@ CLI::Validator real_number() {
 
 constexpr int64_t kIntMax = std::numeric_limits<int>::max();
 
+// "paper, pure, tumbling": every built-in scenario, for the help of --scenario.
+std::string preset_list() {
+  std::string names;
+  for (const auto& name : magcal::scenario_preset_names()) {
+    names += (names.empty() ? "" : ", ") + name;
+  }
+  return names;
+}
+
+// A first argument that is neither an option nor a subcommand: CLI11 would only say "A
+// subcommand is required". Returns the one line naming it, or "" when there is none.
+std::string unknown_subcommand(const CLI::App& app, int argc, char** argv) {
+  if (argc < 2 || argv[1][0] == '-') return "";
+  const std::string word = argv[1];
+  std::string names;
+  for (const CLI::App* sub : app.get_subcommands({})) {
+    if (sub->get_name() == word) return "";
+    names += (names.empty() ? "" : ", ") + sub->get_name();
+  }
+  return "unknown subcommand '" + word + "' (subcommands: " + names + ")";
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -104,7 +127,8 @@ int main(int argc, char** argv) {
 
   SimArgs sim;
   auto* sim_cmd = app.add_subcommand("sim", "simulate a spacecraft magnetometer");
-  sim_cmd->add_option("--scenario", sim.scenario, "preset name (paper) or scenario FILE.toml");
+  sim_cmd->add_option("--scenario", sim.scenario,
+                      "preset name (" + preset_list() + ") or scenario FILE.toml");
   sim_cmd->add_option("--hours", sim.hours, "duration, hours (overrides the scenario)")
       ->check(real_number());
   sim_cmd->add_option("--seed", sim.seed, "random seed (overrides the scenario)")
@@ -159,7 +183,8 @@ int main(int argc, char** argv) {
 
   EvaluateArgs evaluate;
   auto* eval_cmd = app.add_subcommand("evaluate", "Monte-Carlo evaluation against the paper");
-  eval_cmd->add_option("--scenario", evaluate.scenario, "preset name (paper, pure) or FILE.toml");
+  eval_cmd->add_option("--scenario", evaluate.scenario,
+                       "preset name (" + preset_list() + ") or FILE.toml");
   eval_cmd->add_option("--runs", evaluate.runs, "Monte-Carlo runs")
       ->check(whole_number(1, kIntMax));
   eval_cmd->add_option("--seed", evaluate.seed, "first random seed")->check(seed_number());
@@ -198,6 +223,10 @@ int main(int argc, char** argv) {
   serve_cmd->add_option("--listen", serve.listen,
                         "ADDR:PORT to listen on (default 127.0.0.1:9780; port 0: any free)");
 
+  if (const std::string error = unknown_subcommand(app, argc, argv); !error.empty()) {
+    std::cerr << "magcal: " << error << "\n";
+    return kExitUsage;
+  }
   try {
     app.parse(argc, argv);
   } catch (const CLI::CallForHelp& e) {

@@ -285,7 +285,7 @@ struct Daemon::Impl {
           fmt::format("{}", fmt::join(r.rejection_reasons, "; ")));
       if (out.accepted()) {
         counters.refits_accepted.fetch_add(1);
-        worker->post_reanchor(sat, r);
+        worker->post_reanchor(sat, r, out.calibration_id);
       }
     }
   }
@@ -411,11 +411,11 @@ std::string Daemon::open() {
   auto field = ReferenceField::from_file(c.igrf.coefficients_file, &error);
   if (!field) return "[igrf] coefficients_file: " + error;
   // LCM first: a URL that cannot be opened must not leave a new, empty database behind.
-  d.lcm = std::make_unique<lcm::LCM>(c.lcm.url);
+  std::string lcm_error;
+  d.lcm = open_lcm(c.lcm.url, &lcm_error);
   if (!d.lcm->good()) {
-    return "cannot open LCM URL '" + c.lcm.url + "'" +
-           (d.replay ? ": " + unreadable_log_reason(c.lcm.url)
-                     : " (multicast route? see toolchain.md)");
+    return "[lcm] url '" + c.lcm.url +
+           "': cannot open LCM URL: " + (d.replay ? unreadable_log_reason(c.lcm.url) : lcm_error);
   }
   const std::string pub_url = !c.lcm.publish_url.empty() ? c.lcm.publish_url
                               : d.replay                 ? std::string()
@@ -423,7 +423,9 @@ std::string Daemon::open() {
   if (!c.lcm.publish_url.empty() || !d.replay) {
     d.publisher =
         std::make_unique<LcmPublisher>(pub_url, c.lcm.calibration_channel, c.lcm.status_channel);
-    if (!d.publisher->ok()) return "cannot open LCM publish URL '" + pub_url + "'";
+    if (!d.publisher->ok()) {
+      return "[lcm] publish_url '" + pub_url + "': cannot open LCM URL: " + d.publisher->error();
+    }
   } else {
     d.publisher = std::make_unique<LcmPublisher>();  // replay without publish_url: no output
   }

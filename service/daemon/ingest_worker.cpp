@@ -61,6 +61,7 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
       samples_(db_),
       history_(db_),
       filter_states_(db_),
+      jobs_(db_),
       fleet_(config.ukf.filter),
       commit_retry_("commit", config.storage.max_failure_s, counters),
       read_retry_("duplicate check", config.storage.max_failure_s, counters) {
@@ -74,7 +75,6 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
 IngestWorker::~IngestWorker() = default;
 
 void IngestWorker::restore() {
-  const int64_t window = config_.window_utime();
   const int64_t period = snapshot_period_utime(config_);
   std::vector<storage::StoredSample> rows;
   int64_t rerun = 0;
@@ -91,38 +91,68 @@ void IngestWorker::restore() {
     t.stored_bound_utime = *newest;
     samples_.read_window(sat, *newest, saturating_add(*newest, 1), rows);
     if (!rows.empty()) t.last_seq = rows.back().seq;
-
-    int64_t from = saturating_sub(*newest, window) + 1;
-    if (const auto stored = filter_states_.load(sat, "ukf")) {
-      FilterState st;
-      if (filter_state_from_stored(*stored, st)) {
-        t.ukf.restore(st);
-        // Started or still collecting: the state holds every sample up to last_utime (in x
-        // and P, or in the start's moments); re-running them would count them twice.
-        if (st.has_time) from = std::max(from, st.last_utime + 1);
-      } else {
-        spdlog::warn("{}: stored filter state unreadable; re-running the UKF over the window", sat);
-      }
-    }
-    if (from <= *newest) {
-      samples_.read_window(sat, from, saturating_add(*newest, 1), rows);
-      for (const auto& r : rows) {
-        const CalibrationSample s = calibration_sample_from_stored(r);
-        t.ukf.update(s.b_sensor_nT, reference_norm_nT(s), s.utime);
-      }
-      rerun += static_cast<int64_t>(rows.size());
-      t.state_dirty = !rows.empty();
-    }
-    const auto last_snapshot = history_.latest(sat, "ukf");
-    t.next_snapshot_utime = saturating_add(last_snapshot ? last_snapshot->utime : *newest, period);
+    rerun += restore_filter(sat, t, *newest, rows);
+    // The snapshot times of an uninterrupted run: every period from its first sample, the next
+    // one after its newest (snapshots are committed with their samples).
+    const FilterState& st = t.ukf.state();
+    const int64_t grid = st.has_time && st.first_utime <= *newest ? st.first_utime : *newest;
+    t.next_snapshot_utime = grid + ((*newest - grid) / period + 1) * period;
     data_clock_utime_ = std::max(data_clock_utime_, *newest);
-    if (t.data_refits) t.data_refits->advance(*newest);  // its clock resumes at its stored data
+    if (t.data_refits) {
+      // Its clock resumes after the last scheduled refit that ran to its end (or at its oldest
+      // stored sample before any): a later due time had its samples committed, but its refit
+      // was interrupted or never started, so the first frame runs it (file comment).
+      const int64_t resume = jobs_.newest_finished_scheduled_utime(sat).value_or(
+          samples_.oldest_utime(sat).value_or(*newest));
+      t.data_refits->advance(std::min(resume, *newest));
+    }
   }
   counters_.n_spacecraft.store(static_cast<int32_t>(fleet_.size()));
   if (fleet_.size() > 0) {
     spdlog::info("restored {} spacecraft from {} (UKF re-run over {} stored samples)",
                  fleet_.size(), config_.storage.db_path, rerun);
   }
+}
+
+int64_t IngestWorker::restore_filter(const std::string& sat, SpacecraftTracker& t,
+                                     int64_t newest_utime,
+                                     std::vector<storage::StoredSample>& rows) {
+  const auto reanchor_id = jobs_.newest_reanchor_calibration_id(sat);
+  int64_t from = saturating_sub(newest_utime, config_.window_utime()) + 1;
+  std::optional<int64_t> anchor_id = 0;  // none (the filter starts afresh)
+  if (const auto stored = filter_states_.load(sat, "ukf")) {
+    FilterState st;
+    if (filter_state_from_stored(*stored, st)) {
+      t.ukf.restore(st);
+      // Started or still collecting: the state holds every sample up to last_utime (in x
+      // and P, or in the start's moments); re-running them would count them twice.
+      if (st.has_time) from = std::max(from, st.last_utime + 1);
+      anchor_id = stored->anchor_calibration_id;
+    } else {
+      spdlog::warn("{}: stored filter state unreadable; re-running the UKF over the window", sat);
+    }
+  }
+  int64_t rerun = 0;
+  if (from <= newest_utime) {
+    samples_.read_window(sat, from, saturating_add(newest_utime, 1), rows);
+    for (const auto& r : rows) {
+      const CalibrationSample s = calibration_sample_from_stored(r);
+      t.ukf.update(s.b_sensor_nT, reference_norm_nT(s), s.utime);
+    }
+    rerun = static_cast<int64_t>(rows.size());
+    t.state_dirty = !rows.empty();
+  }
+  // A state saved before schema 4 does not say which refit it has: taken as the newest (it was
+  // saved at a clean stop, after the re-anchor).
+  t.anchor_calibration_id = anchor_id.value_or(reanchor_id.value_or(0));
+  if (reanchor_id && *reanchor_id > t.anchor_calibration_id) {
+    if (const auto rec = history_.get(*reanchor_id)) {
+      spdlog::info("{}: the stored UKF state predates the accepted refit of {}: re-anchoring now",
+                   sat, format_iso8601_utc(rec->utime));
+      reanchor(sat, t, result_from_record(*rec), rec->id);
+    }
+  }
+  return rerun;
 }
 
 void IngestWorker::process(const IngestItem& item) {
@@ -412,13 +442,27 @@ void IngestWorker::maybe_snapshot(const std::string& sat_id, SpacecraftTracker& 
   reject_unless_ok(snap, verdict);
   apply_verdict(snap, verdict);
   pending_snapshots_.emplace_back(sat_id, std::move(snap));
+  mark_state_due(sat_id, t);
+}
+
+void IngestWorker::mark_state_due(const std::string& sat_id, SpacecraftTracker& t) {
+  if (t.state_due) return;
+  t.state_due = true;
+  states_due_.push_back(sat_id);
+}
+
+storage::FilterState IngestWorker::stored_state(const std::string& sat_id,
+                                                const SpacecraftTracker& t) const {
+  storage::FilterState st = stored_filter_state(sat_id, "ukf", t.ukf.state());
+  st.anchor_calibration_id = t.anchor_calibration_id;
+  return st;
 }
 
 void IngestWorker::commit_if_due() {
   if (have_reanchors_.load(std::memory_order_acquire)) apply_reanchors();
   const auto now = std::chrono::steady_clock::now();
   release_first_holds(now);
-  if (!pending_.empty() || !pending_snapshots_.empty()) {
+  if (!pending_.empty() || !pending_snapshots_.empty() || !states_due_.empty()) {
     const double age_ms =
         std::chrono::duration<double, std::milli>(now - first_pending_time_).count();
     if (age_ms >= config_.storage.commit_every_ms || pending_.empty()) commit();
@@ -430,7 +474,8 @@ void IngestWorker::commit_if_due() {
 }
 
 void IngestWorker::commit() {
-  if ((!pending_.empty() || !pending_snapshots_.empty()) && commit_retry_.due()) {
+  if ((!pending_.empty() || !pending_snapshots_.empty() || !states_due_.empty()) &&
+      commit_retry_.due()) {
     commit_retry_.attempting();
     try {
       commit_pending();
@@ -456,11 +501,12 @@ void IngestWorker::commit_pending() {
   db_.check_file_in_place();
   // A backlog left by a storage fault goes in transactions of commit_every_samples: each holds
   // the write lock briefly, and on a nearly full disk every chunk that fits is stored. The
-  // snapshots go with the last chunk (published once stored).
+  // snapshots and the filter states that are due go with the last chunk (published once
+  // stored; a state then includes exactly the committed samples).
   const auto chunk = static_cast<size_t>(config_.storage.commit_every_samples);
   size_t done = 0;
   try {
-    while (done < pending_.size() || !pending_snapshots_.empty()) {
+    while (done < pending_.size() || !pending_snapshots_.empty() || !states_due_.empty()) {
       const size_t n = std::min(chunk, pending_.size() - done);
       const bool last = done + n == pending_.size();
       storage::InsertStats stats;
@@ -484,6 +530,11 @@ void IngestWorker::commit_pending() {
           for (const auto& [sat, snap] : pending_snapshots_) {
             history_.append(record_from_result(sat, snap));
           }
+          for (const auto& sat : states_due_) {
+            if (const SpacecraftTracker* t = fleet_.find(sat)) {
+              filter_states_.save(stored_state(sat, *t));
+            }
+          }
         }
         tx.commit();
       }
@@ -492,6 +543,12 @@ void IngestWorker::commit_pending() {
       counters_.stored.fetch_add(stats.inserted, std::memory_order_relaxed);
       // Duplicates the in-memory check could not see (e.g. within one frame).
       if (stats.duplicates > 0) counters_.reject(RejectReason::kDuplicate, stats.duplicates);
+      if (last) {
+        for (const auto& sat : states_due_) {
+          if (SpacecraftTracker* t = fleet_.find(sat)) t->state_due = t->state_dirty = false;
+        }
+        states_due_.clear();
+      }
       if (last && !pending_snapshots_.empty()) {
         counters_.snapshots.fetch_add(static_cast<int64_t>(pending_snapshots_.size()));
         if (hooks_.on_snapshot) {
@@ -511,7 +568,7 @@ void IngestWorker::commit_pending() {
 }
 
 void IngestWorker::flush() {
-  while (!pending_.empty() || !pending_snapshots_.empty()) {
+  while (!pending_.empty() || !pending_snapshots_.empty() || !states_due_.empty()) {
     if (!commit_retry_.due()) std::this_thread::sleep_until(commit_retry_.next_attempt());
     commit();
   }
@@ -604,7 +661,7 @@ void IngestWorker::save_filter_states() {
     storage::Transaction tx(db_);
     fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
       if (!t.state_dirty) return;
-      filter_states_.save(stored_filter_state(sat, "ukf", t.ukf.state()));
+      filter_states_.save(stored_state(sat, t));
       saved.push_back(&t);
     });
     tx.commit();
@@ -618,38 +675,46 @@ void IngestWorker::save_filter_states() {
   if (!saved.empty()) spdlog::debug("saved {} filter states", saved.size());
 }
 
-void IngestWorker::post_reanchor(const std::string& sat_id, const CalibrationResult& refit) {
+void IngestWorker::post_reanchor(const std::string& sat_id, const CalibrationResult& refit,
+                                 int64_t calibration_id) {
   std::lock_guard lock(reanchor_mutex_);
-  reanchors_.emplace_back(sat_id, refit);
+  reanchors_.push_back({sat_id, refit, calibration_id});
   have_reanchors_.store(true, std::memory_order_release);
 }
 
 void IngestWorker::apply_reanchors() {
-  std::vector<std::pair<std::string, CalibrationResult>> due_reanchors;
+  std::vector<Reanchor> due_reanchors;
   {
     std::lock_guard lock(reanchor_mutex_);
     due_reanchors.swap(reanchors_);
     have_reanchors_.store(false, std::memory_order_release);
   }
-  for (const auto& [sat, refit] : due_reanchors) {
-    SpacecraftTracker* t = fleet_.find(sat);
-    if (!t || !refit.covariance.allFinite()) continue;
-    // estimation.md 3a: the online tracker continues from the accepted batch estimate.
-    // reanchor() keeps the filter's time, counters and accumulated information (and starts a
-    // filter still collecting for its start from data); the refit's effective noise seeds the
-    // adaptive noise estimate (estimation.md 7). The seed is the residual rms of |B_cal| - |h|
-    // under the 9-parameter model the filter uses, not the refit's noise_scale: when the refit
-    // used its model extension, that scale describes a smaller (extended-model) residual, and a
-    // filter seeded with it finds itself inconsistent and re-opens its covariance (measured:
-    // noise 3.7 nT seeded vs 6.5 nT seen, NIS 3-5, then a 20 nT drift on the orbit normal).
-    t->ukf.reanchor(refit.parameters.packed(), refit.covariance, refit.model_error_covariance());
-    if (std::isfinite(refit.residual_rms_nT) && refit.residual_rms_nT > 0.0) {
-      t->ukf.seed_noise(refit.residual_rms_nT);
-    }
-    t->state_dirty = true;
-    spdlog::info("{}: UKF re-anchored on the accepted {} refit of {}", sat, refit.method,
-                 format_iso8601_utc(refit.utime));
+  for (const auto& r : due_reanchors) {
+    if (SpacecraftTracker* t = fleet_.find(r.sat_id))
+      reanchor(r.sat_id, *t, r.refit, r.calibration_id);
   }
+}
+
+void IngestWorker::reanchor(const std::string& sat, SpacecraftTracker& t,
+                            const CalibrationResult& refit, int64_t calibration_id) {
+  if (!refit.covariance.allFinite()) return;
+  // estimation.md 3a: the online tracker continues from the accepted batch estimate.
+  // reanchor() keeps the filter's time, counters and accumulated information (and starts a
+  // filter still collecting for its start from data); the refit's effective noise seeds the
+  // adaptive noise estimate (estimation.md 7). The seed is the residual rms of |B_cal| - |h|
+  // under the 9-parameter model the filter uses, not the refit's noise_scale: when the refit
+  // used its model extension, that scale describes a smaller (extended-model) residual, and a
+  // filter seeded with it finds itself inconsistent and re-opens its covariance (measured:
+  // noise 3.7 nT seeded vs 6.5 nT seen, NIS 3-5, then a 20 nT drift on the orbit normal).
+  t.ukf.reanchor(refit.parameters.packed(), refit.covariance, refit.model_error_covariance());
+  if (std::isfinite(refit.residual_rms_nT) && refit.residual_rms_nT > 0.0) {
+    t.ukf.seed_noise(refit.residual_rms_nT);
+  }
+  t.anchor_calibration_id = calibration_id;
+  t.state_dirty = true;
+  mark_state_due(sat, t);  // stored with the next commit
+  spdlog::info("{}: UKF re-anchored on the accepted {} refit of {}", sat, refit.method,
+               format_iso8601_utc(refit.utime));
 }
 
 }  // namespace magcal

@@ -3,7 +3,8 @@
 //   tracker and store) -> reference field -> that spacecraft's UKF update -> pending row;
 // UKF snapshots every `snapshot_every_s` of DATA time (history row + calibration_t);
 // pending rows and snapshot rows are committed together, one transaction per batch
-// (commit_every_samples or commit_every_ms, whichever first); retention runs in small
+// (commit_every_samples or commit_every_ms, whichever first), with the filter state of every
+// spacecraft that had a snapshot or a re-anchor since the last commit; retention runs in small
 // transactions after commits. With the data clock it also decides when refits are due, for each
 // spacecraft on its own data time.
 //
@@ -16,9 +17,15 @@
 // Owns its own database connection and everything it touches, so it runs on one thread; the
 // only cross-thread entry points are post_reanchor() and the retention floor.
 //
-// Restart (restore()): trackers come back from the stored windows; each UKF from its stored
-// state; if that state is older than the newest stored sample, the filter is re-run over the
-// newer stored samples (from their stored reference field, no IGRF).
+// Restart (restore()), after a SIGTERM or a crash, or another process taking over from the
+// database: trackers come back from the stored windows; each UKF from its stored state; if that
+// state is older than the newest stored sample, the filter is re-run over the newer stored
+// samples (from their stored reference field, no IGRF: no snapshot or re-anchor falls among
+// them, as each of those stores the state). An accepted refit the stored state was not
+// re-anchored on (the process died before its next commit) is applied then, at the newest
+// stored sample, where the worker had applied it (a replay waits for its refits). Each data-clock
+// schedule resumes after the last scheduled refit that ran to its end, so a refit that was due
+// when the process died runs again (its samples are committed before it is due).
 #pragma once
 
 #include <atomic>
@@ -46,6 +53,7 @@
 #include "storage/calibration_history.hpp"
 #include "storage/database.hpp"
 #include "storage/filter_state_store.hpp"
+#include "storage/refit_job_log.hpp"
 #include "storage/sample_window_store.hpp"
 
 namespace magcal {
@@ -98,7 +106,8 @@ class IngestWorker {
   }
   // Commits, then writes the filter state of every spacecraft whose filter changed since the
   // last write (not while samples it has used are uncommitted). A failure is logged and counted;
-  // the states are written next time.
+  // the states are written next time. (Snapshots and re-anchors store theirs with the next
+  // commit; this bounds the re-run of a restart for the rest.)
   void save_filter_states();
   // At shutdown, before the last commit (spacecraft_tracker.hpp): a spacecraft that never got a
   // time base takes it from its held samples, which are then stored; every other sample still
@@ -110,9 +119,10 @@ class IngestWorker {
   // Samples currently held, all spacecraft (in flight, like the pending batch).
   int64_t held_samples();
 
-  // From any thread: re-anchor sat_id's UKF on an accepted refit (applied by the worker thread
-  // at its next process()/commit_if_due()).
-  void post_reanchor(const std::string& sat_id, const CalibrationResult& refit);
+  // From any thread: re-anchor sat_id's UKF on an accepted refit, stored as calibration_id
+  // (applied by the worker thread at its next process()/commit_if_due()).
+  void post_reanchor(const std::string& sat_id, const CalibrationResult& refit,
+                     int64_t calibration_id);
   // From any thread: retention never deletes samples at or after this time (the oldest window
   // start of a refit that is due but not finished). INT64_MAX = no floor.
   void set_retention_floor(int64_t utime) { retention_floor_.store(utime); }
@@ -144,6 +154,16 @@ class IngestWorker {
   void reset_pending_index();
   void maybe_snapshot(const std::string& sat_id, SpacecraftTracker& t, int64_t utime);
   void apply_reanchors();
+  // estimation.md 3a: t's UKF continues from the accepted refit (stored as calibration_id).
+  void reanchor(const std::string& sat_id, SpacecraftTracker& t, const CalibrationResult& refit,
+                int64_t calibration_id);
+  // t's state goes into the next commit (SpacecraftTracker::state_due).
+  void mark_state_due(const std::string& sat_id, SpacecraftTracker& t);
+  storage::FilterState stored_state(const std::string& sat_id, const SpacecraftTracker& t) const;
+  // restore(), for one spacecraft: its stored filter state, the re-run over newer samples and a
+  // re-anchor the state does not have yet; returns the samples re-run.
+  int64_t restore_filter(const std::string& sat_id, SpacecraftTracker& t, int64_t newest_utime,
+                         std::vector<storage::StoredSample>& rows);
   void run_retention();
   // Data clock: advances sat_id's refit schedule to its newest sample; due refits are
   // committed up to their time, then handed to on_refit_due.
@@ -166,6 +186,7 @@ class IngestWorker {
   storage::SampleWindowStore samples_;
   storage::CalibrationHistory history_;
   storage::FilterStateStore filter_states_;
+  storage::RefitJobLog jobs_;  // read by restore()
   SpacecraftFleet fleet_;
   ThrottledLog warnings_;
   std::optional<RefitSchedule> data_schedule_;  // [refit] clock = "data": each tracker's schedule
@@ -179,6 +200,7 @@ class IngestWorker {
   std::unordered_multimap<uint64_t, uint32_t> pending_index_;
   size_t pending_indexed_ = 0;
   std::vector<std::pair<std::string, CalibrationResult>> pending_snapshots_;
+  std::vector<std::string> states_due_;  // spacecraft whose state goes into the next commit
   std::chrono::steady_clock::time_point first_pending_time_{};
   std::chrono::steady_clock::time_point last_retention_time_{};
   std::vector<std::string> retention_dirty_;
@@ -191,8 +213,13 @@ class IngestWorker {
   bool resolving_held_ = false;  // resolve_held() is running (no re-entry)
   std::atomic<int64_t> retention_floor_{std::numeric_limits<int64_t>::max()};
 
+  struct Reanchor {
+    std::string sat_id;
+    CalibrationResult refit;
+    int64_t calibration_id = 0;
+  };
   std::mutex reanchor_mutex_;
-  std::vector<std::pair<std::string, CalibrationResult>> reanchors_;
+  std::vector<Reanchor> reanchors_;
   std::atomic<bool> have_reanchors_{false};
 };
 

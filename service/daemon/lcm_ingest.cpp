@@ -1,6 +1,10 @@
 #include "service/daemon/lcm_ingest.hpp"
 
+#include <unistd.h>
+
 #include <chrono>
+#include <cstdio>
+#include <sstream>
 
 #include "schemas/magcal_messages.hpp"
 #include "service/io/sample_files.hpp"
@@ -27,6 +31,43 @@ bool has_fingerprint(const void* data, int size, int64_t hash) {
 
 bool is_file_url(const std::string& url) {
   return url.rfind("file://", 0) == 0;
+}
+
+std::unique_ptr<lcm::LCM> open_lcm(const std::string& url, std::string* why) {
+  // stderr goes to an unlinked temporary file while LCM starts (the daemon's other threads do
+  // not run yet).
+  std::fflush(stderr);
+  FILE* capture = std::tmpfile();
+  const int saved_stderr = capture ? ::dup(STDERR_FILENO) : -1;
+  if (saved_stderr >= 0) ::dup2(::fileno(capture), STDERR_FILENO);
+  auto lcm = std::make_unique<lcm::LCM>(url);
+  std::string said;
+  if (saved_stderr >= 0) {
+    std::fflush(stderr);
+    ::dup2(saved_stderr, STDERR_FILENO);
+    ::close(saved_stderr);
+    std::rewind(capture);
+    char buffer[512];
+    for (size_t n; (n = std::fread(buffer, 1, sizeof buffer, capture)) > 0;) said.append(buffer, n);
+  }
+  if (capture) std::fclose(capture);
+  if (lcm->good()) {
+    std::fputs(said.c_str(), stderr);
+    return lcm;
+  }
+  // "Error: Bad multicast port "99999"", "lcm.c:97 -- invalid URL [x]": the words after the
+  // prefix, one clause per line.
+  why->clear();
+  std::istringstream lines(said);
+  for (std::string line; std::getline(lines, line);) {
+    if (const size_t dashes = line.find(" -- "); dashes != std::string::npos) {
+      line.erase(0, dashes + 4);
+    }
+    if (line.rfind("Error: ", 0) == 0) line.erase(0, 7);
+    if (!line.empty()) *why += (why->empty() ? "" : "; ") + line;
+  }
+  if (why->empty()) *why = "LCM refused it";
+  return lcm;
 }
 
 std::string unreadable_log_reason(const std::string& file_url) {

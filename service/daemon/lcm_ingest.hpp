@@ -9,6 +9,7 @@
 #pragma once
 
 #include <atomic>
+#include <memory>
 #include <string>
 #include <unordered_map>
 
@@ -66,6 +67,12 @@ class LcmIngest {
 
 // True for file:// URLs (replay mode).
 bool is_file_url(const std::string& url);
+
+// An lcm::LCM on `url` (check good()). LCM itself prints why it cannot open a URL on stderr
+// ("Error: LCM provider "x" not found"); that text is taken instead and, when the instance is
+// not good(), returned in *why without LCM's prefixes, for the caller's one line. Whatever LCM
+// says of a URL it does open (a warning) still reaches stderr.
+std::unique_ptr<lcm::LCM> open_lcm(const std::string& url, std::string* why);
 
 // Why LCM could not open the log of a file:// URL, for the start error: what
 // unreadable_lcm_log_reason (service/io/sample_files.hpp) says of its file, else that LCM

@@ -1,10 +1,12 @@
 #include "service/daemon/lcm_publisher.hpp"
 
+#include "service/daemon/lcm_ingest.hpp"
+
 namespace magcal {
 
 LcmPublisher::LcmPublisher(const std::string& url, std::string calibration_channel,
                            std::string status_channel)
-    : lcm_(std::make_unique<lcm::LCM>(url)),
+    : lcm_(open_lcm(url, &error_)),
       calibration_channel_(std::move(calibration_channel)),
       status_channel_(std::move(status_channel)) {}
 

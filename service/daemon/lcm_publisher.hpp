@@ -22,12 +22,15 @@ class LcmPublisher {
 
   bool enabled() const { return lcm_ != nullptr; }
   bool ok() const { return !lcm_ || lcm_->good(); }
+  // Why the URL could not be opened (open_lcm's words) when !ok().
+  const std::string& error() const { return error_; }
 
   void publish(const calibration_t& msg);
   void publish(const daemon_status_t& msg);
   int64_t failures() const;
 
  private:
+  std::string error_;  // before lcm_: open_lcm writes it while lcm_ is initialised
   std::unique_ptr<lcm::LCM> lcm_;
   std::string calibration_channel_, status_channel_;
   mutable std::mutex mutex_;

@@ -8,6 +8,9 @@
 #include <atomic>
 #include <csignal>
 #include <iostream>
+#include <string>
+#include <utility>
+#include <vector>
 
 #include <spdlog/spdlog.h>
 #include <CLI/CLI.hpp>
@@ -20,6 +23,23 @@ namespace {
 std::atomic<bool> g_stop{false};
 extern "C" void on_signal(int) {
   g_stop.store(true);
+}
+
+// `error` with the config key it starts with (or quotes first, e.g. "[lcm] url") replaced by
+// the flag that set it, when one did: "--log-level: expected ..., got "loud"".
+std::string blame_flag(std::string error,
+                       const std::vector<std::pair<std::string, std::string>>& flags_given) {
+  size_t first = std::string::npos;
+  const std::pair<std::string, std::string>* blamed = nullptr;
+  for (const auto& given : flags_given) {
+    const size_t at = error.find(given.second);
+    if (at < first) {
+      first = at;
+      blamed = &given;
+    }
+  }
+  if (blamed) error.replace(first, blamed->second.size(), blamed->first);
+  return error;
 }
 
 }  // namespace
@@ -37,7 +57,7 @@ int main(int argc, char** argv) {
   app.add_option("--lcm-url", lcm_url,
                  "LCM URL (overrides [lcm] url); file://LOG?speed=0 replays a log and exits");
   app.add_option("--log-level", log_level, "trace|debug|info|warn|error|critical|off");
-  auto* http_opt = app.add_option(
+  app.add_option(
       "--http-listen", http_listen,
       "operations server ADDR:PORT (overrides [http] listen; default 127.0.0.1:9780, port 0 = any "
       "free port, \"\" = off): /metrics, /-/healthy, /-/ready, /api/v1/, /");
@@ -59,17 +79,25 @@ int main(int argc, char** argv) {
   if (!db_path.empty()) config.storage.db_path = db_path;
   if (!lcm_url.empty()) config.lcm.url = lcm_url;
   if (!log_level.empty()) config.log.level = log_level;
-  if (http_opt->count() > 0) config.http.listen = http_listen;  // "" is a value: off
+  if (app.get_option("--http-listen")->count() > 0)
+    config.http.listen = http_listen;  // "" is a value: off
+  // The flags given, with the config key each overrides: an error about that key blames the
+  // flag (the file's value was checked when it was loaded).
+  std::vector<std::pair<std::string, std::string>> flags_given;
+  for (const auto& [flag, key] :
+       {std::pair{"--db", "[storage] db_path"}, std::pair{"--lcm-url", "[lcm] url"},
+        std::pair{"--log-level", "[log] level"}, std::pair{"--http-listen", "[http] listen"}}) {
+    if (app.get_option(flag)->count() > 0) flags_given.emplace_back(flag, key);
+  }
   if (const auto error = config.validate(); !error.empty()) {
-    std::cerr << "magcald: " << (log_level.empty() ? "" : "--log-level / ")
-              << (http_opt->count() > 0 ? "--http-listen / " : "") << error << "\n";
+    std::cerr << "magcald: " << blame_flag(error, flags_given) << "\n";
     return kExitUsage;
   }
   spdlog::set_level(spdlog::level::from_str(config.log.level));
 
   magcal::Daemon daemon(std::move(config));
   if (const auto error = daemon.open(); !error.empty()) {
-    std::cerr << "magcald: " << error << "\n";
+    std::cerr << "magcald: " << blame_flag(error, flags_given) << "\n";
     return kExitData;
   }
   return daemon.run(g_stop);

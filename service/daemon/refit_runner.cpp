@@ -34,6 +34,7 @@ BatchCalibrationOptions batch_options_from_config(const DaemonConfig& config) {
 RefitRunner::RefitRunner(const DaemonConfig& config, storage::Database& db)
     : config_(config),
       options_(batch_options_from_config(config)),
+      db_(db),
       samples_(db),
       history_(db),
       jobs_(db) {}
@@ -97,6 +98,17 @@ std::optional<storage::RefitJob> RefitRunner::finished_early_refit(const std::st
   return std::nullopt;
 }
 
+std::string RefitRunner::skip_reason(const std::string& sat_id,
+                                     std::optional<int64_t> t_ref_utime) {
+  if (!t_ref_utime) t_ref_utime = samples_.newest_utime(sat_id);
+  if (!t_ref_utime) return "no stored samples for '" + sat_id + "'";
+  const int64_t n =
+      samples_.count_in_window(sat_id, *t_ref_utime - config_.window_utime() + 1, *t_ref_utime + 1);
+  if (n >= config_.refit.min_samples) return "";
+  return std::to_string(n) + " samples in the window, " +
+         std::to_string(config_.refit.min_samples) + " needed ([refit] min_samples)";
+}
+
 RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> t_ref_utime,
                               const std::string& trigger, int64_t scheduled_utime) {
   RefitOutcome out;
@@ -117,24 +129,16 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
   }
   try {
     if (!t_ref_utime) t_ref_utime = samples_.newest_utime(sat_id);
-    if (!t_ref_utime) {
+    if (std::string why = skip_reason(sat_id, t_ref_utime); !why.empty()) {
       out.kind = RefitOutcome::Kind::kSkipped;
       out.job_outcome = storage::job_outcome::kSkipped;
-      out.message = "no stored samples for '" + sat_id + "'";
+      out.message = std::move(why);
       jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message);
       return out;
     }
     const int64_t t_ref = *t_ref_utime;
     samples_.read_window(sat_id, t_ref - config_.window_utime() + 1, t_ref + 1, rows_);
     out.n_window_samples = static_cast<int>(rows_.size());
-    if (out.n_window_samples < config_.refit.min_samples) {
-      out.kind = RefitOutcome::Kind::kSkipped;
-      out.job_outcome = storage::job_outcome::kSkipped;
-      out.message = std::to_string(out.n_window_samples) + " samples in the window, " +
-                    std::to_string(config_.refit.min_samples) + " needed ([refit] min_samples)";
-      jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message);
-      return out;
-    }
     window_.clear();
     window_.reserve(rows_.size());
     for (const auto& r : rows_) window_.push_back(calibration_sample_from_stored(r));
@@ -152,8 +156,10 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
     out.result = calibrate_batch(window_, options_, previous ? &*previous : nullptr);
     out.result.utime = t_ref;  // the time the refit refers to: its scheduled window end
     if (previous) accept_corroborated_change(sat_id, *previous, out.result);
+    // The result and its job's outcome in one transaction: a restart after a crash finds a
+    // refit either done (both) or interrupted (neither), and runs only the latter again.
+    storage::Transaction tx(db_);
     out.calibration_id = history_.append(record_from_result(sat_id, out.result));
-    out.kind = RefitOutcome::Kind::kComputed;
     if (out.result.accepted && out.result.status == CalibrationStatus::kOk) {
       out.job_outcome = storage::job_outcome::kOk;
     } else if (out.result.status == CalibrationStatus::kRejected) {
@@ -163,8 +169,11 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
       out.message = out.result.message.empty() ? to_string(out.result.status) : out.result.message;
     }
     jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message, out.calibration_id);
+    tx.commit();
+    out.kind = RefitOutcome::Kind::kComputed;
   } catch (const storage::StorageError& e) {
     out.kind = RefitOutcome::Kind::kError;
+    out.calibration_id = 0;  // rolled back
     out.job_outcome = storage::job_outcome::kFailed;
     out.message = e.what();
     out.sqlite_code = e.sqlite_code();

@@ -2,8 +2,8 @@
 //   job row 'running' -> window (t_ref - window_hours, t_ref] from the store
 //   -> calibrate_batch (centered -> LM -> alignment when the samples carry reference
 //      directions -> acceptance gates; the change gate compares with the previous accepted
-//      refit from the history) -> history row -> job row finished (ok | rejected | failed |
-//      skipped when fewer than [refit] min_samples).
+//      refit from the history) -> history row + job row finished, one transaction (ok |
+//      rejected | failed; skipped, job row only, when fewer than [refit] min_samples).
 // The same code runs in the daemon's refit thread and in `magcal refit` (its own process and
 // connection: SQLite WAL lets it run while the daemon writes). Publishing and re-anchoring the
 // UKF are the caller's business.
@@ -63,6 +63,11 @@ class RefitRunner {
 
   std::vector<std::string> spacecraft();  // with stored samples
 
+  // Why run() would skip this refit ("" when it would not): no stored samples of sat_id, or
+  // fewer than [refit] min_samples in the window. Reads only: `magcal refit` refuses such a
+  // refit before writing anything, where the daemon records it as a 'skipped' job.
+  std::string skip_reason(const std::string& sat_id, std::optional<int64_t> t_ref_utime);
+
  private:
   // Accepts `result` when it failed only the change gate against `reference` and the previous
   // full-window refit (newer than the reference) failed only that gate too and agrees with it
@@ -76,6 +81,7 @@ class RefitRunner {
 
   const DaemonConfig config_;  // a copy: callers may pass a temporary
   BatchCalibrationOptions options_;
+  storage::Database& db_;
   storage::SampleWindowStore samples_;
   storage::CalibrationHistory history_;
   storage::RefitJobLog jobs_;

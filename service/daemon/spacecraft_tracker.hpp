@@ -76,10 +76,14 @@ struct SpacecraftTracker {
   int64_t stored_bound_utime = kNoTime;
   int64_t last_seq = std::numeric_limits<int64_t>::min();  // none yet
   int64_t next_snapshot_utime = kNoTime;
-  int64_t advances = 0;          // accepted samples that moved newest_utime forward
-  bool state_dirty = false;      // filter changed since its state was last written
-  bool retention_due = false;    // new samples since the last retention pass
-  std::vector<HeldSample> held;  // arrival order; at most kHeldCapacity, freed when empty
+  int64_t advances = 0;      // accepted samples that moved newest_utime forward
+  bool state_dirty = false;  // filter changed since its state was last written
+  // A snapshot or a re-anchor changed what the filter means: its state goes into the next
+  // commit, with the samples it includes (IngestWorker::states_due_).
+  bool state_due = false;
+  int64_t anchor_calibration_id = 0;  // the refit it was last re-anchored on (0: none)
+  bool retention_due = false;         // new samples since the last retention pass
+  std::vector<HeldSample> held;       // arrival order; at most kHeldCapacity, freed when empty
   http::SpacecraftMetrics* metrics = nullptr;  // its Prometheus series (none without a server)
   // [refit] clock = "data": this spacecraft's scheduled refits, on its own data time (its
   // newest_utime): a spacecraft backfilled behind the others gets the refits of its own days.

@@ -16,6 +16,7 @@
 
 #include "service/http/embedded_assets.hpp"
 #include "service/io/history_report.hpp"
+#include "service/io/read_only_database.hpp"
 #include "service/io/status_report.hpp"
 #include "storage/database.hpp"
 
@@ -101,6 +102,7 @@ struct OperationsServer::Impl {
   ServerHooks hooks;
   std::mutex db_mutex;                  // the connection belongs to one request thread at a time
   std::optional<storage::Database> db;  // opened by serve(), before any request is taken
+  std::string db_path;
   httplib::Server server;
   std::thread thread;
   std::string host;
@@ -180,7 +182,9 @@ void OperationsServer::Impl::routes() {
   get("/api/v1/spacecraft", [this](const httplib::Request& req, httplib::Response& res) {
     check_params(req, {});
     std::lock_guard lock(db_mutex);
-    const auto all = read_status(*db, hooks.status_window_utime);
+    const auto all = read_consistently(db, db_path, [this](storage::Database& d) {
+      return read_status(d, hooks.status_window_utime);
+    });
     res.set_content(status_json_text(all, hooks.status_window_utime), kJson);
   });
   get("/api/v1/history",
@@ -244,8 +248,13 @@ void OperationsServer::Impl::history(const httplib::Request& req, httplib::Respo
   std::vector<storage::CalibrationRecord> rows;
   {
     std::lock_guard lock(db_mutex);
-    rows = read_history(*db, *query);
-    if (rows.empty() && !spacecraft_known(*db, request.sat)) {
+    bool known = true;
+    rows = read_consistently(db, db_path, [&](storage::Database& d) {
+      auto found = read_history(d, *query);
+      known = !found.empty() || spacecraft_known(d, request.sat);
+      return found;
+    });
+    if (!known) {
       throw BadRequest{"no data for spacecraft '" + request.sat + "'"};
     }
   }
@@ -299,6 +308,7 @@ bool OperationsServer::serve(const std::string& db_path, std::string* error) {
     storage::OpenOptions options;
     options.read_only = true;
     impl_->db.emplace(db_path, options);
+    impl_->db_path = db_path;
   } catch (const storage::StorageError& e) {
     *error = std::string("cannot open the database read-only: ") + e.what();
     return false;

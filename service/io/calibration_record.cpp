@@ -69,6 +69,7 @@ storage::CalibrationRecord record_from_result(const std::string& sat_id,
   for (int i = 0; i < 3; ++i) rec.k3[static_cast<size_t>(i)] = r.nonlinearity_k3(i);
   rec.nis_mean = r.nis_mean;
   rec.measurement_noise_nT = r.measurement_noise_nT;
+  for (int i = 0; i < 9; ++i) rec.model_error[static_cast<size_t>(i)] = r.model_error(i);
   return rec;
 }
 
@@ -109,6 +110,7 @@ CalibrationResult result_from_record(const storage::CalibrationRecord& rec) {
   }
   r.nis_mean = rec.nis_mean;
   r.measurement_noise_nT = rec.measurement_noise_nT;
+  for (int i = 0; i < 9; ++i) r.model_error(i) = rec.model_error[static_cast<size_t>(i)];
   return r;
 }
 

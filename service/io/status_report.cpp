@@ -110,7 +110,8 @@ std::string status_json_text(const std::vector<SpacecraftStatus>& all, int64_t w
 }
 
 std::string status_text(const std::vector<SpacecraftStatus>& all, int64_t window_utime) {
-  std::string text;
+  std::string text =
+      "(times in UTC: data time, the samples' time tags, unless marked wall clock)\n";
   for (const auto& s : all) {
     append_printf(&text, "%s\n", s.sat_id.c_str());
     if (s.last_sample_utime) {
@@ -135,10 +136,21 @@ std::string status_text(const std::vector<SpacecraftStatus>& all, int64_t window
       append_printf(&text, "  %-16s none\n", "last refit");
     }
     if (s.last_job) {
-      append_printf(&text, "  %-16s %s, due %s%s%s\n", "last refit job",
-                    s.last_job->outcome.c_str(),
-                    format_iso8601_utc(s.last_job->scheduled_utime).c_str(),
-                    s.last_job->error.empty() ? "" : ": ", s.last_job->error.c_str());
+      // When the job ran is wall-clock time. Its due time is on the [refit] clock (data time,
+      // or wall clock when so configured), a first refit's is data time; a manual refit is
+      // due when it runs.
+      const storage::RefitJob& job = *s.last_job;
+      std::string when;
+      if (job.trigger != "manual") {
+        when = ", due " + format_iso8601_utc(job.scheduled_utime) +
+               (job.trigger == "first" ? " (data time)" : " ([refit] clock)");
+      }
+      if (job.started_utime) {
+        when += ", ran " + format_iso8601_utc(*job.started_utime) + " (wall clock)";
+      }
+      append_printf(&text, "  %-16s %s (%s%s)%s%s\n", "last refit job", job.outcome.c_str(),
+                    job.trigger.c_str(), when.c_str(), job.error.empty() ? "" : ": ",
+                    job.error.c_str());
     }
     if (const auto d = bias_change(s)) {
       append_printf(&text,

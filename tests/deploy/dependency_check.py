@@ -12,8 +12,9 @@ depend files are read too):
   - FILEPATH entries and the config file under each *_DIR entry of CMakeCache.txt;
   - the shared libraries magcal and magcald load (ldd);
   - programs: the build's and the test runner's tools, those the tests and demo start
-    (found in their sources: spawn({"X", run({"X", need_tool X, command -v X, "/usr/bin/X"),
-    resolved on PATH as the tests resolve them;
+    (found in their sources: spawn({"X", run({"X", need_tool X, command -v X, "/usr/bin/X",
+    pg_tool("X")), resolved on PATH as the tests resolve them (PostgreSQL's server programs
+    in `pg_config --bindir`);
   - the modules the tests' Python scripts import, as Debian's /usr/bin/python3 finds them.
 Each regular file is mapped to its owning package with `dpkg -S` (directories belong to many
 packages and are skipped). An owner is allowed when it is named by `setup-deps.sh --list
@@ -51,6 +52,7 @@ PROGRAM_PATTERNS = [
     re.compile(r'\bneed_tool\s+"?([A-Za-z0-9_.+-]+)'),
     re.compile(r'command -v\s+"?([A-Za-z0-9_.+-]+)'),
     re.compile(r'"(/usr/s?bin/[A-Za-z0-9_.+-]+)"'),
+    re.compile(r'\bpg_tool\("([A-Za-z0-9_.+-]+)"'),
 ]
 SOURCE_GLOBS = ["tests/**/*.cpp", "tests/**/*.hpp", "tests/**/*.sh", "deploy/*.sh"]
 # Python modules the tests' scripts import (run by Debian's /usr/bin/python3).
@@ -142,13 +144,23 @@ def program_names(source_dir):
     return sorted(names)
 
 
+def pg_bindir():
+    """Where PostgreSQL's server programs (initdb, pg_ctl) are: not on PATH, the tests take them
+    from `pg_config --bindir` (tests/storage/postgres/pg_test_server.hpp, pg_tool("X"))."""
+    pg_config = shutil.which("pg_config")
+    result = run([pg_config, "--bindir"], check=False) if pg_config else None
+    return result.stdout.strip() if result and result.returncode == 0 else None
+
+
 def program_files(names):
     """(files to map, programs not found at all). An absolute path found in a test's source that
     does not exist is one of its fallbacks (/usr/bin/chromium-browser): only names resolved on
-    PATH and DECLARED_PROGRAMS must exist."""
+    PATH (or in pg_bindir()) and DECLARED_PROGRAMS must exist."""
     files, missing = {}, []
+    bindir = pg_bindir()
     for name in names:
-        path = name if name.startswith("/") else shutil.which(name)
+        path = name if name.startswith("/") else (
+            shutil.which(name) or (bindir and shutil.which(name, path=bindir)))
         if path is None or not os.path.exists(path):
             if not name.startswith("/") or name in DECLARED_PROGRAMS:
                 missing.append(name)

@@ -187,6 +187,27 @@ TEST_CASE("each gate fires when its condition is violated, and only that gate", 
     CHECK_FALSE(v.accepted);
     CHECK(has_reason(v, "residual_chi2"));
   }
+  SECTION("outliers: a least-squares fit resting on far residuals, named; disabled: passes") {
+    GateInputs gi = in;
+    gi.outliers.count = 1;
+    gi.outliers.robust_sigmas = 10.0;
+    gi.outliers.largest_sample = 1234;
+    gi.outliers.largest_residual_nT = 5012.0;
+    expect_only(h.result, gi, "outliers");
+    const GateVerdict v = evaluate_gates(h.result, gi, opt);
+    CHECK(joined(v.reasons).find("sample 1234, 5012 nT") != std::string::npos);
+    GateOptions off = opt;
+    off.outliers_enabled = false;
+    CHECK(evaluate_gates(h.result, gi, off).accepted);
+  }
+  SECTION("unmodelled: effects the fitted model cannot take; disabled: passes") {
+    GateInputs gi = in;
+    gi.unmodelled_effects = true;
+    expect_only(h.result, gi, "centered solution");
+    GateOptions off = opt;
+    off.unmodelled_enabled = false;
+    CHECK(evaluate_gates(h.result, gi, off).accepted);
+  }
   SECTION("observability: a field direction that barely changes") {
     // Keep only a short arc (5 min): the direction turns by ~2 deg.
     SimulatedSet arc = set;

@@ -126,6 +126,36 @@ TEST_CASE("batch calibration failure modes give clean statuses, never garbage") 
     CHECK(r.status == CalibrationStatus::kFailed);
     CHECK(r.message.find("sample 42") != std::string::npos);
   }
+  SECTION("zero field vectors: sensor dropouts, refused by least squares, left out when robust") {
+    SampleSet s = model_data(p, 400, 3.0, 4);
+    for (std::size_t k = 5; k < s.size(); k += 6) s[k].b_sensor_nT.setZero();
+    const CalibrationResult r = calibrate_batch(s, twostep);
+    CHECK(r.status == CalibrationStatus::kFailed);
+    CHECK(r.message ==
+          "sample 5: zero field vector (sensor dropout); 66 of 400 samples are (0, 0, "
+          "0): a robust fit (magcal fit --robust, [refit] robust = true) leaves them "
+          "out");
+    BatchCalibrationOptions robust = twostep;
+    robust.robust = true;
+    const CalibrationResult rr = calibrate_batch(s, robust);
+    CHECK(rr.status == CalibrationStatus::kOk);
+    CHECK(rr.n_samples == 400);
+    CHECK(rr.n_downweighted >= 66);
+    CHECK((rr.parameters.bias_nT - p.bias_nT).norm() < 5.0);
+    for (auto& x : s) x.b_sensor_nT.setZero();
+    CHECK(calibrate_batch(s, robust).message.find("too few samples besides the 400 zero field") ==
+          0);
+    CHECK(calibrate_batch({}, robust).status == CalibrationStatus::kFailed);
+  }
+  SECTION("|B| beyond any sensor's range names the magnitude") {
+    SampleSet s = model_data(p, 200, 3.0, 5);
+    s[17].b_sensor_nT << 6.1e6, 1e3, -2e3;
+    const CalibrationResult r = calibrate_batch(s, twostep);
+    CHECK(r.status == CalibrationStatus::kFailed);
+    CHECK(r.message.rfind("sample 17: |B| 6.1e+06 nT: beyond the sensor range (wrapped or wrong "
+                          "unit?",
+                          0) == 0);
+  }
   SECTION("all samples along one direction") {
     SampleSet s = model_data(p, 200, 3.0, 3);
     for (auto& x : s) {

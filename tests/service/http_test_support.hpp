@@ -6,6 +6,7 @@
 #include <signal.h>
 
 #include <filesystem>
+#include <fstream>
 #include <memory>
 #include <regex>
 #include <string>
@@ -35,25 +36,46 @@ inline HttpResult http_get(int port, const std::string& path) {
   return out;
 }
 
-// 24 h of the paper scenario replayed through magcald with refits on the data clock every 6 h
-// (as deploy/demo.sh): ~1440 UKF snapshots and three refits of PAPER-1. Built once per process.
-inline const std::string& replayed_day_db() {
+// The folder of the helpers below, with 24 h of the paper scenario (seed 1) as day.lcm.
+inline const TempDir& simulated_day_dir() {
   static TempDir dir("magcal_http_day");
-  static std::string db;
-  if (!db.empty()) return db;
-  const std::string bin = MAGCAL_BIN_DIR;
-  REQUIRE(run({bin + "/magcal", "sim", "--scenario", "paper", "--hours", "24", "--seed", "1",
-               "--out", dir.file("day.lcm"), "--batch", "200"},
-              dir.file("sim.log")) == 0);
-  {
-    std::ofstream config(dir.file("magcald.toml"));
-    config << "[refit]\nclock = \"data\"\nevery_hours = 6\n";
+  static bool simulated = false;
+  if (!simulated) {
+    REQUIRE(run({std::string(MAGCAL_BIN_DIR) + "/magcal", "sim", "--scenario", "paper", "--hours",
+                 "24", "--seed", "1", "--out", dir.file("day.lcm"), "--batch", "200"},
+                dir.file("sim.log")) == 0);
+    simulated = true;
   }
-  REQUIRE(run({bin + "/magcald", "--config", dir.file("magcald.toml"), "--db", dir.file("day.db"),
-               "--lcm-url", "file://" + dir.file("day.lcm") + "?speed=0", "--log-level", "warn",
-               "--http-listen", ""},
-              dir.file("magcald.log"), 300) == 0);
-  db = dir.file("day.db");
+  return dir;
+}
+
+// The simulated day replayed through magcald into `name`.db with `config` (TOML text).
+inline std::string replay_simulated_day(const std::string& name, const std::string& config) {
+  const TempDir& dir = simulated_day_dir();
+  {
+    std::ofstream out(dir.file(name + ".toml"));
+    out << config;
+  }
+  const std::string db = dir.file(name + ".db");
+  REQUIRE(run({std::string(MAGCAL_BIN_DIR) + "/magcald", "--config", dir.file(name + ".toml"),
+               "--db", db, "--lcm-url", "file://" + dir.file("day.lcm") + "?speed=0", "--log-level",
+               "warn", "--http-listen", ""},
+              dir.file(name + ".log"), 300) == 0);
+  return db;
+}
+
+// The day replayed with refits on the data clock every 6 h (as deploy/demo.sh): ~1440 UKF
+// snapshots and three refits of PAPER-1. Built once per process.
+inline const std::string& replayed_day_db() {
+  static const std::string db =
+      replay_simulated_day("day", "[refit]\nclock = \"data\"\nevery_hours = 6\n");
+  return db;
+}
+
+// The day replayed on the default wall clock: only the first refit runs (the day replays in
+// seconds), so the UKF snapshots after it are judged without a newer one. Built once.
+inline const std::string& wall_clock_day_db() {
+  static const std::string db = replay_simulated_day("wall", "");
   return db;
 }
 

@@ -202,6 +202,26 @@ TEST_CASE("uncertainty evidence (schema 3) round-trips, unknown values stay NULL
   CHECK(std::isnan(b->k3[0]));
 }
 
+TEST_CASE("a refit's model error (schema 4) round-trips, zero stays NULL; rows by id") {
+  Database db(":memory:");
+  CalibrationHistory history(db);
+  CalibrationRecord extended = make_record("SAT1", "twostep", kT0, 1);
+  extended.model_error = {0.1 + 0.2, -3.5, 1e-300, 0, 2e-4, -1e-5, 0, 3e-6, -0.0};
+  const int64_t a = history.append(extended);
+  const int64_t b = history.append(make_record("SAT1", "twostep", kT0 + kHour, 2));
+  const auto back = history.get(a);
+  REQUIRE(back);
+  CHECK(back->id == a);
+  CHECK(back->model_error == extended.model_error);
+  CHECK(history.get(b)->model_error == std::array<double, 9>{});
+  Statement nulls(db, "SELECT count(*) FROM calibrations WHERE model_error IS NULL");
+  REQUIRE(nulls.step());
+  CHECK(nulls.column_int64(0) == 1);
+  CHECK_FALSE(history.get(b + 1).has_value());
+  db.exec("UPDATE calibrations SET model_error = zeroblob(8)");
+  CHECK_THROWS_AS(history.get(a), StorageError);
+}
+
 TEST_CASE("invalid records are refused") {
   Database db(":memory:");
   CalibrationHistory history(db);

@@ -68,6 +68,23 @@ TEST_CASE("filter state round-trips bit for bit and is replaced per (sat, method
   CHECK_FALSE(store.load("SAT2", "ukf").has_value());
 }
 
+TEST_CASE(
+    "the refit a state was re-anchored on round-trips; a state from before schema 4 has none") {
+  Database db(":memory:");
+  FilterStateStore store(db);
+  std::mt19937_64 rng(5);
+  FilterState s = random_state("SAT1", rng);
+  CHECK(s.anchor_calibration_id == 0);  // none, unless set
+  store.save(s);
+  CHECK(store.load("SAT1", "ukf")->anchor_calibration_id == 0);
+  s.anchor_calibration_id = 1234;
+  store.save(s);
+  CHECK(store.load("SAT1", "ukf")->anchor_calibration_id == 1234);
+  db.exec("UPDATE filter_states SET anchor_calibration_id = NULL");  // as migrated from 3
+  CHECK_FALSE(store.load("SAT1", "ukf")->anchor_calibration_id.has_value());
+  CHECK_FALSE(store.load_all().front().anchor_calibration_id.has_value());
+}
+
 TEST_CASE("a filter state blob of the wrong size is reported, not misread") {
   Database db(":memory:");
   FilterStateStore store(db);

@@ -2,6 +2,8 @@
 #include "storage/refit_job_log.hpp"
 
 #include <catch2/catch.hpp>
+#include <optional>
+#include <string>
 
 #include "storage/calibration_history.hpp"
 
@@ -46,6 +48,39 @@ TEST_CASE("unknown job ids and dangling calibration ids are refused") {
   const int64_t id = jobs.start("SAT1", "manual", 1, 1);
   CHECK_THROWS_AS(jobs.finish(id, job_outcome::kOk, 2, "", int64_t{12345}), StorageError);
   CHECK(jobs.get(id)->outcome == "running");
+}
+
+TEST_CASE("what a restart resumes from: the newest daemon refit accepted, the last scheduled run") {
+  Database db(":memory:");
+  RefitJobLog jobs(db);
+  CalibrationHistory history(db);
+  CalibrationRecord r;
+  r.sat_id = "SAT1";
+  r.method = "twostep";
+  auto job = [&](const char* trigger, int64_t due, const char* outcome) {
+    const int64_t id = jobs.start("SAT1", trigger, due, due);
+    const bool stored =
+        std::string(outcome) == job_outcome::kOk || std::string(outcome) == job_outcome::kRejected;
+    const int64_t cal = stored ? history.append(r) : 0;
+    if (std::string(outcome) != job_outcome::kRunning)
+      jobs.finish(id, outcome, due + 1, "", stored ? std::optional<int64_t>(cal) : std::nullopt);
+    return cal;
+  };
+  CHECK_FALSE(jobs.newest_reanchor_calibration_id("SAT1").has_value());
+  CHECK_FALSE(jobs.newest_finished_scheduled_utime("SAT1").has_value());
+  const int64_t first = job("first", 100, job_outcome::kOk);
+  job("scheduled", 200, job_outcome::kSkipped);
+  CHECK(jobs.newest_reanchor_calibration_id("SAT1") == first);
+  CHECK(jobs.newest_finished_scheduled_utime("SAT1") == 200);
+  const int64_t scheduled = job("scheduled", 300, job_outcome::kOk);
+  job("scheduled", 400, job_outcome::kRejected);
+  job("manual", 450, job_outcome::kOk);  // the daemon never re-anchors on `magcal refit`
+  job("scheduled", 500, job_outcome::kRunning);
+  CHECK(jobs.newest_reanchor_calibration_id("SAT1") == scheduled);
+  CHECK(jobs.newest_finished_scheduled_utime("SAT1") == 400);
+  jobs.mark_running_interrupted(600);
+  CHECK(jobs.newest_finished_scheduled_utime("SAT1") == 400);  // 500 runs again
+  CHECK_FALSE(jobs.newest_reanchor_calibration_id("SAT2").has_value());
 }
 
 TEST_CASE("jobs running when the process died become interrupted") {

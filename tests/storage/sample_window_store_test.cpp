@@ -172,6 +172,11 @@ TEST_CASE("window query: t0 <= t < t1, ascending time, only the asked spacecraft
   CHECK_FALSE(store.utime_at_rank("SAT-A", 500).has_value());
   CHECK_FALSE(store.utime_at_rank("SAT-A", -1).has_value());
   CHECK_FALSE(store.utime_at_rank("SAT-C", 0).has_value());
+  // The ends of a spacecraft's stored window, whatever the order of arrival.
+  CHECK(store.oldest_utime("SAT-A") == a.front().utime);
+  CHECK(store.newest_utime("SAT-A") == a.back().utime);
+  CHECK_FALSE(store.oldest_utime("SAT-C").has_value());
+  CHECK_FALSE(store.newest_utime("SAT-C").has_value());
 }
 
 TEST_CASE("a batch that fails stores nothing of itself") {

@@ -348,6 +348,49 @@ TEST_CASE("fit: a field beyond any magnetometer's range is a data error naming l
   std::filesystem::remove(log);
 }
 
+TEST_CASE(
+    "fit: zero vectors are sensor dropouts (left out by --robust); a wrapped |B| names itself",
+    "[cli][fit]") {
+  // 18 % of the rows (0, 0, 0): before, "NaN/Inf in input", and --robust refused too.
+  SampleSet dropouts = model_data(600, 3.0, 11);
+  int n_zero = 0;
+  for (int k = 0; k < 600; ++k) {
+    if (k % 50 < 9) {
+      dropouts[k].b_sensor_nT.setZero();
+      ++n_zero;
+    }
+  }
+  const auto csv = temp_path("dropouts.csv");
+  REQUIRE(write_sample_csv(csv.string(), dropouts).empty());
+  require_one_line_error(run_magcal("fit --input " + csv.string() + " --method twostep"), 2,
+                         "zero field vector (sensor dropout); 108 of 600 samples");
+  const Run robust =
+      run_magcal("fit --input " + csv.string() + " --method twostep --robust --json");
+  INFO(robust.err);
+  REQUIRE(robust.exit_code == 0);
+  const nlohmann::json j = nlohmann::json::parse(robust.out);
+  CHECK(j["n_samples"] == 600);
+  CHECK(j["n_downweighted"].get<int>() >= n_zero);
+  CHECK(j["verdict"] == "accepted");
+  check_bias(j);
+
+  // Negative 16-bit counts read as unsigned: c + 65536 counts, ~+6e6 nT at 92 nT per count.
+  // Before, refused only through the bounds and conditioning gates, naming no magnitude.
+  SampleSet wrapped = model_data(600, 3.0, 12);
+  for (int k = 0; k < 600; k += 10) {
+    for (int i = 0; i < 3; ++i) {
+      double& v = wrapped[k].b_sensor_nT(i);
+      if (v < 0.0) v += 65536.0 * 92.0;
+    }
+  }
+  REQUIRE(write_sample_csv(csv.string(), wrapped).empty());
+  for (const char* extra : {"", " --robust"}) {
+    require_one_line_error(run_magcal("fit --input " + csv.string() + " --method twostep" + extra),
+                           2, "e+06 nT: beyond the sensor range (wrapped or wrong unit?");
+  }
+  std::filesystem::remove(csv);
+}
+
 TEST_CASE("fit: a file that is no LCM log, or a log without our samples, says so", "[cli][fit]") {
   const auto log = temp_path("garbage.lcm");
   {

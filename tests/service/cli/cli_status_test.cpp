@@ -134,6 +134,33 @@ TEST_CASE("status text output names every spacecraft and the bias change") {
   CHECK(r.out.find("rms 3.00 nT  ok, accepted\n") != std::string::npos);
 }
 
+TEST_CASE("status labels its times: data time, and the refit job's run as wall clock") {
+  Fixture f;
+  // A manual refit, run long after the data (its job's times are the wall clock's).
+  constexpr int64_t kWall = 1'796'145'912LL * kSecond;  // 2026-12-01T17:25:12Z
+  {
+    Database d(f.db);
+    RefitJobLog jobs(d);
+    jobs.finish(jobs.start("SAT1", "manual", kWall, kWall), job_outcome::kOk, kWall + kSecond);
+  }
+  Run r = run_magcal("status --db " + f.db, f.dir);
+  INFO(r.out);
+  REQUIRE(r.exit_code == 0);
+  CHECK(r.out.rfind("(times in UTC: data time, the samples' time tags, unless marked wall clock)\n",
+                    0) == 0);
+  CHECK(r.out.find("last refit job   ok (manual, ran 2026-12-01T17:25:12Z (wall clock))\n") !=
+        std::string::npos);
+  CHECK(r.out.find("due") == std::string::npos);  // a manual refit is due when it runs
+
+  // A scheduled one: its due time is on the [refit] clock, its run on the wall clock.
+  Fixture scheduled;
+  r = run_magcal("status --db " + scheduled.db, scheduled.dir);
+  INFO(r.out);
+  CHECK(r.out.find("last refit job   rejected (scheduled, due " +
+                   format_iso8601_utc(kT0 + 18 * kHour) + " ([refit] clock), ran " +
+                   format_iso8601_utc(kT0 + 18 * kHour) + " (wall clock))\n") != std::string::npos);
+}
+
 TEST_CASE("status on an empty, missing or foreign database") {
   TempDir dir;
   const std::string empty = dir.file("empty.db");
@@ -156,4 +183,16 @@ TEST_CASE("status on an empty, missing or foreign database") {
   r = run_magcal("status --db " + newer, dir);
   CHECK(r.exit_code == 2);
   CHECK(r.err.find("newer") != std::string::npos);
+
+  // Not a database at all: one line naming the file.
+  const std::string text = dir.file("notdb.db");
+  {
+    std::ofstream out(text);
+    for (int i = 0; i < 20; ++i) out << "this is a text file, not an SQLite database\n";
+  }
+  r = run_magcal("status --db " + text, dir);
+  INFO(r.err);
+  CHECK(r.exit_code == 2);
+  CHECK(r.err ==
+        "magcal status: " + text + " is not a database (SQLite: file is not a database)\n");
 }

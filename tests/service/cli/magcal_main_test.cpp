@@ -3,12 +3,14 @@
 // range text ("Value 0 not in range 0.000000 to 1797693134862315708...") or "Could not
 // convert", and a negative seed is refused instead of wrapping to 2^64 - 1.
 #include <algorithm>
+#include <filesystem>
 #include <string>
 #include <utility>
 #include <vector>
 
 #include <catch2/catch.hpp>
 
+#include "pipeline/scenario.hpp"
 #include "service/io/exit_codes.hpp"
 #include "tests/service/cli_test_support.hpp"
 
@@ -73,4 +75,31 @@ TEST_CASE("numeric options: good values still reach the subcommands") {
   INFO(field.err);
   CHECK(field.exit_code == 0);
   CHECK(field.out.find("total_nT") != std::string::npos);
+}
+
+TEST_CASE("an unknown subcommand is named, with the ones there are") {
+  TempDir dir("magcal_main_unknown");
+  const Run r = run_magcal("bogus --db x.db", dir);
+  INFO(r.err);
+  CHECK(r.exit_code == magcal::kExitUsage);
+  CHECK(r.out.empty());
+  CHECK(r.err ==
+        "magcal: unknown subcommand 'bogus' (subcommands: field, sim, fit, evaluate, refit, "
+        "history, status, serve)\n");
+}
+
+TEST_CASE("sim: --help lists every preset, an empty --sat-id is refused and nothing written") {
+  TempDir dir("magcal_main_sim");
+  const Run help = run_magcal("sim --help", dir);
+  CHECK(help.exit_code == 0);
+  for (const auto& name : magcal::scenario_preset_names()) {
+    INFO(help.out);
+    CHECK(help.out.find(name) != std::string::npos);
+  }
+  const std::string out = dir.file("s.csv");
+  const Run r = run_magcal("sim --hours 0.1 --out " + out + " --sat-id \"\"", dir);
+  INFO(r.err);
+  CHECK(r.exit_code == magcal::kExitUsage);
+  CHECK(r.err == "magcal sim: --sat-id must be 1..64 characters (got \"\")\n");
+  CHECK_FALSE(std::filesystem::exists(out));
 }

@@ -11,6 +11,7 @@
 #include "service/daemon/ingest_worker.hpp"
 #include "service/io/calibration_record.hpp"
 #include "storage/calibration_history.hpp"
+#include "storage/refit_job_log.hpp"
 #include "storage/sample_window_store.hpp"
 #include "tests/service/prometheus_text.hpp"
 
@@ -253,6 +254,75 @@ TEST_CASE("restart resumes the filter without a jump", "[ingest_worker]") {
                             .maxCoeff();
       CHECK(dx < kStateTol);
       CHECK((ukf.P() - reference_P).norm() <= kStateTol * reference_P.norm());
+    }
+  }
+}
+
+TEST_CASE("a refit accepted just before a crash is re-anchored on at the restart",
+          "[ingest_worker]") {
+  // Issue 21: the daemon died after the refit was stored but before the re-anchored filter was;
+  // the restart re-ran the stored samples without it (not_converged where the uninterrupted run
+  // said ok). The filter here cannot start from data (constant |h|): only the re-anchor starts it.
+  const auto s = simulate(2000, 7);
+  CalibrationResult refit;  // as RefitRunner stores it and hands it to the worker
+  refit.method = "twostep";
+  refit.utime = refit.window_end_utime = s[999].utime;
+  refit.window_start_utime = s[0].utime;
+  refit.n_samples = 1000;
+  Vector9d p;
+  p << 1001.0, -799.0, 902.0, 0.01, 0.02, -0.01, 0.002, -0.001, 0.003;
+  refit.parameters = CalibrationParameters::from_packed(p);
+  Vector9d variance;
+  variance << 4.0, 5.0, 6.0, 1e-6, 2e-6, 3e-6, 1e-6, 1e-6, 1e-6;
+  refit.covariance = variance.asDiagonal();
+  refit.model_error << 0.5, -0.3, 0.2, 1e-4, -2e-4, 1e-4, 3e-5, -1e-5, 2e-5;
+  refit.residual_rms_nT = 3.3;
+  refit.status = CalibrationStatus::kOk;
+  refit.accepted = true;
+  auto store_refit = [&](const std::string& db) {
+    storage::Database d(db);
+    storage::CalibrationHistory history(d);
+    storage::RefitJobLog jobs(d);
+    const int64_t job = jobs.start("SAT-1", "scheduled", refit.utime, 1);
+    const int64_t id = history.append(record_from_result("SAT-1", refit));
+    jobs.finish(job, storage::job_outcome::kOk, 2, "", id);
+    return id;
+  };
+  FilterState want;  // uninterrupted: re-anchored before the samples after the refit's
+  {
+    TempDb tmp("reanchor-ref");
+    DaemonCounters counters;
+    auto w = make_worker(test_config(tmp.path()), counters);
+    feed(*w, s, 0, 1000);
+    w->post_reanchor("SAT-1", refit, store_refit(tmp.path()));
+    feed(*w, s, 1000, s.size());
+    want = w->fleet().find("SAT-1")->ukf.state();
+  }
+  REQUIRE(want.initialized);
+  REQUIRE(want.model_error_known);
+  for (const bool stored : {false, true}) {
+    DYNAMIC_SECTION((stored ? "the re-anchored state was stored" : "it was not")) {
+      TempDb tmp(stored ? "reanchor-stored" : "reanchor-lost");
+      const auto c = test_config(tmp.path());
+      DaemonCounters counters;
+      {
+        auto w = make_worker(c, counters);
+        feed(*w, s, 0, 1000);
+        w->post_reanchor("SAT-1", refit, store_refit(tmp.path()));
+        if (stored) w->commit_if_due();  // applies it; the state goes into the next commit
+      }                                  // killed: nothing more is written
+      auto w = make_worker(c, counters);
+      w->restore();
+      feed(*w, s, 1000, s.size());
+      const FilterState& got = w->fleet().find("SAT-1")->ukf.state();
+      CHECK(got.initialized);
+      CHECK(got.model_error_known);
+      CHECK(got.n_accepted == want.n_accepted);
+      CHECK((got.model_error_covariance - want.model_error_covariance).norm() <=
+            kStateTol * want.model_error_covariance.norm());
+      CHECK((got.x - want.x).cwiseQuotient(want.x.cwiseAbs().cwiseMax(1e-3)).cwiseAbs().maxCoeff() <
+            kStateTol);
+      CHECK((got.S - want.S).norm() <= kStateTol * want.S.norm());
     }
   }
 }

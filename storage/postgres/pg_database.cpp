@@ -1,0 +1,420 @@
+#include "storage/postgres/pg_database.hpp"
+
+#include <libpq-fe.h>
+
+#include <chrono>
+#include <utility>
+
+#include "storage/postgres/pg_migrations.hpp"
+
+namespace magcal::storage {
+namespace {
+
+// What a retry can heal (see the header). `sqlstate` is five characters.
+bool transient_sqlstate(std::string_view sqlstate) {
+  const std::string_view cls = sqlstate.substr(0, 2);
+  if (cls == "08" || cls == "53" || cls == "58") return true;  // connection, resources, I/O
+  for (const char* code :
+       {"40001", "40P01", "55P03", "57014", "57P01", "57P02", "57P03", "57P05", "25006", "72000"}) {
+    if (sqlstate == code) return true;
+  }
+  return false;
+}
+
+std::string trimmed(std::string text) {
+  while (!text.empty() && (text.back() == '\n' || text.back() == ' ')) text.pop_back();
+  return text;
+}
+
+// The URI with any password replaced (user:PASSWORD@host, ?password=...).
+std::string without_password(std::string uri) {
+  const std::size_t authority = uri.find("://") + 3;  // is_postgres_uri() was checked
+  const std::size_t authority_end = uri.find_first_of("/?", authority);
+  const std::size_t at = uri.rfind('@', authority_end);
+  if (at != std::string::npos && at >= authority) {
+    const std::size_t colon = uri.find(':', authority);
+    if (colon < at) uri.replace(colon + 1, at - colon - 1, "***");
+  }
+  for (std::size_t key = uri.find("password=", authority); key != std::string::npos;
+       key = uri.find("password=", key + 1)) {
+    if (uri[key - 1] != '?' && uri[key - 1] != '&') continue;
+    const std::size_t value = key + 9;
+    uri.replace(value, uri.find('&', value) - value, "***");
+  }
+  return uri;
+}
+
+int64_t now_utime() {
+  return std::chrono::duration_cast<std::chrono::microseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+// The bookkeeping table: one row per applied migration. Created with migration 1 (the code's
+// counterpart of SQLite's PRAGMA user_version / application_id).
+constexpr const char* kCreateVersionTable = R"sql(
+CREATE TABLE magcal_schema_version (
+  version          bigint NOT NULL PRIMARY KEY,
+  name             text   NOT NULL,
+  application_id   bigint NOT NULL,  -- kApplicationId: this is a magcal database
+  software_version text   NOT NULL,  -- magcal that applied it
+  applied_utime    bigint NOT NULL   -- wall clock
+))sql";
+
+}  // namespace
+
+PgDatabase::PgDatabase(const std::string& uri, const OpenOptions& options)
+    : uri_(uri),
+      name_(is_postgres_uri(uri) ? without_password(uri) : uri),
+      read_only_(options.read_only),
+      lock_timeout_ms_(options.busy_timeout_ms) {
+  char* error = nullptr;
+  PQconninfoOption* parsed = PQconninfoParse(uri.c_str(), &error);
+  if (parsed == nullptr || !is_postgres_uri(uri)) {
+    const std::string why = error ? trimmed(error) : "not a postgresql:// or postgres:// URI";
+    PQfreemem(error);
+    PQconninfoFree(parsed);
+    throw StorageError(StorageError::Kind::kInvalidArgument,
+                       "invalid PostgreSQL URI " + name_ + ": " + why);
+  }
+  PQconninfoFree(parsed);
+  connect();
+  try {
+    configure();
+    check_and_migrate(options);
+  } catch (...) {
+    PQfinish(conn_);
+    conn_ = nullptr;
+    throw;
+  }
+}
+
+PgDatabase::~PgDatabase() {
+  PQfinish(conn_);
+}
+
+PgDatabase::PgDatabase(PgDatabase&& other) noexcept
+    : conn_(std::exchange(other.conn_, nullptr)),
+      uri_(std::move(other.uri_)),
+      name_(std::move(other.name_)),
+      read_only_(other.read_only_),
+      lock_timeout_ms_(other.lock_timeout_ms_),
+      open_transactions_(std::exchange(other.open_transactions_, 0)),
+      prepared_(std::move(other.prepared_)) {}
+
+PgDatabase& PgDatabase::operator=(PgDatabase&& other) noexcept {
+  if (this != &other) {
+    PQfinish(conn_);
+    conn_ = std::exchange(other.conn_, nullptr);
+    uri_ = std::move(other.uri_);
+    name_ = std::move(other.name_);
+    read_only_ = other.read_only_;
+    lock_timeout_ms_ = other.lock_timeout_ms_;
+    open_transactions_ = std::exchange(other.open_transactions_, 0);
+    prepared_ = std::move(other.prepared_);
+  }
+  return *this;
+}
+
+void PgDatabase::connect() {
+  // Defaults the URI may override (keywords before dbname yield to the expanded URI): a dead
+  // network fails a connect in 10 s and a statement in about 30 s (TCP keepalives, user
+  // timeout) instead of the kernel's ~15 min, so the caller's retry policy decides.
+  const char* keywords[] = {"connect_timeout",
+                            "keepalives_idle",
+                            "keepalives_interval",
+                            "keepalives_count",
+                            "tcp_user_timeout",
+                            "fallback_application_name",
+                            "dbname",
+                            nullptr};
+  const char* values[] = {"10", "30", "10", "3", "30000", "magcal", uri_.c_str(), nullptr};
+  conn_ = PQconnectdbParams(keywords, values, 1);
+  if (conn_ == nullptr) throw std::bad_alloc();
+  if (PQstatus(conn_) == CONNECTION_OK) return;
+  // libpq gives no SQLSTATE for a refused connection: the server's reasons that a retry
+  // cannot heal are told by their (English) text; anything else (no server, starting up, too
+  // many clients, network) is transient.
+  const std::string why = trimmed(PQerrorMessage(conn_));
+  PQfinish(conn_);
+  conn_ = nullptr;
+  const bool no_database = why.find("database \"") != std::string::npos &&
+                           why.find("does not exist") != std::string::npos;
+  const bool refused = why.find("does not exist") != std::string::npos ||
+                       why.find("authentication failed") != std::string::npos ||
+                       why.find("pg_hba.conf") != std::string::npos ||
+                       why.find("password") != std::string::npos;
+  const std::string message = "cannot connect to " + name_ + ": " + why;
+  if (no_database) throw StorageError(StorageError::Kind::kNotFound, message, "3D000", false);
+  if (refused) throw StorageError(StorageError::Kind::kPostgres, message, "28000", false);
+  throw StorageError(StorageError::Kind::kPostgres, message, "08001", true);
+}
+
+void PgDatabase::ensure_connected() {
+  if (conn_ != nullptr && PQstatus(conn_) == CONNECTION_OK) return;
+  if (open_transactions_ > 0) {
+    // The transaction is gone with the connection: its caller must start over.
+    throw StorageError(StorageError::Kind::kPostgres,
+                       name_ + ": connection lost inside a transaction", "08006", true);
+  }
+  prepared_.clear();
+  if (conn_ != nullptr) {
+    PQreset(conn_);
+    if (PQstatus(conn_) != CONNECTION_OK) fail("reconnect");
+  } else {
+    connect();
+  }
+  configure();
+}
+
+void PgDatabase::configure() {
+  // Notices (e.g. "table exists, skipping") are not errors; storage/ does not log.
+  PQsetNoticeProcessor(
+      conn_, [](void*, const char*) {}, nullptr);
+  // extra_float_digits > 0: doubles in text are exact (shortest round trip) whatever the
+  // server's configuration says.
+  std::string settings = "SET extra_float_digits = 3; SET client_encoding = 'UTF8'; ";
+  settings += "SET lock_timeout = " + std::to_string(lock_timeout_ms_);
+  if (read_only_) settings += "; SET default_transaction_read_only = on";
+  checked(PQexec(conn_, settings.c_str()), settings);
+}
+
+void PgDatabase::fail(std::string_view context, const pg_result* result) {
+  const char* state = result ? PQresultErrorField(result, PG_DIAG_SQLSTATE) : nullptr;
+  const char* primary = result ? PQresultErrorField(result, PG_DIAG_MESSAGE_PRIMARY) : nullptr;
+  std::string sqlstate = state ? state : "";
+  std::string message = primary ? primary : "";
+  if (message.empty()) {
+    message = trimmed(result ? PQresultErrorMessage(result) : "");
+    if (message.empty() && conn_ != nullptr) message = trimmed(PQerrorMessage(conn_));
+  }
+  if (sqlstate.empty()) {
+    // Failed in libpq, not on the server: a lost connection is connection_failure.
+    const bool lost = conn_ == nullptr || PQstatus(conn_) == CONNECTION_BAD;
+    sqlstate = lost ? "08006" : "XX000";
+  }
+  if (message.empty()) message = std::string(context) + " failed";
+  const auto kind =
+      sqlstate == "3D000" ? StorageError::Kind::kNotFound : StorageError::Kind::kPostgres;
+  throw StorageError(kind, name_ + ": " + message + " (SQLSTATE " + sqlstate + ")", sqlstate,
+                     transient_sqlstate(sqlstate));
+}
+
+PgResult PgDatabase::checked(pg_result* raw, std::string_view sql) {
+  PgResult result(raw);
+  const ExecStatusType status = raw ? PQresultStatus(raw) : PGRES_FATAL_ERROR;
+  if (status != PGRES_COMMAND_OK && status != PGRES_TUPLES_OK) fail(sql, raw);
+  return result;
+}
+
+void PgDatabase::exec(std::string_view sql) {
+  ensure_connected();
+  const std::string text(sql);
+  checked(PQexec(conn_, text.c_str()), sql);
+}
+
+PgResult PgDatabase::execute(std::string_view sql, const PgParams& params, PgFormat format) {
+  ensure_connected();
+  const std::string text(sql);
+  return checked(
+      PQexecParams(conn_, text.c_str(), params.size(), params.types(), params.values(),
+                   params.lengths(), params.formats(), format == PgFormat::kBinary ? 1 : 0),
+      sql);
+}
+
+PgResult PgDatabase::execute_prepared(std::string_view sql, const PgParams& params,
+                                      PgFormat format) {
+  ensure_connected();
+  std::string text(sql);
+  auto it = prepared_.find(text);
+  if (it == prepared_.end()) {
+    std::string name = "magcal_" + std::to_string(prepared_.size() + 1);
+    checked(PQprepare(conn_, name.c_str(), text.c_str(), params.size(), params.types()), sql);
+    it = prepared_.emplace(std::move(text), std::move(name)).first;
+  }
+  return checked(
+      PQexecPrepared(conn_, it->second.c_str(), params.size(), params.values(), params.lengths(),
+                     params.formats(), format == PgFormat::kBinary ? 1 : 0),
+      sql);
+}
+
+int PgDatabase::backend_pid() const {
+  return conn_ ? PQbackendPID(conn_) : 0;
+}
+
+bool PgDatabase::in_transaction() const {
+  return conn_ != nullptr && PQtransactionStatus(conn_) != PQTRANS_IDLE &&
+         PQtransactionStatus(conn_) != PQTRANS_UNKNOWN;
+}
+
+int PgDatabase::latest_schema_version() {
+  return static_cast<int>(pg_migrations().size());
+}
+
+namespace {
+
+// What the database's current schema holds, as far as opening it is concerned.
+struct SchemaState {
+  bool has_version_table = false;
+  int64_t relations = 0;     // tables, views, ... in the current schema
+  int64_t version = 0;       // newest applied migration
+  int64_t foreign_rows = 0;  // version rows with another application_id
+  std::string schema;        // current_schema()
+};
+
+SchemaState read_schema_state(PgDatabase& db) {
+  SchemaState s;
+  const PgResult r = db.execute(
+      "SELECT cs.name, "
+      "       count(c.oid) FILTER (WHERE c.relname = 'magcal_schema_version'), count(c.oid) "
+      "FROM (SELECT current_schema() AS name) cs "
+      "LEFT JOIN pg_namespace n ON n.nspname = cs.name "
+      "LEFT JOIN pg_class c ON c.relnamespace = n.oid AND c.relkind IN ('r', 'p', 'v', 'm', 'f') "
+      "GROUP BY cs.name");
+  if (r.is_null(0, 0)) {
+    throw StorageError(StorageError::Kind::kInvalidArgument,
+                       db.name() + ": no schema to use (search_path names none that exists)");
+  }
+  s.schema = r.get_text(0, 0);
+  s.has_version_table = r.get_int64(0, 1) > 0;
+  s.relations = r.get_int64(0, 2);
+  if (s.has_version_table) {
+    PgParams p;
+    p.add(int64_t{kApplicationId});
+    const PgResult v = db.execute(
+        "SELECT coalesce(max(version), 0), count(*) FILTER (WHERE application_id <> $1) "
+        "FROM magcal_schema_version",
+        p);
+    s.version = v.get_int64(0, 0);
+    s.foreign_rows = v.get_int64(0, 1);
+  }
+  return s;
+}
+
+}  // namespace
+
+int PgDatabase::schema_version() {
+  return static_cast<int>(read_schema_state(*this).version);
+}
+
+void PgDatabase::check_and_migrate(const OpenOptions& options) {
+  const auto all = pg_migrations();
+  const int latest = static_cast<int>(all.size());
+  const int target = options.migrate_to < 0 ? latest : options.migrate_to;
+  if (target > latest) {
+    throw StorageError(
+        StorageError::Kind::kInvalidArgument,
+        "migrate_to " + std::to_string(target) + " > known schema " + std::to_string(latest));
+  }
+  auto check = [&](const SchemaState& s) {
+    if (!s.has_version_table && s.relations == 0) return;  // empty: ours to initialise
+    if (!s.has_version_table) {
+      throw StorageError(StorageError::Kind::kForeignFile,
+                         name_ + " is not a magcal database (schema " + s.schema + " holds " +
+                             std::to_string(s.relations) +
+                             " tables or views, none magcal_schema_version)");
+    }
+    if (s.foreign_rows > 0) {
+      throw StorageError(StorageError::Kind::kForeignFile,
+                         name_ +
+                             " is not a magcal database (magcal_schema_version has another "
+                             "application_id)");
+    }
+    if (s.version > latest) {
+      throw StorageError(StorageError::Kind::kNewerSchema,
+                         name_ + " has schema version " + std::to_string(s.version) +
+                             ", newer than this magcal knows (" + std::to_string(latest) +
+                             "): upgrade magcal");
+    }
+  };
+
+  if (target == 0) return;  // no schema wanted: nothing to check (see OpenOptions::migrate_to)
+  SchemaState state = read_schema_state(*this);
+  check(state);
+  if (state.version >= target) return;
+  if (options.read_only) {
+    if (state.version == 0) {
+      throw StorageError(StorageError::Kind::kForeignFile,
+                         name_ + " is empty, not a magcal database");
+    }
+    throw StorageError(StorageError::Kind::kOlderSchema,
+                       name_ + " has schema version " + std::to_string(state.version) +
+                           "; open it once read-write (magcald or magcal refit) to upgrade");
+  }
+  // Each migration in its own transaction under the advisory lock; re-read the version under
+  // the lock because another daemon may have migrated meanwhile. The lock is released at
+  // commit, or by the server when a holder dies.
+  for (const Migration& m : all) {
+    if (m.version > target) break;
+    PgTransaction tx(*this);
+    // A migrating daemon is making progress (or dead, which frees the lock): wait for it.
+    exec("SET LOCAL lock_timeout = 0");
+    exec("SELECT pg_advisory_xact_lock(" + std::to_string(kPgLockClass) + ", " +
+         std::to_string(kPgMigrationLock) + ")");
+    state = read_schema_state(*this);
+    check(state);
+    if (m.version <= state.version) continue;
+    if (m.version != state.version + 1) {
+      throw StorageError(StorageError::Kind::kPostgres,
+                         "migration gap before " + std::string(m.name), "XX000", false);
+    }
+    if (!state.has_version_table) exec(kCreateVersionTable);
+    exec(m.sql);
+    PgParams p;
+    p.add(int64_t{m.version}).add(m.name).add(int64_t{kApplicationId}).add(MAGCAL_VERSION);
+    p.add(now_utime());
+    execute(
+        "INSERT INTO magcal_schema_version "
+        "(version, name, application_id, software_version, applied_utime) "
+        "VALUES ($1, $2, $3, $4, $5)",
+        p);
+    tx.commit();
+  }
+}
+
+PgTransaction::PgTransaction(PgDatabase& db, Isolation isolation) : db_(db) {
+  if (db_.open_transactions_ == 0) db_.ensure_connected();
+  nested_ = db_.in_transaction();
+  if (nested_) {
+    savepoint_ = "magcal_tx_" + std::to_string(db_.open_transactions_);
+    db_.exec("SAVEPOINT " + savepoint_);
+  } else {
+    switch (isolation) {
+      case Isolation::kReadCommitted:
+        db_.exec("BEGIN");
+        break;
+      case Isolation::kRepeatableRead:
+        db_.exec("BEGIN ISOLATION LEVEL REPEATABLE READ");
+        break;
+      case Isolation::kSerializable:
+        db_.exec("BEGIN ISOLATION LEVEL SERIALIZABLE");
+        break;
+    }
+  }
+  ++db_.open_transactions_;
+  open_ = true;
+}
+
+PgTransaction::~PgTransaction() {
+  --db_.open_transactions_;
+  if (!open_ || db_.conn_ == nullptr || PQstatus(db_.conn_) != CONNECTION_OK) return;
+  const std::string sql =
+      nested_ ? "ROLLBACK TO SAVEPOINT " + savepoint_ + "; RELEASE SAVEPOINT " + savepoint_
+              : "ROLLBACK";
+  PQclear(PQexec(db_.conn_, sql.c_str()));
+}
+
+void PgTransaction::commit() {
+  // COMMIT of a transaction an earlier statement aborted "succeeds" as a ROLLBACK: refuse it.
+  if (db_.conn_ != nullptr && PQtransactionStatus(db_.conn_) == PQTRANS_INERROR) {
+    throw StorageError(StorageError::Kind::kPostgres,
+                       db_.name() +
+                           ": cannot commit, an earlier statement of the transaction "
+                           "failed",
+                       "25P02", false);
+  }
+  db_.exec(nested_ ? "RELEASE SAVEPOINT " + savepoint_ : "COMMIT");
+  open_ = false;
+}
+
+}  // namespace magcal::storage

@@ -1,0 +1,129 @@
+// The PostgreSQL connection of magcal (fleet mode, design.md "Fleet"): opening a libpq URI,
+// schema migrations, statements, transactions and errors. The counterpart of
+// storage/database.hpp, with the same error policy and the same threading rule.
+//
+// Errors: every failure is a StorageError (Kind kPostgres unless a more specific kind applies)
+// carrying the SQLSTATE; transient() is true for what a retry can heal: the connection lost or
+// not established (class 08, and a lost connection without one), the server shutting down or
+// starting (57P01-57P03), serialization failure and deadlock (40001, 40P01), a lock not granted
+// in time (55P03), a query cancelled (57014), out of resources (class 53: disk full, too many
+// connections, ...), I/O (class 58) and a read-only server (25006: a standby being promoted).
+// Everything else (SQL, constraint, permission, a missing database or role, a foreign or newer
+// schema) is permanent. After a lost connection the same PgDatabase reconnects at its next
+// statement outside a transaction, so a caller heals a transient failure by retrying.
+//
+// Threads: one PgDatabase (one connection) belongs to one thread at a time; give each thread its
+// own, as with SQLite.
+//
+// Schema: numbered migrations (storage/postgres/pg_migrations.hpp), version N the same schema as
+// SQLite's version N, recorded one row per version in magcal_schema_version with
+// kApplicationId, the marker of a magcal database. A database whose current schema holds other
+// tables but not that one is foreign and refused, as is a version newer than this code knows.
+// Migrations run under a transaction-scoped advisory lock (kPgMigrationLock), each in its own
+// transaction that re-reads the version under the lock: daemons starting together migrate once.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <string_view>
+#include <unordered_map>
+
+#include "storage/database.hpp"
+#include "storage/postgres/pg_query.hpp"
+
+struct pg_conn;  // libpq's PGconn; <libpq-fe.h> stays out of public headers
+
+namespace magcal::storage {
+
+// A --db / db_path value naming a PostgreSQL database rather than an SQLite file.
+inline bool is_postgres_uri(std::string_view db) {
+  return db.starts_with("postgresql://") || db.starts_with("postgres://");
+}
+
+// The advisory lock (two-key form: class, object) held while migrating. Other magcal advisory
+// locks use kApplicationId as class too, with other objects.
+constexpr int32_t kPgLockClass = kApplicationId;
+constexpr int32_t kPgMigrationLock = 1;
+
+class PgDatabase {
+ public:
+  // `uri`: any libpq connection URI (postgresql:// or postgres://, e.g. with ?host=/socket/dir).
+  // Options as for SQLite: read_only never migrates or writes (the session is read-only);
+  // migrate_to builds an old schema for tests (0: connects without reading or checking the
+  // schema, for administration such as CREATE DATABASE); busy_timeout_ms becomes lock_timeout (a
+  // row or table lock not granted in time fails transient, as SQLite's busy timeout does). Throws
+  // StorageError.
+  explicit PgDatabase(const std::string& uri, const OpenOptions& options = {});
+  ~PgDatabase();
+  PgDatabase(PgDatabase&& other) noexcept;
+  PgDatabase& operator=(PgDatabase&& other) noexcept;
+  PgDatabase(const PgDatabase&) = delete;
+  PgDatabase& operator=(const PgDatabase&) = delete;
+
+  // Newest schema version this code knows (= number of embedded migrations).
+  static int latest_schema_version();
+  // The version recorded in the database (0: none).
+  int schema_version();
+
+  // The URI without its password, for messages and logs.
+  const std::string& name() const { return name_; }
+  bool read_only() const { return read_only_; }
+
+  // Runs one or more SQL statements without parameters or results (DDL, SET, tests).
+  void exec(std::string_view sql);
+  // One statement with $1..$n parameters.
+  PgResult execute(std::string_view sql, const PgParams& params = {},
+                   PgFormat format = PgFormat::kText);
+  // The same, prepared once per connection (keyed by the SQL text): for statements a writer or
+  // reader repeats. Parameter types are taken from `params` at the first call.
+  PgResult execute_prepared(std::string_view sql, const PgParams& params = {},
+                            PgFormat format = PgFormat::kText);
+
+  // The server process of this connection (pg_stat_activity.pid, pg_terminate_backend).
+  int backend_pid() const;
+  // Inside a transaction (PgTransaction, or an explicit BEGIN).
+  bool in_transaction() const;
+
+ private:
+  friend class PgTransaction;
+
+  void connect();
+  // Reconnects a lost connection, outside a transaction (see the header comment).
+  void ensure_connected();
+  void configure();
+  void check_and_migrate(const OpenOptions& options);
+  PgResult checked(pg_result* result, std::string_view sql);
+  [[noreturn]] void fail(std::string_view context, const pg_result* result = nullptr);
+
+  pg_conn* conn_ = nullptr;
+  std::string uri_;
+  std::string name_;
+  bool read_only_ = false;
+  int lock_timeout_ms_ = 5000;
+  int open_transactions_ = 0;  // PgTransaction objects alive on this connection
+  std::unordered_map<std::string, std::string> prepared_;  // SQL text -> statement name
+};
+
+// RAII transaction: BEGIN (READ COMMITTED, or the given isolation), rolled back on destruction
+// unless commit() was called. Inside an open transaction it becomes a SAVEPOINT, so a caller
+// can group several store calls into one commit. Where SQLite takes its write lock up front
+// (BEGIN IMMEDIATE), PostgreSQL locks rows as statements touch them: writers that may touch the
+// same rows keep one global key order (toolchain.md: deadlocks otherwise) and retry 40001 /
+// 40P01 (transient).
+class PgTransaction {
+ public:
+  enum class Isolation { kReadCommitted, kRepeatableRead, kSerializable };
+  explicit PgTransaction(PgDatabase& db, Isolation isolation = Isolation::kReadCommitted);
+  ~PgTransaction();
+  PgTransaction(const PgTransaction&) = delete;
+  PgTransaction& operator=(const PgTransaction&) = delete;
+  void commit();
+
+ private:
+  PgDatabase& db_;
+  bool open_ = false;
+  bool nested_ = false;
+  std::string savepoint_;
+};
+
+}  // namespace magcal::storage

@@ -1,0 +1,93 @@
+// Parameters and results of PostgreSQL statements (storage/postgres/pg_database.hpp runs them).
+//
+// Numbers travel in PostgreSQL's binary format both ways where the caller asks for it: no text
+// conversion, exact int64 and IEEE doubles (the text format is exact too since PostgreSQL 12,
+// shortest round-trip digits, but costs a conversion per value and 2.4-5.3x more read time,
+// toolchain.md). A PgParams is reusable: clear() keeps its buffers, so a writer that binds a
+// batch per call allocates nothing once warmed up.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+struct pg_result;  // libpq's PGresult; <libpq-fe.h> stays out of public headers
+
+namespace magcal::storage {
+
+// $1, $2, ... of one statement, in order.
+class PgParams {
+ public:
+  PgParams& add(int64_t value);  // bigint, binary
+  PgParams& add(int value) { return add(int64_t{value}); }
+  PgParams& add(double value);           // double precision, binary
+  PgParams& add(std::string_view text);  // text
+  PgParams& add(const char* text) { return add(std::string_view(text)); }
+  PgParams& add_bytes(std::span<const std::byte> bytes);  // bytea, binary
+  PgParams& add_null();                                   // NULL of a type the statement implies
+  template <typename T>
+  PgParams& add(const std::optional<T>& value) {
+    return value ? add(*value) : add_null();
+  }
+  void clear();
+  int size() const { return static_cast<int>(types_.size()); }
+
+  // For PgDatabase: libpq's parallel arrays (valid until the next add or clear).
+  const unsigned* types() const { return types_.data(); }
+  const char* const* values() const;
+  const int* lengths() const { return lengths_.data(); }
+  const int* formats() const { return formats_.data(); }
+
+ private:
+  PgParams& push(unsigned type, const void* data, std::size_t size, int format);
+
+  std::vector<unsigned> types_;
+  std::vector<int> lengths_, formats_;
+  std::vector<std::ptrdiff_t> offsets_;  // into bytes_; -1 for NULL
+  std::vector<char> bytes_;
+  mutable std::vector<const char*> values_;
+};
+
+enum class PgFormat { kText, kBinary };
+
+// The rows of one statement (RAII over a PGresult). Getters accept either result format and
+// the integer / float widths PostgreSQL may send (int2/int4/int8, float4/float8); a NULL, a
+// row or column out of range, or a value of another type throws StorageError(kInvalidArgument).
+class PgResult {
+ public:
+  explicit PgResult(pg_result* result = nullptr) : result_(result) {}
+  ~PgResult();
+  PgResult(PgResult&& other) noexcept;
+  PgResult& operator=(PgResult&& other) noexcept;
+  PgResult(const PgResult&) = delete;
+  PgResult& operator=(const PgResult&) = delete;
+
+  int rows() const;
+  int columns() const;
+  // Rows an INSERT / UPDATE / DELETE touched.
+  int64_t affected_rows() const;
+
+  bool is_null(int row, int column) const;
+  int64_t get_int64(int row, int column) const;
+  double get_double(int row, int column) const;
+  bool get_bool(int row, int column) const;
+  std::string get_text(int row, int column) const;
+  std::vector<std::byte> get_bytes(int row, int column) const;
+  std::optional<int64_t> get_optional_int64(int row, int column) const;
+  std::optional<double> get_optional_double(int row, int column) const;
+
+ private:
+  // The value's bytes; throws on NULL or out of range.
+  std::string_view raw(int row, int column) const;
+  bool binary(int column) const;
+  unsigned type(int column) const;
+  [[noreturn]] void wrong_type(int column, const char* wanted) const;
+
+  pg_result* result_ = nullptr;
+};
+
+}  // namespace magcal::storage

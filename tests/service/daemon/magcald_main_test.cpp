@@ -1,0 +1,96 @@
+// magcald's start-up messages (magcald_main.cpp, Daemon::open), run as the real binary: a
+// refused start prints one line on stderr that blames the flag or key at fault and names the
+// cause, points nowhere outside the repository, and leaves no database behind.
+#include <algorithm>
+#include <filesystem>
+#include <fstream>
+#include <string>
+#include <vector>
+
+#include <catch2/catch.hpp>
+
+#include "tests/service/cli_test_support.hpp"
+#include "tests/service/daemon_test_support.hpp"
+
+using magcal::test::run;
+using magcal::test::slurp;
+using magcal::test::TempDir;
+
+namespace {
+
+const std::string kMagcald = std::string(MAGCAL_BIN_DIR) + "/magcald";
+
+struct Refusal {
+  int exit_code = -1;
+  std::string text;  // stdout and stderr
+};
+
+// magcald with `args` (a fresh --db in `dir`, the operations server off unless given).
+Refusal start(const TempDir& dir, std::vector<std::string> args) {
+  args.insert(args.begin(), {kMagcald, "--db", dir.file("never.db")});
+  if (std::find(args.begin(), args.end(), "--http-listen") == args.end()) {
+    args.insert(args.end(), {"--http-listen", ""});
+  }
+  static int n = 0;
+  const std::string log = dir.file("magcald." + std::to_string(n++) + ".log");
+  Refusal r;
+  r.exit_code = run(args, log, 30);
+  r.text = slurp(log);
+  return r;
+}
+
+void check_one_line(const Refusal& r, const TempDir& dir) {
+  INFO(r.text);
+  CHECK(std::count(r.text.begin(), r.text.end(), '\n') == 1);
+  CHECK(r.text.rfind("magcald: ", 0) == 0);
+  CHECK(r.text.find(".md") == std::string::npos);  // no pointer to a document elsewhere
+  CHECK_FALSE(std::filesystem::exists(dir.file("never.db")));
+}
+
+}  // namespace
+
+TEST_CASE("a bad flag value is blamed on that flag alone") {
+  TempDir dir("magcald_main_flags");
+  // --http-listen given and valid, --log-level bad: only --log-level is named.
+  Refusal r = start(dir, {"--log-level", "loud"});
+  CHECK(r.exit_code == 1);
+  check_one_line(r, dir);
+  CHECK_THAT(r.text,
+             Catch::Contains("--log-level: expected trace|debug|info|warn|error|critical|off, "
+                             "got \"loud\""));
+  CHECK_THAT(r.text, !Catch::Contains("--http-listen"));
+  // And the other way round.
+  r = start(dir, {"--log-level", "warn", "--http-listen", "9780"});
+  CHECK(r.exit_code == 1);
+  check_one_line(r, dir);
+  CHECK_THAT(r.text, Catch::Contains("--http-listen: expected \"ADDR:PORT\""));
+  CHECK_THAT(r.text, !Catch::Contains("--log-level"));
+}
+
+TEST_CASE("an LCM URL that cannot be opened: one line of ours with LCM's reason, nothing else") {
+  TempDir dir("magcald_main_lcm");
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"bogus://x", "LCM provider \"bogus\" not found"},
+      {"udpm://300.1.1.1:7667", "Bad multicast IP address \"300.1.1.1\""},
+      {"udpm://239.255.76.67:99999", "Bad multicast port \"99999\""},
+      {"nonsense", "invalid URL [nonsense]"},
+      {"file://" + dir.file("none.lcm"), dir.file("none.lcm") + ": No such file or directory"},
+  };
+  for (const auto& [url, reason] : cases) {
+    const Refusal r = start(dir, {"--lcm-url", url});
+    INFO(url);
+    CHECK(r.exit_code == 2);
+    check_one_line(r, dir);
+    CHECK_THAT(r.text, Catch::Contains("--lcm-url '" + url + "': cannot open LCM URL: " + reason));
+    CHECK_THAT(r.text, !Catch::Contains("Error:"));  // LCM's own line is not printed
+  }
+  // Set in the config file instead, the key is named.
+  {
+    std::ofstream config(dir.file("bad-url.toml"));
+    config << "[lcm]\nurl = \"bogus://x\"\n";
+  }
+  const Refusal r = start(dir, {"--config", dir.file("bad-url.toml")});
+  CHECK(r.exit_code == 2);
+  check_one_line(r, dir);
+  CHECK_THAT(r.text, Catch::Contains("[lcm] url 'bogus://x': cannot open LCM URL: LCM provider"));
+}
