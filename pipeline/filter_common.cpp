@@ -6,8 +6,10 @@
 
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
+#include <Eigen/LU>
 
 #include "pipeline/hac_covariance.hpp"
+#include "pipeline/parameter_recovery.hpp"
 #include "pipeline/scalar_measurement.hpp"
 #include "pipeline/time_utc.hpp"
 
@@ -24,6 +26,10 @@ constexpr double kRelativeEigenFloor = 1e-14;
 constexpr double kTinyVariance = 1e-300;
 // Start attempts regardless of the pre-check at n = this x start_attempt_every x 2^k.
 constexpr int64_t kUnconditionalAttemptMultiple = 16;
+// Gauss-Newton steps of a block's bias (linear in c but for |b|^2: a few steps converge).
+constexpr int kBlockBiasIterations = 4;
+// Blocks before the bias trend is tested (its standard error has n - 2 degrees of freedom).
+constexpr int kBiasMotionMinBlocks = 6;
 
 bool is_finite(const Eigen::Vector3d& v) {
   return v.allFinite();
@@ -57,6 +63,8 @@ std::string FilterOptions::validate() const {
     return "noise_adaptation_samples must be >= 1";
   if (!(max_fisher_condition > 1.0)) return "max_fisher_condition must be > 1";
   if (fisher_every < 1) return "fisher_every must be >= 1";
+  if (std::isnan(bias_motion_block_hours)) return "bias_motion_block_hours must not be NaN";
+  if (!(bias_motion_chi2 >= 0.0)) return "bias_motion_chi2 must be >= 0";
   return {};
 }
 
@@ -86,7 +94,15 @@ bool FilterState::operator==(const FilterState& o) const {
          score_block == o.score_block && score_block_n == o.score_block_n &&
          score_meat == o.score_meat && score_blocks == o.score_blocks &&
          model_error_covariance == o.model_error_covariance &&
-         model_error_known == o.model_error_known;
+         model_error_known == o.model_error_known && bias_block_start_m == o.bias_block_start_m &&
+         bias_block_start_n == o.bias_block_start_n &&
+         bias_block_start_utime == o.bias_block_start_utime && bias_motion_n == o.bias_motion_n &&
+         bias_motion_sum_t_h == o.bias_motion_sum_t_h &&
+         bias_motion_sum_t2_h2 == o.bias_motion_sum_t2_h2 &&
+         bias_motion_sum_nT == o.bias_motion_sum_nT &&
+         bias_motion_sum_tm_nT_h == o.bias_motion_sum_tm_nT_h &&
+         bias_motion_sum_m2_nT2 == o.bias_motion_sum_m2_nT2 &&
+         bias_random_walk_nT2_per_hour == o.bias_random_walk_nT2_per_hour;
 }
 
 const char* to_string(FilterUpdateStatus s) {
@@ -360,7 +376,15 @@ CalibrationResult ScalarFilterBase::snapshot() const {
     r.message = "waiting for the first refit to measure the model error";
   } else if (!(bias_sigma.array() < options_.converged_bias_sigma_nT).all()) {
     r.status = CalibrationStatus::kNotConverged;
-    std::snprintf(buf, sizeof buf, "bias 1-sigma above %.3g nT", options_.converged_bias_sigma_nT);
+    if (state_.bias_random_walk_nT2_per_hour > 0.0) {
+      std::snprintf(buf, sizeof buf,
+                    "bias 1-sigma above %.3g nT: the bias moves (random walk %.3g nT/sqrt(h) "
+                    "measured) faster than the data observe it",
+                    options_.converged_bias_sigma_nT, bias_random_walk_nT_per_sqrt_hour());
+    } else {
+      std::snprintf(buf, sizeof buf, "bias 1-sigma above %.3g nT",
+                    options_.converged_bias_sigma_nT);
+    }
     r.message = buf;
   } else {
     r.status = CalibrationStatus::kOk;
@@ -404,7 +428,8 @@ bool ScalarFilterBase::begin_update(FilterUpdate& u, const Eigen::Vector3d& b_se
     if (state_.initialized) {
       const double dt_s =
           static_cast<double>(saturating_sub(utime, state_.last_utime)) / kMicrosecondsPerSecond;
-      const Vector9d q = process_noise_diagonal(options_.process_noise_per_sqrt_hour, dt_s);
+      Vector9d q = process_noise_diagonal(options_.process_noise_per_sqrt_hour, dt_s);
+      q.head<3>().array() += state_.bias_random_walk_nT2_per_hour * (dt_s / kSecondsPerHour);
       if ((q.array() > 0.0).any()) {
         // P + Q re-factorised (one 9x9 LLT is cheaper than nine serial rank-1 updates).
         Matrix9d P = state_.S * state_.S.transpose();
@@ -529,6 +554,7 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
   ++state_.n_accepted;
   u.status = FilterUpdateStatus::kAccepted;
   state_.moments.add(b_sensor_nT, y, 1.0 / scalar_noise_variance(b_sensor_nT, sigma), false);
+  track_bias_motion();
   if (++state_.samples_since_fisher >= options_.fisher_every) {
     state_.fisher_condition = moments_fisher_condition(state_.moments.matrix(), state_.x);
     state_.samples_since_fisher = 0;
@@ -566,6 +592,83 @@ void ScalarFilterBase::monitor(FilterUpdate& u) {
   }
   anchor_sandwich();  // the re-opened P forgets; so do the blocks
   update_convergence_time();
+}
+
+bool ScalarFilterBase::block_bias_given_scale(const ScalarMoments& block,
+                                              Eigen::Vector3d& bias_nT) const {
+  // Gauss-Newton on c = (I + D) b with E held at the filter's estimate (file comment).
+  const CalibrationParameters current = parameters();
+  Vector9d theta = theta_from_parameters(current);
+  const Matrix11d M = block.matrix();
+  Matrix9d F;
+  Vector9d g;
+  for (int iteration = 0; iteration < kBlockBiasIterations; ++iteration) {
+    if (!moments_cost(M, theta, nullptr, &F, &g)) return false;
+    const Eigen::LDLT<Eigen::Matrix3d> ldlt(F.topLeftCorner<3, 3>());
+    if (ldlt.info() != Eigen::Success || !(ldlt.vectorD().array() > 0.0).all()) return false;
+    theta.head<3>() -= ldlt.solve(g.head<3>());
+  }
+  bias_nT = (Eigen::Matrix3d::Identity() + current.D).inverse() * theta.head<3>();
+  return bias_nT.allFinite();
+}
+
+void ScalarFilterBase::track_bias_motion() {
+  if (!(options_.bias_motion_block_hours > 0.0)) return;
+  if (state_.bias_block_start_utime < 0) {
+    state_.bias_block_start_m = state_.moments.m;
+    state_.bias_block_start_n = state_.moments.n;
+    state_.bias_block_start_utime = state_.last_utime;
+    return;
+  }
+  const double block_hours = options_.bias_motion_block_hours;
+  const double elapsed_h = static_cast<double>(state_.last_utime - state_.bias_block_start_utime) /
+                           (kMicrosecondsPerSecond * kSecondsPerHour);
+  if (elapsed_h < block_hours) return;
+  // The block's own moments: the sums since its start (the lag-1 products are not needed).
+  ScalarMoments block;
+  block.m = state_.moments.m - state_.bias_block_start_m;
+  block.n = state_.moments.n - state_.bias_block_start_n;
+  state_.bias_block_start_m = state_.moments.m;
+  state_.bias_block_start_n = state_.moments.n;
+  state_.bias_block_start_utime = state_.last_utime;
+  Eigen::Vector3d m;
+  if (!block_bias_given_scale(block, m)) return;
+  const double t_h = static_cast<double>(state_.last_utime - state_.first_utime) /
+                         (kMicrosecondsPerSecond * kSecondsPerHour) -
+                     0.5 * elapsed_h;  // block centre
+  state_.bias_motion_n += 1;
+  state_.bias_motion_sum_t_h += t_h;
+  state_.bias_motion_sum_t2_h2 += t_h * t_h;
+  state_.bias_motion_sum_nT += m;
+  state_.bias_motion_sum_tm_nT_h += t_h * m;
+  state_.bias_motion_sum_m2_nT2 += m.cwiseAbs2();
+  const int n = state_.bias_motion_n;
+  if (n < kBiasMotionMinBlocks) return;
+  // Per axis: the least-squares trend of the block biases and its standard error from their own
+  // scatter about it (block noise, stationary model error and aliased fast motion alike).
+  const double Stt =
+      state_.bias_motion_sum_t2_h2 - state_.bias_motion_sum_t_h * state_.bias_motion_sum_t_h / n;
+  if (!(Stt > 0.0)) return;
+  const Eigen::Array3d Stm = state_.bias_motion_sum_tm_nT_h.array() -
+                             state_.bias_motion_sum_t_h * state_.bias_motion_sum_nT.array() / n;
+  const Eigen::Array3d Smm =
+      state_.bias_motion_sum_m2_nT2.array() - state_.bias_motion_sum_nT.array().square() / n;
+  const Eigen::Array3d rate = Stm / Stt;
+  const Eigen::Array3d se2 = ((Smm - rate * Stm) / (n - 2)).max(1e-300) / Stt;
+  const double chi2 = (rate.square() / se2).sum();
+  if (!(chi2 > options_.bias_motion_chi2)) {
+    state_.bias_random_walk_nT2_per_hour = 0.0;
+    return;
+  }
+  // Inverse-variance pooled rate^2 (unbiased: minus its variance), as the random walk with the
+  // same block-to-block excess: q^2 = 3 r^2 L (file comment).
+  const Eigen::Array3d w = se2.inverse();
+  const double rate2 = std::max(0.0, (w * (rate.square() - se2)).sum() / w.sum());
+  state_.bias_random_walk_nT2_per_hour = 3.0 * rate2 * block_hours;
+}
+
+double ScalarFilterBase::bias_random_walk_nT_per_sqrt_hour() const {
+  return std::sqrt(state_.bias_random_walk_nT2_per_hour);
 }
 
 void ScalarFilterBase::update_convergence_time() {

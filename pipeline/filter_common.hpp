@@ -65,6 +65,33 @@
 // stamp read P (cheap, per sample). With process noise (q > 0) A and old blocks are not forgotten
 // as P forgets them: C is then conservative.
 //
+// Bias motion (issue 20: drift, thermal swing without a temperature channel): a static filter
+// estimates the bias averaged over its memory; when the bias moves it stays close to that
+// average and its P (and the sandwich, which describes the scatter around the average) claims
+// the current bias to a fraction of the lag (measured: 1.5 nT/h drift + 10 nT thermal swing,
+// 24 h nadir, ok snapshots 5-6 sigma RMS off the current bias). So the filter measures how
+// fast the bias moves and gives the bias that random walk as process noise: P then grows by
+// the motion, the filter follows it, and where the data observe the bias too weakly to follow
+// (the orbit normal in nadir pointing) the sigma stays above converged_bias_sigma_nT:
+// not_converged, with the measured rate in the message. The measurement: every
+// bias_motion_block_hours (L) the bias of that block alone is solved from the moments since the
+// block started (filter_start.hpp), with D held at the filter's estimate (a short block solving
+// all nine parameters trades b against D: measured, 2 h nadir blocks tens of nT apart); the
+// block biases m_k are regressed on time per axis (running sums, fixed size), and the trend's
+// standard error comes from their own scatter about it, which holds what is the same or random
+// in every block (each block's noise, the stationary model error: nonlinearity, hysteresis), so
+// those are not mistaken for motion. Once sum_i (rate_i / se_i)^2 > bias_motion_chi2 (after 6
+// blocks), the rates are pooled with inverse-variance weights into one isotropic random walk
+// (the weakly observed axis gets the motion of the well-observed ones: the same physics moves
+// all three) with the same block-to-block excess as the trend, q^2 = 3 r^2 L (a random walk
+// gives E|m_k - m_{k-2}|^2 - E|m_k - m_{k-1}|^2 = q^2 L, a drift r gives 3 r^2 L^2).
+// Measured (filter_slow_bias_test, paper sensor, 4 seeds x 24 h): 1.5 nT/h drift + 10 nT swing
+// gives q up to 4.8 nT/sqrt(h) and no ok snapshot (was 53 ok, 46 of them beyond 3 sigma); the
+// constant-bias control never fires.
+// Blind spots: a bias oscillating within one block (an orbit-synchronous thermal swing) averages
+// out of the block means (that needs the temperature in the model); the trend covers all blocks
+// since the start, so a drift that stops keeps its process noise (conservative).
+//
 // Evidence (estimation.md 7, "online results carry evidence"): over the snapshot period (since
 // the filter started or reset_period()) the rms of |B_cal| - |h| (prior estimate, valid samples),
 // the mean NIS; the effective noise; and the scaled Fisher condition number of the information
@@ -143,6 +170,13 @@ struct FilterOptions {
   // share > 3 sigma on some axis: P alone 2.17 / 42 %; blocks of 60: 1.55 / 1.5 %; 120: 1.53 / 0;
   // 240: 1.54 / 0 (worst 2.90 sigma); 480: 1.60 / 3.3 %; 960: 1.83 / 9.3 %.
   int sandwich_block_samples = 240;
+  // Bias random walk measured from the data (file comment): block length in hours; <= 0 turns
+  // it off (the bias is then static unless process_noise_per_sqrt_hour says otherwise).
+  double bias_motion_block_hours = 2.0;
+  // The measured bias trend is used only when sum_i (rate_i / se_i)^2 exceeds this (chi2 with 3
+  // degrees of freedom, upper 0.1 % tail): a stationary sensor must not get process noise from
+  // the scatter of its block solutions.
+  double bias_motion_chi2 = 16.27;
 
   // Empty when valid, else what is wrong.
   std::string validate() const;
@@ -194,6 +228,20 @@ struct FilterState {
   // Model error (reanchor(), set_model_error_covariance()): added to the reported covariance.
   Matrix9d model_error_covariance = Matrix9d::Zero();
   bool model_error_known = false;  // set by reanchor() / set_model_error_covariance()
+
+  // Bias motion (file comment): the moments at the start of the current block, the running sums
+  // of the block-bias trend and the random-walk variance it implies (nT^2 per hour, isotropic;
+  // 0 = static).
+  PackedSymmetric11 bias_block_start_m = PackedSymmetric11::Zero();  // moments.m, .n then
+  int64_t bias_block_start_n = 0;
+  int64_t bias_block_start_utime = -1;  // -1: no block open
+  int32_t bias_motion_n = 0;  // solved blocks; sums over them of t (block centre, hours since
+  double bias_motion_sum_t_h = 0.0;  // first_utime), t^2, the block bias m, t m, m^2
+  double bias_motion_sum_t2_h2 = 0.0;
+  Eigen::Vector3d bias_motion_sum_nT = Eigen::Vector3d::Zero();
+  Eigen::Vector3d bias_motion_sum_tm_nT_h = Eigen::Vector3d::Zero();
+  Eigen::Vector3d bias_motion_sum_m2_nT2 = Eigen::Vector3d::Zero();
+  double bias_random_walk_nT2_per_hour = 0.0;
 
   // Snapshot period (since the start or reset_period()).
   int64_t period_start_utime = 0;
@@ -299,6 +347,8 @@ class ScalarFilterBase {
   // Current effective white-equivalent noise per axis (nT) and innovation lag-1 correlation.
   double measurement_noise_nT() const;
   double innovation_autocorrelation() const;
+  // The bias random walk measured from the data (nT per sqrt(hour), isotropic; 0 = static).
+  double bias_random_walk_nT_per_sqrt_hour() const;
 
   // The current estimate with its evidence (file comment). method "ekf"/"ukf".
   CalibrationResult snapshot() const;
@@ -333,6 +383,10 @@ class ScalarFilterBase {
   void anchor_sandwich();
   void monitor(FilterUpdate& u);
   void update_convergence_time();
+  void track_bias_motion();
+  // The bias of one block's moments with D held at the current estimate. False when not
+  // solvable.
+  bool block_bias_given_scale(const ScalarMoments& block, Eigen::Vector3d& bias_nT) const;
   double correlation_inflation() const;
 };
 

@@ -218,6 +218,17 @@ storage::FilterState stored_filter_state(const std::string& sat_id, const std::s
   put(b, st.score_blocks);
   for (int i = 0; i < st.model_error_covariance.size(); ++i) put(b, st.model_error_covariance(i));
   put(b, static_cast<uint8_t>(st.model_error_known ? 1 : 0));
+  // Appended later: the bias-motion measurement (filter_common.hpp).
+  put(b, st.bias_block_start_utime);
+  for (int i = 0; i < st.bias_block_start_m.size(); ++i) put(b, st.bias_block_start_m(i));
+  put(b, st.bias_block_start_n);
+  put(b, st.bias_motion_n);
+  put(b, st.bias_motion_sum_t_h);
+  put(b, st.bias_motion_sum_t2_h2);
+  for (int i = 0; i < 3; ++i) put(b, st.bias_motion_sum_nT(i));
+  for (int i = 0; i < 3; ++i) put(b, st.bias_motion_sum_tm_nT_h(i));
+  for (int i = 0; i < 3; ++i) put(b, st.bias_motion_sum_m2_nT2(i));
+  put(b, st.bias_random_walk_nT2_per_hour);
   return out;
 }
 
@@ -288,6 +299,18 @@ bool filter_state_from_stored(const storage::FilterState& in, FilterState& out) 
     ok = ok && get(b, pos, known);
     if (!ok) return false;
     st.model_error_known = known != 0;
+  }
+  if (pos < b.size()) {  // appended after the model error: the bias-motion measurement
+    ok = get(b, pos, st.bias_block_start_utime);
+    for (int i = 0; ok && i < st.bias_block_start_m.size(); ++i)
+      ok = get(b, pos, st.bias_block_start_m(i));
+    ok = ok && get(b, pos, st.bias_block_start_n) && get(b, pos, st.bias_motion_n) &&
+         get(b, pos, st.bias_motion_sum_t_h) && get(b, pos, st.bias_motion_sum_t2_h2);
+    for (int i = 0; ok && i < 3; ++i) ok = get(b, pos, st.bias_motion_sum_nT(i));
+    for (int i = 0; ok && i < 3; ++i) ok = get(b, pos, st.bias_motion_sum_tm_nT_h(i));
+    for (int i = 0; ok && i < 3; ++i) ok = get(b, pos, st.bias_motion_sum_m2_nT2(i));
+    ok = ok && get(b, pos, st.bias_random_walk_nT2_per_hour);
+    if (!ok) return false;
   }
   st.has_time = has_time != 0;
   st.has_previous_innovation = has_prev != 0;
