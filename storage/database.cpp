@@ -232,15 +232,20 @@ void Database::configure(const OpenOptions& options) {
   exec("PRAGMA synchronous = NORMAL");
 }
 
-void Database::check_and_migrate(const OpenOptions& options) {
-  const auto all = migrations();
-  const int latest = static_cast<int>(all.size());
+int migration_target(const OpenOptions& options, int latest) {
   const int target = options.migrate_to < 0 ? latest : options.migrate_to;
   if (target > latest) {
     throw StorageError(
         StorageError::Kind::kInvalidArgument,
         "migrate_to " + std::to_string(target) + " > known schema " + std::to_string(latest));
   }
+  return target;
+}
+
+void Database::check_and_migrate(const OpenOptions& options) {
+  const auto all = migrations();
+  const int latest = static_cast<int>(all.size());
+  const int target = migration_target(options, latest);
 
   auto check = [&](int64_t app_id, int64_t version, bool empty) {
     if (app_id == 0 && version == 0 && empty) return;  // a new file: ours to initialise

@@ -94,6 +94,10 @@ struct OpenOptions {
   int busy_timeout_ms = 5000;
 };
 
+// The schema version an open should reach: options.migrate_to, or `latest` when it is -1.
+// Throws StorageError (kInvalidArgument) for a version beyond `latest`. Both backends use it.
+int migration_target(const OpenOptions& options, int latest);
+
 class Database {
  public:
   // `path` may be ":memory:". Throws StorageError.

@@ -300,12 +300,7 @@ int PgDatabase::schema_version() {
 void PgDatabase::check_and_migrate(const OpenOptions& options) {
   const auto all = pg_migrations();
   const int latest = static_cast<int>(all.size());
-  const int target = options.migrate_to < 0 ? latest : options.migrate_to;
-  if (target > latest) {
-    throw StorageError(
-        StorageError::Kind::kInvalidArgument,
-        "migrate_to " + std::to_string(target) + " > known schema " + std::to_string(latest));
-  }
+  const int target = migration_target(options, latest);
   auto check = [&](const SchemaState& s) {
     if (!s.has_version_table && s.relations == 0) return;  // empty: ours to initialise
     if (!s.has_version_table) {
