@@ -5,6 +5,11 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 deploy/setup-deps.sh
-cmake -S . -B build -DCMAKE_BUILD_TYPE=Release >/dev/null
+# As deploy/run-tests.sh: the compiler cache, and Ninja for a new build folder (an existing one
+# keeps its generator), so the two commands share one build tree and its cache.
+generator=()
+[ -f build/CMakeCache.txt ] || generator=(-G Ninja)
+cmake -S . -B build "${generator[@]}" -DCMAKE_BUILD_TYPE=Release \
+  -DCMAKE_CXX_COMPILER_LAUNCHER=ccache >/dev/null
 cmake --build build -j2 --target magcal magcald
 exec deploy/demo.sh "$PWD/build/bin"
