@@ -28,9 +28,9 @@ echo "== 1. simulate 24 h of the paper scenario (one spacecraft, 10 s samples, 2
 # first day has too few samples ([refit] min_samples) and is skipped; 08:00 (an 8 h window),
 # 14:00 and 20:00 run. On top of the schedule a new spacecraft gets early refits, at
 # [refit] min_samples stored samples and each time they grow by [refit] early_growth (sqrt 2),
-# until its data span the 12 h window. The UKF starts from a batch solution of its first samples once they
-# observe the parameters, adapts its noise to what the data show, and is re-anchored on every
-# accepted refit.
+# until its data span the 12 h window. The UKF starts from a batch solution of its first
+# samples once they observe the parameters, adapts its noise to what the data show, and is
+# re-anchored on every accepted refit.
 cat > magcald.toml <<'TOML'
 [refit]
 clock = "data"
