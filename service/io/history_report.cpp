@@ -62,6 +62,12 @@ std::optional<storage::HistoryQuery> parse_history_request(const HistoryRequest&
       return std::nullopt;
     }
   }
+  // Both bounds are inclusive: since > until selects nothing, which is a mistake, not a query.
+  if (q.since_utime && q.until_utime && *q.since_utime > *q.until_utime) {
+    *error = option_prefix + "since '" + request.since + "' is after " + option_prefix + "until '" +
+             request.until + "'";
+    return std::nullopt;
+  }
   if (request.limit && *request.limit <= 0) {
     *error = option_prefix + "limit must be at least 1";
     return std::nullopt;

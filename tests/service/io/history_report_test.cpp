@@ -153,6 +153,9 @@ TEST_CASE("parse_history_request names the bad parameter with the caller's prefi
   REQUIRE(error == "--since 'soon' is not an ISO 8601 UTC time (e.g. 2026-01-01T12:00:00Z)");
   REQUIRE_FALSE(parse_history_request(r, "", &error));
   REQUIRE(error.rfind("since 'soon'", 0) == 0);
+  r.since = "2020-01-03T00:00:00Z";  // after until: an empty range is a mistake
+  REQUIRE_FALSE(parse_history_request(r, "--", &error));
+  REQUIRE(error == "--since '2020-01-03T00:00:00Z' is after --until '2020-01-02T00:00:00.5Z'");
   r.since.clear();
   r.method = "lsq";
   REQUIRE_FALSE(parse_history_request(r, "", &error));
