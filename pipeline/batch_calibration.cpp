@@ -5,6 +5,7 @@
 #include <cstdio>
 #include <limits>
 #include <random>
+#include <vector>
 
 #include <Eigen/Eigenvalues>
 
@@ -415,15 +416,20 @@ bool bootstrap_bias(const SampleSet& samples, const CalibrationParameters& p, do
   lopt.hac = false;
   std::mt19937_64 rng(0x6d616763616cULL ^ samples.size());  // reproducible per window size
   std::normal_distribution<double> normal(0.0, 1.0);
+  // The noiseless part of every replicate, (I + D)^-1 (|h_k| u_k + b), is the same in each.
+  std::vector<Eigen::Vector3d> noiseless(samples.size());
+  for (std::size_t k = 0; k < samples.size(); ++k) {
+    const Eigen::Vector3d y = p.apply(samples[k].b_sensor_nT);
+    noiseless[k] = to_sensor * (samples[k].h_body_nT.norm() / y.norm() * y + p.bias_nT);
+  }
+  const Eigen::Matrix3d noise_to_sensor = noise_nT * to_sensor;
   SampleSet replicate = samples;
   Eigen::Matrix<double, 9, Eigen::Dynamic> estimates(9, options.bootstrap_replicates);
   int n = 0;
   for (int rep = 0; rep < options.bootstrap_replicates; ++rep) {
     for (std::size_t k = 0; k < samples.size(); ++k) {
-      const Eigen::Vector3d y = p.apply(samples[k].b_sensor_nT);
       const Eigen::Vector3d e(normal(rng), normal(rng), normal(rng));
-      replicate[k].b_sensor_nT =
-          to_sensor * (samples[k].h_body_nT.norm() / y.norm() * y + p.bias_nT + noise_nT * e);
+      replicate[k].b_sensor_nT = noiseless[k] + noise_to_sensor * e;
     }
     const LmResult lm = refine_lm(replicate, theta, lopt);
     if (lm.status != LmStatus::kOk && lm.status != LmStatus::kNotConverged) continue;
