@@ -77,6 +77,18 @@ struct CalibrationResult {
   // Covariance of [nonlinearity_k3; hysteresis_nT] ((1/nT)^2, nT^2; HAC, as `covariance`).
   Matrix6d extension_covariance = Matrix6d::Zero();
 
+  // Bias temperature model (issue 20), when the data support it (BIC) and enough samples carry
+  // a temperature: b(T) = bias_nT + k_T (T - reference_temperature_C), k_T per axis in nT/degC;
+  // `parameters.bias_nT` and `covariance` are then those of the bias at the reference temperature
+  // (the mean temperature of the samples used). Covariance of k_T in (nT/degC)^2.
+  bool has_temperature_model = false;
+  double reference_temperature_C = std::numeric_limits<double>::quiet_NaN();
+  Eigen::Vector3d temperature_coefficient_nT_per_C = Eigen::Vector3d::Zero();
+  Eigen::Matrix3d temperature_coefficient_covariance = Eigen::Matrix3d::Zero();
+  Eigen::Vector3d temperature_coefficient_sigma_nT_per_C() const {
+    return temperature_coefficient_covariance.diagonal().cwiseMax(0.0).cwiseSqrt();
+  }
+
   // Batch refits that took the extension: p_9 - p, where the 9-parameter model's optimum lies on
   // this window relative to the published p (what an estimator without the extension, such as
   // the online filters, converges to instead). Zero otherwise.

@@ -6,6 +6,7 @@
 #pragma once
 
 #include <cstdint>
+#include <limits>
 #include <vector>
 
 #include <Eigen/Core>
@@ -57,6 +58,9 @@ struct CalibrationSample {
   // is meaningful (stage 1 uses |h| only); stage 2 (alignment) skips such samples.
   Eigen::Vector3d h_body_nT = Eigen::Vector3d::Zero();
   bool has_reference_direction = true;
+  // Sensor temperature, deg C; NaN = unknown. The bias temperature model (issue 20) uses only
+  // samples that carry it.
+  double temperature_C = std::numeric_limits<double>::quiet_NaN();
 };
 
 using SampleSet = std::vector<CalibrationSample>;
