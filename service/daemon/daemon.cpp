@@ -161,17 +161,15 @@ struct Daemon::Impl {
 
   void on_snapshot(const std::string& sat, const CalibrationResult& snap) {
     publisher->publish(message_from_result(sat, snap));
-    if (metrics) {
-      const Eigen::Vector3d sigma = snap.bias_sigma_nT();
-      const Eigen::Vector3d& bias = snap.parameters.bias_nT;
-      metrics->set_ukf(metrics->spacecraft(sat), {bias.x(), bias.y(), bias.z()},
-                       {sigma.x(), sigma.y(), sigma.z()}, snap.accepted);
-    }
+    const Eigen::Vector3d sigma = snap.bias_sigma_nT();
+    const Eigen::Vector3d& bias = snap.parameters.bias_nT;
+    counters.spacecraft.spacecraft(sat).set_ukf_snapshot(
+        {true, {bias.x(), bias.y(), bias.z()}, {sigma.x(), sigma.y(), sigma.z()}, snap.accepted});
   }
 
-  void count_refit(const std::string& sat, http::DaemonMetrics::RefitVerdict verdict,
+  void count_refit(const std::string& sat, SpacecraftCounters::RefitVerdict verdict,
                    int64_t utime) {
-    if (metrics) metrics->count_refit(metrics->spacecraft(sat), verdict, utime);
+    counters.spacecraft.spacecraft(sat).count_refit(verdict, utime);
   }
 
   // /-/healthy: ingest, storage and the scheduler work. A dead thread or storage broken past
@@ -191,6 +189,26 @@ struct Daemon::Impl {
     t.queue_depth = queue->depth_samples();
     t.queue_overflow = queue->overflow_samples();
     t.storage_healthy = counters.storage_healthy();
+    counters.spacecraft.for_each([&t](const SpacecraftCounters& c) {
+      http::DaemonMetrics::SpacecraftTotals s;
+      s.sat_label = c.sat_label;
+      s.received = c.received.load(std::memory_order_relaxed);
+      s.stored = c.stored.load(std::memory_order_relaxed);
+      s.missing = c.missing.load(std::memory_order_relaxed);
+      s.refits_accepted = c.refits_accepted.load(std::memory_order_relaxed);
+      s.refits_rejected = c.refits_rejected.load(std::memory_order_relaxed);
+      s.refits_error = c.refits_error.load(std::memory_order_relaxed);
+      s.last_refit_success_utime = c.last_refit_success_utime.load(std::memory_order_relaxed);
+      const SpacecraftCounters::UkfSnapshot ukf = c.ukf_snapshot();
+      s.has_ukf_snapshot = ukf.present;
+      s.ukf_bias_nT = ukf.bias_nT;
+      s.ukf_bias_sigma_nT = ukf.bias_sigma_nT;
+      s.ukf_accepted = ukf.accepted;
+      t.spacecraft.push_back(std::move(s));
+    });
+    const auto buckets = counters.commit_seconds.bucket_counts();
+    t.commit_bucket_counts.assign(buckets.begin(), buckets.end());
+    t.commit_sum_s = counters.commit_seconds.sum_s();
     return t;
   }
 
@@ -257,7 +275,7 @@ struct Daemon::Impl {
       counters.refits_run.fetch_add(1);
       if (out.kind == RefitOutcome::Kind::kError) {
         counters.refits_failed.fetch_add(1);
-        count_refit(sat, http::DaemonMetrics::RefitVerdict::kError, 0);
+        count_refit(sat, SpacecraftCounters::RefitVerdict::kError, 0);
         spdlog::error("refit {}: {}", sat, out.message);
         continue;
       }
@@ -268,8 +286,8 @@ struct Daemon::Impl {
       counters.set_last_refit(sat, r.utime);
       // The verdict as stored in the history (magcal serve counts the same rows).
       count_refit(sat,
-                  r.accepted ? http::DaemonMetrics::RefitVerdict::kAccepted
-                             : http::DaemonMetrics::RefitVerdict::kRejected,
+                  r.accepted ? SpacecraftCounters::RefitVerdict::kAccepted
+                             : SpacecraftCounters::RefitVerdict::kRejected,
                   r.utime);
       publisher->publish(message_from_result(sat, r));
       const Eigen::Vector3d sb = r.bias_sigma_nT();
@@ -430,7 +448,11 @@ std::string Daemon::open() {
     d.publisher = std::make_unique<LcmPublisher>();  // replay without publish_url: no output
   }
   d.queue = std::make_unique<IngestQueue>(c.service.queue_capacity_samples, d.replay);
-  if (!c.http.listen.empty()) d.metrics = std::make_unique<http::DaemonMetrics>(MAGCAL_VERSION);
+  if (!c.http.listen.empty()) {
+    d.metrics = std::make_unique<http::DaemonMetrics>(
+        MAGCAL_VERSION, std::vector<double>(CommitLatencyHistogram::kUpperBounds_s.begin(),
+                                            CommitLatencyHistogram::kUpperBounds_s.end()));
+  }
   // The listen socket before the database, for the same reason as LCM.
   if (std::string e = d.bind_server(); !e.empty()) return e;
   try {
@@ -440,8 +462,7 @@ std::string Daemon::open() {
             [&d](const std::string& sat, const CalibrationResult& r) { d.on_snapshot(sat, r); },
             [&d](const std::string& sat, int64_t t, const char* trigger) {
               d.on_refit_due(sat, t, trigger);
-            }},
-        d.metrics.get());
+            }});
     d.refit_db = std::make_unique<storage::Database>(
         c.storage.db_path, storage::OpenOptions{.busy_timeout_ms = c.storage.busy_timeout_ms});
     d.refits = std::make_unique<RefitRunner>(d.config, *d.refit_db);
@@ -466,8 +487,7 @@ int Daemon::run(const std::atomic<bool>& stop) {
   std::thread worker([&d] { d.worker_thread(); });
   std::thread refitter([&d] { d.refit_thread(); });
 
-  LcmIngest ingest(*d.lcm, c.lcm.samples_channel, c.lcm.batch_channel, *d.queue, d.counters,
-                   d.metrics.get());
+  LcmIngest ingest(*d.lcm, c.lcm.samples_channel, c.lcm.batch_channel, *d.queue, d.counters);
   // The database is open (open()) and the subscription live (the constructor): /-/ready says
   // so, systemd may start what is ordered after magcald, and the watchdog runs from here.
   d.lcm_live.store(true);

@@ -1,5 +1,8 @@
 #include "service/daemon/health.hpp"
 
+#include <algorithm>
+#include <cmath>
+
 #include <fmt/format.h>
 
 namespace magcal {
@@ -46,6 +49,56 @@ const char* to_string(RejectReason r) {
       break;
   }
   return "unknown";
+}
+
+void SpacecraftCounters::count_refit(RefitVerdict verdict, int64_t result_utime) {
+  switch (verdict) {
+    case RefitVerdict::kAccepted:
+      refits_accepted.fetch_add(1, std::memory_order_relaxed);
+      last_refit_success_utime.store(result_utime, std::memory_order_relaxed);
+      break;
+    case RefitVerdict::kRejected:
+      refits_rejected.fetch_add(1, std::memory_order_relaxed);
+      break;
+    case RefitVerdict::kError:
+      refits_error.fetch_add(1, std::memory_order_relaxed);
+      break;
+  }
+}
+
+SpacecraftCounters& SpacecraftCounterTable::spacecraft(const std::string& sat_id) {
+  std::lock_guard lock(mutex_);
+  if (const auto it = by_sat_.find(sat_id); it != by_sat_.end()) return *it->second;
+  const std::string label = by_sat_.size() >= kMaxSpacecraft ? kOther : sat_id;
+  if (const auto it = by_sat_.find(label); it != by_sat_.end()) return *it->second;
+  auto c = std::make_unique<SpacecraftCounters>();
+  c->sat_label = label;
+  return *by_sat_.emplace(label, std::move(c)).first->second;
+}
+
+void SpacecraftCounterTable::for_each(
+    const std::function<void(const SpacecraftCounters&)>& visit) const {
+  std::lock_guard lock(mutex_);
+  for (const auto& [sat, counters] : by_sat_) visit(*counters);
+}
+
+void CommitLatencyHistogram::observe(double seconds) {
+  const auto bucket =
+      static_cast<size_t>(std::lower_bound(kUpperBounds_s.begin(), kUpperBounds_s.end(), seconds) -
+                          kUpperBounds_s.begin());
+  counts_[bucket].fetch_add(1, std::memory_order_relaxed);
+  sum_ns_.fetch_add(static_cast<int64_t>(std::llround(seconds * 1e9)), std::memory_order_relaxed);
+}
+
+std::array<int64_t, CommitLatencyHistogram::kBuckets> CommitLatencyHistogram::bucket_counts()
+    const {
+  std::array<int64_t, kBuckets> out{};
+  for (size_t i = 0; i < kBuckets; ++i) out[i] = counts_[i].load(std::memory_order_relaxed);
+  return out;
+}
+
+double CommitLatencyHistogram::sum_s() const {
+  return static_cast<double>(sum_ns_.load(std::memory_order_relaxed)) * 1e-9;
 }
 
 int64_t DaemonCounters::rejected_total() const {

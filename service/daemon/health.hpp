@@ -14,8 +14,11 @@
 #include <array>
 #include <atomic>
 #include <cstdint>
+#include <functional>
+#include <memory>
 #include <mutex>
 #include <string>
+#include <unordered_map>
 
 #include "schemas/magcal_messages.hpp"
 
@@ -45,6 +48,86 @@ enum class RejectReason : int {
 constexpr int kRejectReasonCount = static_cast<int>(RejectReason::kCount);
 const char* to_string(RejectReason r);  // "decode_error", "wrong_type", ...
 
+// One spacecraft's counters. The daemon keeps them once; /metrics (service/http/metrics.hpp)
+// reads them at scrape time, so the per-sample path is one relaxed atomic add and knows no
+// metrics library.
+struct SpacecraftCounters {
+  std::string sat_label;  // the spacecraft id, or SpacecraftCounterTable::kOther past the cap
+  std::atomic<int64_t> received{0};
+  std::atomic<int64_t> stored{0};
+  std::atomic<int64_t> missing{0};  // implied by gaps in seq
+  std::atomic<int64_t> refits_accepted{0};
+  std::atomic<int64_t> refits_rejected{0};
+  std::atomic<int64_t> refits_error{0};  // a refit that produced no result
+  // Data time of the newest accepted refit (its t_ref), 0 = none.
+  std::atomic<int64_t> last_refit_success_utime{0};
+
+  // The newest stored UKF snapshot: bias and its 1-sigma (nT, sensor frame), and its verdict.
+  struct UkfSnapshot {
+    bool present = false;
+    std::array<double, 3> bias_nT{};
+    std::array<double, 3> bias_sigma_nT{};
+    bool accepted = false;
+  };
+  void set_ukf_snapshot(const UkfSnapshot& s) {
+    std::lock_guard lock(snapshot_mutex_);
+    ukf_ = s;
+    ukf_.present = true;
+  }
+  UkfSnapshot ukf_snapshot() const {
+    std::lock_guard lock(snapshot_mutex_);
+    return ukf_;
+  }
+
+  enum class RefitVerdict { kAccepted, kRejected, kError };
+  // A refit that ran; an accepted one also sets the last-success time (its result's utime).
+  void count_refit(RefitVerdict verdict, int64_t result_utime);
+
+ private:
+  mutable std::mutex snapshot_mutex_;  // a snapshot is 7 values, written once a minute
+  UkfSnapshot ukf_;
+};
+
+// The spacecraft counters by id. Thread-safe; a reference stays valid for the life of the table,
+// so threads cache it and count without a lookup. Corrupt or hostile ids must not grow it without
+// bound: past kMaxSpacecraft distinct ids, later ones share the entry kOther.
+class SpacecraftCounterTable {
+ public:
+  static constexpr size_t kMaxSpacecraft = 4096;
+  static constexpr const char* kOther = "(other)";
+
+  SpacecraftCounters& spacecraft(const std::string& sat_id);
+  // Calls visit(counters) for every entry, in no particular order, under the table's lock
+  // (visit must not call back into the table).
+  void for_each(const std::function<void(const SpacecraftCounters&)>& visit) const;
+
+ private:
+  mutable std::mutex mutex_;
+  std::unordered_map<std::string, std::unique_ptr<SpacecraftCounters>> by_sat_;
+};
+
+// Duration of each sample-batch transaction (failed ones too: a lock wait shows as a long
+// commit), in fixed buckets so that the daemon counts it lock-free and /metrics exposes it as
+// the histogram magcal_sqlite_commit_seconds.
+class CommitLatencyHistogram {
+ public:
+  // Upper bounds, s: 100 µs (a small batch in WAL mode) to 10 s (past SQLite's default busy
+  // timeout of 5 s, so lock waits land in a finite bucket). One more bucket counts +Inf.
+  static constexpr std::array<double, 16> kUpperBounds_s{
+      0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025,
+      0.05,   0.1,     0.25,   0.5,   1.0,    2.5,   5.0,  10.0};
+  static constexpr size_t kBuckets = kUpperBounds_s.size() + 1;
+
+  void observe(double seconds);
+  // Per-bucket counts (not cumulative; the last is +Inf) and the sum of the observations, s.
+  std::array<int64_t, kBuckets> bucket_counts() const;
+  double sum_s() const;
+
+ private:
+  std::array<std::atomic<int64_t>, kBuckets> counts_{};
+  std::atomic<int64_t> sum_ns_{0};
+};
+
 // Thread-safe counters (relaxed atomics: they are statistics, not synchronisation).
 struct DaemonCounters {
   std::atomic<int64_t> received{0};
@@ -64,6 +147,8 @@ struct DaemonCounters {
   std::atomic<int64_t> storage_failures{0};
   std::atomic<int64_t> storage_retries{0};
   std::atomic<int64_t> storage_pending{0};
+  SpacecraftCounterTable spacecraft;
+  CommitLatencyHistogram commit_seconds;
 
   bool storage_healthy() const { return storage_failing_paths.load() == 0; }
 

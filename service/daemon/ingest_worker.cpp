@@ -48,11 +48,9 @@ int64_t snapshot_period_utime(const DaemonConfig& c) {
 }  // namespace
 
 IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
-                           std::unique_ptr<ReferenceField> field, Hooks hooks,
-                           http::DaemonMetrics* metrics)
+                           std::unique_ptr<ReferenceField> field, Hooks hooks)
     : config_(config),
       counters_(counters),
-      metrics_(metrics),
       field_(std::move(field)),
       hooks_(std::move(hooks)),
       validator_(validator_options(config)),
@@ -175,8 +173,8 @@ void IngestWorker::process(const IngestItem& item) {
 SpacecraftTracker& IngestWorker::tracker(const std::string& sat_id, bool* created) {
   bool is_new = false;
   SpacecraftTracker& t = fleet_.get(sat_id, &is_new);
-  // Its series are looked up once, here; the per-sample path uses the cached pointer.
-  if (is_new && metrics_) t.metrics = &metrics_->spacecraft(sat_id);
+  // Its counters are looked up once, here; the per-sample path uses the cached pointer.
+  if (is_new) t.counters = &counters_.spacecraft.spacecraft(sat_id);
   if (is_new && data_schedule_) t.data_refits.emplace(*data_schedule_);
   if (is_new) t.next_early_refit_samples = config_.early_refits().next_after(0);
   if (created) *created = is_new;
@@ -187,7 +185,7 @@ void IngestWorker::count_missing(SpacecraftTracker& t, int64_t seq) {
   const int64_t missing = t.observe_seq(seq);
   if (missing == 0) return;
   counters_.missing_by_seq.fetch_add(missing, std::memory_order_relaxed);
-  if (t.metrics) t.metrics->missing->Increment(static_cast<double>(missing));
+  t.counters->missing.fetch_add(missing, std::memory_order_relaxed);
 }
 
 void IngestWorker::count_stored(size_t begin, size_t end) {
@@ -197,8 +195,8 @@ void IngestWorker::count_stored(size_t begin, size_t end) {
   int64_t run_stored = 0;
   auto flush_run = [&](size_t at) {
     if (run_stored > 0) {
-      if (SpacecraftTracker* t = fleet_.find(pending_[run_start].sat_id); t && t->metrics) {
-        t->metrics->stored->Increment(static_cast<double>(run_stored));
+      if (SpacecraftTracker* t = fleet_.find(pending_[run_start].sat_id)) {
+        t->counters->stored.fetch_add(run_stored, std::memory_order_relaxed);
       }
     }
     run_stored = 0;
@@ -514,18 +512,15 @@ void IngestWorker::commit_pending() {
         const auto t0 = std::chrono::steady_clock::now();
         // Every attempt is timed, a failed one too (a lock wait shows as a long commit).
         struct ObserveOnExit {
-          http::DaemonMetrics* metrics;
+          CommitLatencyHistogram& histogram;
           std::chrono::steady_clock::time_point t0;
           ~ObserveOnExit() {
-            if (metrics) {
-              metrics->observe_commit_seconds(
-                  std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
-            }
+            histogram.observe(
+                std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
           }
-        } observe{metrics_, t0};
+        } observe{counters_.commit_seconds, t0};
         storage::Transaction tx(db_);
-        stats = samples_.insert_batch(std::span(pending_).subspan(done, n),
-                                      metrics_ ? &duplicate_rows_ : nullptr);
+        stats = samples_.insert_batch(std::span(pending_).subspan(done, n), &duplicate_rows_);
         if (last) {
           for (const auto& [sat, snap] : pending_snapshots_) {
             history_.append(record_from_result(sat, snap));
@@ -538,7 +533,7 @@ void IngestWorker::commit_pending() {
         }
         tx.commit();
       }
-      if (metrics_) count_stored(done, done + n);
+      count_stored(done, done + n);
       done += n;
       counters_.stored.fetch_add(stats.inserted, std::memory_order_relaxed);
       // Duplicates the in-memory check could not see (e.g. within one frame).

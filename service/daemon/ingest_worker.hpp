@@ -48,7 +48,6 @@
 #include "service/daemon/spacecraft_tracker.hpp"
 #include "service/daemon/storage_retry.hpp"
 #include "service/daemon/throttled_log.hpp"
-#include "service/http/metrics.hpp"
 #include "service/io/reference_field.hpp"
 #include "storage/calibration_history.hpp"
 #include "storage/database.hpp"
@@ -74,12 +73,10 @@ class IngestWorker {
         on_refit_due;
   };
 
-  // Opens its own connection to config.storage.db_path (throws storage::StorageError).
-  // `metrics` (optional, must outlive the worker): per-spacecraft stored and missing counts and
-  // the commit-latency histogram (service/http/metrics.hpp).
+  // Opens its own connection to config.storage.db_path (throws storage::StorageError). Counts
+  // in `counters` (must outlive the worker), per spacecraft too, and times each commit.
   IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
-               std::unique_ptr<ReferenceField> field, Hooks hooks,
-               http::DaemonMetrics* metrics = nullptr);
+               std::unique_ptr<ReferenceField> field, Hooks hooks);
   ~IngestWorker();
 
   // Rebuilds trackers from the database (see file comment). Call once before process().
@@ -178,7 +175,6 @@ class IngestWorker {
 
   const DaemonConfig config_;  // a copy: callers may pass a temporary
   DaemonCounters& counters_;
-  http::DaemonMetrics* metrics_;
   std::unique_ptr<ReferenceField> field_;
   Hooks hooks_;
   ValidatorOptions validator_;

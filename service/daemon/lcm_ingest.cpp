@@ -101,9 +101,8 @@ DecodeOutcome decode_frame(const void* data, int size, bool expect_batch, Ingest
 }
 
 LcmIngest::LcmIngest(lcm::LCM& lcm, const std::string& samples_channel,
-                     const std::string& batch_channel, IngestQueue& queue, DaemonCounters& counters,
-                     http::DaemonMetrics* metrics)
-    : lcm_(lcm), queue_(queue), counters_(counters), metrics_(metrics) {
+                     const std::string& batch_channel, IngestQueue& queue, DaemonCounters& counters)
+    : lcm_(lcm), queue_(queue), counters_(counters) {
   samples_sub_ = lcm_.subscribeFunction(samples_channel, &LcmIngest::on_samples, this);
   batch_sub_ = lcm_.subscribeFunction(batch_channel, &LcmIngest::on_batch, this);
   // Unbounded inside LCM (its default of 30 drops silently); IngestQueue is the bound.
@@ -124,18 +123,17 @@ void LcmIngest::on_batch(const lcm::ReceiveBuffer* rbuf, const std::string&, Lcm
 }
 
 void LcmIngest::count_received(const std::string& sat_id, int64_t n) {
-  if (!metrics_) return;
-  auto it = received_series_.find(sat_id);
-  if (it == received_series_.end()) {
-    http::SpacecraftMetrics& m = metrics_->spacecraft(sat_id);
-    // Bounded like the registry (hostile ids must not grow it): past the cap, look up each time.
-    if (received_series_.size() >= http::DaemonMetrics::kMaxSpacecraftSeries) {
-      m.received->Increment(static_cast<double>(n));
+  auto it = received_by_sat_.find(sat_id);
+  if (it == received_by_sat_.end()) {
+    SpacecraftCounters& c = counters_.spacecraft.spacecraft(sat_id);
+    // Bounded like the table (hostile ids must not grow it): past the cap, look up each time.
+    if (received_by_sat_.size() >= SpacecraftCounterTable::kMaxSpacecraft) {
+      c.received.fetch_add(n, std::memory_order_relaxed);
       return;
     }
-    it = received_series_.emplace(sat_id, &m).first;
+    it = received_by_sat_.emplace(sat_id, &c).first;
   }
-  it->second->received->Increment(static_cast<double>(n));
+  it->second->received.fetch_add(n, std::memory_order_relaxed);
 }
 
 void LcmIngest::on_frame(const lcm::ReceiveBuffer* rbuf, bool batch) {
@@ -151,12 +149,10 @@ void LcmIngest::on_frame(const lcm::ReceiveBuffer* rbuf, bool batch) {
   }
   counters_.received.fetch_add(static_cast<int64_t>(item.samples.size()),
                                std::memory_order_relaxed);
-  if (metrics_) {
-    if (batch) {
-      count_received(item.batch_sat_id, static_cast<int64_t>(item.samples.size()));
-    } else if (!item.samples.empty()) {
-      count_received(item.samples[0].sat_id, 1);
-    }
+  if (batch) {
+    count_received(item.batch_sat_id, static_cast<int64_t>(item.samples.size()));
+  } else if (!item.samples.empty()) {
+    count_received(item.samples[0].sat_id, 1);
   }
   if (item.samples.empty()) return;
   item.receive_utime = wall_utime();

@@ -17,7 +17,6 @@
 
 #include "service/daemon/health.hpp"
 #include "service/daemon/ingest_queue.hpp"
-#include "service/http/metrics.hpp"
 
 namespace magcal {
 
@@ -34,11 +33,11 @@ class LcmIngest {
  public:
   enum class End { kStopped, kEndOfLog, kError };
 
-  // Subscribes immediately; `lcm` must be good() and outlive this object. `metrics` (optional,
-  // must outlive this): magcal_samples_received_total per spacecraft (a batch counts under its
-  // sat_id, an undecodable frame as 1 under "").
+  // Subscribes immediately; `lcm` must be good() and outlive this object. Counts the samples
+  // received in `counters`, per spacecraft too (a batch counts under its sat_id, an undecodable
+  // frame as 1 under "").
   LcmIngest(lcm::LCM& lcm, const std::string& samples_channel, const std::string& batch_channel,
-            IngestQueue& queue, DaemonCounters& counters, http::DaemonMetrics* metrics = nullptr);
+            IngestQueue& queue, DaemonCounters& counters);
   ~LcmIngest();
   LcmIngest(const LcmIngest&) = delete;
   LcmIngest& operator=(const LcmIngest&) = delete;
@@ -58,9 +57,8 @@ class LcmIngest {
   lcm::LCM& lcm_;
   IngestQueue& queue_;
   DaemonCounters& counters_;
-  http::DaemonMetrics* metrics_;
-  // This thread's own cache of the per-spacecraft series (no lock, no allocation once seen).
-  std::unordered_map<std::string, http::SpacecraftMetrics*> received_series_;
+  // This thread's own cache of the per-spacecraft counters (no lock, no allocation once seen).
+  std::unordered_map<std::string, SpacecraftCounters*> received_by_sat_;
   lcm::Subscription* samples_sub_ = nullptr;
   lcm::Subscription* batch_sub_ = nullptr;
 };

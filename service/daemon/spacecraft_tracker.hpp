@@ -45,11 +45,9 @@
 #include "schemas/magcal_messages.hpp"
 #include "service/daemon/refit_scheduler.hpp"
 
-namespace magcal::http {
-struct SpacecraftMetrics;
-}
-
 namespace magcal {
+
+struct SpacecraftCounters;
 
 // A sample waiting for corroboration of its time (its sat_id is the tracker's, left empty).
 struct HeldSample {
@@ -81,10 +79,10 @@ struct SpacecraftTracker {
   // A snapshot or a re-anchor changed what the filter means: its state goes into the next
   // commit, with the samples it includes (IngestWorker::states_due_).
   bool state_due = false;
-  int64_t anchor_calibration_id = 0;  // the refit it was last re-anchored on (0: none)
-  bool retention_due = false;         // new samples since the last retention pass
-  std::vector<HeldSample> held;       // arrival order; at most kHeldCapacity, freed when empty
-  http::SpacecraftMetrics* metrics = nullptr;  // its Prometheus series (none without a server)
+  int64_t anchor_calibration_id = 0;       // the refit it was last re-anchored on (0: none)
+  bool retention_due = false;              // new samples since the last retention pass
+  std::vector<HeldSample> held;            // arrival order; at most kHeldCapacity, freed when empty
+  SpacecraftCounters* counters = nullptr;  // its counters (DaemonCounters::spacecraft)
   // [refit] clock = "data": this spacecraft's scheduled refits, on its own data time (its
   // newest_utime): a spacecraft backfilled behind the others gets the refits of its own days.
   std::optional<RefitScheduler> data_refits;

@@ -110,14 +110,22 @@ std::string serialize(const prometheus::Registry& r) {
 
 }  // namespace
 
-const std::vector<double>& sqlite_commit_buckets_s() {
-  static const std::vector<double> buckets{0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005,
-                                           0.01,   0.025,   0.05,   0.1,   0.25,   0.5,
-                                           1.0,    2.5,     5.0,    10.0};
-  return buckets;
-}
+// One spacecraft's series, created when the daemon first counts it. The UKF gauges and the
+// last-success time appear with their first value: no bias of 0 nT before there is one.
+struct DaemonMetrics::SpacecraftSeries {
+  prometheus::Counter* received = nullptr;
+  prometheus::Counter* stored = nullptr;
+  prometheus::Counter* missing = nullptr;
+  prometheus::Counter* refits_accepted = nullptr;
+  prometheus::Counter* refits_rejected = nullptr;
+  prometheus::Counter* refits_error = nullptr;
+  std::array<prometheus::Gauge*, 3> ukf_bias_nT{};
+  std::array<prometheus::Gauge*, 3> ukf_bias_sigma_nT{};
+  prometheus::Gauge* ukf_snapshot_accepted = nullptr;
+  prometheus::Gauge* last_refit_success_s = nullptr;
+};
 
-DaemonMetrics::DaemonMetrics(const std::string& version)
+DaemonMetrics::DaemonMetrics(const std::string& version, std::vector<double> commit_bucket_bounds_s)
     : registry_(std::make_shared<prometheus::Registry>()) {
   const Families f = register_families(*registry_, version);
   received_ = f.received;
@@ -126,7 +134,8 @@ DaemonMetrics::DaemonMetrics(const std::string& version)
   missing_ = f.missing;
   queue_depth_ = &f.queue_depth->Add({});
   queue_overflow_ = &f.queue_overflow->Add({});
-  commit_seconds_ = &f.commit_seconds->Add({}, sqlite_commit_buckets_s());
+  commit_counts_seen_.assign(commit_bucket_bounds_s.size() + 1, 0);
+  commit_seconds_ = &f.commit_seconds->Add({}, std::move(commit_bucket_bounds_s));
   ukf_bias_ = f.ukf_bias;
   ukf_sigma_ = f.ukf_sigma;
   ukf_accepted_ = f.ukf_accepted;
@@ -136,63 +145,18 @@ DaemonMetrics::DaemonMetrics(const std::string& version)
   storage_healthy_->Set(1.0);
 }
 
-SpacecraftMetrics& DaemonMetrics::spacecraft(const std::string& sat_id) {
-  std::lock_guard lock(mutex_);
-  if (const auto it = spacecraft_.find(sat_id); it != spacecraft_.end()) return *it->second;
-  // Past the cap every new id shares one series (and takes no memory of its own).
-  const bool full = spacecraft_.size() >= kMaxSpacecraftSeries;
-  if (full) {
-    if (const auto it = spacecraft_.find(kOtherSpacecraft); it != spacecraft_.end()) {
-      return *it->second;
-    }
-  }
-  const std::string label = full ? kOtherSpacecraft : sat_id;
-  auto m = std::make_unique<SpacecraftMetrics>();
-  m->sat_label = label;
+DaemonMetrics::~DaemonMetrics() = default;
+
+DaemonMetrics::SpacecraftSeries& DaemonMetrics::series(const std::string& label) {
+  if (const auto it = series_.find(label); it != series_.end()) return *it->second;
+  auto m = std::make_unique<SpacecraftSeries>();
   m->received = &received_->Add({{"sat", label}});
   m->stored = &stored_->Add({{"sat", label}});
   m->missing = &missing_->Add({{"sat", label}});
   m->refits_accepted = &refits_->Add({{"sat", label}, {"verdict", "accepted"}});
   m->refits_rejected = &refits_->Add({{"sat", label}, {"verdict", "rejected"}});
   m->refits_error = &refits_->Add({{"sat", label}, {"verdict", "error"}});
-  return *spacecraft_.emplace(label, std::move(m)).first->second;
-}
-
-void DaemonMetrics::set_ukf(SpacecraftMetrics& m, const std::array<double, 3>& bias_nT,
-                            const std::array<double, 3>& sigma_nT, bool accepted) {
-  if (!m.ukf_snapshot_accepted) {
-    // The first snapshot creates the series: no bias of 0 nT is shown before there is one.
-    std::lock_guard lock(mutex_);
-    for (size_t i = 0; i < 3; ++i) {
-      m.ukf_bias_nT[i] = &ukf_bias_->Add({{"sat", m.sat_label}, {"axis", kAxes[i]}});
-      m.ukf_bias_sigma_nT[i] = &ukf_sigma_->Add({{"sat", m.sat_label}, {"axis", kAxes[i]}});
-    }
-    m.ukf_snapshot_accepted = &ukf_accepted_->Add({{"sat", m.sat_label}});
-  }
-  for (size_t i = 0; i < 3; ++i) {
-    m.ukf_bias_nT[i]->Set(bias_nT[i]);
-    m.ukf_bias_sigma_nT[i]->Set(sigma_nT[i]);
-  }
-  m.ukf_snapshot_accepted->Set(accepted ? 1.0 : 0.0);
-}
-
-void DaemonMetrics::count_refit(SpacecraftMetrics& m, RefitVerdict verdict, int64_t result_utime) {
-  switch (verdict) {
-    case RefitVerdict::kAccepted:
-      m.refits_accepted->Increment();
-      if (!m.last_refit_success_s) {
-        std::lock_guard lock(mutex_);
-        m.last_refit_success_s = &last_refit_success_->Add({{"sat", m.sat_label}});
-      }
-      m.last_refit_success_s->Set(static_cast<double>(result_utime) * 1e-6);
-      break;
-    case RefitVerdict::kRejected:
-      m.refits_rejected->Increment();
-      break;
-    case RefitVerdict::kError:
-      m.refits_error->Increment();
-      break;
-  }
+  return *series_.emplace(label, std::move(m)).first->second;
 }
 
 void DaemonMetrics::set_totals_source(std::function<Totals()> source) {
@@ -211,6 +175,53 @@ void DaemonMetrics::apply_totals(const Totals& t) {
   queue_depth_->Set(static_cast<double>(t.queue_depth));
   raise_to(*queue_overflow_, t.queue_overflow);
   storage_healthy_->Set(t.storage_healthy ? 1.0 : 0.0);
+
+  for (const SpacecraftTotals& sc : t.spacecraft) {
+    SpacecraftSeries& m = series(sc.sat_label);
+    raise_to(*m.received, sc.received);
+    raise_to(*m.stored, sc.stored);
+    raise_to(*m.missing, sc.missing);
+    raise_to(*m.refits_accepted, sc.refits_accepted);
+    raise_to(*m.refits_rejected, sc.refits_rejected);
+    raise_to(*m.refits_error, sc.refits_error);
+    if (sc.has_ukf_snapshot) {
+      if (!m.ukf_snapshot_accepted) {
+        for (size_t i = 0; i < 3; ++i) {
+          m.ukf_bias_nT[i] = &ukf_bias_->Add({{"sat", sc.sat_label}, {"axis", kAxes[i]}});
+          m.ukf_bias_sigma_nT[i] = &ukf_sigma_->Add({{"sat", sc.sat_label}, {"axis", kAxes[i]}});
+        }
+        m.ukf_snapshot_accepted = &ukf_accepted_->Add({{"sat", sc.sat_label}});
+      }
+      for (size_t i = 0; i < 3; ++i) {
+        m.ukf_bias_nT[i]->Set(sc.ukf_bias_nT[i]);
+        m.ukf_bias_sigma_nT[i]->Set(sc.ukf_bias_sigma_nT[i]);
+      }
+      m.ukf_snapshot_accepted->Set(sc.ukf_accepted ? 1.0 : 0.0);
+    }
+    if (sc.last_refit_success_utime != 0) {
+      if (!m.last_refit_success_s) {
+        m.last_refit_success_s = &last_refit_success_->Add({{"sat", sc.sat_label}});
+      }
+      m.last_refit_success_s->Set(static_cast<double>(sc.last_refit_success_utime) * 1e-6);
+    }
+  }
+
+  // The histogram takes what was observed since the last scrape.
+  if (t.commit_bucket_counts.size() == commit_counts_seen_.size()) {
+    std::vector<double> increments(commit_counts_seen_.size(), 0.0);
+    bool any = false;
+    for (size_t i = 0; i < increments.size(); ++i) {
+      const int64_t delta = t.commit_bucket_counts[i] - commit_counts_seen_[i];
+      if (delta <= 0) continue;
+      increments[i] = static_cast<double>(delta);
+      commit_counts_seen_[i] = t.commit_bucket_counts[i];
+      any = true;
+    }
+    if (any) {
+      commit_seconds_->ObserveMultiple(increments, t.commit_sum_s - commit_sum_seen_s_);
+      commit_sum_seen_s_ = t.commit_sum_s;
+    }
+  }
 }
 
 std::string DaemonMetrics::text() {

@@ -24,8 +24,8 @@
 //                                           being retried (then /-/healthy answers 503)
 //   magcal_build_info{version}              1
 //
-// Spacecraft series are capped at kMaxSpacecraftSeries distinct ids (corrupt or hostile ids
-// must not grow the registry without bound); later ids share sat="(other)".
+// Spacecraft series are as many as the daemon's counter table holds (capped there: corrupt or
+// hostile ids must not grow it without bound; later ids share sat="(other)").
 #pragma once
 
 #include <array>
@@ -36,6 +36,7 @@
 #include <string>
 #include <string_view>
 #include <unordered_map>
+#include <vector>
 
 #include <prometheus/counter.h>
 #include <prometheus/family.h>
@@ -47,68 +48,52 @@
 
 namespace magcal::http {
 
-// One spacecraft's series. References stay valid for the life of the DaemonMetrics, so the
-// daemon caches a pointer per spacecraft and its per-sample path does no label lookup and no
-// allocation (prometheus-cpp's Counter::Increment is an atomic add).
-struct SpacecraftMetrics {
-  std::string sat_label;
-  prometheus::Counter* received = nullptr;
-  prometheus::Counter* stored = nullptr;
-  prometheus::Counter* missing = nullptr;
-  // Created by the first snapshot / accepted refit (written by one thread: the worker / the
-  // refit thread).
-  std::array<prometheus::Gauge*, 3> ukf_bias_nT{};
-  std::array<prometheus::Gauge*, 3> ukf_bias_sigma_nT{};
-  prometheus::Gauge* ukf_snapshot_accepted = nullptr;
-  prometheus::Counter* refits_accepted = nullptr;
-  prometheus::Counter* refits_rejected = nullptr;
-  prometheus::Counter* refits_error = nullptr;
-  prometheus::Gauge* last_refit_success_s = nullptr;
-};
-
-// Bucket upper bounds of magcal_sqlite_commit_seconds: 100 µs (a small batch in WAL mode)
-// to 10 s (past the default busy timeout of 5 s, so lock waits land in a finite bucket).
-const std::vector<double>& sqlite_commit_buckets_s();
-
+// The daemon's /metrics. The daemon keeps its counters once, in its own types
+// (service/daemon/health.hpp); this collector reads them at scrape time through a source the
+// daemon sets, so no sample is counted twice and the ingest path knows no metrics library.
 class DaemonMetrics {
  public:
-  static constexpr size_t kMaxSpacecraftSeries = 4096;
-  static constexpr const char* kOtherSpacecraft = "(other)";
-
-  explicit DaemonMetrics(const std::string& version);
-  DaemonMetrics(const DaemonMetrics&) = delete;
-  DaemonMetrics& operator=(const DaemonMetrics&) = delete;
-
-  // Thread-safe; the same reference for the same id, for the life of this object.
-  SpacecraftMetrics& spacecraft(const std::string& sat_id);
-
-  // Thread-safe (atomics inside prometheus-cpp).
-  void observe_commit_seconds(double seconds) { commit_seconds_->Observe(seconds); }
-  // A stored UKF snapshot (bias, its 1-sigma, nT) and whether it was accepted.
-  // From one thread per spacecraft (the worker).
-  void set_ukf(SpacecraftMetrics& m, const std::array<double, 3>& bias_nT,
-               const std::array<double, 3>& sigma_nT, bool accepted);
-  enum class RefitVerdict { kAccepted, kRejected, kError };
-  // From one thread (the refit thread): a refit that ran; an accepted one also sets the
-  // last-success time (its result's utime).
-  void count_refit(SpacecraftMetrics& m, RefitVerdict verdict, int64_t result_utime);
-
-  // Totals the daemon already keeps elsewhere (health.hpp's atomics), brought in at scrape time
-  // by the hook so the ingest path counts them once. Counters only move forward here.
+  // What the daemon counted, at one scrape. Counters only move forward here.
+  struct SpacecraftTotals {
+    std::string sat_label;
+    int64_t received = 0;
+    int64_t stored = 0;
+    int64_t missing = 0;
+    int64_t refits_accepted = 0;
+    int64_t refits_rejected = 0;
+    int64_t refits_error = 0;
+    int64_t last_refit_success_utime = 0;  // 0 = none yet (no series: never a made-up time)
+    bool has_ukf_snapshot = false;         // no series before the first snapshot
+    std::array<double, 3> ukf_bias_nT{};
+    std::array<double, 3> ukf_bias_sigma_nT{};
+    bool ukf_accepted = false;
+  };
   struct Totals {
     std::vector<std::pair<std::string, int64_t>> rejected_by_reason;
     int64_t queue_depth = 0;
     int64_t queue_overflow = 0;
     bool storage_healthy = true;
+    std::vector<SpacecraftTotals> spacecraft;
+    // Commit latency: one count per bucket of the constructor's bounds plus +Inf (not
+    // cumulative), and the sum of the observations, s. Empty = none observed.
+    std::vector<int64_t> commit_bucket_counts;
+    double commit_sum_s = 0.0;
   };
+
+  // commit_bucket_bounds_s: the upper bounds of magcal_sqlite_commit_seconds (ascending).
+  DaemonMetrics(const std::string& version, std::vector<double> commit_bucket_bounds_s);
+  ~DaemonMetrics();
+  DaemonMetrics(const DaemonMetrics&) = delete;
+  DaemonMetrics& operator=(const DaemonMetrics&) = delete;
+
   void set_totals_source(std::function<Totals()> source);
 
   // The exposition text (TextSerializer over the registry). Thread-safe.
   std::string text();
 
-  prometheus::Registry& registry() { return *registry_; }
-
  private:
+  struct SpacecraftSeries;
+  SpacecraftSeries& series(const std::string& sat_label);
   void apply_totals(const Totals& t);
 
   std::shared_ptr<prometheus::Registry> registry_;
@@ -119,6 +104,8 @@ class DaemonMetrics {
   prometheus::Gauge* queue_depth_;
   prometheus::Counter* queue_overflow_;
   prometheus::Histogram* commit_seconds_;
+  std::vector<int64_t> commit_counts_seen_;
+  double commit_sum_seen_s_ = 0.0;
   prometheus::Family<prometheus::Gauge>* ukf_bias_;
   prometheus::Family<prometheus::Gauge>* ukf_sigma_;
   prometheus::Family<prometheus::Gauge>* ukf_accepted_;
@@ -126,8 +113,8 @@ class DaemonMetrics {
   prometheus::Family<prometheus::Gauge>* last_refit_success_;
   prometheus::Gauge* storage_healthy_;
 
-  std::mutex mutex_;  // the spacecraft map, the totals source and scrapes
-  std::unordered_map<std::string, std::unique_ptr<SpacecraftMetrics>> spacecraft_;
+  std::mutex mutex_;  // the totals source and scrapes
+  std::unordered_map<std::string, std::unique_ptr<SpacecraftSeries>> series_;
   std::function<Totals()> totals_source_;
   std::unordered_map<std::string, prometheus::Counter*> rejected_by_reason_;
 };

@@ -136,14 +136,16 @@ std::string status_text(const std::vector<SpacecraftStatus>& all, int64_t window
       append_printf(&text, "  %-16s none\n", "last refit");
     }
     if (s.last_job) {
-      // When the job ran is wall-clock time. Its due time is on the [refit] clock (data time,
-      // or wall clock when so configured), a first refit's is data time; a manual refit is
-      // due when it runs.
+      // When the job ran is wall-clock time. A scheduled job's due time is on the [refit] clock
+      // (data time, or wall clock when so configured: the job log does not say which); a new
+      // spacecraft's first and early refits are due at a sample's time (data time); a manual
+      // refit is due when it runs.
       const storage::RefitJob& job = *s.last_job;
       std::string when;
       if (job.trigger != "manual") {
         when = ", due " + format_iso8601_utc(job.scheduled_utime) +
-               (job.trigger == "first" ? " (data time)" : " ([refit] clock)");
+               (job.trigger == "first" || job.trigger == "early" ? " (data time)"
+                                                                 : " ([refit] clock)");
       }
       if (job.started_utime) {
         when += ", ran " + format_iso8601_utc(*job.started_utime) + " (wall clock)";

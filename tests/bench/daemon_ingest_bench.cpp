@@ -7,7 +7,6 @@
 //   BM_Ingest/<spacecraft>/<0: h_body in the frame | 1: IGRF from position + attitude>
 //     /<1: the UKF's start attempted every 30 samples without the pre-check, the schedule
 //     before (filter_common.hpp), for an A/B in the same run>
-//     /<1: with the Prometheus metrics (per-spacecraft stored/missing, commit histogram)>
 // Targets: >= 100 000 samples/s with the reference in the frame, >= 50 000 with IGRF.
 //   build/bin/daemon_ingest_bench --benchmark_format=json
 // Also: BM_TrackerMemory, resident memory per tracked spacecraft (target < 4 KB).
@@ -105,7 +104,6 @@ std::vector<std::vector<uint8_t>> make_frames(int n_sats, bool igrf) {
 void BM_Ingest(benchmark::State& state) {
   const int n_sats = static_cast<int>(state.range(0));
   const bool igrf = state.range(1) != 0;
-  const bool with_metrics = state.range(3) != 0;
   const auto frames = make_frames(n_sats, igrf);
   const auto dir = std::filesystem::temp_directory_path() /
                    ("magcal_ingest_bench_" + std::to_string(::getpid()));
@@ -120,9 +118,7 @@ void BM_Ingest(benchmark::State& state) {
   DaemonCounters counters;
   int64_t samples = 0;
   {
-    http::DaemonMetrics metrics(MAGCAL_VERSION);
-    IngestWorker worker(config, counters, std::make_unique<ReferenceField>(), {},
-                        with_metrics ? &metrics : nullptr);
+    IngestWorker worker(config, counters, std::make_unique<ReferenceField>(), {});
     IngestItem item;
     size_t next = 0;
     for (auto _ : state) {
@@ -145,17 +141,15 @@ void BM_Ingest(benchmark::State& state) {
 }
 // One pass over the pre-encoded frames (400 000 samples): sustained, with commits and retention.
 BENCHMARK(BM_Ingest)
-    ->Args({1, 0, 0, 0})
-    ->Args({10, 0, 0, 0})
-    ->Args({1000, 0, 0, 0})
-    ->Args({1, 1, 0, 0})
-    ->Args({10, 1, 0, 0})
-    ->Args({1000, 1, 0, 0})
-    ->Args({1, 0, 1, 0})
-    ->Args({1000, 0, 1, 0})
-    ->Args({1000, 1, 1, 0})
-    ->Args({10, 0, 0, 1})
-    ->Args({1000, 0, 0, 1})
+    ->Args({1, 0, 0})
+    ->Args({10, 0, 0})
+    ->Args({1000, 0, 0})
+    ->Args({1, 1, 0})
+    ->Args({10, 1, 0})
+    ->Args({1000, 1, 0})
+    ->Args({1, 0, 1})
+    ->Args({1000, 0, 1})
+    ->Args({1000, 1, 1})
     ->Iterations(kSamplesPerRun / kBatch)
     ->Unit(benchmark::kMillisecond)
     ->UseRealTime();
