@@ -166,7 +166,7 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
       for (const double v : rpy.sigma_rad) line += ',' + csv_number(v * kRadToDeg);
       line += ',' + csv_number(rpy.combination_sigma_rad * kRadToDeg);
       for (const double v : pack_symmetric(a.angle_covariance_rad2))
-        line += ',' + csv_number(v * kRadToDeg * kRadToDeg);
+        line += ',' + csv_number(v * (kRadToDeg * kRadToDeg));
     }
     text += line + '\n';
   }

@@ -470,6 +470,7 @@ TEST_CASE("history JSON and CSV: quaternion, rotation-vector covariance and angl
   for (int i = 0; i < 4; ++i) {
     const size_t c = col(std::string("q_sensor_from_body_") + wxyz[i]);
     CHECK(std::stod(rows[0][c]) == Approx(q_want[i]).margin(1e-15));
+    CHECK(std::stod(rows[0][c]) == a["q_sensor_from_body"][i].get<double>());
     CHECK_FALSE(rows[1][c].empty());
     CHECK(rows[2][c].empty());
   }
@@ -477,12 +478,16 @@ TEST_CASE("history JSON and CSV: quaternion, rotation-vector covariance and angl
   for (int i = 0; i < 6; ++i) {
     const size_t c = col(std::string("alignment_covariance_") + pairs[i] + "_deg2");
     CHECK(std::stod(rows[0][c]) == Approx(c_rad2[i] * deg2));
+    // The same number as the JSON's, to the last bit.
+    const int r = i < 3 ? i : (i == 5 ? 1 : 0), cc = i < 3 ? i : (i == 3 ? 1 : 2);
+    CHECK(std::stod(rows[0][c]) == a["alignment_covariance_deg2"][r][cc].get<double>());
     CHECK(rows[1][c].empty());
     CHECK(rows[2][c].empty());
   }
   for (int i = 0; i < 3; ++i) {
     const size_t c = col(std::string("alignment_sigma_") + angles[i] + "_deg");
     CHECK(std::stod(rows[0][c]) == Approx(std::sqrt(C_deg2(i, i))));
+    CHECK(std::stod(rows[0][c]) == a["alignment_sigma_deg"][angles[i]].get<double>());
     CHECK(rows[1][c].empty());
     CHECK(rows[2][c].empty());
     CHECK(std::stod(rows[0][col(std::string("alignment_") + angles[i] + "_deg")]) ==
