@@ -248,9 +248,15 @@ void print_text(const CalibrationResult& r, double compute_ms, double convergenc
     line("alignment_deg",
          fmt::format("roll {:.4f}  pitch {:.4f}  yaw {:.4f}", a.rpy.roll_rad * kRadToDeg,
                      a.rpy.pitch_rad * kRadToDeg, a.rpy.yaw_rad * kRadToDeg));
-    const Eigen::Vector3d sa = a.sigma_rad * kRadToDeg;  // NaN (roll, yaw) when singular
+    // Roll and yaw alone have no sigma at gimbal lock (the gimbal_lock line gives the one that
+    // does), nor any angle when the covariance is unknown: "-".
+    const auto sigma_text = [](double sigma_rad) {
+      return std::isnan(sigma_rad) ? std::string("-")
+                                   : fmt::format("{:.2g}", sigma_rad * kRadToDeg);
+    };
     line("alignment_sigma",
-         fmt::format("roll {:.2g}  pitch {:.2g}  yaw {:.2g}  (deg)", sa(0), sa(1), sa(2)));
+         fmt::format("roll {}  pitch {}  yaw {}  (deg)", sigma_text(a.sigma_rad(0)),
+                     sigma_text(a.sigma_rad(1)), sigma_text(a.sigma_rad(2))));
     for (int i = 0; i < 3; ++i) {
       const Eigen::Vector3d c = C.row(i).transpose() * (kRadToDeg * kRadToDeg);
       line(i == 0 ? "alignment_cov_deg2" : "",
