@@ -26,7 +26,11 @@ const char* to_string(CalibrationStatus s);  // "ok", "not_converged", ...
 
 struct AlignmentEstimate {
   Eigen::Matrix3d R_sensor_from_body = Eigen::Matrix3d::Identity();
-  // Covariance of the small rotation angles (roll, pitch, yaw about R_hat), rad^2.
+  // Covariance (rad^2) of the rotation error as a rotation vector in the SENSOR frame: dtheta with
+  // R_true = exp(-[dtheta x]) R_hat ≈ (I - [dtheta x]) R_hat, a small frame rotation of the sensor
+  // axes in section 0's sense (at R_hat ≈ I, dtheta = the (roll, pitch, yaw) errors). The same
+  // matrix is the covariance of the active rotation vector log(R_true R_hat^T) = -dtheta.
+  // NaN: unknown (a result restored from a history row stored before schema 5).
   Eigen::Matrix3d angle_covariance_rad2 = Eigen::Matrix3d::Zero();
   int n_samples = 0;
   // rms |u_k - R h_k| / rms |h_k| after the fit: ~2e-4 on the paper scenario, sin(error) for

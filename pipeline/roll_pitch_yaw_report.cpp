@@ -17,8 +17,10 @@ RollPitchYawReport roll_pitch_yaw_report(const Eigen::Matrix3d& R,
   const Eigen::Vector3d e1 = Eigen::Vector3d::UnitX();
   const Eigen::Vector3d x_e2 = Rx * Eigen::Vector3d::UnitY();
   const Eigen::Vector3d x_e3 = Rx * Eigen::Vector3d::UnitZ();
+  // An unknown covariance (NaN) gives unknown sigmas, never 0.
   const auto sigma = [&](const Eigen::Vector3d& g) {
-    return std::sqrt(std::max(0.0, g.dot(rotation_covariance_rad2 * g)));
+    const double variance = g.dot(rotation_covariance_rad2 * g);
+    return std::isnan(variance) ? variance : std::sqrt(std::max(0.0, variance));
   };
   out.sigma_rad(1) = sigma(x_e2);
   // Within a few sigmas of the pole pitch is the distance to it, two-dimensional (the tilt of

@@ -20,7 +20,8 @@ namespace magcal {
 // deg the angles are `singular`: their split is the canonical one, roll = 0 and yaw = the
 // determined combination (yaw - roll or yaw + roll), and only pitch and that combination carry a
 // sigma (roll and yaw sigma NaN). Elsewhere they are section 0's extraction with sigmas from the
-// gradients above (at small angles sqrt(diag) of the rotation covariance).
+// gradients above (at small angles sqrt(diag) of the rotation covariance). A NaN covariance
+// (unknown) gives NaN sigmas.
 struct RollPitchYawReport {
   RollPitchYaw rpy;  // canonical (roll = 0) when singular
   Eigen::Vector3d sigma_rad = Eigen::Vector3d::Constant(std::numeric_limits<double>::quiet_NaN());

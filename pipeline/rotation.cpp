@@ -33,8 +33,15 @@ QuaternionWxyz quaternion_from_dcm(const Eigen::Matrix3d& A) {
     const double s = 2.0 * std::sqrt(std::max(0.0, 1.0 + A(2, 2) - A(0, 0) - A(1, 1)));  // 4z
     q << (A(1, 0) - A(0, 1)) / s, (A(0, 2) + A(2, 0)) / s, (A(1, 2) + A(2, 1)) / s, 0.25 * s;
   }
-  if (q(0) < 0.0) q = -q;
-  return q.normalized();
+  q.normalize();
+  if (std::abs(q(0)) < 1e-12) {  // half turn: which sign w has is rounding noise
+    q(0) = 0.0;
+    const int first = std::abs(q(1)) > 1e-9 ? 1 : (std::abs(q(2)) > 1e-9 ? 2 : 3);
+    if (q(first) < 0.0) q = -q;
+  } else if (q(0) < 0.0) {
+    q = -q;
+  }
+  return q;
 }
 
 QuaternionWxyz quaternion_multiply(const QuaternionWxyz& p, const QuaternionWxyz& q) {

@@ -22,7 +22,10 @@ inline constexpr double kRadToDeg = 180.0 / std::numbers::pi;
 using QuaternionWxyz = Eigen::Vector4d;
 
 Eigen::Matrix3d dcm_from_quaternion(const QuaternionWxyz& q);  // normalises q first
-QuaternionWxyz quaternion_from_dcm(const Eigen::Matrix3d& A);  // w >= 0
+// The canonical sign of q and -q (the same rotation): w > 0; for a half turn (|w| < 1e-12, the
+// sign of w is rounding noise) w = 0 and the first of x, y, z that is not ~0 (|.| > 1e-9)
+// positive, so a mounting turned upside down reads the same every time.
+QuaternionWxyz quaternion_from_dcm(const Eigen::Matrix3d& A);
 QuaternionWxyz quaternion_multiply(const QuaternionWxyz& p, const QuaternionWxyz& q);  // p ⊗ q
 QuaternionWxyz quaternion_conjugate(const QuaternionWxyz& q);
 // v_b = q ⊗ v ⊗ q*

@@ -25,7 +25,7 @@ constexpr const char* kSelect =
     "R33, residual_rms_nT, status, verdict, rejection_reasons, iterations, software_version, "
     "created_utime, noise_scale, residual_autocorrelation, covariance_lag_window, "
     "residual_rms_all_nT, has_nonlinearity, k3_x, k3_y, k3_z, nis_mean, measurement_noise_nT, "
-    "model_error FROM calibrations ";
+    "model_error, alignment_covariance_rad2 FROM calibrations ";
 constexpr const char* kRefitMethods = "method IN ('centered', 'twostep')";
 
 std::string sql(const std::string& tail) {
@@ -148,10 +148,11 @@ CalibrationHistory::CalibrationHistory(Database& db)
               "has_alignment, R11, R12, R13, R21, R22, R23, R31, R32, R33, residual_rms_nT, "
               "status, verdict, rejection_reasons, iterations, software_version, created_utime, "
               "noise_scale, residual_autocorrelation, covariance_lag_window, residual_rms_all_nT, "
-              "has_nonlinearity, k3_x, k3_y, k3_z, nis_mean, measurement_noise_nT, model_error) "
+              "has_nonlinearity, k3_x, k3_y, k3_z, nis_mean, measurement_noise_nT, model_error, "
+              "alignment_covariance_rad2) "
               "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, "
               "?17, ?18, ?19, ?20, ?21, ?22, ?23, ?24, ?25, ?26, ?27, ?28, ?29, ?30, ?31, ?32, "
-              "?33, ?34, ?35, ?36, ?37, ?38, ?39, ?40, ?41, ?42, ?43, ?44, ?45, ?46, ?47)"),
+              "?33, ?34, ?35, ?36, ?37, ?38, ?39, ?40, ?41, ?42, ?43, ?44, ?45, ?46, ?47, ?48)"),
       query_all_(db, sql("WHERE sat_id = ?1 AND utime >= ?2 AND utime <= ?3 "
                          "ORDER BY utime DESC, id DESC LIMIT ?4")),
       query_method_(db, sql("WHERE sat_id = ?1 AND utime >= ?2 AND utime <= ?3 AND method = ?5 "
@@ -215,6 +216,12 @@ int64_t CalibrationHistory::append(const CalibrationRecord& r) {
     insert_.bind_blob(47, r.model_error.data(), sizeof(double) * r.model_error.size());
   else
     insert_.bind_null(47);
+  if (r.has_alignment && r.alignment_covariance_rad2) {
+    insert_.bind_blob(48, r.alignment_covariance_rad2->data(),
+                      sizeof(double) * r.alignment_covariance_rad2->size());
+  } else {
+    insert_.bind_null(48);
+  }
   insert_.execute();
   return db_.last_insert_id();
 }
@@ -268,6 +275,16 @@ CalibrationRecord CalibrationHistory::read_row(Statement& st) {
                              std::to_string(model_error.size()) + " bytes, expected 72");
     }
     std::memcpy(r.model_error.data(), model_error.data(), model_error.size());
+  }
+  if (const auto covariance = st.column_blob(48); r.has_alignment && !covariance.empty()) {
+    std::array<double, 6> c{};
+    if (covariance.size() != sizeof(double) * c.size()) {
+      throw StorageError(StorageError::Kind::kSqlite,
+                         "calibrations.alignment_covariance_rad2 of row " + std::to_string(r.id) +
+                             " has " + std::to_string(covariance.size()) + " bytes, expected 48");
+    }
+    std::memcpy(c.data(), covariance.data(), covariance.size());
+    r.alignment_covariance_rad2 = c;
   }
   return r;
 }

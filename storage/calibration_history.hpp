@@ -34,6 +34,10 @@ struct CalibrationRecord {
   std::array<double, 3> bias_sigma_nT{};  // filled by append() from cov
   bool has_alignment = false;
   std::array<double, 9> R_sensor_from_body{1, 0, 0, 0, 1, 0, 0, 0, 1};  // row-major
+  // Schema 5, with an alignment: covariance of the rotation error (rotation vector, sensor frame,
+  // rad^2; pipeline/calibration_result.hpp AlignmentEstimate) in the order 11 22 33 12 13 23 (as
+  // D). nullopt: no alignment, or unknown (rows stored before schema 5).
+  std::optional<std::array<double, 6>> alignment_covariance_rad2;
   double residual_rms_nT = 0.0;
   int status = 0;  // calibration_t.status: 0 ok, 1 not converged, 2 unobservable, 3 failed,
                    // 4 rejected by acceptance gates

@@ -80,6 +80,11 @@ std::string unreadable_cause(const std::string& path) {
 Database::Database(const std::string& path, const OpenOptions& options)
     : path_(path), read_only_(options.read_only) {
   const bool memory = path == ":memory:" || path.empty();
+  // SQLite opens a directory without complaint and fails at the first read ("disk I/O error").
+  if (std::error_code ec; !memory && fs::is_directory(path, ec)) {
+    throw StorageError(StorageError::Kind::kInvalidArgument,
+                       "cannot open database " + path + ": is a directory, not a database file");
+  }
   if (options.read_only && !memory && !file_exists(path)) {
     // Never create a file by reading: report it as missing (or why it cannot be seen).
     struct stat st {};
@@ -105,6 +110,10 @@ Database::Database(const std::string& path, const OpenOptions& options)
       if (const std::string cause = unreadable_cause(path_); !cause.empty()) {
         msg += " (" + cause + ")";
       }
+    } else if (const std::string dir = directory_of(path_);
+               !memory && !file_exists(path_) && ::access(dir.c_str(), W_OK | X_OK) != 0) {
+      // A new database: SQLite says only "unable to open database file"; the directory is why.
+      msg += " (directory " + dir + ": " + std::strerror(errno) + ")";
     }
     throw StorageError(kind, msg, code);
   };

@@ -240,11 +240,28 @@ void print_text(const CalibrationResult& r, double compute_ms, double convergenc
       line(i == 0 ? "R_sensor_from_body" : "",
            fmt::format("{:12.8f} {:12.8f} {:12.8f}", R(i, 0), R(i, 1), R(i, 2)));
     }
-    const RollPitchYawReport a = roll_pitch_yaw_report(R, r.alignment.angle_covariance_rad2,
-                                                       gimbal_lock_margin_deg * kDegToRad);
+    const QuaternionWxyz q = quaternion_from_dcm(R);
+    line("q_sensor_from_body",
+         fmt::format("{:12.9f} {:12.9f} {:12.9f} {:12.9f}  (w x y z)", q(0), q(1), q(2), q(3)));
+    const Eigen::Matrix3d& C = r.alignment.angle_covariance_rad2;
+    const RollPitchYawReport a = roll_pitch_yaw_report(R, C, gimbal_lock_margin_deg * kDegToRad);
     line("alignment_deg",
          fmt::format("roll {:.4f}  pitch {:.4f}  yaw {:.4f}", a.rpy.roll_rad * kRadToDeg,
                      a.rpy.pitch_rad * kRadToDeg, a.rpy.yaw_rad * kRadToDeg));
+    // Roll and yaw alone have no sigma at gimbal lock (the gimbal_lock line gives the one that
+    // does), nor any angle when the covariance is unknown: "-".
+    const auto sigma_text = [](double sigma_rad) {
+      return std::isnan(sigma_rad) ? std::string("-")
+                                   : fmt::format("{:.2g}", sigma_rad * kRadToDeg);
+    };
+    line("alignment_sigma",
+         fmt::format("roll {}  pitch {}  yaw {}  (deg)", sigma_text(a.sigma_rad(0)),
+                     sigma_text(a.sigma_rad(1)), sigma_text(a.sigma_rad(2))));
+    for (int i = 0; i < 3; ++i) {
+      const Eigen::Vector3d c = C.row(i).transpose() * (kRadToDeg * kRadToDeg);
+      line(i == 0 ? "alignment_cov_deg2" : "",
+           fmt::format("{:12.4e} {:12.4e} {:12.4e}", c(0), c(1), c(2)));
+    }
     if (a.singular) {
       line("gimbal_lock",
            fmt::format("pitch within {:g} deg of +-90: roll 0 by convention, {} {:.4f} +- {:.2g} "

@@ -480,9 +480,9 @@ std::string Daemon::open() {
 int Daemon::run(const std::atomic<bool>& stop) {
   auto& d = *impl_;
   const auto& c = d.config;
-  spdlog::info("magcald {} up: db {}, lcm '{}' ({}), refits {} clock at {} UTC{}", MAGCAL_VERSION,
-               c.storage.db_path, c.lcm.url, d.replay ? "replay" : "live", c.refit.clock,
-               c.refit.daily_at_utc,
+  spdlog::info("magcald {} up: db {}, lcm {} ({}), refits {} clock at {} UTC{}", MAGCAL_VERSION,
+               c.storage.db_path, lcm_url_for_log(c.lcm.url), d.replay ? "replay" : "live",
+               c.refit.clock, c.refit.daily_at_utc,
                c.refit.every_hours > 0 ? fmt::format(" + every {} h", c.refit.every_hours) : "");
   std::thread worker([&d] { d.worker_thread(); });
   std::thread refitter([&d] { d.refit_thread(); });

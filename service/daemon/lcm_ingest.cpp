@@ -4,6 +4,7 @@
 
 #include <chrono>
 #include <cstdio>
+#include <cstdlib>
 #include <sstream>
 
 #include "schemas/magcal_messages.hpp"
@@ -31,6 +32,16 @@ bool has_fingerprint(const void* data, int size, int64_t hash) {
 
 bool is_file_url(const std::string& url) {
   return url.rfind("file://", 0) == 0;
+}
+
+std::string lcm_url_for_log(const std::string& url) {
+  // Appended piecewise: "'" + url + "'" draws a false -Wrestrict from GCC 12.
+  std::string out = "'";
+  if (!url.empty()) return (out += url) += "'";
+  // lcm_create(NULL): LCM_DEFAULT_URL when set and not empty, else its built-in default.
+  if (const char* env = std::getenv("LCM_DEFAULT_URL"); env != nullptr && *env != '\0')
+    return (out += env) += "' (LCM_DEFAULT_URL)";
+  return "default 'udpm://239.255.76.67:7667?ttl=0'";
 }
 
 std::unique_ptr<lcm::LCM> open_lcm(const std::string& url, std::string* why) {

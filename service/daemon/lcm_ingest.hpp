@@ -66,6 +66,11 @@ class LcmIngest {
 // True for file:// URLs (replay mode).
 bool is_file_url(const std::string& url);
 
+// The LCM URL as the start log shows it: 'url' when given; an empty one is what LCM opens then,
+// $LCM_DEFAULT_URL ("'memq://' (LCM_DEFAULT_URL)") or LCM's own default
+// ("default 'udpm://239.255.76.67:7667?ttl=0'").
+std::string lcm_url_for_log(const std::string& url);
+
 // An lcm::LCM on `url` (check good()). LCM itself prints why it cannot open a URL on stderr
 // ("Error: LCM provider "x" not found"); that text is taken instead and, when the instance is
 // not good(), returned in *why without LCM's prefixes, for the caller's one line. Whatever LCM

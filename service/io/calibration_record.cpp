@@ -54,6 +54,12 @@ storage::CalibrationRecord record_from_result(const std::string& sat_id,
             r.alignment.R_sensor_from_body(i, j);
       }
     }
+    // Unknown (NaN, e.g. restored from a row stored before schema 5) stays unknown.
+    if (r.alignment.angle_covariance_rad2.allFinite()) {
+      const Vector6d c = pack_symmetric(r.alignment.angle_covariance_rad2);
+      rec.alignment_covariance_rad2.emplace();
+      for (int i = 0; i < 6; ++i) (*rec.alignment_covariance_rad2)[static_cast<size_t>(i)] = c(i);
+    }
   }
   rec.residual_rms_nT = r.residual_rms_nT;
   rec.status = static_cast<int>(r.status);
@@ -93,6 +99,12 @@ CalibrationResult result_from_record(const storage::CalibrationRecord& rec) {
     for (int j = 0; j < 3; ++j) {
       r.alignment.R_sensor_from_body(i, j) = rec.R_sensor_from_body[static_cast<size_t>(3 * i + j)];
     }
+  }
+  if (rec.alignment_covariance_rad2) {
+    r.alignment.angle_covariance_rad2 =
+        unpack_symmetric(Eigen::Map<const Vector6d>(rec.alignment_covariance_rad2->data()));
+  } else if (rec.has_alignment) {  // stored before schema 5: unknown, never zero
+    r.alignment.angle_covariance_rad2.setConstant(std::numeric_limits<double>::quiet_NaN());
   }
   r.residual_rms_nT = rec.residual_rms_nT;
   r.status = static_cast<CalibrationStatus>(rec.status);

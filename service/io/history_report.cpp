@@ -117,7 +117,12 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
       "R31,R32,R33,residual_rms_nT,iterations,status,verdict,rejection_reasons,"
       "software_version,id,noise_scale,residual_autocorrelation,covariance_lag_window,"
       "residual_rms_all_nT,has_nonlinearity,k3_x,k3_y,k3_z,nis_mean,"
-      "measurement_noise_nT,alignment_singular\n";
+      "measurement_noise_nT,alignment_singular,q_sensor_from_body_w,q_sensor_from_body_x,"
+      "q_sensor_from_body_y,q_sensor_from_body_z,alignment_roll_deg,alignment_pitch_deg,"
+      "alignment_yaw_deg,alignment_sigma_roll_deg,alignment_sigma_pitch_deg,"
+      "alignment_sigma_yaw_deg,alignment_determined_sigma_deg,alignment_covariance_11_deg2,"
+      "alignment_covariance_22_deg2,alignment_covariance_33_deg2,alignment_covariance_12_deg2,"
+      "alignment_covariance_13_deg2,alignment_covariance_23_deg2\n";
   for (const auto& r : rows) {
     std::string line = history_time(r.utime) + ',' + std::to_string(r.utime) + ',' +
                        csv_quoted(r.sat_id) + ',' + csv_quoted(r.method) + ',' +
@@ -143,14 +148,25 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
             (r.has_nonlinearity >= 0 ? std::to_string(r.has_nonlinearity) : "");
     for (const double v : r.k3) line += ',' + (r.has_nonlinearity == 1 ? csv_number(v) : "");
     line += ',' + csv_number(r.nis_mean) + ',' + csv_number(r.measurement_noise_nT);
-    // Appended (issue 20): 1 when roll/yaw are the canonical split near pitch +-90 deg.
-    line += ',';
-    if (r.has_alignment) {
-      const bool singular =
-          roll_pitch_yaw_report(result_from_record(r).alignment.R_sensor_from_body,
-                                Eigen::Matrix3d::Zero(), kDefaultGimbalLockMargin_deg * kDegToRad)
-              .singular;
-      line += singular ? "1" : "0";
+    // Appended (issue 20), empty without an alignment: alignment_singular (1 when roll/yaw are
+    // the canonical split near pitch +-90 deg), the quaternion, the angles and their sigmas
+    // (empty when unknown: rows stored before schema 5; the combination's sigma only when
+    // singular), the rotation-vector covariance in deg^2 (as D: 11 22 33 12 13 23). The same
+    // numbers as the JSON keys (result_json.hpp).
+    if (!r.has_alignment) {
+      line += std::string(18, ',');
+    } else {
+      const AlignmentEstimate a = result_from_record(r).alignment;
+      const RollPitchYawReport rpy = roll_pitch_yaw_report(
+          a.R_sensor_from_body, a.angle_covariance_rad2, kDefaultGimbalLockMargin_deg * kDegToRad);
+      line += rpy.singular ? ",1" : ",0";
+      for (const double v : quaternion_from_dcm(a.R_sensor_from_body)) line += ',' + csv_number(v);
+      for (const double v : {rpy.rpy.roll_rad, rpy.rpy.pitch_rad, rpy.rpy.yaw_rad})
+        line += ',' + csv_number(v * kRadToDeg);
+      for (const double v : rpy.sigma_rad) line += ',' + csv_number(v * kRadToDeg);
+      line += ',' + csv_number(rpy.combination_sigma_rad * kRadToDeg);
+      for (const double v : pack_symmetric(a.angle_covariance_rad2))
+        line += ',' + csv_number(v * (kRadToDeg * kRadToDeg));
     }
     text += line + '\n';
   }

@@ -5,7 +5,11 @@
 //
 // JSON objects are service/io/result_json.hpp's keys for the stored fields (the same keys as
 // `fit --json`) plus sat_id, id, time / window_start / window_end (ISO 8601 UTC),
-// software_version and created_time. CSV has the same fields flat (design.md column names).
+// software_version and created_time. CSV has the same fields flat (design.md column names); the
+// alignment's are alignment_singular, q_sensor_from_body_{w,x,y,z}, alignment_{roll,pitch,yaw}_deg,
+// alignment_sigma_{roll,pitch,yaw}_deg, alignment_determined_sigma_deg and
+// alignment_covariance_{11,22,33,12,13,23}_deg2 (empty without an alignment; sigmas and covariance
+// empty for rows stored before the covariance was kept).
 #pragma once
 
 #include <optional>

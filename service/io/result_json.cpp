@@ -3,6 +3,7 @@
 #include <cmath>
 
 #include "pipeline/roll_pitch_yaw_report.hpp"
+#include "pipeline/rotation.hpp"
 #include "pipeline/time_utc.hpp"
 #include "service/io/calibration_record.hpp"
 
@@ -47,20 +48,29 @@ nlohmann::json calibration_result_to_json(const CalibrationResult& result,
   j["covariance"] = json_matrix(result.covariance);
   if (result.has_alignment) {
     const Eigen::Matrix3d& R = result.alignment.R_sensor_from_body;
+    const Eigen::Matrix3d& covariance = result.alignment.angle_covariance_rad2;
     j["R_sensor_from_body"] = json_matrix(R);
-    const RollPitchYawReport a = roll_pitch_yaw_report(R, result.alignment.angle_covariance_rad2,
-                                                       gimbal_lock_margin_deg * kDegToRad);
+    j["q_sensor_from_body"] = json_vector(quaternion_from_dcm(R));
+    const RollPitchYawReport a =
+        roll_pitch_yaw_report(R, covariance, gimbal_lock_margin_deg * kDegToRad);
     j["alignment_deg"] = {{"roll", json_number(a.rpy.roll_rad * kRadToDeg)},
                           {"pitch", json_number(a.rpy.pitch_rad * kRadToDeg)},
                           {"yaw", json_number(a.rpy.yaw_rad * kRadToDeg)}};
-    const Eigen::Vector3d s = a.sigma_rad * kRadToDeg;
-    j["alignment_sigma_deg"] = {
-        {"roll", json_number(s(0))}, {"pitch", json_number(s(1))}, {"yaw", json_number(s(2))}};
+    // An unknown covariance (history rows stored before it was kept) leaves its keys out.
+    const bool covariance_known = covariance.allFinite();
+    if (covariance_known) {
+      j["alignment_covariance_deg2"] = json_matrix(covariance * (kRadToDeg * kRadToDeg));
+      const Eigen::Vector3d s = a.sigma_rad * kRadToDeg;
+      j["alignment_sigma_deg"] = {
+          {"roll", json_number(s(0))}, {"pitch", json_number(s(1))}, {"yaw", json_number(s(2))}};
+    }
     j["alignment_singular"] = a.singular;
     if (a.singular) {
       j["alignment_determined_deg"] = {{a.combination_name, a.combination_rad * kRadToDeg}};
-      j["alignment_determined_sigma_deg"] = {
-          {a.combination_name, json_number(a.combination_sigma_rad * kRadToDeg)}};
+      if (covariance_known) {
+        j["alignment_determined_sigma_deg"] = {
+            {a.combination_name, json_number(a.combination_sigma_rad * kRadToDeg)}};
+      }
     }
   }
   j["residual_rms_nT"] = json_number(result.residual_rms_nT);
@@ -98,8 +108,7 @@ std::string history_time(int64_t utime) {
 nlohmann::json history_record_json(const storage::CalibrationRecord& rec) {
   nlohmann::json j = calibration_result_to_json(result_from_record(rec));
   // Not stored in the database: leave them out rather than print defaults as if measured.
-  for (const char* key : {"alignment_sigma_deg", "alignment_determined_sigma_deg",
-                          "fisher_condition_number", "n_downweighted", "message", "converged"}) {
+  for (const char* key : {"fisher_condition_number", "n_downweighted", "message", "converged"}) {
     j.erase(key);
   }
   j["id"] = rec.id;

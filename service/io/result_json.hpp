@@ -7,11 +7,17 @@
 // iterations, converged, status ("ok", "not_converged", ...), verdict ("accepted" |
 // "rejected"), rejection_reasons [strings], fisher_condition_number, n_downweighted, message.
 // When result.has_alignment: R_sensor_from_body [[3],[3],[3]] (row-major rows),
-// alignment_deg {roll, pitch, yaw} (estimation.md section 0), alignment_sigma_deg
-// {roll, pitch, yaw} and alignment_singular (pipeline/roll_pitch_yaw_report.hpp): within
-// gimbal_lock_margin_deg of pitch +-90 deg the angles are the canonical split (roll 0, yaw = the
-// determined combination), roll and yaw sigma null, and alignment_determined_deg /
-// alignment_determined_sigma_deg {yaw_minus_roll | yaw_plus_roll} give the combination.
+// q_sensor_from_body [w, x, y, z] (the same rotation, estimation.md section 0: v_sensor =
+// q v_body q*; sign: w > 0, rotation.hpp quaternion_from_dcm), alignment_deg {roll, pitch, yaw}
+// (section 0), alignment_covariance_deg2 [[3],[3],[3]] (deg^2: the covariance of the rotation
+// error as a rotation vector in the sensor frame, R_true = exp(-[dtheta x]) R_hat, equally of
+// log(R_true R_hat^T) = -dtheta; pipeline/calibration_result.hpp AlignmentEstimate),
+// alignment_sigma_deg {roll, pitch, yaw} and alignment_singular
+// (pipeline/roll_pitch_yaw_report.hpp): within gimbal_lock_margin_deg of pitch +-90 deg the
+// angles are the canonical split (roll 0, yaw = the determined combination), roll and yaw sigma
+// null, and alignment_determined_deg / alignment_determined_sigma_deg {yaw_minus_roll |
+// yaw_plus_roll} give the combination. An unknown covariance (NaN: history rows stored before
+// schema 5) leaves alignment_covariance_deg2 and both sigma keys out.
 // Non-finite numbers become null (JSON has no NaN).
 // Callers add their own keys (compute_ms, time strings, ...) to the returned object.
 #pragma once

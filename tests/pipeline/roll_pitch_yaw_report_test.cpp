@@ -6,6 +6,7 @@
 #include "pipeline/roll_pitch_yaw_report.hpp"
 
 #include <cmath>
+#include <limits>
 #include <numbers>
 #include <random>
 #include <vector>
@@ -173,4 +174,21 @@ TEST_CASE("gimbal lock margin: configurable, 0 flags only the pole itself",
   CHECK(roll_pitch_yaw_report(Rm90, P, 0.0).combination_rad == Approx(0.1).margin(1e-12));
   // The canonical angles rebuild the rotation at the pole.
   CHECK((dcm_from_roll_pitch_yaw(at_pole.rpy) - R90).norm() < 1e-9);
+}
+
+TEST_CASE("an unknown rotation covariance (NaN) gives unknown sigmas, never 0",
+          "[roll_pitch_yaw_report]") {
+  const Eigen::Matrix3d unknown =
+      Eigen::Matrix3d::Constant(std::numeric_limits<double>::quiet_NaN());
+  for (const double pitch_deg : {2.0, 90.0}) {
+    INFO("pitch " << pitch_deg << " deg");
+    const Eigen::Matrix3d R = dcm_from_roll_pitch_yaw({0.3, pitch_deg * kDegToRad, -0.2});
+    const RollPitchYawReport r =
+        roll_pitch_yaw_report(R, unknown, kDefaultGimbalLockMargin_deg * kDegToRad);
+    CHECK(r.singular == (pitch_deg == 90.0));
+    for (int i = 0; i < 3; ++i) CHECK(std::isnan(r.sigma_rad(i)));
+    CHECK(std::isnan(r.combination_sigma_rad));
+    // The angles come from R alone.
+    CHECK(r.rpy.pitch_rad == Approx(pitch_deg * kDegToRad));
+  }
 }

@@ -152,3 +152,44 @@ TEST_CASE("orbit frame: z to Earth, y opposite angular momentum", "[rotation]") 
   CHECK((A * (-r.cross(v).normalized()) - Eigen::Vector3d::UnitY()).norm() < kTol);
   CHECK((A * v.normalized()).x() > 0.99);  // x ≈ velocity on a near-circular orbit
 }
+
+TEST_CASE("q_sensor_from_body: section 0's quaternion of R, canonical sign", "[rotation]") {
+  std::mt19937_64 rng(2026);
+  std::uniform_real_distribution<double> angle(-std::numbers::pi, std::numbers::pi);
+  std::uniform_real_distribution<double> pitch(-std::numbers::pi / 2, std::numbers::pi / 2);
+  for (int t = 0; t < 300; ++t) {
+    const Eigen::Matrix3d R = dcm_from_roll_pitch_yaw({angle(rng), pitch(rng), angle(rng)});
+    const QuaternionWxyz q = quaternion_from_dcm(R);
+    REQUIRE(q.norm() == Approx(1.0).margin(1e-15));
+    REQUIRE(q(0) >= 0.0);
+    // v_sensor = q v_body q* = R v_body (estimation.md section 0).
+    const Eigen::Vector3d v(0.3, -1.2, 2.0);
+    REQUIRE((rotate_vector(q, v) - R * v).norm() < 1e-12);
+    REQUIRE((dcm_from_quaternion(q) - R).norm() < 1e-12);
+  }
+  // Section 0's frame rotation by a small roll is the active rotation by -roll about x.
+  const double a = 0.01;
+  const QuaternionWxyz q_roll = quaternion_from_dcm(frame_rotation_x(a));
+  CHECK(q_roll(0) == Approx(std::cos(a / 2)));
+  CHECK(q_roll(1) == Approx(-std::sin(a / 2)));
+  CHECK(q_roll(2) == Approx(0.0).margin(1e-15));
+  CHECK(q_roll(3) == Approx(0.0).margin(1e-15));
+  // Half turns (w = 0): the sign is fixed by the first component that is not zero, so an
+  // upside-down mounting reads the same whatever rounding left in w.
+  struct HalfTurn {
+    Eigen::Vector3d axis, expected;
+  };
+  for (const HalfTurn& h : {HalfTurn{{1, 0, 0}, {1, 0, 0}}, HalfTurn{{0, -1, 0}, {0, 1, 0}},
+                            HalfTurn{{0, 1, -1}, {0, 1, -1}}, HalfTurn{{0, -1, 1}, {0, 1, -1}},
+                            HalfTurn{{-1, 2, 2}, {1, -2, -2}}}) {
+    for (const double tilt : {0.0, 1e-16, -1e-16}) {
+      // A half turn about the axis, nudged by rounding-level amounts either way.
+      const Eigen::Matrix3d R =
+          Eigen::AngleAxisd(std::numbers::pi + tilt, h.axis.normalized()).toRotationMatrix();
+      const QuaternionWxyz q = quaternion_from_dcm(R);
+      INFO("axis " << h.axis.transpose() << ", tilt " << tilt << ": q " << q.transpose());
+      CHECK(q(0) == 0.0);
+      CHECK((q.tail<3>() - h.expected.normalized()).norm() < 1e-12);
+    }
+  }
+}

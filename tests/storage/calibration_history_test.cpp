@@ -2,8 +2,15 @@
 // conversion from/to calibration_t.
 #include "storage/calibration_history.hpp"
 
+#include <unistd.h>
+
+#include <algorithm>
 #include <catch2/catch.hpp>
 #include <cmath>
+#include <filesystem>
+#include <string_view>
+
+#include "storage/migrations.hpp"
 
 using namespace magcal::storage;
 
@@ -220,6 +227,70 @@ TEST_CASE("a refit's model error (schema 4) round-trips, zero stays NULL, rows r
   CHECK_FALSE(history.get(b + 1).has_value());
   db.exec("UPDATE calibrations SET model_error = zeroblob(8)");
   CHECK_THROWS_AS(history.get(a), StorageError);
+}
+
+TEST_CASE(
+    "the alignment covariance round-trips exactly, NULL without an alignment or when unknown") {
+  Database db(":memory:");
+  CalibrationHistory history(db);
+  CalibrationRecord aligned = make_record("SAT1", "twostep", kT0, 1);
+  REQUIRE(aligned.has_alignment);
+  aligned.alignment_covariance_rad2 =
+      std::array<double, 6>{1e-8 / 3.0, 2.5e-9, 7e-10, -1e-10, 3e-300, -0.0};
+  CalibrationRecord unknown = make_record("SAT1", "twostep", kT0 + kHour, 3);
+  REQUIRE(unknown.has_alignment);
+  CalibrationRecord unaligned = make_record("SAT1", "twostep", kT0 + 2 * kHour, 2);
+  REQUIRE_FALSE(unaligned.has_alignment);
+  unaligned.alignment_covariance_rad2 = aligned.alignment_covariance_rad2;  // not stored
+  const int64_t a = history.append(aligned);
+  const int64_t u = history.append(unknown);
+  const int64_t n = history.append(unaligned);
+  REQUIRE(history.get(a)->alignment_covariance_rad2 == aligned.alignment_covariance_rad2);
+  CHECK_FALSE(history.get(u)->alignment_covariance_rad2.has_value());
+  CHECK_FALSE(history.get(n)->alignment_covariance_rad2.has_value());
+  Statement nulls(db, "SELECT count(*) FROM calibrations WHERE alignment_covariance_rad2 IS NULL");
+  REQUIRE(nulls.step());
+  CHECK(nulls.column_int64(0) == 2);
+  db.exec("UPDATE calibrations SET alignment_covariance_rad2 = zeroblob(40) WHERE id = " +
+          std::to_string(a));
+  CHECK_THROWS_AS(history.get(a), StorageError);
+}
+
+TEST_CASE("rows stored before the alignment covariance was kept read it as unknown") {
+  const auto all = migrations();
+  const auto it = std::find_if(all.begin(), all.end(), [](const Migration& m) {
+    return std::string_view(m.name).ends_with("_alignment_covariance");
+  });
+  REQUIRE(it != all.end());
+  const int before = it->version - 1;
+  const std::filesystem::path dir = std::filesystem::temp_directory_path() /
+                                    ("magcal_history_test_" + std::to_string(::getpid()));
+  std::filesystem::create_directories(dir);
+  const std::string path = (dir / "old.db").string();
+  {
+    OpenOptions old;
+    old.migrate_to = before;
+    Database db(path, old);
+    REQUIRE(db.schema_version() == before);
+    // A row as the previous schema stored it: an alignment without its covariance.
+    db.exec(
+        "INSERT INTO calibrations (sat_id, method, utime, window_start_utime, window_end_utime, "
+        "n_samples, bias_x_nT, bias_y_nT, bias_z_nT, D11, D22, D33, D12, D13, D23, cov, "
+        "has_alignment, R11, R12, R13, R21, R22, R23, R31, R32, R33, residual_rms_nT, status, "
+        "verdict, software_version, created_utime) VALUES ('SAT1', 'twostep', 42, 0, 0, 0, 0, 0, "
+        "0, 0, 0, 0, 0, 0, 0, zeroblob(360), 1, 1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 'accepted', "
+        "'old', 1)");
+  }
+  {
+    Database db(path);
+    CHECK(db.schema_version() == static_cast<int>(migrations().size()));
+    CalibrationHistory history(db);
+    const auto old_row = history.latest("SAT1", "twostep");
+    REQUIRE(old_row);
+    CHECK(old_row->has_alignment);
+    CHECK_FALSE(old_row->alignment_covariance_rad2.has_value());
+  }
+  std::filesystem::remove_all(dir);
 }
 
 TEST_CASE("invalid records are refused") {

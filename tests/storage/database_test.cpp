@@ -4,7 +4,9 @@
 
 #include <unistd.h>
 
+#include <cerrno>
 #include <cmath>
+#include <cstring>
 
 #include <catch2/catch.hpp>
 #include <filesystem>
@@ -15,6 +17,7 @@
 #include "storage/meta_store.hpp"
 #include "storage/migrations.hpp"
 #include "storage/statement.hpp"
+#include "tests/test_skip.hpp"
 
 namespace fs = std::filesystem;
 using namespace magcal::storage;
@@ -295,4 +298,57 @@ TEST_CASE("a database file deleted or moved while open is reported, not written 
   CHECK_THROWS_AS(db.check_file_in_place(), StorageError);
   Database memory(":memory:");
   CHECK_NOTHROW(memory.check_file_in_place());
+}
+
+TEST_CASE("a directory is refused as a database, naming it, read-only or not") {
+  TempDir tmp;
+  const std::string folder = tmp.file("folder");
+  fs::create_directories(folder);
+  for (const bool read_only : {false, true}) {
+    OpenOptions options;
+    options.read_only = read_only;
+    try {
+      Database db(folder, options);
+      FAIL("a directory opened as a database");
+    } catch (const StorageError& e) {
+      CHECK(e.kind() == StorageError::Kind::kInvalidArgument);
+      CHECK(std::string(e.what()) ==
+            "cannot open database " + folder + ": is a directory, not a database file");
+      CHECK_FALSE(e.transient());  // retrying cannot help
+    }
+  }
+  CHECK(fs::is_empty(folder));
+}
+
+TEST_CASE("a new database whose directory is missing names the directory") {
+  TempDir tmp;
+  const std::string missing_dir = tmp.file("no/such");
+  try {
+    Database db(missing_dir + "/new.db");
+    FAIL("opened a database in a missing directory");
+  } catch (const StorageError& e) {
+    CHECK_THAT(e.what(), Catch::Contains("cannot open database " + missing_dir + "/new.db"));
+    CHECK_THAT(e.what(),
+               Catch::Contains("(directory " + missing_dir + ": " + std::strerror(ENOENT) + ")"));
+  }
+}
+
+TEST_CASE("a new database whose directory is not writable names the directory") {
+  TempDir tmp;
+  if (::geteuid() == 0) {
+    // root writes anywhere: the permission case cannot be set up (CI runs as root).
+    magcal::test::skip("running as root: an unwritable directory cannot be made");
+    return;
+  }
+  const std::string locked = tmp.file("locked");
+  fs::create_directories(locked);
+  fs::permissions(locked, fs::perms::owner_read | fs::perms::owner_exec);
+  try {
+    Database db(locked + "/new.db");
+    FAIL("opened a database in an unwritable directory");
+  } catch (const StorageError& e) {
+    CHECK_THAT(e.what(),
+               Catch::Contains("(directory " + locked + ": " + std::strerror(EACCES) + ")"));
+  }
+  fs::permissions(locked, fs::perms::owner_all);
 }

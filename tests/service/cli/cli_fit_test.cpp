@@ -138,10 +138,32 @@ TEST_CASE("fit --json on a CSV prints design.md's keys and recovers the paramete
     INFO(r.err);
     REQUIRE(r.exit_code == 0);
     const nlohmann::json j = nlohmann::json::parse(r.out);
-    for (const char* key : {"method", "n_samples", "bias_nT", "D", "bias_sigma_nT",
-                            "R_sensor_from_body", "alignment_deg", "residual_rms_nT", "iterations",
-                            "converged", "compute_ms", "status", "verdict", "rejection_reasons"}) {
+    for (const char* key :
+         {"method", "n_samples", "bias_nT", "D", "bias_sigma_nT", "R_sensor_from_body",
+          "alignment_deg", "residual_rms_nT", "iterations", "converged", "compute_ms", "status",
+          "verdict", "rejection_reasons", "q_sensor_from_body", "alignment_covariance_deg2",
+          "alignment_sigma_deg", "alignment_singular"}) {
       CHECK(j.contains(key));
+    }
+    // The quaternion is R's (estimation.md section 0: v_sensor = q v_body q*, w >= 0), and the
+    // angle sigmas at these small angles are ~sqrt(diag) of the rotation covariance.
+    QuaternionWxyz q;
+    Eigen::Matrix3d R, C;
+    for (int i = 0; i < 4; ++i) q(i) = j["q_sensor_from_body"][i].get<double>();
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 3; ++c) {
+        R(r, c) = j["R_sensor_from_body"][r][c].get<double>();
+        C(r, c) = j["alignment_covariance_deg2"][r][c].get<double>();
+      }
+    }
+    CHECK(q(0) >= 0.0);
+    CHECK((dcm_from_quaternion(q) - R).norm() < 1e-12);
+    CHECK((C - C.transpose()).norm() == 0.0);
+    CHECK(C.diagonal().minCoeff() > 0.0);
+    for (int i = 0; i < 3; ++i) {
+      const char* angle = i == 0 ? "roll" : (i == 1 ? "pitch" : "yaw");
+      CHECK(j["alignment_sigma_deg"][angle].get<double>() ==
+            Approx(std::sqrt(C(i, i))).epsilon(0.05));
     }
     CHECK(j["method"] == method);
     CHECK(j["n_samples"] == 600);
@@ -156,6 +178,9 @@ TEST_CASE("fit --json on a CSV prints design.md's keys and recovers the paramete
   CHECK(t.exit_code == 0);
   CHECK(t.out.find("bias_nT") != std::string::npos);
   CHECK(t.out.find("alignment_deg") != std::string::npos);
+  CHECK(t.out.find("q_sensor_from_body") != std::string::npos);
+  CHECK(t.out.find("alignment_sigma") != std::string::npos);
+  CHECK(t.out.find("alignment_cov_deg2") != std::string::npos);
   std::filesystem::remove(csv);
 }
 

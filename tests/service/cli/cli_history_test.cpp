@@ -4,6 +4,8 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
+#include <array>
 #include <catch2/catch.hpp>
 #include <cmath>
 #include <cstdio>
@@ -102,6 +104,13 @@ std::vector<std::string> split_csv(const std::string& line) {
   return out;
 }
 
+// Index of the CSV column `name` in `header` (which must have it).
+size_t column_of(const std::vector<std::string>& header, const std::string& name) {
+  const auto it = std::find(header.begin(), header.end(), name);
+  REQUIRE(it != header.end());
+  return static_cast<size_t>(it - header.begin());
+}
+
 }  // namespace
 
 TEST_CASE("history --format json matches the stored rows and design.md keys") {
@@ -191,11 +200,7 @@ TEST_CASE("history --format csv has design.md's flat columns and exact values") 
   const auto lines = lines_of(r.out);
   REQUIRE(lines.size() == 4);
   const auto header = split_csv(lines[0]);
-  auto col = [&](const std::string& name) {
-    const auto it = std::find(header.begin(), header.end(), name);
-    REQUIRE(it != header.end());
-    return static_cast<size_t>(it - header.begin());
-  };
+  auto col = [&](const std::string& name) { return column_of(header, name); };
   for (const char* name : {"time",
                            "utime",
                            "method",
@@ -372,7 +377,10 @@ TEST_CASE("history flags roll/yaw near gimbal lock in JSON and CSV (canonical sp
   const double combination_deg = (-0.2 - 0.3) * 180.0 / std::numbers::pi;
   CHECK(row["alignment_deg"]["yaw"].get<double>() == Approx(combination_deg));
   CHECK(row["alignment_determined_deg"]["yaw_minus_roll"].get<double>() == Approx(combination_deg));
-  CHECK_FALSE(row.contains("alignment_determined_sigma_deg"));  // the covariance is not stored
+  // Stored without a covariance (as rows before it was kept): no sigma is printed.
+  CHECK_FALSE(row.contains("alignment_determined_sigma_deg"));
+  CHECK_FALSE(row.contains("alignment_sigma_deg"));
+  CHECK_FALSE(row.contains("alignment_covariance_deg2"));
 
   const Run ok =
       run_magcal("history --db " + db + " --sat SAT1 --method twostep --format json", dir);
@@ -389,7 +397,101 @@ TEST_CASE("history flags roll/yaw near gimbal lock in JSON and CSV (canonical sp
     REQUIRE(lines.size() == 2);
     const auto header = split_csv(lines[0]);
     const auto f = split_csv(lines[1]);
-    REQUIRE(header.back() == "alignment_singular");
-    CHECK(f.back() == want);
+    REQUIRE(f.size() == header.size());
+    CHECK(f[column_of(header, "alignment_singular")] == want);
   }
+}
+
+TEST_CASE("history JSON and CSV: quaternion, rotation-vector covariance and angle sigmas") {
+  TempDir dir;
+  const std::string db = dir.file("m.db");
+  // R = Rz(90 deg) (a frame rotation, section 0): the active rotation by -90 deg about z, so
+  // q = (cos 45, 0, 0, -sin 45); roll, pitch 0 and yaw 90 deg, where each angle's sigma is the
+  // square root of the matching diagonal entry of the rotation-vector covariance.
+  CalibrationRecord aligned = make_record("SAT1", "twostep", kT0, 0);
+  REQUIRE(aligned.has_alignment);
+  const std::array<double, 6> c_rad2 = {4e-8, 9e-8,  2.5e-7,
+                                        1e-8, -2e-8, 3e-9};  // 11 22 33 12 13 23
+  aligned.alignment_covariance_rad2 = c_rad2;
+  CalibrationRecord old = make_record("SAT1", "twostep", kT0 + kHour, 2);  // unknown covariance
+  CalibrationRecord ukf = make_record("SAT1", "ukf", kT0 + 2 * kHour, 1);  // no alignment
+  {
+    Database d(db);
+    CalibrationHistory history(d);
+    history.append(aligned);
+    history.append(old);
+    history.append(ukf);
+  }
+  const double deg2 = std::pow(180.0 / std::numbers::pi, 2);
+  const Eigen::Matrix3d C_deg2 = (Eigen::Matrix3d() << c_rad2[0], c_rad2[3], c_rad2[4], c_rad2[3],
+                                  c_rad2[1], c_rad2[5], c_rad2[4], c_rad2[5], c_rad2[2])
+                                     .finished() *
+                                 deg2;
+  const double h = std::sqrt(0.5);
+  const std::array<double, 4> q_want = {h, 0.0, 0.0, -h};
+  const std::array<const char*, 3> angles = {"roll", "pitch", "yaw"};
+
+  const Run js = run_magcal("history --db " + db + " --sat SAT1 --format json", dir);
+  REQUIRE(js.exit_code == 0);
+  const auto j = nlohmann::json::parse(js.out);
+  REQUIRE(j.size() == 3);
+  const auto& a = j[0];
+  for (int i = 0; i < 4; ++i)
+    CHECK(a["q_sensor_from_body"][i].get<double>() == Approx(q_want[i]).margin(1e-15));
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c)
+      CHECK(a["alignment_covariance_deg2"][r][c].get<double>() == Approx(C_deg2(r, c)));
+  for (int i = 0; i < 3; ++i)
+    CHECK(a["alignment_sigma_deg"][angles[i]].get<double>() == Approx(std::sqrt(C_deg2(i, i))));
+  CHECK(a["alignment_singular"] == false);
+  // A row without a stored covariance: the rotation, never sigmas made up from defaults.
+  const auto& o = j[1];
+  CHECK(o.contains("q_sensor_from_body"));
+  CHECK(o.contains("alignment_deg"));
+  CHECK_FALSE(o.contains("alignment_covariance_deg2"));
+  CHECK_FALSE(o.contains("alignment_sigma_deg"));
+  // No alignment: none of the keys.
+  for (const char* key : {"q_sensor_from_body", "alignment_covariance_deg2", "alignment_sigma_deg",
+                          "alignment_singular", "alignment_deg"})
+    CHECK_FALSE(j[2].contains(key));
+
+  const Run csv = run_magcal("history --db " + db + " --sat SAT1 --format csv", dir);
+  REQUIRE(csv.exit_code == 0);
+  const auto lines = lines_of(csv.out);
+  REQUIRE(lines.size() == 4);
+  const auto header = split_csv(lines[0]);
+  auto col = [&](const std::string& name) { return column_of(header, name); };
+  std::vector<std::vector<std::string>> rows;
+  for (size_t k = 1; k < lines.size(); ++k) {
+    rows.push_back(split_csv(lines[k]));
+    REQUIRE(rows.back().size() == header.size());
+  }
+  const char* wxyz = "wxyz";
+  for (int i = 0; i < 4; ++i) {
+    const size_t c = col(std::string("q_sensor_from_body_") + wxyz[i]);
+    CHECK(std::stod(rows[0][c]) == Approx(q_want[i]).margin(1e-15));
+    CHECK(std::stod(rows[0][c]) == a["q_sensor_from_body"][i].get<double>());
+    CHECK_FALSE(rows[1][c].empty());
+    CHECK(rows[2][c].empty());
+  }
+  const std::array<const char*, 6> pairs = {"11", "22", "33", "12", "13", "23"};
+  for (int i = 0; i < 6; ++i) {
+    const size_t c = col(std::string("alignment_covariance_") + pairs[i] + "_deg2");
+    CHECK(std::stod(rows[0][c]) == Approx(c_rad2[i] * deg2));
+    // The same number as the JSON's, to the last bit.
+    const int r = i < 3 ? i : (i == 5 ? 1 : 0), cc = i < 3 ? i : (i == 3 ? 1 : 2);
+    CHECK(std::stod(rows[0][c]) == a["alignment_covariance_deg2"][r][cc].get<double>());
+    CHECK(rows[1][c].empty());
+    CHECK(rows[2][c].empty());
+  }
+  for (int i = 0; i < 3; ++i) {
+    const size_t c = col(std::string("alignment_sigma_") + angles[i] + "_deg");
+    CHECK(std::stod(rows[0][c]) == Approx(std::sqrt(C_deg2(i, i))));
+    CHECK(std::stod(rows[0][c]) == a["alignment_sigma_deg"][angles[i]].get<double>());
+    CHECK(rows[1][c].empty());
+    CHECK(rows[2][c].empty());
+    CHECK(std::stod(rows[0][col(std::string("alignment_") + angles[i] + "_deg")]) ==
+          Approx(i == 2 ? 90.0 : 0.0).margin(1e-12));
+  }
+  CHECK(rows[0][col("alignment_determined_sigma_deg")].empty());  // not singular
 }

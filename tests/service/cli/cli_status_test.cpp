@@ -196,3 +196,15 @@ TEST_CASE("status on an empty, missing or foreign database") {
   CHECK(r.err ==
         "magcal status: " + text + " is not a database (SQLite: file is not a database)\n");
 }
+
+TEST_CASE("status --db on a directory says it is a directory") {
+  TempDir dir;
+  const std::string folder = dir.file("results");
+  fs::create_directories(folder);
+  const Run r = run_magcal("status --db " + folder, dir);
+  INFO(r.err);
+  CHECK(r.exit_code == 2);
+  CHECK(r.err == "magcal status: cannot open database " + folder +
+                     ": is a directory, not a database file\n");
+  CHECK(fs::is_empty(folder));  // nothing created in it
+}

@@ -1,10 +1,14 @@
 // magcald's start-up messages (magcald_main.cpp, Daemon::open), run as the real binary: a
 // refused start prints one line on stderr that blames the flag or key at fault and names the
-// cause, points nowhere outside the repository, and leaves no database behind.
+// cause, points nowhere outside the repository, and leaves no database behind; a live start's
+// log names the LCM URL it listens on.
+#include <signal.h>
+
 #include <algorithm>
 #include <filesystem>
 #include <fstream>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include <catch2/catch.hpp>
@@ -93,4 +97,35 @@ TEST_CASE("an LCM URL that cannot be opened: one line of ours with LCM's reason,
   CHECK(r.exit_code == 2);
   check_one_line(r, dir);
   CHECK_THAT(r.text, Catch::Contains("[lcm] url 'bogus://x': cannot open LCM URL: LCM provider"));
+}
+
+TEST_CASE("the start log names the LCM URL a live daemon listens on, also when it is the default") {
+  TempDir dir("magcald_main_url");
+  // (environment for `env`, what the "up" line says after "lcm ")
+  const std::vector<std::pair<std::vector<std::string>, std::string>> cases = {
+      {{"LCM_DEFAULT_URL=memq://"}, "lcm 'memq://' (LCM_DEFAULT_URL) (live)"},
+      {{"-u", "LCM_DEFAULT_URL"}, "lcm default 'udpm://239.255.76.67:7667?ttl=0' (live)"},
+  };
+  for (const auto& [env, said] : cases) {
+    INFO(said);
+    if (env.front() == "-u" && !magcal::test::multicast_available("")) {
+      WARN("LCM's default (UDP multicast) cannot open here: case left out");
+      continue;
+    }
+    std::vector<std::string> args = {"env"};
+    args.insert(args.end(), env.begin(), env.end());
+    args.insert(args.end(), {kMagcald, "--db", dir.file("live.db"), "--http-listen", ""});
+    const std::string log = dir.file(env.front() == "-u" ? "default.log" : "env.log");
+    const pid_t pid = magcal::test::spawn(args, log);
+    REQUIRE(pid > 0);
+    const bool up =
+        magcal::test::wait_until([&] { return slurp(log).find(" up: ") != std::string::npos; }, 30);
+    ::kill(pid, SIGTERM);
+    CHECK(magcal::test::wait_exit(pid, 30) == 0);
+    const std::string text = slurp(log);
+    INFO(text);
+    REQUIRE(up);
+    CHECK_THAT(text, Catch::Contains(said));
+    CHECK_THAT(text, !Catch::Contains("lcm ''"));
+  }
 }

@@ -232,6 +232,18 @@ TEST_CASE("the page draws the replayed day in headless Chromium without console 
   CHECK(rejected_drawn.find("bias0:1 bias1:1 bias2:1 dmat:6") != std::string::npos);
   CHECK(dom.find("rejected, rejected") == std::string::npos);
   CHECK(dom.find("nT, rejected</div>") != std::string::npos);
+  // The newest refit's alignment, the paper's (1, 2, 1) deg mounting (with the sensor's internal
+  // misalignment, 0.3 deg), each angle with its sigma; far from gimbal lock.
+  for (const auto& [angle, truth_deg] : {std::pair{"roll", 1.0}, {"pitch", 2.0}, {"yaw", 1.0}}) {
+    std::smatch cell;
+    INFO(angle);
+    REQUIRE(std::regex_search(dom, cell,
+                              std::regex(std::string("<td id=\"alignment-") + angle +
+                                         "\">(-?[0-9.]+) \u00b1 ([0-9.e+-]+)</td>")));
+    CHECK(std::abs(std::stod(cell[1]) - truth_deg) < 0.5);
+    CHECK(std::stod(cell[2]) > 0.0);
+  }
+  CHECK(dom.find("<td id=\"alignment-singular\">no</td>") != std::string::npos);
 
   args = chromium_args(chromium, dir.file("profile-screenshot"));
   const std::string png = dir.file("page.png");
