@@ -117,7 +117,11 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
       "R31,R32,R33,residual_rms_nT,iterations,status,verdict,rejection_reasons,"
       "software_version,id,noise_scale,residual_autocorrelation,covariance_lag_window,"
       "residual_rms_all_nT,has_nonlinearity,k3_x,k3_y,k3_z,nis_mean,"
-      "measurement_noise_nT,alignment_singular\n";
+      "measurement_noise_nT,alignment_singular,has_temperature_model,reference_temperature_C,"
+      "temperature_coefficient_x_nT_per_C,temperature_coefficient_y_nT_per_C,"
+      "temperature_coefficient_z_nT_per_C,temperature_coefficient_sigma_x_nT_per_C,"
+      "temperature_coefficient_sigma_y_nT_per_C,temperature_coefficient_sigma_z_nT_per_C,"
+      "temperature_model_refit_id\n";
   for (const auto& r : rows) {
     std::string line = history_time(r.utime) + ',' + std::to_string(r.utime) + ',' +
                        csv_quoted(r.sat_id) + ',' + csv_quoted(r.method) + ',' +
@@ -152,6 +156,18 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
               .singular;
       line += singular ? "1" : "0";
     }
+    // Appended (issue 20): the bias temperature model; bias_x_nT.. are then at its T0.
+    line += ',' + (r.has_temperature_model >= 0 ? std::to_string(r.has_temperature_model) : "");
+    const bool modelled = r.has_temperature_model == 1;
+    line += ',' + (modelled ? csv_number(r.reference_temperature_C) : "");
+    for (const double v : r.temperature_coefficient_nT_per_C)
+      line += ',' + (modelled ? csv_number(v) : "");
+    const Eigen::Vector3d sigma =
+        modelled ? result_from_record(r).temperature_coefficient_sigma_nT_per_C()
+                 : Eigen::Vector3d::Constant(std::numeric_limits<double>::quiet_NaN());
+    for (int i = 0; i < 3; ++i) line += ',' + csv_number(sigma(i));
+    line += ',' +
+            (r.temperature_model_refit_id > 0 ? std::to_string(r.temperature_model_refit_id) : "");
     text += line + '\n';
   }
   return text;
