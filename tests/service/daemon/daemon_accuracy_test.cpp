@@ -287,7 +287,8 @@ TEST_CASE("a thermal spacecraft: refits model the temperature, the UKF uses thei
       ++n_full;
       INFO("refit at " << r.utime << " n " << r.n_samples);
       CHECK(r.verdict == "accepted");
-      REQUIRE(r.has_temperature_model == 1);
+      CHECK(r.has_temperature_model == 1);
+      if (r.has_temperature_model != 1) continue;
       const double k_sigma[3] = {std::sqrt(r.temperature_coefficient_cov[0]),
                                  std::sqrt(r.temperature_coefficient_cov[3]),
                                  std::sqrt(r.temperature_coefficient_cov[5])};
