@@ -302,7 +302,13 @@ void IngestWorker::accept_sample(const std::string& sat, SpacecraftTracker& t,
     reject_sample(RejectReason::kReferenceFailed, sat, s);
     return;
   }
-  t.update_filter(*sample);
+  if (!t.update_filter(*sample)) {
+    warnings_.warn("no_temperature",
+                   fmt::format("{}: sample at {} without a temperature (none within {} s): stored, "
+                               "not used by the UKF, whose anchor refit models the temperature",
+                               sat, format_iso8601_utc(s.utime),
+                               TemperatureCorrection::kTemperatureHoldMax_utime / 1000000));
+  }
   t.state_dirty = true;
   counters_.ukf_updates.fetch_add(1, std::memory_order_relaxed);
 

@@ -1,9 +1,10 @@
 -- magcal schema: the bias temperature model (issue 20). Applied in one transaction that sets
 -- PRAGMA user_version to this migration's number. b(T) = bias + k_T (T - T0): the row's bias is
--- the bias at T0 = reference_temperature_C. NULL means not modelled (rows written before this
--- version, a refit whose data did not support it, an online result without a model to apply).
-ALTER TABLE calibrations ADD COLUMN has_temperature_model INTEGER;  -- 1: modelled, 0: refit
-                                                                    -- tested it, not supported
+-- the bias at T0 = reference_temperature_C. The numbers are NULL unless has_temperature_model
+-- is 1; has_temperature_model itself is NULL for rows written before this version and for
+-- online results without a model to apply.
+ALTER TABLE calibrations ADD COLUMN has_temperature_model INTEGER;  -- 1: modelled, 0: a refit
+                                                                    -- whose data did not support it
 ALTER TABLE calibrations ADD COLUMN reference_temperature_C REAL;   -- T0, deg C
 ALTER TABLE calibrations ADD COLUMN temperature_coefficient_x_nT_per_C REAL;  -- k_T per axis
 ALTER TABLE calibrations ADD COLUMN temperature_coefficient_y_nT_per_C REAL;
