@@ -25,7 +25,10 @@ constexpr const char* kSelect =
     "R33, residual_rms_nT, status, verdict, rejection_reasons, iterations, software_version, "
     "created_utime, noise_scale, residual_autocorrelation, covariance_lag_window, "
     "residual_rms_all_nT, has_nonlinearity, k3_x, k3_y, k3_z, nis_mean, measurement_noise_nT, "
-    "model_error, alignment_covariance_rad2 FROM calibrations ";
+    "model_error, alignment_covariance_rad2, has_temperature_model, reference_temperature_C, "
+    "temperature_coefficient_x_nT_per_C, temperature_coefficient_y_nT_per_C, "
+    "temperature_coefficient_z_nT_per_C, temperature_coefficient_cov, temperature_model_refit_id "
+    "FROM calibrations ";
 constexpr const char* kRefitMethods = "method IN ('centered', 'twostep')";
 
 std::string sql(const std::string& tail) {
@@ -122,6 +125,8 @@ CalibrationRecord record_from_message(const calibration_t& msg) {
 }
 
 calibration_t message_from_record(const CalibrationRecord& r) {
+  // With a temperature model, bias_nT is the bias at reference_temperature_C, which (like k_T)
+  // calibration_t has no field for: its definition is a contract (magcal::message_from_result).
   calibration_t msg{};
   msg.utime = r.utime;
   msg.sat_id = r.sat_id;
@@ -149,10 +154,14 @@ CalibrationHistory::CalibrationHistory(Database& db)
               "status, verdict, rejection_reasons, iterations, software_version, created_utime, "
               "noise_scale, residual_autocorrelation, covariance_lag_window, residual_rms_all_nT, "
               "has_nonlinearity, k3_x, k3_y, k3_z, nis_mean, measurement_noise_nT, model_error, "
-              "alignment_covariance_rad2) "
+              "alignment_covariance_rad2, has_temperature_model, reference_temperature_C, "
+              "temperature_coefficient_x_nT_per_C, temperature_coefficient_y_nT_per_C, "
+              "temperature_coefficient_z_nT_per_C, temperature_coefficient_cov, "
+              "temperature_model_refit_id) "
               "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, "
               "?17, ?18, ?19, ?20, ?21, ?22, ?23, ?24, ?25, ?26, ?27, ?28, ?29, ?30, ?31, ?32, "
-              "?33, ?34, ?35, ?36, ?37, ?38, ?39, ?40, ?41, ?42, ?43, ?44, ?45, ?46, ?47, ?48)"),
+              "?33, ?34, ?35, ?36, ?37, ?38, ?39, ?40, ?41, ?42, ?43, ?44, ?45, ?46, ?47, ?48, "
+              "?49, ?50, ?51, ?52, ?53, ?54, ?55)"),
       query_all_(db, sql("WHERE sat_id = ?1 AND utime >= ?2 AND utime <= ?3 "
                          "ORDER BY utime DESC, id DESC LIMIT ?4")),
       query_method_(db, sql("WHERE sat_id = ?1 AND utime >= ?2 AND utime <= ?3 AND method = ?5 "
@@ -222,6 +231,26 @@ int64_t CalibrationHistory::append(const CalibrationRecord& r) {
   } else {
     insert_.bind_null(48);
   }
+  const bool temperature_model = r.has_temperature_model == 1;
+  if (r.has_temperature_model >= 0)
+    insert_.bind(49, temperature_model ? 1 : 0);
+  else
+    insert_.bind_null(49);
+  // Without a model its numbers are NULL whatever the record holds (NaN binds as NULL too).
+  const double unknown = std::numeric_limits<double>::quiet_NaN();
+  insert_.bind(50, temperature_model ? r.reference_temperature_C : unknown);
+  for (int i = 0; i < 3; ++i)
+    insert_.bind(51 + i, temperature_model ? r.temperature_coefficient_nT_per_C[i] : unknown);
+  if (temperature_model) {
+    insert_.bind_blob(54, r.temperature_coefficient_cov.data(),
+                      sizeof(double) * r.temperature_coefficient_cov.size());
+  } else {
+    insert_.bind_null(54);
+  }
+  if (temperature_model && r.temperature_model_refit_id > 0)
+    insert_.bind(55, r.temperature_model_refit_id);
+  else
+    insert_.bind_null(55);
   insert_.execute();
   return db_.last_insert_id();
 }
@@ -285,6 +314,19 @@ CalibrationRecord CalibrationHistory::read_row(Statement& st) {
     }
     std::memcpy(c.data(), covariance.data(), covariance.size());
     r.alignment_covariance_rad2 = c;
+  }
+  r.has_temperature_model = st.is_null(49) ? -1 : (st.column_int64(49) != 0 ? 1 : 0);
+  if (r.has_temperature_model == 1) {
+    r.reference_temperature_C = st.column_double(50);
+    for (int i = 0; i < 3; ++i) r.temperature_coefficient_nT_per_C[i] = st.column_double(51 + i);
+    const auto cov = st.column_blob(54);
+    if (cov.size() != sizeof(double) * r.temperature_coefficient_cov.size()) {
+      throw StorageError(StorageError::Kind::kSqlite,
+                         "calibrations.temperature_coefficient_cov of row " + std::to_string(r.id) +
+                             " has " + std::to_string(cov.size()) + " bytes, expected 48");
+    }
+    std::memcpy(r.temperature_coefficient_cov.data(), cov.data(), cov.size());
+    r.temperature_model_refit_id = st.is_null(55) ? 0 : st.column_int64(55);
   }
   return r;
 }

@@ -58,6 +58,18 @@ struct CalibrationRecord {
   // Refits (schema 4): p_9 - p, the model error an online filter re-anchored on it takes
   // (CalibrationResult::model_error); zero when none or unknown.
   std::array<double, 9> model_error{};
+  // Bias temperature model (issue 20): b(T) = bias_nT + k_T (T - reference_temperature_C), so
+  // bias_nT is the bias at reference_temperature_C. -1 unknown / not modelled (NULL), 0 a refit
+  // whose data did not support it, 1 modelled (then the fields below are set).
+  int has_temperature_model = -1;
+  double reference_temperature_C = std::numeric_limits<double>::quiet_NaN();
+  std::array<double, 3> temperature_coefficient_nT_per_C{std::numeric_limits<double>::quiet_NaN(),
+                                                         std::numeric_limits<double>::quiet_NaN(),
+                                                         std::numeric_limits<double>::quiet_NaN()};
+  // Covariance of k_T, (nT/degC)^2, upper triangle row-major: xx xy xz yy yz zz.
+  std::array<double, 6> temperature_coefficient_cov{};
+  // Online results that applied a refit's model: that refit's id (0: none, or a refit's own).
+  int64_t temperature_model_refit_id = 0;
   std::string software_version;  // empty: this build's MAGCAL_VERSION
   int64_t created_utime = 0;     // 0: wall-clock now
 };

@@ -130,19 +130,21 @@ int64_t IngestWorker::restore_filter(const std::string& sat, SpacecraftTracker& 
       spdlog::warn("{}: stored filter state unreadable; re-running the UKF over the window", sat);
     }
   }
+  // The samples after the state were filtered with the temperature model of the refit it is
+  // anchored on: so is their re-run. (A state saved before schema 4 does not say which refit it
+  // has: taken as the newest, it was saved at a clean stop, after the re-anchor.)
+  t.anchor_calibration_id = anchor_id.value_or(reanchor_id.value_or(0));
+  if (t.anchor_calibration_id > 0) {
+    if (const auto rec = history_.get(t.anchor_calibration_id))
+      t.temperature.take_from(result_from_record(*rec), rec->id);
+  }
   int64_t rerun = 0;
   if (from <= newest_utime) {
     samples_.read_window(sat, from, saturating_add(newest_utime, 1), rows);
-    for (const auto& r : rows) {
-      const CalibrationSample s = calibration_sample_from_stored(r);
-      t.ukf.update(s.b_sensor_nT, reference_norm_nT(s), s.utime);
-    }
+    for (const auto& r : rows) t.update_filter(calibration_sample_from_stored(r));
     rerun = static_cast<int64_t>(rows.size());
     t.state_dirty = !rows.empty();
   }
-  // A state saved before schema 4 does not say which refit it has: taken as the newest (it was
-  // saved at a clean stop, after the re-anchor).
-  t.anchor_calibration_id = anchor_id.value_or(reanchor_id.value_or(0));
   if (reanchor_id && *reanchor_id > t.anchor_calibration_id) {
     if (const auto rec = history_.get(*reanchor_id)) {
       spdlog::info("{}: the stored UKF state predates the accepted refit of {}: re-anchoring now",
@@ -298,7 +300,13 @@ void IngestWorker::accept_sample(const std::string& sat, SpacecraftTracker& t,
     reject_sample(RejectReason::kReferenceFailed, sat, s);
     return;
   }
-  t.ukf.update(sample->b_sensor_nT, reference_norm_nT(*sample), s.utime);
+  if (!t.update_filter(*sample)) {
+    warnings_.warn("no_temperature",
+                   fmt::format("{}: sample at {} without a temperature (none within {} s): stored, "
+                               "not used by the UKF, whose anchor refit models the temperature",
+                               sat, format_iso8601_utc(s.utime),
+                               TemperatureCorrection::kTemperatureHoldMax_utime / 1000000));
+  }
   t.state_dirty = true;
   counters_.ukf_updates.fetch_add(1, std::memory_order_relaxed);
 
@@ -439,7 +447,8 @@ void IngestWorker::maybe_snapshot(const std::string& sat_id, SpacecraftTracker& 
   GateVerdict verdict = evaluate_gates(snap, GateInputs{}, config_.gates);
   reject_unless_ok(snap, verdict);
   apply_verdict(snap, verdict);
-  pending_snapshots_.emplace_back(sat_id, std::move(snap));
+  t.temperature.describe(snap);  // its bias is the bias at the anchor refit's T0
+  pending_snapshots_.push_back({sat_id, std::move(snap), t.temperature.refit_id});
   mark_state_due(sat_id, t);
 }
 
@@ -522,8 +531,10 @@ void IngestWorker::commit_pending() {
         storage::Transaction tx(db_);
         stats = samples_.insert_batch(std::span(pending_).subspan(done, n), &duplicate_rows_);
         if (last) {
-          for (const auto& [sat, snap] : pending_snapshots_) {
-            history_.append(record_from_result(sat, snap));
+          for (const auto& p : pending_snapshots_) {
+            storage::CalibrationRecord rec = record_from_result(p.sat_id, p.result);
+            rec.temperature_model_refit_id = p.temperature_model_refit_id;
+            history_.append(rec);
           }
           for (const auto& sat : states_due_) {
             if (const SpacecraftTracker* t = fleet_.find(sat)) {
@@ -547,7 +558,7 @@ void IngestWorker::commit_pending() {
       if (last && !pending_snapshots_.empty()) {
         counters_.snapshots.fetch_add(static_cast<int64_t>(pending_snapshots_.size()));
         if (hooks_.on_snapshot) {
-          for (const auto& [sat, snap] : pending_snapshots_) hooks_.on_snapshot(sat, snap);
+          for (const auto& p : pending_snapshots_) hooks_.on_snapshot(p.sat_id, p.result);
         }
         pending_snapshots_.clear();
       }
@@ -702,6 +713,9 @@ void IngestWorker::reanchor(const std::string& sat, SpacecraftTracker& t,
   // filter seeded with it finds itself inconsistent and re-opens its covariance (measured:
   // noise 3.7 nT seeded vs 6.5 nT seen, NIS 3-5, then a 20 nT drift on the orbit normal).
   t.ukf.reanchor(refit.parameters.packed(), refit.covariance, refit.model_error_covariance());
+  // Its bias is the bias at the refit's T0 when the refit has a temperature model: from now on
+  // the samples are corrected to T0 (and without one, no longer corrected).
+  t.temperature.take_from(refit, calibration_id);
   if (std::isfinite(refit.residual_rms_nT) && refit.residual_rms_nT > 0.0) {
     t.ukf.seed_noise(refit.residual_rms_nT);
   }

@@ -195,7 +195,12 @@ class IngestWorker {
   // duplicate check needs it (out-of-order samples), so in-order ingest pays nothing.
   std::unordered_multimap<uint64_t, uint32_t> pending_index_;
   size_t pending_indexed_ = 0;
-  std::vector<std::pair<std::string, CalibrationResult>> pending_snapshots_;
+  struct PendingSnapshot {
+    std::string sat_id;
+    CalibrationResult result;
+    int64_t temperature_model_refit_id = 0;  // the refit whose temperature model it applied
+  };
+  std::vector<PendingSnapshot> pending_snapshots_;
   std::vector<std::string> states_due_;  // spacecraft whose state goes into the next commit
   std::chrono::steady_clock::time_point first_pending_time_{};
   std::chrono::steady_clock::time_point last_retention_time_{};

@@ -76,6 +76,23 @@ storage::CalibrationRecord record_from_result(const std::string& sat_id,
   rec.nis_mean = r.nis_mean;
   rec.measurement_noise_nT = r.measurement_noise_nT;
   for (int i = 0; i < 9; ++i) rec.model_error[static_cast<size_t>(i)] = r.model_error(i);
+  // Refits say whether they modelled the temperature (0 / 1); an online result only has one
+  // when it applies its anchor refit's (the caller sets temperature_model_refit_id).
+  if (r.has_temperature_model)
+    rec.has_temperature_model = 1;
+  else if (storage::is_refit_method(r.method))
+    rec.has_temperature_model = 0;
+  if (r.has_temperature_model) {
+    rec.reference_temperature_C = r.reference_temperature_C;
+    for (int i = 0; i < 3; ++i)
+      rec.temperature_coefficient_nT_per_C[static_cast<size_t>(i)] =
+          r.temperature_coefficient_nT_per_C(i);
+    size_t k = 0;
+    for (int i = 0; i < 3; ++i) {
+      for (int j = i; j < 3; ++j)
+        rec.temperature_coefficient_cov[k++] = r.temperature_coefficient_covariance(i, j);
+    }
+  }
   return rec;
 }
 
@@ -123,10 +140,29 @@ CalibrationResult result_from_record(const storage::CalibrationRecord& rec) {
   r.nis_mean = rec.nis_mean;
   r.measurement_noise_nT = rec.measurement_noise_nT;
   for (int i = 0; i < 9; ++i) r.model_error(i) = rec.model_error[static_cast<size_t>(i)];
+  r.has_temperature_model = rec.has_temperature_model == 1;
+  if (r.has_temperature_model) {
+    r.reference_temperature_C = rec.reference_temperature_C;
+    for (int i = 0; i < 3; ++i)
+      r.temperature_coefficient_nT_per_C(i) =
+          rec.temperature_coefficient_nT_per_C[static_cast<size_t>(i)];
+    size_t k = 0;
+    for (int i = 0; i < 3; ++i) {
+      for (int j = i; j < 3; ++j) {
+        r.temperature_coefficient_covariance(i, j) = rec.temperature_coefficient_cov[k];
+        r.temperature_coefficient_covariance(j, i) = rec.temperature_coefficient_cov[k++];
+      }
+    }
+  }
   return r;
 }
 
 calibration_t message_from_result(const std::string& sat_id, const CalibrationResult& result) {
+  // calibration_t is a fixed contract (its fingerprint is what other tools check), so a result
+  // with a bias temperature model goes out as it is stored: bias_nT (and its cov) is the bias at
+  // the model's reference temperature T0, not at the current temperature, and neither T0 nor
+  // k_T travels. A consumer that needs b(T) = bias_nT + k_T (T - T0) reads them from the
+  // history (`magcal history --format json`, GET /api/v1/history).
   calibration_t msg = storage::message_from_record(record_from_result(sat_id, result));
   if (!std::isfinite(msg.residual_rms_nT)) msg.residual_rms_nT = -1.0;
   bool non_finite = false;
@@ -166,7 +202,7 @@ void fill_stored_sample(const mag_sample_t& msg, const std::string& sat_id,
   for (int i = 0; i < 4; ++i) out.q_body_from_eci[static_cast<size_t>(i)] = msg.q_body_from_eci[i];
   out.has_position = msg.has_position;
   for (int i = 0; i < 3; ++i) out.r_ecef_m[static_cast<size_t>(i)] = msg.r_ecef_m[i];
-  out.temperature_C = static_cast<double>(msg.temperature_C);
+  out.temperature_C = sample.temperature_C;
 }
 
 CalibrationSample calibration_sample_from_stored(const storage::StoredSample& s) {
@@ -176,6 +212,7 @@ CalibrationSample calibration_sample_from_stored(const storage::StoredSample& s)
   c.has_reference_direction = s.has_direction;
   c.h_body_nT = s.has_direction ? Eigen::Vector3d(s.h_body_nT[0], s.h_body_nT[1], s.h_body_nT[2])
                                 : Eigen::Vector3d(s.h_norm_nT, 0.0, 0.0);
+  c.temperature_C = s.temperature_C;
   return c;
 }
 

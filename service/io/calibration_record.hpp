@@ -21,13 +21,15 @@ namespace magcal {
 storage::CalibrationRecord record_from_result(const std::string& sat_id,
                                               const CalibrationResult& result);
 CalibrationResult result_from_record(const storage::CalibrationRecord& record);
-// What goes out on LCM never carries NaN or Inf (a reader cannot tell them from corruption):
-// a non-finite residual_rms_nT (unknown, e.g. a failed refit) is sent as -1; non-finite
-// bias_nT, D, cov or R_sensor_from_body entries are sent as 0 and the status becomes 3
-// (failed) unless it already says not converged (1) or unobservable (2).
+// calibration_t unchanged by the temperature model: bias_nT is then the bias at the reference
+// temperature (see message_from_result). What goes out on LCM never carries NaN or Inf (a reader
+// cannot tell them from corruption): a non-finite residual_rms_nT (unknown, e.g. a failed refit) is
+// sent as -1; non-finite bias_nT, D, cov or R_sensor_from_body entries are sent as 0 and the status
+// becomes 3 (failed) unless it already says not converged (1) or unobservable (2).
 calibration_t message_from_result(const std::string& sat_id, const CalibrationResult& result);
 
-// `sample` carries the reference field; `msg` the rest (seq, attitude, position, temperature).
+// `sample` carries the reference field and the temperature (as to_reference_sample() judged
+// it); `msg` the rest (seq, attitude, position).
 void fill_stored_sample(const mag_sample_t& msg, const std::string& sat_id,
                         const CalibrationSample& sample, int64_t receive_utime,
                         storage::StoredSample& out);

@@ -122,7 +122,11 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
       "alignment_yaw_deg,alignment_sigma_roll_deg,alignment_sigma_pitch_deg,"
       "alignment_sigma_yaw_deg,alignment_determined_sigma_deg,alignment_covariance_11_deg2,"
       "alignment_covariance_22_deg2,alignment_covariance_33_deg2,alignment_covariance_12_deg2,"
-      "alignment_covariance_13_deg2,alignment_covariance_23_deg2\n";
+      "alignment_covariance_13_deg2,alignment_covariance_23_deg2,has_temperature_model,"
+      "reference_temperature_C,temperature_coefficient_x_nT_per_C,"
+      "temperature_coefficient_y_nT_per_C,temperature_coefficient_z_nT_per_C,"
+      "temperature_coefficient_sigma_x_nT_per_C,temperature_coefficient_sigma_y_nT_per_C,"
+      "temperature_coefficient_sigma_z_nT_per_C,temperature_model_refit_id\n";
   for (const auto& r : rows) {
     std::string line = history_time(r.utime) + ',' + std::to_string(r.utime) + ',' +
                        csv_quoted(r.sat_id) + ',' + csv_quoted(r.method) + ',' +
@@ -168,6 +172,18 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
       for (const double v : pack_symmetric(a.angle_covariance_rad2))
         line += ',' + csv_number(v * (kRadToDeg * kRadToDeg));
     }
+    // Appended (issue 20): the bias temperature model; bias_x_nT.. are then at its T0.
+    line += ',' + (r.has_temperature_model >= 0 ? std::to_string(r.has_temperature_model) : "");
+    const bool modelled = r.has_temperature_model == 1;
+    line += ',' + (modelled ? csv_number(r.reference_temperature_C) : "");
+    for (const double v : r.temperature_coefficient_nT_per_C)
+      line += ',' + (modelled ? csv_number(v) : "");
+    const Eigen::Vector3d sigma =
+        modelled ? result_from_record(r).temperature_coefficient_sigma_nT_per_C()
+                 : Eigen::Vector3d::Constant(std::numeric_limits<double>::quiet_NaN());
+    for (int i = 0; i < 3; ++i) line += ',' + csv_number(sigma(i));
+    line += ',' +
+            (r.temperature_model_refit_id > 0 ? std::to_string(r.temperature_model_refit_id) : "");
     text += line + '\n';
   }
   return text;

@@ -18,6 +18,9 @@
 // null, and alignment_determined_deg / alignment_determined_sigma_deg {yaw_minus_roll |
 // yaw_plus_roll} give the combination. An unknown covariance (NaN: history rows stored before
 // schema 5) leaves alignment_covariance_deg2 and both sigma keys out.
+// When result.has_temperature_model (issue 20; bias_nT is then the bias at T0):
+// reference_temperature_C (T0), temperature_coefficient_nT_per_C [3] and
+// temperature_coefficient_sigma_nT_per_C [3].
 // Non-finite numbers become null (JSON has no NaN).
 // Callers add their own keys (compute_ms, time strings, ...) to the returned object.
 #pragma once
@@ -40,7 +43,8 @@ nlohmann::json json_number(double value);
 std::string history_time(int64_t utime);
 
 // One stored result as the JSON object of `history --format json` (also used by `status`):
-// the fit keys plus id, sat_id, time strings and software version.
+// the fit keys plus id, sat_id, time strings and software version, and for an online result
+// that applied a refit's temperature model temperature_model_refit_id (that refit's id).
 nlohmann::json history_record_json(const storage::CalibrationRecord& rec);
 
 }  // namespace magcal

@@ -4,6 +4,7 @@
 #include <set>
 
 #include "pipeline/time_utc.hpp"
+#include "service/io/calibration_record.hpp"
 #include "service/io/printf_string.hpp"
 #include "service/io/result_json.hpp"
 #include "storage/sample_window_store.hpp"
@@ -49,6 +50,19 @@ void append_estimate(std::string* text, const char* label, const storage::Calibr
                 label, format_iso8601_utc(r.utime).c_str(), r.method.c_str(), r.bias_nT[0],
                 r.bias_nT[1], r.bias_nT[2], r.bias_sigma_nT[0], r.bias_sigma_nT[1],
                 r.bias_sigma_nT[2], r.residual_rms_nT, status_verdict(r).c_str());
+  if (r.has_temperature_model == 1) {
+    const Eigen::Vector3d sigma = result_from_record(r).temperature_coefficient_sigma_nT_per_C();
+    const std::string source =
+        r.temperature_model_refit_id > 0
+            ? " (of refit " + std::to_string(r.temperature_model_refit_id) + ")"
+            : "";
+    append_printf(text,
+                  "  %-16s bias at T0 = %.2f degC; k_T [%.3f %.3f %.3f] +- [%.3f %.3f %.3f] "
+                  "nT/degC%s\n",
+                  "", r.reference_temperature_C, r.temperature_coefficient_nT_per_C[0],
+                  r.temperature_coefficient_nT_per_C[1], r.temperature_coefficient_nT_per_C[2],
+                  sigma(0), sigma(1), sigma(2), source.c_str());
+  }
 }
 
 }  // namespace

@@ -293,6 +293,57 @@ TEST_CASE("rows stored before the alignment covariance was kept read it as unkno
   std::filesystem::remove_all(dir);
 }
 
+TEST_CASE("the bias temperature model round-trips, not modelled stays NULL") {
+  Database db(":memory:");
+  CalibrationHistory history(db);
+  CalibrationRecord refit = make_record("SAT1", "twostep", kT0, 1);
+  refit.has_temperature_model = 1;
+  refit.reference_temperature_C = 0.1 + 0.2;  // not exact in binary: must come back bit-exact
+  refit.temperature_coefficient_nT_per_C = {1.25, -0.5, 1e-3 / 3.0};
+  refit.temperature_coefficient_cov = {4e-4, 1e-5, -2e-6, 9e-4, 3e-6, 2.5e-5};
+  const int64_t refit_id = history.append(refit);
+  CalibrationRecord snapshot = make_record("SAT1", "ukf", kT0 + kHour, 2);
+  snapshot.has_temperature_model = 1;
+  snapshot.reference_temperature_C = refit.reference_temperature_C;
+  snapshot.temperature_coefficient_nT_per_C = refit.temperature_coefficient_nT_per_C;
+  snapshot.temperature_coefficient_cov = refit.temperature_coefficient_cov;
+  snapshot.temperature_model_refit_id = refit_id;
+  const int64_t snapshot_id = history.append(snapshot);
+  CalibrationRecord tested = make_record("SAT1", "twostep", kT0 + 2 * kHour, 3);
+  tested.has_temperature_model = 0;
+  tested.reference_temperature_C = 20.0;  // not modelled: not stored, whatever it holds
+  const int64_t tested_id = history.append(tested);
+  const int64_t plain_id = history.append(make_record("SAT1", "ukf", kT0 + 3 * kHour, 5));
+
+  const auto a = history.get(refit_id);
+  REQUIRE(a);
+  CHECK(a->has_temperature_model == 1);
+  CHECK(a->reference_temperature_C == refit.reference_temperature_C);
+  CHECK(a->temperature_coefficient_nT_per_C == refit.temperature_coefficient_nT_per_C);
+  CHECK(a->temperature_coefficient_cov == refit.temperature_coefficient_cov);
+  CHECK(a->temperature_model_refit_id == 0);  // a refit's model is its own
+  const auto b = history.get(snapshot_id);
+  REQUIRE(b);
+  CHECK(b->has_temperature_model == 1);
+  CHECK(b->temperature_coefficient_nT_per_C == refit.temperature_coefficient_nT_per_C);
+  CHECK(b->temperature_model_refit_id == refit_id);
+  const auto c = history.get(tested_id);
+  REQUIRE(c);
+  CHECK(c->has_temperature_model == 0);
+  CHECK(std::isnan(c->reference_temperature_C));
+  CHECK(std::isnan(c->temperature_coefficient_nT_per_C[0]));
+  CHECK(history.get(plain_id)->has_temperature_model == -1);
+  Statement nulls(db,
+                  "SELECT count(*) FROM calibrations WHERE reference_temperature_C IS NULL AND "
+                  "temperature_coefficient_x_nT_per_C IS NULL AND temperature_coefficient_cov IS "
+                  "NULL AND temperature_model_refit_id IS NULL");
+  REQUIRE(nulls.step());
+  CHECK(nulls.column_int64(0) == 2);
+  db.exec("UPDATE calibrations SET temperature_coefficient_cov = zeroblob(8) WHERE id = " +
+          std::to_string(refit_id));
+  CHECK_THROWS_AS(history.get(refit_id), StorageError);
+}
+
 TEST_CASE("invalid records are refused") {
   Database db(":memory:");
   CalibrationHistory history(db);

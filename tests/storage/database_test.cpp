@@ -145,6 +145,9 @@ TEST_CASE("a version-1 database is upgraded on open and keeps its data") {
   CHECK(latest->covariance_lag_window == -1);
   CHECK(latest->has_nonlinearity == -1);
   CHECK(std::isnan(latest->nis_mean));
+  CHECK(latest->has_temperature_model == -1);
+  CHECK(std::isnan(latest->reference_temperature_C));
+  CHECK(latest->temperature_model_refit_id == 0);
   CHECK(db.integrity_check() == "ok");
 }
 

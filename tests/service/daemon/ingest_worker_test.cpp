@@ -4,7 +4,9 @@
 #include <catch2/catch.hpp>
 
 #include <unistd.h>
+#include <cmath>
 #include <filesystem>
+#include <numbers>
 #include <random>
 
 #include "pipeline/rotation.hpp"
@@ -37,12 +39,17 @@ struct TempDb {
   std::string path() const { return (dir / "m.db").string(); }
 };
 
+constexpr double kThermalMean_C = 20.0;
+
 // Truth: B = (I + D)^-1 (h + b) + noise, h a tumbling 30 000 nT field in the body frame.
 // |h| is constant unless magnitude_variation > 0: then it swings by that fraction over ~2.5 h
 // and the direction turns 10x faster (a tumbling spacecraft), which lets the filter start from
 // data; with constant |h| that start never comes (bias and scale are degenerate).
+// A non-zero k_T adds a thermal bias k_T (T - kThermalMean_C), T swinging +-15 degC every
+// ~95 min, and the samples carry T (else their temperature is unknown).
 std::vector<mag_sample_t> simulate(int n, uint32_t seed, const std::string& sat = "SAT-1",
-                                   double magnitude_variation = 0.0) {
+                                   double magnitude_variation = 0.0,
+                                   const Eigen::Vector3d& k_T = Eigen::Vector3d::Zero()) {
   std::mt19937 rng(seed);
   std::normal_distribution<double> noise(0.0, kNoise_nT);
   const Eigen::Vector3d b(1000.0, -800.0, 900.0);
@@ -56,7 +63,9 @@ std::vector<mag_sample_t> simulate(int n, uint32_t seed, const std::string& sat 
     const Eigen::Vector3d h =
         30000.0 * (1.0 + magnitude_variation * std::sin(0.0007 * k)) *
         Eigen::Vector3d(std::cos(a) * std::cos(c), std::sin(a) * std::cos(c), std::sin(c));
-    const Eigen::Vector3d B = inv * (h + b) + Eigen::Vector3d(noise(rng), noise(rng), noise(rng));
+    const double T = kThermalMean_C + 15.0 * std::sin(2.0 * std::numbers::pi * k / 570.0);
+    const Eigen::Vector3d B = inv * (h + b + k_T * (T - kThermalMean_C)) +
+                              Eigen::Vector3d(noise(rng), noise(rng), noise(rng));
     mag_sample_t s{};
     s.utime = kT0 + k * kStep;
     s.sat_id = sat;
@@ -66,7 +75,7 @@ std::vector<mag_sample_t> simulate(int n, uint32_t seed, const std::string& sat 
       s.h_body_nT[i] = h(i);
     }
     s.has_reference = true;
-    s.temperature_C = std::nanf("");
+    s.temperature_C = k_T.isZero() ? std::nanf("") : static_cast<float>(T);
     out.push_back(s);
   }
   return out;
@@ -96,6 +105,56 @@ void feed(IngestWorker& w, const std::vector<mag_sample_t>& all, size_t from, si
 std::unique_ptr<IngestWorker> make_worker(const DaemonConfig& c, DaemonCounters& counters) {
   return std::make_unique<IngestWorker>(c, counters, std::make_unique<ReferenceField>(),
                                         IngestWorker::Hooks{});
+}
+
+// An accepted refit of the first 1000 samples of `s` (near simulate()'s truth), as RefitRunner
+// stores it and hands it to the worker.
+CalibrationResult accepted_refit(const std::vector<mag_sample_t>& s) {
+  CalibrationResult refit;
+  refit.method = "twostep";
+  refit.utime = refit.window_end_utime = s[999].utime;
+  refit.window_start_utime = s[0].utime;
+  refit.n_samples = 1000;
+  Vector9d p;
+  p << 1001.0, -799.0, 902.0, 0.01, 0.02, -0.01, 0.002, -0.001, 0.003;
+  refit.parameters = CalibrationParameters::from_packed(p);
+  Vector9d variance;
+  variance << 4.0, 5.0, 6.0, 1e-6, 2e-6, 3e-6, 1e-6, 1e-6, 1e-6;
+  refit.covariance = variance.asDiagonal();
+  refit.model_error << 0.5, -0.3, 0.2, 1e-4, -2e-4, 1e-4, 3e-5, -1e-5, 2e-5;
+  refit.residual_rms_nT = 3.3;
+  refit.status = CalibrationStatus::kOk;
+  refit.accepted = true;
+  return refit;
+}
+
+// Stores `refit` with its finished job (what the restart's re-anchor looks up); returns its id.
+int64_t store_refit(const std::string& db, const CalibrationResult& refit) {
+  storage::Database d(db);
+  storage::CalibrationHistory history(d);
+  storage::RefitJobLog jobs(d);
+  const int64_t job = jobs.start("SAT-1", "scheduled", refit.utime, 1);
+  const int64_t id = history.append(record_from_result("SAT-1", refit));
+  jobs.finish(job, storage::job_outcome::kOk, 2, "", id);
+  return id;
+}
+
+// The filter state of an uninterrupted run over `s`, re-anchored on `refit` after 1000 samples.
+FilterState anchored_run(const std::vector<mag_sample_t>& s, const CalibrationResult& refit,
+                         double snapshot_every_s = DaemonConfig{}.ukf.snapshot_every_s) {
+  TempDb tmp("anchored-run");
+  DaemonConfig c = test_config(tmp.path());
+  c.ukf.snapshot_every_s = snapshot_every_s;
+  DaemonCounters counters;
+  auto w = make_worker(c, counters);
+  feed(*w, s, 0, 1000);
+  w->post_reanchor("SAT-1", refit, store_refit(tmp.path(), refit));
+  feed(*w, s, 1000, s.size());
+  return w->fleet().find("SAT-1")->ukf.state();
+}
+
+double relative_difference(const Vector9d& got, const Vector9d& want) {
+  return (got - want).cwiseQuotient(want.cwiseAbs().cwiseMax(1e-3)).cwiseAbs().maxCoeff();
 }
 
 }  // namespace
@@ -263,40 +322,9 @@ TEST_CASE("a refit accepted just before a crash is re-anchored on at the restart
   // the restart re-ran the stored samples without it (not_converged where the uninterrupted run
   // said ok). The filter here cannot start from data (constant |h|): only the re-anchor starts it.
   const auto s = simulate(2000, 7);
-  CalibrationResult refit;  // as RefitRunner stores it and hands it to the worker
-  refit.method = "twostep";
-  refit.utime = refit.window_end_utime = s[999].utime;
-  refit.window_start_utime = s[0].utime;
-  refit.n_samples = 1000;
-  Vector9d p;
-  p << 1001.0, -799.0, 902.0, 0.01, 0.02, -0.01, 0.002, -0.001, 0.003;
-  refit.parameters = CalibrationParameters::from_packed(p);
-  Vector9d variance;
-  variance << 4.0, 5.0, 6.0, 1e-6, 2e-6, 3e-6, 1e-6, 1e-6, 1e-6;
-  refit.covariance = variance.asDiagonal();
-  refit.model_error << 0.5, -0.3, 0.2, 1e-4, -2e-4, 1e-4, 3e-5, -1e-5, 2e-5;
-  refit.residual_rms_nT = 3.3;
-  refit.status = CalibrationStatus::kOk;
-  refit.accepted = true;
-  auto store_refit = [&](const std::string& db) {
-    storage::Database d(db);
-    storage::CalibrationHistory history(d);
-    storage::RefitJobLog jobs(d);
-    const int64_t job = jobs.start("SAT-1", "scheduled", refit.utime, 1);
-    const int64_t id = history.append(record_from_result("SAT-1", refit));
-    jobs.finish(job, storage::job_outcome::kOk, 2, "", id);
-    return id;
-  };
-  FilterState want;  // uninterrupted: re-anchored before the samples after the refit's
-  {
-    TempDb tmp("reanchor-ref");
-    DaemonCounters counters;
-    auto w = make_worker(test_config(tmp.path()), counters);
-    feed(*w, s, 0, 1000);
-    w->post_reanchor("SAT-1", refit, store_refit(tmp.path()));
-    feed(*w, s, 1000, s.size());
-    want = w->fleet().find("SAT-1")->ukf.state();
-  }
+  const CalibrationResult refit = accepted_refit(s);
+  // Uninterrupted: re-anchored before the samples after the refit's.
+  const FilterState want = anchored_run(s, refit);
   REQUIRE(want.initialized);
   REQUIRE(want.model_error_known);
   for (const bool stored : {false, true}) {
@@ -307,7 +335,7 @@ TEST_CASE("a refit accepted just before a crash is re-anchored on at the restart
       {
         auto w = make_worker(c, counters);
         feed(*w, s, 0, 1000);
-        w->post_reanchor("SAT-1", refit, store_refit(tmp.path()));
+        w->post_reanchor("SAT-1", refit, store_refit(tmp.path(), refit));
         if (stored) w->commit_if_due();  // applies it; the state goes into the next commit
       }                                  // killed: nothing more is written
       auto w = make_worker(c, counters);
@@ -319,10 +347,80 @@ TEST_CASE("a refit accepted just before a crash is re-anchored on at the restart
       CHECK(got.n_accepted == want.n_accepted);
       CHECK((got.model_error_covariance - want.model_error_covariance).norm() <=
             kStateTol * want.model_error_covariance.norm());
-      CHECK((got.x - want.x).cwiseQuotient(want.x.cwiseAbs().cwiseMax(1e-3)).cwiseAbs().maxCoeff() <
-            kStateTol);
+      CHECK(relative_difference(got.x, want.x) < kStateTol);
       CHECK((got.S - want.S).norm() <= kStateTol * want.S.norm());
     }
+  }
+}
+
+TEST_CASE("the anchor refit's temperature model: snapshots carry it, a restart re-runs with it",
+          "[ingest_worker]") {
+  // Issue 20: samples after the anchor are corrected to the refit's T0; a restart that re-runs
+  // stored samples must correct them the same way (the model comes back from the history).
+  const Eigen::Vector3d k_T(1.5, -1.0, 2.0);
+  const auto s = simulate(2000, 13, "SAT-1", 0.0, k_T);
+  CalibrationResult refit = accepted_refit(s);
+  refit.has_temperature_model = true;
+  refit.reference_temperature_C = kThermalMean_C;
+  refit.temperature_coefficient_nT_per_C = k_T + Eigen::Vector3d(0.01, -0.02, 0.01);
+  refit.temperature_coefficient_covariance = Eigen::Vector3d(4e-4, 4e-4, 4e-4).asDiagonal();
+
+  SECTION("snapshots after the anchor report its model and name the refit") {
+    TempDb tmp("thermal-snapshots");
+    DaemonCounters counters;
+    auto w = make_worker(test_config(tmp.path()), counters);
+    feed(*w, s, 0, 1000);  // constant |h|: no start from data, no snapshot before the anchor
+    const int64_t id = store_refit(tmp.path(), refit);
+    w->post_reanchor("SAT-1", refit, id);
+    feed(*w, s, 1000, 1100);
+    REQUIRE(w->fleet().find("SAT-1")->temperature.active);
+    storage::Database d(tmp.path());
+    storage::HistoryQuery q;
+    q.sat_id = "SAT-1";
+    q.method = "ukf";
+    const auto rows = storage::CalibrationHistory(d).query(q);
+    REQUIRE(rows.size() >= 10);
+    for (const auto& r : rows) {
+      CHECK(r.has_temperature_model == 1);
+      CHECK(r.temperature_model_refit_id == id);
+      CHECK(r.reference_temperature_C == kThermalMean_C);
+      CHECK(r.temperature_coefficient_nT_per_C[2] == refit.temperature_coefficient_nT_per_C(2));
+    }
+  }
+
+  SECTION("a crash after the anchored state was stored: the re-run is corrected too") {
+    // No snapshots (they store the state with every commit): the stored state stays at the
+    // anchor's commit and the restart re-runs everything after it.
+    constexpr double kNoSnapshots_s = 1e7;
+    const FilterState want = anchored_run(s, refit, kNoSnapshots_s);
+    TempDb tmp("thermal-crash");
+    DaemonConfig c = test_config(tmp.path());
+    c.ukf.snapshot_every_s = kNoSnapshots_s;
+    DaemonCounters counters;
+    int64_t id = 0;
+    {
+      auto w = make_worker(c, counters);
+      feed(*w, s, 0, 1000);
+      id = store_refit(tmp.path(), refit);
+      w->post_reanchor("SAT-1", refit, id);
+      feed(*w, s, 1000, 1200);  // the re-anchored state goes in with this commit
+      feed(*w, s, 1200, s.size());
+    }  // killed: the last 800 samples are stored, the state is not
+    {
+      storage::Database d(c.storage.db_path);
+      const auto stored = storage::FilterStateStore(d).load("SAT-1", "ukf");
+      REQUIRE(stored);
+      REQUIRE(stored->last_utime == s[1199].utime);
+      CHECK(stored->anchor_calibration_id == id);
+    }
+    auto w = make_worker(c, counters);
+    w->restore();
+    const SpacecraftTracker& t = *w->fleet().find("SAT-1");
+    CHECK(t.temperature.active);
+    CHECK(t.temperature.refit_id == id);
+    CHECK(t.ukf.state().n_accepted == want.n_accepted);
+    CHECK(relative_difference(t.ukf.state().x, want.x) < kStateTol);
+    CHECK((t.ukf.state().S - want.S).norm() <= kStateTol * want.S.norm());
   }
 }
 

@@ -9,6 +9,7 @@
 #include "pipeline/scenario.hpp"
 #include "pipeline/simulator.hpp"
 #include "service/daemon/refit_runner.hpp"
+#include "service/io/calibration_record.hpp"
 #include "tests/service/cli_test_support.hpp"
 
 using namespace magcal;
@@ -33,6 +34,7 @@ TruthParameters store_simulation(storage::Database& db, const Scenario& sc, cons
     r.has_direction = true;
     r.h_body_nT = {c.h_body_nT.x(), c.h_body_nT.y(), c.h_body_nT.z()};
     r.h_norm_nT = c.h_body_nT.norm();
+    r.temperature_C = s.temperature_C;
     rows.push_back(r);
   }
   storage::SampleWindowStore(db).insert_batch(rows);
@@ -156,6 +158,68 @@ TEST_CASE("refits: a real bias change is accepted once two windows corroborate i
   CHECK(corroborated >= 1);
   CHECK(max_rejected_in_a_row <= 2);  // the straddling window and the first one after it
   CHECK(last_accepted);
+}
+
+TEST_CASE("refits: a reference with a temperature model is compared at this window's temperature") {
+  // The sensor sits at 30 degC for the whole window (a season, a heater); the accepted reference
+  // refit modelled b(T) = b0 + k_T (T - 20 degC) with the truth. This window's bias is
+  // b(30 degC): 10 degC x k_T = (10, -5, 15) nT from the reference's bias at its T0, beyond the
+  // change gate's 10 nT floor, and no change of the sensor.
+  const Eigen::Vector3d k_T(1.0, -0.5, 1.5);
+  for (const bool modelled : {true, false}) {
+    DYNAMIC_SECTION((modelled ? "the reference has the model" : "the reference has none")) {
+      test::TempDir dir("magcal_refit_thermal");
+      DaemonConfig config;
+      config.storage.db_path = dir.file("thermal.db");
+      storage::Database db(config.storage.db_path);
+      Scenario sc = paper_scenario(3, 12.0);
+      sc.sensor.temperature_coefficient_nT_per_C = k_T;
+      sc.sensor.reference_temperature_C = 20.0;
+      sc.sensor.temperature_mean_C = 30.0;
+      int64_t seq = 0;
+      const TruthParameters truth = store_simulation(db, sc, "WARM-1", &seq);
+      const int64_t hour = 3'600'000'000LL;
+      const int64_t t_ref = sc.epoch_utime + 12 * hour - 10'000'000LL;
+
+      CalibrationResult reference;  // an accepted full-window refit of the day before
+      reference.method = "twostep";
+      reference.utime = reference.window_end_utime = t_ref - 24 * hour;
+      reference.window_start_utime = reference.utime - 12 * hour;
+      reference.n_samples = 4320;
+      Vector9d p;
+      const Eigen::Matrix3d& D = truth.D;
+      p << truth.bias_nT, D(0, 0), D(1, 1), D(2, 2), D(0, 1), D(0, 2), D(1, 2);
+      reference.parameters = CalibrationParameters::from_packed(p);
+      Vector9d variance;
+      variance << 0.8, 9.0, 0.5, 1e-8, 1e-8, 1e-8, 1e-8, 1e-8, 1e-8;  // a full window's
+      reference.covariance = variance.asDiagonal();
+      reference.residual_rms_nT = 3.0;
+      reference.status = CalibrationStatus::kOk;
+      reference.accepted = true;
+      reference.converged = true;
+      if (modelled) {
+        reference.has_temperature_model = true;
+        reference.reference_temperature_C = 20.0;
+        reference.temperature_coefficient_nT_per_C = k_T;
+        reference.temperature_coefficient_covariance = Eigen::Matrix3d::Identity() * 4e-4;
+      }
+      storage::CalibrationHistory(db).append(record_from_result("WARM-1", reference));
+
+      RefitRunner runner(config, db);
+      const RefitOutcome out = runner.run("WARM-1", t_ref, "scheduled", t_ref);
+      REQUIRE(out.kind == RefitOutcome::Kind::kComputed);
+      const CalibrationResult& r = out.result;
+      std::string reasons;
+      for (const auto& reason : r.rejection_reasons) reasons += reason + "; ";
+      INFO("bias " << r.parameters.bias_nT.transpose() << " sigma " << r.bias_sigma_nT().transpose()
+                   << " reasons: " << reasons);
+      const bool change_gate = reasons.find("bias_change") != std::string::npos;
+      // Without the model the reference is the bias at another temperature: the 15 nT offset
+      // is (rightly, for all it knows) a change.
+      CHECK(change_gate != modelled);
+      if (modelled) CHECK(out.accepted());
+    }
+  }
 }
 
 TEST_CASE("an early refit runs once: the same key again is skipped without a job row") {

@@ -168,6 +168,20 @@ TEST_CASE("reference field: given, IGRF rotated with attitude, or magnitude only
   REQUIRE(given);
   CHECK((given->h_body_nT - Eigen::Vector3d(1, 2, 3)).norm() < kFieldTol_nT);
 
+  // The temperature goes with the sample (the refits' and the tracker's temperature model);
+  // NaN, Inf or a value no sensor survives is unknown, and the sample stays valid.
+  s.temperature_C = 21.5f;
+  REQUIRE(to_reference_sample(s, field));
+  CHECK(to_reference_sample(s, field)->temperature_C == 21.5);
+  for (const float bad : {std::numeric_limits<float>::quiet_NaN(),
+                          std::numeric_limits<float>::infinity(), 1e6f, -300.0f}) {
+    s.temperature_C = bad;
+    CHECK_FALSE(check_sample(s, "", ValidatorOptions{}));
+    const auto unknown = to_reference_sample(s, field);
+    REQUIRE(unknown);
+    CHECK(std::isnan(unknown->temperature_C));
+  }
+
   // Outside IGRF-14's validity (1900-2030): no reference, never NaN.
   auto old = good_sample();
   old.utime = *parse_iso8601_utc("1890-01-01T00:00:00Z");

@@ -200,6 +200,11 @@ TEST_CASE("the page draws the replayed day in headless Chromium without console 
     rejected->status = 4;  // rejected by the gates
     rejected->verdict = "rejected";
     rejected->rejection_reasons = {"bias_change: y 40 nT, chi-square 800 > 16.3"};
+    // With a bias temperature model: the summary says its bias is at T0 and gives k_T.
+    rejected->has_temperature_model = 1;
+    rejected->reference_temperature_C = 21.5;
+    rejected->temperature_coefficient_nT_per_C = {1.25, -0.5, 2.0};
+    rejected->temperature_coefficient_cov = {0.0004, 0.0, 0.0, 0.0009, 0.0, 0.0016};
     history.append(*rejected);
   }
   ServeProcess serve(db, dir);
@@ -231,7 +236,8 @@ TEST_CASE("the page draws the replayed day in headless Chromium without console 
   INFO("rejected refit points per chart: " << rejected_drawn);
   CHECK(rejected_drawn.find("bias0:1 bias1:1 bias2:1 dmat:6") != std::string::npos);
   CHECK(dom.find("rejected, rejected") == std::string::npos);
-  CHECK(dom.find("nT, rejected</div>") != std::string::npos);
+  CHECK(dom.find("bias at T0 = 21.5 \u00b0C, k_T [1.250 \u00b1 0.020, -0.500 \u00b1 0.030, "
+                 "2.000 \u00b1 0.040] nT/\u00b0C), rejected</div>") != std::string::npos);
   // The newest refit's alignment, the paper's (1, 2, 1) deg mounting (with the sensor's internal
   // misalignment, 0.3 deg), each angle with its sigma; far from gimbal lock.
   for (const auto& [angle, truth_deg] : {std::pair{"roll", 1.0}, {"pitch", 2.0}, {"yaw", 1.0}}) {

@@ -99,3 +99,54 @@ TEST_CASE("a failed refit publishes no NaN", "[calibration_record]") {
     }
   }
 }
+
+TEST_CASE("the bias temperature model goes through the history record and back",
+          "[calibration_record]") {
+  auto r = finite_result();
+  r.has_temperature_model = true;
+  r.reference_temperature_C = 17.25;
+  r.temperature_coefficient_nT_per_C = Eigen::Vector3d(1.5, -0.75, 0.1);
+  Eigen::Matrix3d cov;
+  cov << 4e-4, 1e-5, -2e-6, 1e-5, 9e-4, 3e-6, -2e-6, 3e-6, 2.5e-5;
+  r.temperature_coefficient_covariance = cov;
+  const storage::CalibrationRecord rec = record_from_result("SAT-1", r);
+  CHECK(rec.has_temperature_model == 1);
+  const CalibrationResult back = result_from_record(rec);
+  CHECK(back.has_temperature_model);
+  CHECK(back.reference_temperature_C == r.reference_temperature_C);
+  CHECK(back.temperature_coefficient_nT_per_C == r.temperature_coefficient_nT_per_C);
+  CHECK(back.temperature_coefficient_covariance == cov);
+  CHECK(back.parameters.bias_nT == r.parameters.bias_nT);
+
+  // calibration_t has no temperature fields (a fixed contract): its bias is the bias at T0.
+  const calibration_t msg = message_from_result("SAT-1", r);
+  for (int i = 0; i < 3; ++i) CHECK(msg.bias_nT[i] == r.parameters.bias_nT(i));
+
+  SECTION("a refit without the model says it has none; a filter says nothing") {
+    auto plain = finite_result();
+    CHECK(record_from_result("SAT-1", plain).has_temperature_model == 0);
+    plain.method = "ukf";
+    CHECK(record_from_result("SAT-1", plain).has_temperature_model == -1);
+    CHECK_FALSE(result_from_record(record_from_result("SAT-1", plain)).has_temperature_model);
+  }
+}
+
+TEST_CASE("a stored sample's temperature comes back with it (refit windows, UKF re-runs)",
+          "[calibration_record]") {
+  mag_sample_t msg{};
+  msg.utime = 1704067200000000;
+  msg.temperature_C = 99.0f;  // the message's: not the one stored (to_reference_sample judges)
+  CalibrationSample sample;
+  sample.utime = msg.utime;
+  sample.h_body_nT = Eigen::Vector3d(20000.0, 0.0, 0.0);
+  for (const double t : {-12.5, kNaN}) {
+    sample.temperature_C = t;
+    storage::StoredSample stored;
+    fill_stored_sample(msg, "SAT-1", sample, 0, stored);
+    const CalibrationSample back = calibration_sample_from_stored(stored);
+    if (std::isnan(t))
+      CHECK(std::isnan(back.temperature_C));
+    else
+      CHECK(back.temperature_C == t);
+  }
+}

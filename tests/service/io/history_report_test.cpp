@@ -1,8 +1,11 @@
 // service/io/history_report: request validation and the points=N downsampling, checked against
 // a direct computation written here (bucket edges from the stated width, per-field statistics).
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <map>
+#include <string>
+#include <vector>
 
 #include <catch2/catch.hpp>
 
@@ -160,4 +163,84 @@ TEST_CASE("parse_history_request names the bad parameter with the caller's prefi
   r.method = "lsq";
   REQUIRE_FALSE(parse_history_request(r, "", &error));
   REQUIRE(error == "unknown method 'lsq' (ukf, ekf, centered, twostep)");
+}
+
+TEST_CASE("history JSON and CSV: the bias temperature model, and whose it is") {
+  // A refit with the model, a UKF snapshot that applied it, a refit without it, an old row.
+  storage::CalibrationRecord refit;
+  refit.sat_id = "S";
+  refit.method = "twostep";
+  refit.utime = kT0;
+  refit.id = 7;
+  refit.has_temperature_model = 1;
+  refit.reference_temperature_C = 12.5;
+  refit.temperature_coefficient_nT_per_C = {1.5, -0.25, 0.0625};
+  refit.temperature_coefficient_cov = {0.0625, 1e-3, 0.0, 0.25, 0.0, 1.0};  // exact roots
+  storage::CalibrationRecord snapshot = refit;
+  snapshot.method = "ukf";
+  snapshot.utime = kT0 + 60'000'000;
+  snapshot.id = 8;
+  snapshot.temperature_model_refit_id = refit.id;
+  storage::CalibrationRecord without;
+  without.sat_id = "S";
+  without.method = "twostep";
+  without.utime = kT0 + 120'000'000;
+  without.has_temperature_model = 0;
+  storage::CalibrationRecord old_row = without;
+  old_row.has_temperature_model = -1;
+  const std::vector<storage::CalibrationRecord> all = {refit, snapshot, without, old_row};
+
+  const auto json = nlohmann::json::parse(history_json_text(all));
+  REQUIRE(json.size() == 4);
+  for (const int k : {0, 1}) {
+    const auto& o = json[static_cast<size_t>(k)];
+    CHECK(o["reference_temperature_C"].get<double>() == 12.5);
+    CHECK(o["temperature_coefficient_nT_per_C"] == nlohmann::json({1.5, -0.25, 0.0625}));
+    // sqrt of the diagonal (xx, yy, zz of the stored upper triangle)
+    CHECK(o["temperature_coefficient_sigma_nT_per_C"] == nlohmann::json({0.25, 0.5, 1.0}));
+  }
+  CHECK_FALSE(json[0].contains("temperature_model_refit_id"));  // its own estimate
+  CHECK(json[1]["temperature_model_refit_id"] == 7);            // taken over from refit 7
+  for (const int k : {2, 3}) {
+    for (const char* key :
+         {"reference_temperature_C", "temperature_coefficient_nT_per_C",
+          "temperature_coefficient_sigma_nT_per_C", "temperature_model_refit_id"}) {
+      CHECK_FALSE(json[static_cast<size_t>(k)].contains(key));
+    }
+  }
+
+  const std::string csv = history_csv_text(all);
+  std::vector<std::vector<std::string>> table;
+  size_t start = 0;
+  while (start < csv.size()) {
+    const size_t end = csv.find('\n', start);
+    std::vector<std::string> fields;
+    const std::string line = csv.substr(start, end - start);
+    size_t f = 0;
+    while (true) {
+      const size_t comma = line.find(',', f);
+      fields.push_back(line.substr(f, comma - f));
+      if (comma == std::string::npos) break;
+      f = comma + 1;
+    }
+    table.push_back(fields);
+    start = end + 1;
+  }
+  REQUIRE(table.size() == 5);
+  auto column = [&](const std::string& name) {
+    const auto it = std::find(table[0].begin(), table[0].end(), name);
+    REQUIRE(it != table[0].end());
+    return static_cast<size_t>(it - table[0].begin());
+  };
+  for (const auto& row : table) REQUIRE(row.size() == table[0].size());
+  CHECK(table[1][column("has_temperature_model")] == "1");
+  CHECK(table[1][column("reference_temperature_C")] == "12.5");
+  CHECK(table[1][column("temperature_coefficient_x_nT_per_C")] == "1.5");
+  CHECK(table[1][column("temperature_coefficient_z_nT_per_C")] == "0.0625");
+  CHECK(table[1][column("temperature_coefficient_sigma_y_nT_per_C")] == "0.5");
+  CHECK(table[1][column("temperature_model_refit_id")].empty());
+  CHECK(table[2][column("temperature_model_refit_id")] == "7");
+  CHECK(table[3][column("has_temperature_model")] == "0");
+  CHECK(table[3][column("temperature_coefficient_x_nT_per_C")].empty());
+  CHECK(table[4][column("has_temperature_model")].empty());
 }
