@@ -67,8 +67,10 @@ std::optional<int64_t> optional_int(const PgResult& r, int row, int column) {
 
 }  // namespace
 
-PgSampleWindowStore::PgSampleWindowStore(PgDatabase& db)
-    : SampleWindowStore(db), pg_(db), full_insert_sql_(insert_sql(kRowsPerInsert)) {}
+PgSampleWindowStore::PgSampleWindowStore(PgDatabase& db) : SampleWindowStore(db), pg_(db) {
+  for (size_t rows = 1; rows <= kMaxRowsPerInsert; rows *= 2)
+    insert_sql_.push_back(insert_sql(rows));
+}
 
 InsertStats PgSampleWindowStore::insert_batch(std::span<const StoredSample> samples,
                                               std::vector<size_t>* duplicate_rows) {
@@ -86,18 +88,18 @@ InsertStats PgSampleWindowStore::insert_batch(std::span<const StoredSample> samp
   });
   Transaction tx(pg_);
   stored_keys_.clear();
-  for (size_t begin = 0; begin < order_.size(); begin += kRowsPerInsert) {
-    const size_t n = std::min(kRowsPerInsert, order_.size() - begin);
+  for (size_t begin = 0; begin < order_.size();) {
+    // The largest power of two not above what is left (at most kMaxRowsPerInsert).
+    size_t k = insert_sql_.size() - 1;
+    while ((size_t{1} << k) > order_.size() - begin) --k;
+    const size_t n = size_t{1} << k;
     params_.clear();
-    for (size_t k = begin; k < begin + n; ++k) add_sample(params_, samples[order_[k]]);
-    // Full statements are prepared once; the batch's remainder runs unprepared (its size
-    // varies from batch to batch).
-    const PgResult r = n == kRowsPerInsert
-                           ? pg_.execute_prepared(full_insert_sql_, params_, PgFormat::kBinary)
-                           : pg_.execute(insert_sql(n), params_, PgFormat::kBinary);
+    for (size_t row = begin; row < begin + n; ++row) add_sample(params_, samples[order_[row]]);
+    const PgResult r = pg_.execute_prepared(insert_sql_[k], params_, PgFormat::kBinary);
     for (int row = 0; row < r.rows(); ++row) {
       stored_keys_.emplace_back(r.get_text(row, 0), r.get_int64(row, 1));
     }
+    begin += n;
   }
   tx.commit();
   // The stored keys against the batch, both in key order: a row whose key was stored and not

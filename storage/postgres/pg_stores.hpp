@@ -24,8 +24,11 @@ namespace magcal::storage {
 
 class PgSampleWindowStore final : public SampleWindowStore {
  public:
-  // Rows per INSERT statement: 20 parameters each, well below PostgreSQL's 65 535.
-  static constexpr size_t kRowsPerInsert = 500;
+  // Rows per INSERT statement: 20 parameters each, well below PostgreSQL's 65 535. A batch goes
+  // in statements of 512 rows and the rest in statements of 256, 128, ..., 1 rows (its binary
+  // digits): a few prepared statements serve every batch size (parsing a statement of
+  // thousands of parameters costs more than running it).
+  static constexpr size_t kMaxRowsPerInsert = 512;
 
   explicit PgSampleWindowStore(PgDatabase& db);
 
@@ -45,9 +48,9 @@ class PgSampleWindowStore final : public SampleWindowStore {
   std::optional<int64_t> single_utime(const char* sql, std::string_view sat_id);
 
   PgDatabase& pg_;
-  const std::string full_insert_sql_;  // kRowsPerInsert rows
-  PgParams params_;                    // reused: no allocation per batch once warmed up
-  std::vector<size_t> order_;          // batch rows in key order
+  std::vector<std::string> insert_sql_;  // [k]: the INSERT of 2^k rows
+  PgParams params_;                      // reused: no allocation per batch once warmed up
+  std::vector<size_t> order_;            // batch rows in key order
   std::vector<std::pair<std::string, int64_t>> stored_keys_;  // what RETURNING reported
 };
 
