@@ -66,10 +66,10 @@ class Database final : public Connection {
   int64_t last_insert_id() const;
   // Runs `PRAGMA integrity_check`; returns "ok" on a sound file, else SQLite's report.
   std::string integrity_check();
-  // Throws a transient StorageError (SQLITE_READONLY_DBMOVED) when the file at path() is no
-  // longer the one this connection has open (deleted, renamed or replaced underneath). In WAL
-  // mode SQLite keeps committing into the unlinked file without an error, so a writer that
-  // must not lose data checks this before each commit (one stat; no-op for ":memory:").
+  // Throws a transient StorageError (condition kFileMoved, SQLITE_READONLY_DBMOVED) when the
+  // file at path() is no longer the one this connection has open (deleted, renamed or replaced
+  // underneath). In WAL mode SQLite keeps committing into the unlinked file without an error, so
+  // every write Transaction checks this at its start (one stat; no-op for ":memory:").
   void check_file_in_place();
 
   std::unique_ptr<SampleWindowStore> make_sample_window_store() override;
