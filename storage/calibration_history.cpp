@@ -102,48 +102,6 @@ bool is_refit_method(std::string_view method) {
   return method == "centered" || method == "twostep";
 }
 
-CalibrationRecord record_from_message(const calibration_t& msg) {
-  CalibrationRecord r;
-  r.sat_id = msg.sat_id;
-  r.method = msg.method;
-  r.utime = msg.utime;
-  r.window_start_utime = msg.window_start_utime;
-  r.window_end_utime = msg.window_end_utime;
-  r.n_samples = msg.n_samples;
-  std::copy(std::begin(msg.bias_nT), std::end(msg.bias_nT), r.bias_nT.begin());
-  std::copy(std::begin(msg.D), std::end(msg.D), r.D.begin());
-  std::copy(std::begin(msg.cov), std::end(msg.cov), r.cov.begin());
-  for (int i = 0; i < 3; ++i) r.bias_sigma_nT[i] = std::sqrt(r.cov[cov_index(i, i)]);
-  r.has_alignment = msg.has_alignment;
-  std::copy(std::begin(msg.R_sensor_from_body), std::end(msg.R_sensor_from_body),
-            r.R_sensor_from_body.begin());
-  r.residual_rms_nT = msg.residual_rms_nT;
-  r.status = msg.status;
-  // Any non-ok status means the result is not to be used (calibration_t has no verdict).
-  r.verdict = msg.status == 0 ? "accepted" : "rejected";
-  return r;
-}
-
-calibration_t message_from_record(const CalibrationRecord& r) {
-  // With a temperature model, bias_nT is the bias at reference_temperature_C, which (like k_T)
-  // calibration_t has no field for: its definition is a contract (magcal::message_from_result).
-  calibration_t msg{};
-  msg.utime = r.utime;
-  msg.sat_id = r.sat_id;
-  msg.method = r.method;
-  msg.window_start_utime = r.window_start_utime;
-  msg.window_end_utime = r.window_end_utime;
-  msg.n_samples = r.n_samples;
-  std::copy(r.bias_nT.begin(), r.bias_nT.end(), msg.bias_nT);
-  std::copy(r.D.begin(), r.D.end(), msg.D);
-  std::copy(r.cov.begin(), r.cov.end(), msg.cov);
-  msg.has_alignment = r.has_alignment;
-  std::copy(r.R_sensor_from_body.begin(), r.R_sensor_from_body.end(), msg.R_sensor_from_body);
-  msg.residual_rms_nT = r.residual_rms_nT;
-  msg.status = static_cast<int8_t>(r.status);
-  return msg;
-}
-
 CalibrationHistory::CalibrationHistory(Database& db)
     : db_(db),
       insert_(db,
@@ -269,7 +227,7 @@ CalibrationRecord CalibrationHistory::read_row(Statement& st) {
   for (int i = 0; i < 6; ++i) r.D[i] = st.column_double(13 + i);
   const auto blob = st.column_blob(19);
   if (blob.size() != sizeof(double) * r.cov.size()) {
-    throw StorageError(StorageError::Kind::kSqlite,
+    throw StorageError(StorageError::Kind::kEngine,
                        "calibrations.cov of row " + std::to_string(r.id) + " has " +
                            std::to_string(blob.size()) + " bytes, expected 360");
   }
@@ -299,7 +257,7 @@ CalibrationRecord CalibrationHistory::read_row(Statement& st) {
   r.measurement_noise_nT = st.column_double(46);
   if (const auto model_error = st.column_blob(47); !model_error.empty()) {  // NULL: zero
     if (model_error.size() != sizeof(double) * r.model_error.size()) {
-      throw StorageError(StorageError::Kind::kSqlite,
+      throw StorageError(StorageError::Kind::kEngine,
                          "calibrations.model_error of row " + std::to_string(r.id) + " has " +
                              std::to_string(model_error.size()) + " bytes, expected 72");
     }
@@ -308,7 +266,7 @@ CalibrationRecord CalibrationHistory::read_row(Statement& st) {
   if (const auto covariance = st.column_blob(48); r.has_alignment && !covariance.empty()) {
     std::array<double, 6> c{};
     if (covariance.size() != sizeof(double) * c.size()) {
-      throw StorageError(StorageError::Kind::kSqlite,
+      throw StorageError(StorageError::Kind::kEngine,
                          "calibrations.alignment_covariance_rad2 of row " + std::to_string(r.id) +
                              " has " + std::to_string(covariance.size()) + " bytes, expected 48");
     }
@@ -321,7 +279,7 @@ CalibrationRecord CalibrationHistory::read_row(Statement& st) {
     for (int i = 0; i < 3; ++i) r.temperature_coefficient_nT_per_C[i] = st.column_double(51 + i);
     const auto cov = st.column_blob(54);
     if (cov.size() != sizeof(double) * r.temperature_coefficient_cov.size()) {
-      throw StorageError(StorageError::Kind::kSqlite,
+      throw StorageError(StorageError::Kind::kEngine,
                          "calibrations.temperature_coefficient_cov of row " + std::to_string(r.id) +
                              " has " + std::to_string(cov.size()) + " bytes, expected 48");
     }

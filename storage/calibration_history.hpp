@@ -14,7 +14,6 @@
 #include <string_view>
 #include <vector>
 
-#include "schemas/magcal_messages.hpp"
 #include "storage/database.hpp"
 #include "storage/statement.hpp"
 
@@ -82,10 +81,6 @@ constexpr int cov_index(int i, int j) {
 }
 // True for the offline methods ("centered", "twostep"): a refit; false for online filters.
 bool is_refit_method(std::string_view method);
-
-// calibration_t <-> record (verdict from status: 4 = rejected; reasons are not in the message).
-CalibrationRecord record_from_message(const calibration_t& msg);
-calibration_t message_from_record(const CalibrationRecord& record);
 
 struct HistoryQuery {
   std::string sat_id;

@@ -12,6 +12,7 @@
 #include <utility>
 
 #include "storage/migrations.hpp"
+#include "storage/sqlite_stores.hpp"
 #include "storage/statement.hpp"
 
 namespace magcal::storage {
@@ -89,9 +90,9 @@ Database::Database(const std::string& path, const OpenOptions& options)
     // Never create a file by reading: report it as missing (or why it cannot be seen).
     struct stat st {};
     if (::stat(path.c_str(), &st) != 0 && errno != ENOENT) {
-      throw StorageError(StorageError::Kind::kSqlite,
-                         "cannot open database " + path + ": " + std::strerror(errno),
-                         SQLITE_CANTOPEN);
+      throw StorageError::sqlite(StorageError::Kind::kEngine,
+                                 "cannot open database " + path + ": " + std::strerror(errno),
+                                 SQLITE_CANTOPEN);
     }
     throw StorageError(StorageError::Kind::kNotFound, "database not found: " + path);
   }
@@ -115,10 +116,10 @@ Database::Database(const std::string& path, const OpenOptions& options)
       // A new database: SQLite says only "unable to open database file"; the directory is why.
       msg += " (directory " + dir + ": " + std::strerror(errno) + ")";
     }
-    throw StorageError(kind, msg, code);
+    throw StorageError::sqlite(kind, msg, code);
   };
   if (rc != SQLITE_OK) {
-    fail(StorageError::Kind::kSqlite, db_ ? sqlite3_errmsg(db_) : sqlite3_errstr(rc),
+    fail(StorageError::Kind::kEngine, db_ ? sqlite3_errmsg(db_) : sqlite3_errstr(rc),
          db_ ? sqlite3_extended_errcode(db_) : rc);
   }
   // Every error carries its extended code (SQLITE_IOERR_WRITE, SQLITE_BUSY_SNAPSHOT, ...).
@@ -144,13 +145,14 @@ int Database::open_read_only(int flags) {
   // A WAL database without -shm in a directory we cannot write: no connection has it open.
   const std::string why_no_shm = directory + ": " + std::strerror(errno);
   if (wal_has_frames(path_)) {
-    throw StorageError(StorageError::Kind::kSqlite,
-                       "cannot read " + path_ + ": its " + path_ +
-                           "-wal holds commits not yet in the file, and SQLite cannot create " +
-                           path_ + "-shm to read them (" + why_no_shm +
-                           "); open it once with write access (magcald or magcal refit), or "
-                           "read a copy in a writable directory",
-                       SQLITE_READONLY);
+    throw StorageError::sqlite(
+        StorageError::Kind::kEngine,
+        "cannot read " + path_ + ": its " + path_ +
+            "-wal holds commits not yet in the file, and SQLite cannot create " + path_ +
+            "-shm to read them (" + why_no_shm +
+            "); open it once with write access (magcald or magcal refit), or "
+            "read a copy in a writable directory",
+        SQLITE_READONLY);
   }
   // The identity first: a writer that opens the file from here on is seen by
   // changed_since_open().
@@ -199,24 +201,7 @@ Database& Database::operator=(Database&& other) noexcept {
   return *this;
 }
 
-bool StorageError::transient() const {
-  if (!sqlstate_.empty()) return postgres_transient_;
-  switch (sqlite_code_ & 0xff) {
-    case SQLITE_BUSY:
-    case SQLITE_LOCKED:
-    case SQLITE_IOERR:
-    case SQLITE_FULL:
-    case SQLITE_READONLY:
-    case SQLITE_CANTOPEN:
-    case SQLITE_PROTOCOL:
-      return true;
-    default:
-      return false;
-  }
-}
-
 static_assert(kSqliteReadonlyDbMoved == SQLITE_READONLY_DBMOVED);
-static_assert(kSqliteBusy == SQLITE_BUSY);
 
 void Database::configure(const OpenOptions& options) {
   // A reader (the CLI, the sqlite3 shell) or a second writer (`magcal refit`) holding a lock
@@ -229,9 +214,9 @@ void Database::configure(const OpenOptions& options) {
   // SQLite silently falls back to a read-only open when the file is not writable: say so now
   // (a clear error at start) rather than at the first commit.
   if (sqlite3_db_readonly(db_, "main") == 1) {
-    throw StorageError(StorageError::Kind::kSqlite,
-                       "cannot open database " + path_ + " for writing (read-only file?)",
-                       SQLITE_READONLY);
+    throw StorageError::sqlite(StorageError::Kind::kEngine,
+                               "cannot open database " + path_ + " for writing (read-only file?)",
+                               SQLITE_READONLY);
   }
   // WAL: readers never block the writer and see a consistent snapshot while it writes; a
   // crash leaves every committed transaction intact. Persistent in the file.
@@ -239,16 +224,6 @@ void Database::configure(const OpenOptions& options) {
   // NORMAL in WAL mode: no fsync per commit (the insert rate needs it); an application crash
   // loses nothing committed, a power loss at most the last commits, never consistency.
   exec("PRAGMA synchronous = NORMAL");
-}
-
-int migration_target(const OpenOptions& options, int latest) {
-  const int target = options.migrate_to < 0 ? latest : options.migrate_to;
-  if (target > latest) {
-    throw StorageError(
-        StorageError::Kind::kInvalidArgument,
-        "migrate_to " + std::to_string(target) + " > known schema " + std::to_string(latest));
-  }
-  return target;
 }
 
 void Database::check_and_migrate(const OpenOptions& options) {
@@ -297,8 +272,8 @@ void Database::check_and_migrate(const OpenOptions& options) {
     check(app_id, version, version == 0 && is_empty());
     if (m.version <= version) continue;
     if (m.version != version + 1) {
-      throw StorageError(StorageError::Kind::kSqlite,
-                         "migration gap before " + std::string(m.name));
+      throw StorageError(StorageError::Kind::kEngine, "migration gap before " + std::string(m.name),
+                         StorageError::Condition::kOther);
     }
     if (m.version == 1) exec("PRAGMA application_id = " + std::to_string(kApplicationId));
     exec(m.sql);
@@ -323,8 +298,8 @@ void Database::exec(std::string_view sql) {
     std::string msg = err ? err : sqlite3_errstr(rc);
     sqlite3_free(err);
     const auto kind = (rc & 0xff) == SQLITE_NOTADB ? StorageError::Kind::kForeignFile
-                                                   : StorageError::Kind::kSqlite;
-    throw StorageError(kind, path_ + ": " + msg, rc);
+                                                   : StorageError::Kind::kEngine;
+    throw StorageError::sqlite(kind, path_ + ": " + msg, rc);
   }
 }
 
@@ -346,34 +321,50 @@ void Database::check_file_in_place() {
   int moved = 0;
   if (sqlite3_file_control(db_, "main", SQLITE_FCNTL_HAS_MOVED, &moved) != SQLITE_OK) return;
   if (moved) {
-    throw StorageError(StorageError::Kind::kSqlite,
-                       path_ +
-                           ": the database file was deleted, renamed or replaced while open; "
-                           "nothing more is committed into it",
-                       SQLITE_READONLY_DBMOVED);
+    throw StorageError::sqlite(
+        StorageError::Kind::kEngine,
+        path_ +
+            ": the database file was deleted, renamed or replaced while open; "
+            "nothing more is committed into it",
+        SQLITE_READONLY_DBMOVED);
   }
 }
 
-Transaction::Transaction(Database& db, Mode mode) : db_(db) {
+bool Database::begin_transaction(TransactionMode mode) {
   // Inside an outer transaction (a caller grouping several store calls) nest as a savepoint.
-  nested_ = sqlite3_get_autocommit(db_.handle()) == 0;
-  if (nested_) {
-    db_.exec("SAVEPOINT magcal_tx");
-  } else {
-    db_.exec(mode == Mode::kImmediate ? "BEGIN IMMEDIATE" : "BEGIN DEFERRED");
+  if (sqlite3_get_autocommit(db_) == 0) {
+    exec("SAVEPOINT magcal_tx");
+    return true;
   }
-  open_ = true;
+  if (mode == TransactionMode::kWrite) check_file_in_place();
+  exec(mode == TransactionMode::kWrite ? "BEGIN IMMEDIATE" : "BEGIN DEFERRED");
+  return false;
 }
 
-Transaction::~Transaction() {
-  if (!open_ || !db_.handle()) return;
-  const char* sql = nested_ ? "ROLLBACK TO magcal_tx; RELEASE magcal_tx" : "ROLLBACK";
-  sqlite3_exec(db_.handle(), sql, nullptr, nullptr, nullptr);
+void Database::commit_transaction(bool nested) {
+  exec(nested ? "RELEASE magcal_tx" : "COMMIT");
 }
 
-void Transaction::commit() {
-  db_.exec(nested_ ? "RELEASE magcal_tx" : "COMMIT");
-  open_ = false;
+void Database::end_transaction(bool nested, bool committed) noexcept {
+  if (committed || db_ == nullptr) return;
+  const char* sql = nested ? "ROLLBACK TO magcal_tx; RELEASE magcal_tx" : "ROLLBACK";
+  sqlite3_exec(db_, sql, nullptr, nullptr, nullptr);
+}
+
+std::unique_ptr<SampleWindowStore> Database::make_sample_window_store() {
+  return std::make_unique<SqliteSampleWindowStore>(*this);
+}
+
+std::unique_ptr<RefitJobLog> Database::make_refit_job_log() {
+  return std::make_unique<SqliteRefitJobLog>(*this);
+}
+
+std::unique_ptr<FilterStateStore> Database::make_filter_state_store() {
+  return std::make_unique<SqliteFilterStateStore>(*this);
+}
+
+std::unique_ptr<MetaStore> Database::make_meta_store() {
+  return std::make_unique<SqliteMetaStore>(*this);
 }
 
 }  // namespace magcal::storage

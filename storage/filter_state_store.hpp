@@ -1,17 +1,19 @@
 // Table `filter_states`: the latest online filter state per (sat_id, method), so the daemon
 // resumes exactly after a restart (with the refit it was last re-anchored on). x and P are stored
-// as BLOBs of raw little-endian IEEE-754 doubles: the round trip is bit-exact.
+// as blobs of raw little-endian IEEE-754 doubles: the round trip is bit-exact. An interface:
+// SqliteFilterStateStore (storage/sqlite_stores.hpp) and PgFilterStateStore
+// (storage/postgres/pg_stores.hpp), made by Connection::make_filter_state_store().
 #pragma once
 
 #include <array>
 #include <cstdint>
 #include <optional>
+#include <span>
 #include <string>
 #include <string_view>
 #include <vector>
 
-#include "storage/database.hpp"
-#include "storage/statement.hpp"
+#include "storage/connection.hpp"
 
 namespace magcal::storage {
 
@@ -31,19 +33,18 @@ struct FilterState {
 
 class FilterStateStore {
  public:
-  explicit FilterStateStore(Database& db);
-
+  virtual ~FilterStateStore() = default;
   // Insert or replace the row of (sat_id, method).
-  void save(const FilterState& state);
-  std::optional<FilterState> load(std::string_view sat_id, std::string_view method);
-  std::vector<FilterState> load_all();
-
- private:
-  FilterState read_row(Statement& st);
-  Database& db_;
-  Statement upsert_;
-  Statement load_;
-  Statement load_all_;
+  virtual void save(const FilterState& state) = 0;
+  virtual std::optional<FilterState> load(std::string_view sat_id, std::string_view method) = 0;
+  // Every stored state, ordered by (sat_id, method).
+  virtual std::vector<FilterState> load_all() = 0;
 };
+
+// updated_utime of a save: the state's own, or now when it is 0.
+int64_t save_utime(const FilterState& state);
+// x or P read back from its blob: exactly out.size() little-endian doubles, else StorageError
+// (condition kCorrupt) naming filter_states.<column>.
+void doubles_from_blob(const void* blob, size_t size, std::span<double> out, const char* column);
 
 }  // namespace magcal::storage

@@ -1,25 +1,22 @@
 // Table `meta`: a few named text values about the database itself (e.g. which daemon version
 // wrote it last, when it started). Not a store for data: every kind of data has its own table.
+// An interface: SqliteMetaStore and PgMetaStore, made by Connection::make_meta_store().
 #pragma once
 
 #include <optional>
 #include <string>
 #include <string_view>
 
-#include "storage/database.hpp"
-#include "storage/statement.hpp"
+#include "storage/connection.hpp"
 
 namespace magcal::storage {
 
 class MetaStore {
  public:
-  explicit MetaStore(Database& db);
-  void set(std::string_view key, std::string_view value);
-  std::optional<std::string> get(std::string_view key);
-
- private:
-  Statement set_;
-  Statement get_;
+  virtual ~MetaStore() = default;
+  // Insert or replace.
+  virtual void set(std::string_view key, std::string_view value) = 0;
+  virtual std::optional<std::string> get(std::string_view key) = 0;
 };
 
 }  // namespace magcal::storage

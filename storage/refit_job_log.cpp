@@ -1,11 +1,12 @@
 #include "storage/refit_job_log.hpp"
 
+#include "storage/sqlite_stores.hpp"
+#include "storage/store_columns.hpp"
+
 namespace magcal::storage {
 namespace {
 
-constexpr const char* kSelect =
-    "SELECT id, sat_id, trigger_kind, scheduled_utime, started_utime, finished_utime, outcome, "
-    "error, calibration_id FROM refit_jobs ";
+const std::string kSelect = std::string("SELECT ") + columns::kRefitJob + " FROM refit_jobs ";
 
 std::optional<int64_t> optional_int(const Statement& st, int col) {
   if (st.is_null(col)) return std::nullopt;
@@ -36,7 +37,7 @@ RefitJob read_row(const Statement& st) {
 
 }  // namespace
 
-RefitJobLog::RefitJobLog(Database& db)
+SqliteRefitJobLog::SqliteRefitJobLog(Database& db)
     : db_(db),
       insert_(db,
               "INSERT INTO refit_jobs (sat_id, trigger_kind, scheduled_utime, started_utime, "
@@ -47,8 +48,8 @@ RefitJobLog::RefitJobLog(Database& db)
       interrupt_(db,
                  "UPDATE refit_jobs SET outcome = 'interrupted', finished_utime = ?1, error = "
                  "'process ended while the refit was running' WHERE outcome = 'running'"),
-      get_(db, std::string(kSelect) + "WHERE id = ?1"),
-      recent_(db, std::string(kSelect) + "WHERE sat_id = ?1 ORDER BY id DESC LIMIT ?2"),
+      get_(db, kSelect + "WHERE id = ?1"),
+      recent_(db, kSelect + "WHERE sat_id = ?1 ORDER BY id DESC LIMIT ?2"),
       newest_reanchor_(db,
                        "SELECT max(calibration_id) FROM refit_jobs WHERE sat_id = ?1 AND "
                        "outcome = 'ok' AND trigger_kind <> 'manual'"),
@@ -57,16 +58,16 @@ RefitJobLog::RefitJobLog(Database& db)
                         "trigger_kind = 'scheduled' AND outcome NOT IN ('running', "
                         "'interrupted')") {}
 
-int64_t RefitJobLog::start(std::string_view sat_id, std::string_view trigger,
-                           int64_t scheduled_utime, int64_t started_utime) {
+int64_t SqliteRefitJobLog::start(std::string_view sat_id, std::string_view trigger,
+                                 int64_t scheduled_utime, int64_t started_utime) {
   auto use = insert_.use();
   insert_.bind(1, sat_id).bind(2, trigger).bind(3, scheduled_utime).bind(4, started_utime);
   insert_.execute();
   return db_.last_insert_id();
 }
 
-void RefitJobLog::finish(int64_t job_id, std::string_view outcome, int64_t finished_utime,
-                         std::string_view error, std::optional<int64_t> calibration_id) {
+void SqliteRefitJobLog::finish(int64_t job_id, std::string_view outcome, int64_t finished_utime,
+                               std::string_view error, std::optional<int64_t> calibration_id) {
   auto use = finish_.use();
   finish_.bind(1, job_id).bind(2, outcome).bind(3, finished_utime).bind(4, error);
   finish_.bind(5, calibration_id);
@@ -76,21 +77,21 @@ void RefitJobLog::finish(int64_t job_id, std::string_view outcome, int64_t finis
   }
 }
 
-int RefitJobLog::mark_running_interrupted(int64_t now_utime) {
+int SqliteRefitJobLog::mark_running_interrupted(int64_t now_utime) {
   auto use = interrupt_.use();
   interrupt_.bind(1, now_utime);
   return interrupt_.execute();
 }
 
-std::optional<int64_t> RefitJobLog::newest_reanchor_calibration_id(std::string_view sat_id) {
+std::optional<int64_t> SqliteRefitJobLog::newest_reanchor_calibration_id(std::string_view sat_id) {
   return single_int(newest_reanchor_, sat_id);
 }
 
-std::optional<int64_t> RefitJobLog::newest_finished_scheduled_utime(std::string_view sat_id) {
+std::optional<int64_t> SqliteRefitJobLog::newest_finished_scheduled_utime(std::string_view sat_id) {
   return single_int(newest_scheduled_, sat_id);
 }
 
-std::optional<RefitJob> RefitJobLog::get(int64_t job_id) {
+std::optional<RefitJob> SqliteRefitJobLog::get(int64_t job_id) {
   auto use = get_.use();
   get_.bind(1, job_id);
   if (!get_.step()) return std::nullopt;
@@ -103,7 +104,7 @@ std::optional<RefitJob> RefitJobLog::latest(std::string_view sat_id) {
   return jobs.front();
 }
 
-std::vector<RefitJob> RefitJobLog::recent(std::string_view sat_id, int limit) {
+std::vector<RefitJob> SqliteRefitJobLog::recent(std::string_view sat_id, int limit) {
   std::vector<RefitJob> out;
   auto use = recent_.use();
   recent_.bind(1, sat_id).bind(2, limit);

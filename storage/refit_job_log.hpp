@@ -1,5 +1,7 @@
 // Table `refit_jobs`: one row per scheduled or manual refit — when it was due, when it ran, how
-// it ended, and the calibration row it produced.
+// it ended, and the calibration row it produced. An interface: SqliteRefitJobLog
+// (storage/sqlite_stores.hpp) and PgRefitJobLog (storage/postgres/pg_stores.hpp), made by
+// Connection::make_refit_job_log().
 #pragma once
 
 #include <cstdint>
@@ -8,8 +10,7 @@
 #include <string_view>
 #include <vector>
 
-#include "storage/database.hpp"
-#include "storage/statement.hpp"
+#include "storage/connection.hpp"
 
 namespace magcal::storage {
 
@@ -37,38 +38,31 @@ struct RefitJob {
 
 class RefitJobLog {
  public:
-  explicit RefitJobLog(Database& db);
+  virtual ~RefitJobLog() = default;
 
   // Inserts a 'running' job; returns its id.
-  int64_t start(std::string_view sat_id, std::string_view trigger, int64_t scheduled_utime,
-                int64_t started_utime);
-  void finish(int64_t job_id, std::string_view outcome, int64_t finished_utime,
-              std::string_view error = {}, std::optional<int64_t> calibration_id = {});
+  virtual int64_t start(std::string_view sat_id, std::string_view trigger, int64_t scheduled_utime,
+                        int64_t started_utime) = 0;
+  // Throws StorageError (kInvalidArgument) for an unknown job, (kConstraint) for a
+  // calibration_id that is not in the history.
+  virtual void finish(int64_t job_id, std::string_view outcome, int64_t finished_utime,
+                      std::string_view error = {}, std::optional<int64_t> calibration_id = {}) = 0;
   // Crash recovery, called once by the daemon at start: every 'running' job becomes
   // 'interrupted' (finished at now_utime). Returns how many.
-  int mark_running_interrupted(int64_t now_utime);
+  virtual int mark_running_interrupted(int64_t now_utime) = 0;
 
   // What a restarting daemon resumes from, per spacecraft:
   //   the calibration of its newest refit that ended 'ok' (accepted) and was not 'manual' (the
   //   daemon re-anchors its filter on those, never on a `magcal refit`);
   //   the newest scheduled time of a 'scheduled' refit that ran to its end (any outcome but
   //   'running' / 'interrupted'): later due times were not run.
-  std::optional<int64_t> newest_reanchor_calibration_id(std::string_view sat_id);
-  std::optional<int64_t> newest_finished_scheduled_utime(std::string_view sat_id);
+  virtual std::optional<int64_t> newest_reanchor_calibration_id(std::string_view sat_id) = 0;
+  virtual std::optional<int64_t> newest_finished_scheduled_utime(std::string_view sat_id) = 0;
 
-  std::optional<RefitJob> get(int64_t job_id);
+  virtual std::optional<RefitJob> get(int64_t job_id) = 0;
   std::optional<RefitJob> latest(std::string_view sat_id);
-  std::vector<RefitJob> recent(std::string_view sat_id, int limit);
-
- private:
-  Database& db_;
-  Statement insert_;
-  Statement finish_;
-  Statement interrupt_;
-  Statement get_;
-  Statement recent_;
-  Statement newest_reanchor_;
-  Statement newest_scheduled_;
+  // The newest `limit` jobs of `sat_id`, newest first.
+  virtual std::vector<RefitJob> recent(std::string_view sat_id, int limit) = 0;
 };
 
 }  // namespace magcal::storage

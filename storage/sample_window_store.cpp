@@ -1,17 +1,16 @@
 #include "storage/sample_window_store.hpp"
 
+#include "storage/sqlite_stores.hpp"
+#include "storage/store_columns.hpp"
+
 #include <cmath>
 #include <limits>
 
 namespace magcal::storage {
 namespace {
 
-constexpr const char* kColumns =
-    "utime, seq, receive_utime, bx_nT, by_nT, bz_nT, has_direction, hx_nT, hy_nT, hz_nT, "
-    "h_norm_nT, qw, qx, qy, qz, rx_m, ry_m, rz_m, temperature_C";
-
 std::string select_window_sql() {
-  return std::string("SELECT ") + kColumns +
+  return std::string("SELECT ") + columns::kSampleRead +
          " FROM samples WHERE sat_id = ?1 AND utime >= ?2 AND utime < ?3 ORDER BY utime";
 }
 
@@ -25,16 +24,14 @@ std::optional<int64_t> single_utime(Statement& st, std::string_view sat_id) {
 
 }  // namespace
 
-SampleWindowStore::SampleWindowStore(Database& db)
-    : db_(db),
-      insert_(db,
-              "INSERT INTO samples (sat_id, utime, seq, receive_utime, bx_nT, by_nT, "
-              "bz_nT, has_direction, hx_nT, hy_nT, hz_nT, h_norm_nT, qw, qx, qy, qz, rx_m, ry_m, "
-              "rz_m, temperature_C) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, "
-              "?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20) "
-              // Only a repeated key is ignored (and counted); OR IGNORE would also swallow
-              // NOT NULL violations (NaN is bound as NULL) and count them as duplicates.
-              "ON CONFLICT (sat_id, utime) DO NOTHING"),
+SqliteSampleWindowStore::SqliteSampleWindowStore(Database& db)
+    : SampleWindowStore(db),
+      insert_(db, std::string("INSERT INTO samples (") + columns::kSampleInsert +
+                      ") VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, "
+                      "?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20) "
+                      // Only a repeated key is ignored (and counted); OR IGNORE would also swallow
+                      // NOT NULL violations (NaN is bound as NULL) and count them as duplicates.
+                      "ON CONFLICT (sat_id, utime) DO NOTHING"),
       window_(db, select_window_sql()),
       count_window_(
           db, "SELECT count(*) FROM samples WHERE sat_id = ?1 AND utime >= ?2 AND utime < ?3"),
@@ -53,8 +50,8 @@ SampleWindowStore::SampleWindowStore(Database& db)
                     "DELETE FROM samples WHERE sat_id = ?1 AND utime IN (SELECT utime FROM "
                     "samples WHERE sat_id = ?1 AND utime < ?2 ORDER BY utime LIMIT ?3)") {}
 
-InsertStats SampleWindowStore::insert_batch(std::span<const StoredSample> samples,
-                                            std::vector<size_t>* duplicate_rows) {
+InsertStats SqliteSampleWindowStore::insert_batch(std::span<const StoredSample> samples,
+                                                  std::vector<size_t>* duplicate_rows) {
   InsertStats stats;
   if (duplicate_rows) duplicate_rows->clear();
   if (samples.empty()) return stats;
@@ -87,8 +84,8 @@ InsertStats SampleWindowStore::insert_batch(std::span<const StoredSample> sample
   return stats;
 }
 
-void SampleWindowStore::read_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime,
-                                    std::vector<StoredSample>& out) {
+void SqliteSampleWindowStore::read_window(std::string_view sat_id, int64_t t0_utime,
+                                          int64_t t1_utime, std::vector<StoredSample>& out) {
   out.clear();
   auto use = window_.use();
   window_.bind(1, sat_id).bind(2, t0_utime).bind(3, t1_utime);
@@ -127,28 +124,29 @@ std::vector<StoredSample> SampleWindowStore::window(std::string_view sat_id, int
   return out;
 }
 
-int64_t SampleWindowStore::count_in_window(std::string_view sat_id, int64_t t0_utime,
-                                           int64_t t1_utime) {
+int64_t SqliteSampleWindowStore::count_in_window(std::string_view sat_id, int64_t t0_utime,
+                                                 int64_t t1_utime) {
   auto use = count_window_.use();
   count_window_.bind(1, sat_id).bind(2, t0_utime).bind(3, t1_utime);
   return count_window_.step() ? count_window_.column_int64(0) : 0;
 }
 
-std::optional<int64_t> SampleWindowStore::newest_utime(std::string_view sat_id) {
+std::optional<int64_t> SqliteSampleWindowStore::newest_utime(std::string_view sat_id) {
   return single_utime(newest_, sat_id);
 }
 
-std::optional<int64_t> SampleWindowStore::oldest_utime(std::string_view sat_id) {
+std::optional<int64_t> SqliteSampleWindowStore::oldest_utime(std::string_view sat_id) {
   return single_utime(oldest_, sat_id);
 }
 
-int64_t SampleWindowStore::count(std::string_view sat_id) {
+int64_t SqliteSampleWindowStore::count(std::string_view sat_id) {
   auto use = count_.use();
   count_.bind(1, sat_id);
   return count_.step() ? count_.column_int64(0) : 0;
 }
 
-std::optional<int64_t> SampleWindowStore::utime_at_rank(std::string_view sat_id, int64_t rank) {
+std::optional<int64_t> SqliteSampleWindowStore::utime_at_rank(std::string_view sat_id,
+                                                              int64_t rank) {
   if (rank < 0) return std::nullopt;
   auto use = utime_at_rank_.use();
   utime_at_rank_.bind(1, sat_id).bind(2, rank);
@@ -156,7 +154,7 @@ std::optional<int64_t> SampleWindowStore::utime_at_rank(std::string_view sat_id,
   return utime_at_rank_.column_int64(0);
 }
 
-std::vector<std::string> SampleWindowStore::spacecraft() {
+std::vector<std::string> SqliteSampleWindowStore::spacecraft() {
   std::vector<std::string> out;
   auto use = spacecraft_.use();
   while (spacecraft_.step()) out.push_back(spacecraft_.column_text(0));
@@ -171,12 +169,7 @@ RetentionStats SampleWindowStore::delete_before(std::string_view sat_id, int64_t
   RetentionStats stats;
   for (;;) {
     Transaction tx(db_);
-    int deleted = 0;
-    {
-      auto use = delete_chunk_.use();
-      delete_chunk_.bind(1, sat_id).bind(2, cutoff_utime).bind(3, chunk_rows);
-      deleted = delete_chunk_.execute();
-    }
+    const int64_t deleted = delete_chunk(sat_id, cutoff_utime, chunk_rows);
     tx.commit();
     ++stats.transactions;
     stats.deleted += deleted;
@@ -190,6 +183,13 @@ RetentionStats SampleWindowStore::apply_retention(std::string_view sat_id, int64
   const auto newest = newest_utime(sat_id);
   if (!newest) return {};
   return delete_before(sat_id, *newest - window_utime - margin_utime, chunk_rows);
+}
+
+int64_t SqliteSampleWindowStore::delete_chunk(std::string_view sat_id, int64_t cutoff_utime,
+                                              int chunk_rows) {
+  auto use = delete_chunk_.use();
+  delete_chunk_.bind(1, sat_id).bind(2, cutoff_utime).bind(3, chunk_rows);
+  return delete_chunk_.execute();
 }
 
 }  // namespace magcal::storage

@@ -1,9 +1,12 @@
 // Table `samples`: the per-spacecraft sample windows the daemon refits and restarts from.
 //
-// One row per (sat_id, utime) — the primary key of a WITHOUT ROWID table, so a spacecraft's
-// window is one contiguous b-tree range in time order. Each row keeps its reference field
+// One row per (sat_id, utime), the primary key: a spacecraft's window is read by key range in
+// time order. Each row keeps its reference field
 // (h_body_nT in the body frame, or only |h| when there was no direction), so a refit never
 // recomputes IGRF. Duplicate (sat_id, utime) rows are refused and counted, never stored twice.
+//
+// An interface: SqliteSampleWindowStore (storage/sqlite_stores.hpp) and PgSampleWindowStore
+// (storage/postgres/pg_stores.hpp), made by Connection::make_sample_window_store().
 //
 // Units: nT for fields, metres for r_ecef_m, microseconds since 1970-01-01Z (utime) for times,
 // quaternion (w, x, y, z) body-from-ECI as in mag_sample_t (estimation.md section 0).
@@ -18,8 +21,7 @@
 #include <string_view>
 #include <vector>
 
-#include "storage/database.hpp"
-#include "storage/statement.hpp"
+#include "storage/connection.hpp"
 
 namespace magcal::storage {
 
@@ -53,29 +55,29 @@ struct RetentionStats {
 
 class SampleWindowStore {
  public:
-  explicit SampleWindowStore(Database& db);  // prepares its statements; throws StorageError
+  virtual ~SampleWindowStore() = default;
 
-  // All samples in one transaction (one fsync-free WAL commit). Throws StorageError (the
+  // All samples in one transaction (or inside the caller's). Throws StorageError (the
   // transaction is rolled back: nothing of the batch is stored). `duplicate_rows` (optional,
   // cleared first): the indices of the rows that were duplicates, for per-row accounting.
-  InsertStats insert_batch(std::span<const StoredSample> samples,
-                           std::vector<size_t>* duplicate_rows = nullptr);
+  virtual InsertStats insert_batch(std::span<const StoredSample> samples,
+                                   std::vector<size_t>* duplicate_rows = nullptr) = 0;
 
   // Samples of `sat_id` with t0 <= utime < t1, ascending utime, into `out` (cleared first; its
   // capacity is reused). A refit window (t_ref - W, t_ref] is [t_ref - W + 1, t_ref + 1).
-  void read_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime,
-                   std::vector<StoredSample>& out);
+  virtual void read_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime,
+                           std::vector<StoredSample>& out) = 0;
   std::vector<StoredSample> window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime);
 
-  int64_t count_in_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime);
-  std::optional<int64_t> newest_utime(std::string_view sat_id);
-  std::optional<int64_t> oldest_utime(std::string_view sat_id);
-  int64_t count(std::string_view sat_id);
+  virtual int64_t count_in_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime) = 0;
+  virtual std::optional<int64_t> newest_utime(std::string_view sat_id) = 0;
+  virtual std::optional<int64_t> oldest_utime(std::string_view sat_id) = 0;
+  virtual int64_t count(std::string_view sat_id) = 0;
   // Time of the stored sample of `sat_id` with `rank` older ones (0 = the oldest); nullopt when
   // fewer are stored. Keys a refit by the sample count it covers (an early refit).
-  std::optional<int64_t> utime_at_rank(std::string_view sat_id, int64_t rank);
+  virtual std::optional<int64_t> utime_at_rank(std::string_view sat_id, int64_t rank) = 0;
   // Spacecraft with at least one stored sample, sorted.
-  std::vector<std::string> spacecraft();
+  virtual std::vector<std::string> spacecraft() = 0;
 
   // Deletes the samples of `sat_id` with utime < cutoff_utime, at most `chunk_rows` per
   // transaction so a concurrent writer waits at most one small chunk.
@@ -86,17 +88,13 @@ class SampleWindowStore {
   RetentionStats apply_retention(std::string_view sat_id, int64_t window_utime,
                                  int64_t margin_utime, int chunk_rows = 2000);
 
- private:
-  Database& db_;
-  Statement insert_;
-  Statement window_;
-  Statement count_window_;
-  Statement newest_;
-  Statement oldest_;
-  Statement count_;
-  Statement utime_at_rank_;
-  Statement spacecraft_;
-  Statement delete_chunk_;
+ protected:
+  explicit SampleWindowStore(Connection& db) : db_(db) {}
+  // One chunk of delete_before: at most chunk_rows of the oldest samples below the cutoff, in
+  // the caller's transaction. Returns how many were deleted.
+  virtual int64_t delete_chunk(std::string_view sat_id, int64_t cutoff_utime, int chunk_rows) = 0;
+
+  Connection& db_;
 };
 
 }  // namespace magcal::storage

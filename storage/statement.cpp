@@ -12,11 +12,11 @@ namespace {
 
 [[noreturn]] void fail(sqlite3* db, int rc, std::string_view context) {
   const auto kind =
-      (rc & 0xff) == SQLITE_NOTADB ? StorageError::Kind::kForeignFile : StorageError::Kind::kSqlite;
+      (rc & 0xff) == SQLITE_NOTADB ? StorageError::Kind::kForeignFile : StorageError::Kind::kEngine;
   std::string msg(context);
   msg += ": ";
   msg += db ? sqlite3_errmsg(db) : sqlite3_errstr(rc);
-  throw StorageError(kind, msg, rc);
+  throw StorageError::sqlite(kind, msg, rc);
 }
 
 }  // namespace

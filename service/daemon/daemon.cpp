@@ -253,9 +253,9 @@ struct Daemon::Impl {
   RefitOutcome run_refit(StorageRetry& retry, const std::string& sat, const RefitRequest& req) {
     return retry.run_blocking([&] {
       RefitOutcome out = refits->run(sat, req.t_ref_utime, req.trigger, req.scheduled_utime);
-      if (out.kind == RefitOutcome::Kind::kError && out.transient_error) {
-        throw storage::StorageError(storage::StorageError::Kind::kSqlite, out.message,
-                                    out.sqlite_code);
+      if (out.kind == RefitOutcome::Kind::kError && out.storage_error &&
+          out.storage_error->transient()) {
+        throw *out.storage_error;
       }
       return out;
     });
@@ -466,8 +466,7 @@ std::string Daemon::open() {
     d.refit_db = std::make_unique<storage::Database>(
         c.storage.db_path, storage::OpenOptions{.busy_timeout_ms = c.storage.busy_timeout_ms});
     d.refits = std::make_unique<RefitRunner>(d.config, *d.refit_db);
-    storage::RefitJobLog jobs(*d.refit_db);
-    if (const int n = jobs.mark_running_interrupted(wall_utime())) {
+    if (const int n = d.refit_db->make_refit_job_log()->mark_running_interrupted(wall_utime())) {
       spdlog::warn("{} refit job(s) were running when the daemon last stopped: interrupted", n);
     }
     d.worker->restore();

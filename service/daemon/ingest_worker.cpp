@@ -56,10 +56,10 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
       validator_(validator_options(config)),
       db_(config.storage.db_path,
           storage::OpenOptions{.busy_timeout_ms = config.storage.busy_timeout_ms}),
-      samples_(db_),
+      samples_(db_.make_sample_window_store()),
       history_(db_),
-      filter_states_(db_),
-      jobs_(db_),
+      filter_states_(db_.make_filter_state_store()),
+      jobs_(db_.make_refit_job_log()),
       fleet_(config.ukf.filter),
       commit_retry_("commit", config.storage.max_failure_s, counters),
       read_retry_("duplicate check", config.storage.max_failure_s, counters) {
@@ -76,18 +76,18 @@ void IngestWorker::restore() {
   const int64_t period = snapshot_period_utime(config_);
   std::vector<storage::StoredSample> rows;
   int64_t rerun = 0;
-  for (const auto& sat : samples_.spacecraft()) {
-    const auto newest = samples_.newest_utime(sat);
+  for (const auto& sat : samples_->spacecraft()) {
+    const auto newest = samples_->newest_utime(sat);
     if (!newest) continue;
     SpacecraftTracker& t = tracker(sat, nullptr);
     // The next early refit follows from the database: the latest refit's sample count.
     const auto latest_refit = history_.latest_refit(sat);
-    t.n_samples = samples_.count(sat);
+    t.n_samples = samples_->count(sat);
     t.next_early_refit_samples =
         config_.early_refits().next_after(latest_refit ? latest_refit->n_samples : 0);
     t.newest_utime = *newest;
     t.stored_bound_utime = *newest;
-    samples_.read_window(sat, *newest, saturating_add(*newest, 1), rows);
+    samples_->read_window(sat, *newest, saturating_add(*newest, 1), rows);
     if (!rows.empty()) t.last_seq = rows.back().seq;
     rerun += restore_filter(sat, t, *newest, rows);
     // The snapshot times of an uninterrupted run: every period from its first sample, the next
@@ -100,8 +100,8 @@ void IngestWorker::restore() {
       // Its clock resumes after the last scheduled refit that ran to its end (or at its oldest
       // stored sample before any): a later due time had its samples committed, but its refit
       // was interrupted or never started, so the first frame runs it (file comment).
-      const int64_t resume = jobs_.newest_finished_scheduled_utime(sat).value_or(
-          samples_.oldest_utime(sat).value_or(*newest));
+      const int64_t resume = jobs_->newest_finished_scheduled_utime(sat).value_or(
+          samples_->oldest_utime(sat).value_or(*newest));
       t.data_refits->advance(std::min(resume, *newest));
     }
   }
@@ -115,19 +115,20 @@ void IngestWorker::restore() {
 int64_t IngestWorker::restore_filter(const std::string& sat, SpacecraftTracker& t,
                                      int64_t newest_utime,
                                      std::vector<storage::StoredSample>& rows) {
-  const auto reanchor_id = jobs_.newest_reanchor_calibration_id(sat);
+  const auto reanchor_id = jobs_->newest_reanchor_calibration_id(sat);
   int64_t from = saturating_sub(newest_utime, config_.window_utime()) + 1;
   std::optional<int64_t> anchor_id = 0;  // none (the filter starts afresh)
-  if (const auto stored = filter_states_.load(sat, "ukf")) {
+  if (const auto stored = filter_states_->load(sat, "ukf")) {
     FilterState st;
-    if (filter_state_from_stored(*stored, st)) {
+    if (const std::string why = filter_state_from_stored(*stored, st); why.empty()) {
       t.ukf.restore(st);
       // Started or still collecting: the state holds every sample up to last_utime (in x
       // and P, or in the start's moments); re-running them would count them twice.
       if (st.has_time) from = std::max(from, st.last_utime + 1);
       anchor_id = stored->anchor_calibration_id;
     } else {
-      spdlog::warn("{}: stored filter state unreadable; re-running the UKF over the window", sat);
+      spdlog::warn("{}: stored filter state unreadable ({}); re-running the UKF over the window",
+                   sat, why);
     }
   }
   // The samples after the state were filtered with the temperature model of the refit it is
@@ -140,7 +141,7 @@ int64_t IngestWorker::restore_filter(const std::string& sat, SpacecraftTracker& 
   }
   int64_t rerun = 0;
   if (from <= newest_utime) {
-    samples_.read_window(sat, from, saturating_add(newest_utime, 1), rows);
+    samples_->read_window(sat, from, saturating_add(newest_utime, 1), rows);
     for (const auto& r : rows) t.update_filter(calibration_sample_from_stored(r));
     rerun = static_cast<int64_t>(rows.size());
     t.state_dirty = !rows.empty();
@@ -241,7 +242,7 @@ bool IngestWorker::is_duplicate(const std::string& sat_id, const SpacecraftTrack
   // Reads work through most faults (WAL readers never wait for the writer); one that fails is
   // retried in place: the sample must not be taken before its answer.
   return read_retry_.run_blocking(
-      [&] { return samples_.count_in_window(sat_id, utime, utime + 1) > 0; });
+      [&] { return samples_->count_in_window(sat_id, utime, utime + 1) > 0; });
 }
 
 void IngestWorker::reject_sample(RejectReason r, const std::string& sat, const mag_sample_t& s) {
@@ -503,9 +504,6 @@ void IngestWorker::commit() {
 }
 
 void IngestWorker::commit_pending() {
-  // In WAL mode SQLite keeps committing into a deleted or replaced file without an error:
-  // check first, so nothing is committed where no one will find it.
-  db_.check_file_in_place();
   // A backlog left by a storage fault goes in transactions of commit_every_samples: each holds
   // the write lock briefly, and on a nearly full disk every chunk that fits is stored. The
   // snapshots and the filter states that are due go with the last chunk (published once
@@ -529,7 +527,7 @@ void IngestWorker::commit_pending() {
           }
         } observe{counters_.commit_seconds, t0};
         storage::Transaction tx(db_);
-        stats = samples_.insert_batch(std::span(pending_).subspan(done, n), &duplicate_rows_);
+        stats = samples_->insert_batch(std::span(pending_).subspan(done, n), &duplicate_rows_);
         if (last) {
           for (const auto& p : pending_snapshots_) {
             storage::CalibrationRecord rec = record_from_result(p.sat_id, p.result);
@@ -538,7 +536,7 @@ void IngestWorker::commit_pending() {
           }
           for (const auto& sat : states_due_) {
             if (const SpacecraftTracker* t = fleet_.find(sat)) {
-              filter_states_.save(stored_state(sat, *t));
+              filter_states_->save(stored_state(sat, *t));
             }
           }
         }
@@ -592,7 +590,7 @@ void IngestWorker::run_retention() {
     if (!t || t->newest_utime == kNoTime) continue;
     const int64_t cutoff = std::min(saturating_sub(t->newest_utime, window + margin), floor);
     try {
-      samples_.delete_before(sat, cutoff, kRetentionChunkRows);
+      samples_->delete_before(sat, cutoff, kRetentionChunkRows);
       t->retention_due = false;
     } catch (const storage::StorageError& e) {
       // Nothing is lost by deleting later: kept for the next round.
@@ -632,11 +630,11 @@ void IngestWorker::check_early_refit(const std::string& sat_id, SpacecraftTracke
   const int64_t n = plan.latest_within(t.n_samples);
   std::optional<int64_t> first_utime, t_ref;
   try {
-    first_utime = samples_.utime_at_rank(sat_id, 0);
-    t_ref = samples_.utime_at_rank(sat_id, n - 1);
+    first_utime = samples_->utime_at_rank(sat_id, 0);
+    t_ref = samples_->utime_at_rank(sat_id, n - 1);
     if (!t_ref) {
       // Fewer stored than counted (duplicates only the insert saw): due once they are.
-      t.n_samples = samples_.count(sat_id);
+      t.n_samples = samples_->count(sat_id);
       return;
     }
   } catch (const storage::StorageError& e) {
@@ -663,11 +661,10 @@ void IngestWorker::save_filter_states() {
   if (!pending_.empty()) return;  // storage failing: saved once the commit goes through
   std::vector<SpacecraftTracker*> saved;
   try {
-    db_.check_file_in_place();
     storage::Transaction tx(db_);
     fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
       if (!t.state_dirty) return;
-      filter_states_.save(stored_state(sat, t));
+      filter_states_->save(stored_state(sat, t));
       saved.push_back(&t);
     });
     tx.commit();

@@ -179,10 +179,10 @@ class IngestWorker {
   Hooks hooks_;
   ValidatorOptions validator_;
   storage::Database db_;
-  storage::SampleWindowStore samples_;
+  std::unique_ptr<storage::SampleWindowStore> samples_;
   storage::CalibrationHistory history_;
-  storage::FilterStateStore filter_states_;
-  storage::RefitJobLog jobs_;  // read by restore()
+  std::unique_ptr<storage::FilterStateStore> filter_states_;
+  std::unique_ptr<storage::RefitJobLog> jobs_;  // read by restore()
   SpacecraftFleet fleet_;
   ThrottledLog warnings_;
   std::optional<RefitSchedule> data_schedule_;  // [refit] clock = "data": each tracker's schedule

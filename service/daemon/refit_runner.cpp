@@ -70,12 +70,12 @@ RefitRunner::RefitRunner(const DaemonConfig& config, storage::Database& db)
     : config_(config),
       options_(batch_options_from_config(config)),
       db_(db),
-      samples_(db),
+      samples_(db.make_sample_window_store()),
       history_(db),
-      jobs_(db) {}
+      jobs_(db.make_refit_job_log()) {}
 
 std::vector<std::string> RefitRunner::spacecraft() {
-  return samples_.spacecraft();
+  return samples_->spacecraft();
 }
 
 bool RefitRunner::accept_corroborated_change(const std::string& sat_id,
@@ -125,7 +125,7 @@ std::optional<storage::RefitJob> RefitRunner::finished_early_refit(const std::st
   if (trigger != "first" && trigger != "early") return std::nullopt;
   // A spacecraft's early refits are few (about five in its first window): the recent jobs hold
   // them.
-  for (auto& job : jobs_.recent(sat_id, 32)) {
+  for (auto& job : jobs_->recent(sat_id, 32)) {
     if (job.trigger == trigger && job.scheduled_utime == scheduled_utime &&
         job.calibration_id.has_value()) {
       return std::move(job);
@@ -136,10 +136,10 @@ std::optional<storage::RefitJob> RefitRunner::finished_early_refit(const std::st
 
 std::string RefitRunner::skip_reason(const std::string& sat_id,
                                      std::optional<int64_t> t_ref_utime) {
-  if (!t_ref_utime) t_ref_utime = samples_.newest_utime(sat_id);
+  if (!t_ref_utime) t_ref_utime = samples_->newest_utime(sat_id);
   if (!t_ref_utime) return "no stored samples for '" + sat_id + "'";
-  const int64_t n =
-      samples_.count_in_window(sat_id, *t_ref_utime - config_.window_utime() + 1, *t_ref_utime + 1);
+  const int64_t n = samples_->count_in_window(sat_id, *t_ref_utime - config_.window_utime() + 1,
+                                              *t_ref_utime + 1);
   if (n >= config_.refit.min_samples) return "";
   return std::to_string(n) + " samples in the window, " +
          std::to_string(config_.refit.min_samples) + " needed ([refit] min_samples)";
@@ -156,24 +156,23 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
                     " already ran (job " + std::to_string(done->id) + ")";
       return out;
     }
-    out.job_id = jobs_.start(sat_id, trigger, scheduled_utime, wall_utime());
+    out.job_id = jobs_->start(sat_id, trigger, scheduled_utime, wall_utime());
   } catch (const storage::StorageError& e) {
     out.message = std::string("cannot write the job row: ") + e.what();
-    out.sqlite_code = e.sqlite_code();
-    out.transient_error = e.transient();
+    out.storage_error = e;
     return out;
   }
   try {
-    if (!t_ref_utime) t_ref_utime = samples_.newest_utime(sat_id);
+    if (!t_ref_utime) t_ref_utime = samples_->newest_utime(sat_id);
     if (std::string why = skip_reason(sat_id, t_ref_utime); !why.empty()) {
       out.kind = RefitOutcome::Kind::kSkipped;
       out.job_outcome = storage::job_outcome::kSkipped;
       out.message = std::move(why);
-      jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message);
+      jobs_->finish(out.job_id, out.job_outcome, wall_utime(), out.message);
       return out;
     }
     const int64_t t_ref = *t_ref_utime;
-    samples_.read_window(sat_id, t_ref - config_.window_utime() + 1, t_ref + 1, rows_);
+    samples_->read_window(sat_id, t_ref - config_.window_utime() + 1, t_ref + 1, rows_);
     out.n_window_samples = static_cast<int>(rows_.size());
     window_.clear();
     window_.reserve(rows_.size());
@@ -204,7 +203,7 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
       out.job_outcome = storage::job_outcome::kFailed;
       out.message = out.result.message.empty() ? to_string(out.result.status) : out.result.message;
     }
-    jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message, out.calibration_id);
+    jobs_->finish(out.job_id, out.job_outcome, wall_utime(), out.message, out.calibration_id);
     tx.commit();
     out.kind = RefitOutcome::Kind::kComputed;
   } catch (const storage::StorageError& e) {
@@ -212,10 +211,9 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
     out.calibration_id = 0;  // rolled back
     out.job_outcome = storage::job_outcome::kFailed;
     out.message = e.what();
-    out.sqlite_code = e.sqlite_code();
-    out.transient_error = e.transient();
+    out.storage_error = e;
     try {
-      jobs_.finish(out.job_id, out.job_outcome, wall_utime(), out.message);
+      jobs_->finish(out.job_id, out.job_outcome, wall_utime(), out.message);
     } catch (const storage::StorageError&) {
       // The database is unusable; the caller reports out.message.
     }

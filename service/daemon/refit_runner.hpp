@@ -37,10 +37,8 @@ struct RefitOutcome {
   int64_t job_id = 0;
   int64_t calibration_id = 0;
   int n_window_samples = 0;
-  // kError: SQLite's extended result code and whether a retry may heal it
-  // (storage::StorageError::transient()); the daemon's refit thread retries those.
-  int sqlite_code = 0;
-  bool transient_error = false;
+  // kError: the storage failure (its transient() ones the daemon's refit thread retries).
+  std::optional<storage::StorageError> storage_error;
   // Accepted by the gates and a valid estimate: the UKF may re-anchor on it.
   bool accepted() const {
     return kind == Kind::kComputed && result.accepted && result.status == CalibrationStatus::kOk;
@@ -82,9 +80,9 @@ class RefitRunner {
   const DaemonConfig config_;  // a copy: callers may pass a temporary
   BatchCalibrationOptions options_;
   storage::Database& db_;
-  storage::SampleWindowStore samples_;
+  std::unique_ptr<storage::SampleWindowStore> samples_;
   storage::CalibrationHistory history_;
-  storage::RefitJobLog jobs_;
+  std::unique_ptr<storage::RefitJobLog> jobs_;
   std::vector<storage::StoredSample> rows_;  // reused between refits
   SampleSet window_;
 };

@@ -7,6 +7,17 @@
 #include <spdlog/spdlog.h>
 
 namespace magcal {
+namespace {
+
+// "busy, SQLite code 5", "unavailable, SQLSTATE 08006": the backend-neutral condition, then the
+// engine's own code.
+std::string describe(const storage::StorageError& e) {
+  std::string out = storage::to_string(e.condition());
+  if (const std::string code = e.code(); !code.empty()) out += ", " + code;
+  return out;
+}
+
+}  // namespace
 
 StorageRetry::StorageRetry(std::string what, double max_failure_s, DaemonCounters& counters)
     : what_(std::move(what)), max_failure_s_(max_failure_s), counters_(counters) {}
@@ -36,22 +47,22 @@ void StorageRetry::failed(const storage::StorageError& e) {
   ++attempts_failed_;
   const double failing_s = std::chrono::duration<double>(now - since_).count();
   if (!e.transient()) {
-    throw StorageOutage(fmt::format("database {}: permanent error (SQLite code {}): {}", what_,
-                                    e.sqlite_code(), e.what()));
+    throw StorageOutage(
+        fmt::format("database {}: permanent error ({}): {}", what_, describe(e), e.what()));
   }
   if (failing_s >= max_failure_s_) {
     throw StorageOutage(fmt::format(
         "database {} failed for {:.1f} s ([storage] max_failure_s = {}; {} attempts), last "
-        "error (SQLite code {}): {}",
-        what_, failing_s, max_failure_s_, attempts_failed_, e.sqlite_code(), e.what()));
+        "error ({}): {}",
+        what_, failing_s, max_failure_s_, attempts_failed_, describe(e), e.what()));
   }
   // One line per doubling of the backoff, then one every 5 attempts (10 s): a live outage stays
   // visible in the log without flooding it.
   if (backoff_s_ < kMaxBackoff_s || attempts_failed_ % 5 == 0) {
     spdlog::error(
-        "database {} failed (SQLite code {}; failing for {:.1f} s of max_failure_s {}), kept in "
+        "database {} failed ({}; failing for {:.1f} s of max_failure_s {}), kept in "
         "memory, retry in {:.2f} s: {}",
-        what_, e.sqlite_code(), failing_s, max_failure_s_, backoff_s_, e.what());
+        what_, describe(e), failing_s, max_failure_s_, backoff_s_, e.what());
   }
   // Never retry later than the give-up time, so an outage ends on time.
   const double wait_s = std::min(backoff_s_, std::max(0.0, max_failure_s_ - failing_s));

@@ -233,7 +233,7 @@ std::string DaemonMetrics::text() {
 std::string database_metrics_text(storage::Database& db, const std::string& version) {
   prometheus::Registry registry;
   const Families f = register_families(registry, version);
-  storage::SampleWindowStore samples(db);
+  const auto samples = db.make_sample_window_store();
   storage::CalibrationHistory history(db);
   // A database knows the samples it holds now, not how many were ever stored (retention
   // deletes): a gauge of its own, never magcal_samples_stored_total (a counter must not fall).
@@ -241,8 +241,8 @@ std::string database_metrics_text(storage::Database& db, const std::string& vers
                      .Name("magcal_window_samples")
                      .Help("Samples held in the database now, per spacecraft (magcal serve)")
                      .Register(registry);
-  for (const auto& sat : samples.spacecraft()) {
-    window.Add({{"sat", sat}}).Set(static_cast<double>(samples.count(sat)));
+  for (const auto& sat : samples->spacecraft()) {
+    window.Add({{"sat", sat}}).Set(static_cast<double>(samples->count(sat)));
   }
   for (const auto& sat : history.spacecraft()) {
     if (const auto ukf = history.latest(sat, "ukf")) {

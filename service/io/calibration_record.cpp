@@ -10,22 +10,125 @@
 namespace magcal {
 namespace {
 
-// Counters blob layout: fixed-order int64/double fields, native little-endian. Version 2 adds
-// the square-root factor, the noise estimate, the moments and the snapshot period.
-constexpr uint32_t kFilterBlobMagic = 0x4D434631;    // "MCF1": P blob = covariance
-constexpr uint32_t kFilterBlobMagicV2 = 0x4D434632;  // "MCF2": P blob = Cholesky factor
+// The filter-state blob (storage::FilterState::counters): every field of the pipeline's
+// FilterState beyond x, S and the times, native little-endian, in the one order
+// filter_state_fields() lists. It starts with the 4-byte magic "MCF" + a version digit:
+//   1  P blob = the covariance; the counters only (before the square-root filters);
+//   2  P blob = the Cholesky factor S, the noise estimate, the moments and the snapshot period;
+//      the reported covariance's blocks, the model error and the bias motion were appended in
+//      later releases and may be absent (read as their defaults);
+//   3  (written now) the same fields as 2, every section present, nothing after them.
+// A blob of another version or not starting with "MCF" is refused with a message naming it.
+constexpr uint32_t kFilterBlobMagicBase = 0x4D434600;  // "MCF" + version digit, little-endian
+constexpr int kFilterBlobVersion = 3;
+constexpr int kOldestFilterBlobVersion = 1;
 
-template <typename T>
-void put(std::vector<uint8_t>& out, const T& v) {
-  const auto* p = reinterpret_cast<const uint8_t*>(&v);
-  out.insert(out.end(), p, p + sizeof(T));
-}
-template <typename T>
-bool get(const std::vector<uint8_t>& in, size_t& pos, T& v) {
-  if (pos + sizeof(T) > in.size()) return false;
-  std::memcpy(&v, in.data() + pos, sizeof(T));
-  pos += sizeof(T);
-  return true;
+class BlobWriter {
+ public:
+  explicit BlobWriter(std::vector<uint8_t>& out) : out_(out) {}
+  template <typename T>
+  void operator()(const T& v) {
+    const auto* p = reinterpret_cast<const uint8_t*>(&v);
+    out_.insert(out_.end(), p, p + sizeof(T));
+  }
+  void flag(bool v) { (*this)(static_cast<uint8_t>(v ? 1 : 0)); }
+  template <typename Derived>
+  void each(const Eigen::DenseBase<Derived>& m) {
+    for (Eigen::Index i = 0; i < m.size(); ++i) (*this)(m(i));
+  }
+  // Every section is written.
+  bool section() const { return true; }
+
+ private:
+  std::vector<uint8_t>& out_;
+};
+
+class BlobReader {
+ public:
+  BlobReader(const std::vector<uint8_t>& in, int version) : in_(in), version_(version) {}
+  template <typename T>
+  void operator()(T& v) {
+    if (!ok_ || pos_ + sizeof(T) > in_.size()) {
+      ok_ = false;
+      return;
+    }
+    std::memcpy(&v, in_.data() + pos_, sizeof(T));
+    pos_ += sizeof(T);
+  }
+  void flag(bool& v) {
+    uint8_t byte = 0;
+    (*this)(byte);
+    v = byte != 0;
+  }
+  template <typename Derived>
+  void each(Eigen::DenseBase<Derived>& m) {
+    for (Eigen::Index i = 0; i < m.size(); ++i) (*this)(m(i));
+  }
+  // A section appended within version 2 may be absent: the blob ends before it.
+  bool section() const { return version_ >= 3 || pos_ < in_.size(); }
+  bool ok() const { return ok_; }
+  bool at_end() const { return pos_ == in_.size(); }
+  size_t pos() const { return pos_; }
+
+ private:
+  const std::vector<uint8_t>& in_;
+  int version_;
+  size_t pos_ = 0;
+  bool ok_ = true;
+};
+
+// The blob's fields after its magic, in order, for writing (State = const FilterState) and
+// reading (State = FilterState): the one list both directions share.
+template <typename Io, typename State>
+void filter_state_fields(Io& io, State& st, int version) {
+  io.flag(st.initialized);
+  io.flag(st.consistent);
+  io(st.first_utime);
+  io(st.converged_since_utime);
+  io(st.n_rejected_invalid);
+  io(st.n_rejected_gate);
+  io(st.n_inconsistency_events);
+  io(st.n_covariance_repairs);
+  io(st.nis_window_sum);
+  io(st.nis_window_count);
+  io(st.last_window_mean_nis);
+  if (version == 1) return;
+  io.flag(st.has_time);
+  io(st.noise_scale2);
+  io(st.innovation_c0);
+  io(st.innovation_c1);
+  io(st.previous_normalised_innovation);
+  io.flag(st.has_previous_innovation);
+  io.each(st.moments.m);
+  io.each(st.moments.m_lag1);
+  io.each(st.moments.previous);
+  io(st.moments.n);
+  io(st.fisher_condition);
+  io(st.samples_since_fisher);
+  io(st.period_start_utime);
+  io(st.period_n);
+  io(st.period_residual_sum2_nT2);
+  io(st.period_nis_sum);
+  if (!io.section()) return;  // the reported covariance's blocks
+  io.each(st.anchor_information);
+  io.each(st.score_block);
+  io(st.score_block_n);
+  io.each(st.score_meat);
+  io(st.score_blocks);
+  if (!io.section()) return;  // the model error
+  io.each(st.model_error_covariance);
+  io.flag(st.model_error_known);
+  if (!io.section()) return;  // the bias-motion measurement
+  io(st.bias_block_start_utime);
+  io.each(st.bias_block_start_m);
+  io(st.bias_block_start_n);
+  io(st.bias_motion_n);
+  io(st.bias_motion_sum_t_h);
+  io(st.bias_motion_sum_t2_h2);
+  io.each(st.bias_motion_sum_nT);
+  io.each(st.bias_motion_sum_tm_nT_h);
+  io.each(st.bias_motion_sum_m2_nT2);
+  io(st.bias_random_walk_nT2_per_hour);
 }
 
 }  // namespace
@@ -157,13 +260,53 @@ CalibrationResult result_from_record(const storage::CalibrationRecord& rec) {
   return r;
 }
 
+storage::CalibrationRecord record_from_message(const calibration_t& msg) {
+  storage::CalibrationRecord r;
+  r.sat_id = msg.sat_id;
+  r.method = msg.method;
+  r.utime = msg.utime;
+  r.window_start_utime = msg.window_start_utime;
+  r.window_end_utime = msg.window_end_utime;
+  r.n_samples = msg.n_samples;
+  std::copy(std::begin(msg.bias_nT), std::end(msg.bias_nT), r.bias_nT.begin());
+  std::copy(std::begin(msg.D), std::end(msg.D), r.D.begin());
+  std::copy(std::begin(msg.cov), std::end(msg.cov), r.cov.begin());
+  for (int i = 0; i < 3; ++i) r.bias_sigma_nT[i] = std::sqrt(r.cov[storage::cov_index(i, i)]);
+  r.has_alignment = msg.has_alignment;
+  std::copy(std::begin(msg.R_sensor_from_body), std::end(msg.R_sensor_from_body),
+            r.R_sensor_from_body.begin());
+  r.residual_rms_nT = msg.residual_rms_nT;
+  r.status = msg.status;
+  // Any non-ok status means the result is not to be used (calibration_t has no verdict).
+  r.verdict = msg.status == 0 ? "accepted" : "rejected";
+  return r;
+}
+
+calibration_t message_from_record(const storage::CalibrationRecord& r) {
+  calibration_t msg{};
+  msg.utime = r.utime;
+  msg.sat_id = r.sat_id;
+  msg.method = r.method;
+  msg.window_start_utime = r.window_start_utime;
+  msg.window_end_utime = r.window_end_utime;
+  msg.n_samples = r.n_samples;
+  std::copy(r.bias_nT.begin(), r.bias_nT.end(), msg.bias_nT);
+  std::copy(r.D.begin(), r.D.end(), msg.D);
+  std::copy(r.cov.begin(), r.cov.end(), msg.cov);
+  msg.has_alignment = r.has_alignment;
+  std::copy(r.R_sensor_from_body.begin(), r.R_sensor_from_body.end(), msg.R_sensor_from_body);
+  msg.residual_rms_nT = r.residual_rms_nT;
+  msg.status = static_cast<int8_t>(r.status);
+  return msg;
+}
+
 calibration_t message_from_result(const std::string& sat_id, const CalibrationResult& result) {
   // calibration_t is a fixed contract (its fingerprint is what other tools check), so a result
   // with a bias temperature model goes out as it is stored: bias_nT (and its cov) is the bias at
   // the model's reference temperature T0, not at the current temperature, and neither T0 nor
   // k_T travels. A consumer that needs b(T) = bias_nT + k_T (T - T0) reads them from the
   // history (`magcal history --format json`, GET /api/v1/history).
-  calibration_t msg = storage::message_from_record(record_from_result(sat_id, result));
+  calibration_t msg = message_from_record(record_from_result(sat_id, result));
   if (!std::isfinite(msg.residual_rms_nT)) msg.residual_rms_nT = -1.0;
   bool non_finite = false;
   auto sanitize = [&](double* v, int n) {
@@ -229,59 +372,13 @@ storage::FilterState stored_filter_state(const std::string& sat_id, const std::s
   }
   out.last_utime = st.last_utime;
   out.n_samples = st.n_accepted;
-  auto& b = out.counters;
-  put(b, kFilterBlobMagicV2);
-  put(b, static_cast<uint8_t>(st.initialized));
-  put(b, static_cast<uint8_t>(st.consistent));
-  put(b, st.first_utime);
-  put(b, st.converged_since_utime);
-  put(b, st.n_rejected_invalid);
-  put(b, st.n_rejected_gate);
-  put(b, st.n_inconsistency_events);
-  put(b, st.n_covariance_repairs);
-  put(b, st.nis_window_sum);
-  put(b, st.nis_window_count);
-  put(b, st.last_window_mean_nis);
-  put(b, static_cast<uint8_t>(st.has_time));
-  put(b, st.noise_scale2);
-  put(b, st.innovation_c0);
-  put(b, st.innovation_c1);
-  put(b, st.previous_normalised_innovation);
-  put(b, static_cast<uint8_t>(st.has_previous_innovation));
-  for (int i = 0; i < st.moments.m.size(); ++i) put(b, st.moments.m(i));
-  for (int i = 0; i < st.moments.m_lag1.size(); ++i) put(b, st.moments.m_lag1(i));
-  for (int i = 0; i < st.moments.previous.size(); ++i) put(b, st.moments.previous(i));
-  put(b, st.moments.n);
-  put(b, st.fisher_condition);
-  put(b, st.samples_since_fisher);
-  put(b, st.period_start_utime);
-  put(b, st.period_n);
-  put(b, st.period_residual_sum2_nT2);
-  put(b, st.period_nis_sum);
-  // Appended later (a blob without them restores with the reported covariance = P until the
-  // next block completes).
-  for (int i = 0; i < st.anchor_information.size(); ++i) put(b, st.anchor_information(i));
-  for (int i = 0; i < st.score_block.size(); ++i) put(b, st.score_block(i));
-  put(b, st.score_block_n);
-  for (int i = 0; i < st.score_meat.size(); ++i) put(b, st.score_meat(i));
-  put(b, st.score_blocks);
-  for (int i = 0; i < st.model_error_covariance.size(); ++i) put(b, st.model_error_covariance(i));
-  put(b, static_cast<uint8_t>(st.model_error_known ? 1 : 0));
-  // Appended later: the bias-motion measurement (filter_common.hpp).
-  put(b, st.bias_block_start_utime);
-  for (int i = 0; i < st.bias_block_start_m.size(); ++i) put(b, st.bias_block_start_m(i));
-  put(b, st.bias_block_start_n);
-  put(b, st.bias_motion_n);
-  put(b, st.bias_motion_sum_t_h);
-  put(b, st.bias_motion_sum_t2_h2);
-  for (int i = 0; i < 3; ++i) put(b, st.bias_motion_sum_nT(i));
-  for (int i = 0; i < 3; ++i) put(b, st.bias_motion_sum_tm_nT_h(i));
-  for (int i = 0; i < 3; ++i) put(b, st.bias_motion_sum_m2_nT2(i));
-  put(b, st.bias_random_walk_nT2_per_hour);
+  BlobWriter writer(out.counters);
+  writer(kFilterBlobMagicBase | static_cast<uint32_t>('0' + kFilterBlobVersion));
+  filter_state_fields(writer, st, kFilterBlobVersion);
   return out;
 }
 
-bool filter_state_from_stored(const storage::FilterState& in, FilterState& out) {
+std::string filter_state_from_stored(const storage::FilterState& in, FilterState& out) {
   FilterState st;
   for (int i = 0; i < 9; ++i) st.x(i) = in.x[static_cast<size_t>(i)];
   Matrix9d blob;
@@ -290,81 +387,46 @@ bool filter_state_from_stored(const storage::FilterState& in, FilterState& out) 
   }
   st.last_utime = in.last_utime;
   st.n_accepted = in.n_samples;
-  size_t pos = 0;
-  uint32_t magic = 0;
-  uint8_t initialized = 0, consistent = 0;
   const auto& b = in.counters;
-  if (!get(b, pos, magic) || (magic != kFilterBlobMagic && magic != kFilterBlobMagicV2) ||
-      !get(b, pos, initialized) || !get(b, pos, consistent) || !get(b, pos, st.first_utime) ||
-      !get(b, pos, st.converged_since_utime) || !get(b, pos, st.n_rejected_invalid) ||
-      !get(b, pos, st.n_rejected_gate) || !get(b, pos, st.n_inconsistency_events) ||
-      !get(b, pos, st.n_covariance_repairs) || !get(b, pos, st.nis_window_sum) ||
-      !get(b, pos, st.nis_window_count) || !get(b, pos, st.last_window_mean_nis)) {
-    return false;
+  uint32_t magic = 0;
+  BlobReader header(b, 0);
+  header(magic);
+  if (!header.ok() || (magic & 0xFFFFFF00u) != kFilterBlobMagicBase) {
+    return "not a magcal filter state (" + std::to_string(b.size()) +
+           " bytes without the MCF header)";
   }
-  st.initialized = initialized != 0;
-  st.consistent = consistent != 0;
-  if (!st.x.allFinite() || !blob.allFinite()) return false;
-  if (magic == kFilterBlobMagic) {  // MCF1 (before the square-root filters): P itself
+  const int version = static_cast<int>(magic & 0xFFu) - '0';
+  if (version < kOldestFilterBlobVersion || version > kFilterBlobVersion) {
+    return "filter state blob version " + std::to_string(version) + ": this magcal reads " +
+           std::to_string(kOldestFilterBlobVersion) + " to " + std::to_string(kFilterBlobVersion);
+  }
+  BlobReader reader(b, version);
+  reader(magic);
+  filter_state_fields(reader, st, version);
+  if (!reader.ok()) {
+    return "filter state blob version " + std::to_string(version) + " ends after " +
+           std::to_string(b.size()) + " bytes, inside its fields";
+  }
+  if (version == kFilterBlobVersion && !reader.at_end()) {
+    return "filter state blob version " + std::to_string(version) + " has " +
+           std::to_string(b.size() - reader.pos()) + " bytes after its fields";
+  }
+  if (!st.x.allFinite() || !blob.allFinite()) return "filter state x or P is not finite";
+  if (version == 1) {  // before the square-root filters: P itself
     st.has_time = st.initialized;
     if (!st.initialized) {
       st.S.setZero();
     } else {
       const Eigen::LLT<Matrix9d> llt(0.5 * (blob + blob.transpose()));
-      if (llt.info() != Eigen::Success) return false;
+      if (llt.info() != Eigen::Success) return "filter state version 1: P is not positive definite";
       st.S = llt.matrixL();
     }
     st.fisher_condition = std::numeric_limits<double>::infinity();
-    out = st;
-    return true;
+  } else {
+    st.S = blob;
   }
-  st.S = blob;
-  uint8_t has_time = 0, has_prev = 0;
-  bool ok = get(b, pos, has_time) && get(b, pos, st.noise_scale2) &&
-            get(b, pos, st.innovation_c0) && get(b, pos, st.innovation_c1) &&
-            get(b, pos, st.previous_normalised_innovation) && get(b, pos, has_prev);
-  for (int i = 0; ok && i < st.moments.m.size(); ++i) ok = get(b, pos, st.moments.m(i));
-  for (int i = 0; ok && i < st.moments.m_lag1.size(); ++i) ok = get(b, pos, st.moments.m_lag1(i));
-  for (int i = 0; ok && i < st.moments.previous.size(); ++i)
-    ok = get(b, pos, st.moments.previous(i));
-  ok = ok && get(b, pos, st.moments.n) && get(b, pos, st.fisher_condition) &&
-       get(b, pos, st.samples_since_fisher) && get(b, pos, st.period_start_utime) &&
-       get(b, pos, st.period_n) && get(b, pos, st.period_residual_sum2_nT2) &&
-       get(b, pos, st.period_nis_sum);
-  if (!ok) return false;
-  if (pos < b.size()) {  // the reported covariance's blocks (see stored_filter_state)
-    for (int i = 0; ok && i < st.anchor_information.size(); ++i)
-      ok = get(b, pos, st.anchor_information(i));
-    for (int i = 0; ok && i < st.score_block.size(); ++i) ok = get(b, pos, st.score_block(i));
-    ok = ok && get(b, pos, st.score_block_n);
-    for (int i = 0; ok && i < st.score_meat.size(); ++i) ok = get(b, pos, st.score_meat(i));
-    ok = ok && get(b, pos, st.score_blocks);
-    if (!ok) return false;
-  }
-  if (pos < b.size()) {  // appended after the blocks: the model-error covariance
-    for (int i = 0; ok && i < st.model_error_covariance.size(); ++i)
-      ok = get(b, pos, st.model_error_covariance(i));
-    uint8_t known = 0;
-    ok = ok && get(b, pos, known);
-    if (!ok) return false;
-    st.model_error_known = known != 0;
-  }
-  if (pos < b.size()) {  // appended after the model error: the bias-motion measurement
-    ok = get(b, pos, st.bias_block_start_utime);
-    for (int i = 0; ok && i < st.bias_block_start_m.size(); ++i)
-      ok = get(b, pos, st.bias_block_start_m(i));
-    ok = ok && get(b, pos, st.bias_block_start_n) && get(b, pos, st.bias_motion_n) &&
-         get(b, pos, st.bias_motion_sum_t_h) && get(b, pos, st.bias_motion_sum_t2_h2);
-    for (int i = 0; ok && i < 3; ++i) ok = get(b, pos, st.bias_motion_sum_nT(i));
-    for (int i = 0; ok && i < 3; ++i) ok = get(b, pos, st.bias_motion_sum_tm_nT_h(i));
-    for (int i = 0; ok && i < 3; ++i) ok = get(b, pos, st.bias_motion_sum_m2_nT2(i));
-    ok = ok && get(b, pos, st.bias_random_walk_nT2_per_hour);
-    if (!ok) return false;
-  }
-  st.has_time = has_time != 0;
-  st.has_previous_innovation = has_prev != 0;
   out = st;
-  return true;
+  return "";
 }
 
 }  // namespace magcal

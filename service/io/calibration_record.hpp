@@ -1,10 +1,11 @@
 // Conversions between the pipeline's values and what storage keeps / LCM carries:
 //   CalibrationResult  -> storage::CalibrationRecord (history row; calibration_t through
-//                         storage::message_from_record) and back (previous accepted refit for
-//                         the change gate);
+//                         message_from_record) and back (previous accepted refit for the change
+//                         gate);
+//   calibration_t (LCM) <-> storage::CalibrationRecord (storage knows no wire format);
 //   CalibrationSample  -> storage::StoredSample and back (refit windows, UKF re-runs);
 //   FilterState (pipeline) <-> storage::FilterState (x, P, times; the remaining fields go into
-//                         the opaque counters blob so a restore is bit-exact).
+//                         the counters blob, one versioned format, so a restore is bit-exact).
 #pragma once
 
 #include <string>
@@ -27,6 +28,9 @@ CalibrationResult result_from_record(const storage::CalibrationRecord& record);
 // sent as -1; non-finite bias_nT, D, cov or R_sensor_from_body entries are sent as 0 and the status
 // becomes 3 (failed) unless it already says not converged (1) or unobservable (2).
 calibration_t message_from_result(const std::string& sat_id, const CalibrationResult& result);
+// calibration_t <-> record (verdict from status: 4 = rejected; reasons are not in the message).
+storage::CalibrationRecord record_from_message(const calibration_t& msg);
+calibration_t message_from_record(const storage::CalibrationRecord& record);
 
 // `sample` carries the reference field and the temperature (as to_reference_sample() judged
 // it); `msg` the rest (seq, attitude, position).
@@ -40,7 +44,8 @@ inline double reference_norm_nT(const CalibrationSample& s) {
 
 storage::FilterState stored_filter_state(const std::string& sat_id, const std::string& method,
                                          const FilterState& state);
-// false when the blob is not one this code wrote (then the caller starts cold).
-bool filter_state_from_stored(const storage::FilterState& stored, FilterState& out);
+// "" when restored into `out`; else why not (a blob of an unknown version, or not this code's:
+// the caller starts cold).
+std::string filter_state_from_stored(const storage::FilterState& stored, FilterState& out);
 
 }  // namespace magcal

@@ -87,20 +87,19 @@ std::optional<storage::HistoryQuery> parse_history_request(const HistoryRequest&
 
 std::vector<storage::CalibrationRecord> read_history(storage::Database& db,
                                                      const storage::HistoryQuery& query) {
-  storage::Transaction snapshot(db, storage::Transaction::Mode::kDeferred);
+  storage::Transaction snapshot(db, storage::Transaction::Mode::kReadSnapshot);
   storage::CalibrationHistory history(db);
   return history.query(query);
 }
 
 bool spacecraft_known(storage::Database& db, const std::string& sat_id) {
-  storage::Transaction snapshot(db, storage::Transaction::Mode::kDeferred);
+  storage::Transaction snapshot(db, storage::Transaction::Mode::kReadSnapshot);
   storage::HistoryQuery any;
   any.sat_id = sat_id;
   any.limit = 1;
   storage::CalibrationHistory history(db);
   if (!history.query(any).empty()) return true;
-  storage::SampleWindowStore samples(db);
-  return samples.newest_utime(sat_id).has_value();
+  return db.make_sample_window_store()->newest_utime(sat_id).has_value();
 }
 
 std::string history_json_text(const std::vector<storage::CalibrationRecord>& rows) {

@@ -28,11 +28,11 @@ auto read_consistently(std::optional<storage::Database>& db, const std::string& 
     auto result = read(*db);
     if (!db->changed_since_open()) return result;
     if (attempt == kReadOnlyAttempts) {
-      throw storage::StorageError(storage::StorageError::Kind::kSqlite,
+      throw storage::StorageError(storage::StorageError::Kind::kEngine,
                                   path + ": a writer opened it during each of " +
                                       std::to_string(kReadOnlyAttempts) +
                                       " reads without locks (its directory is not writable here)",
-                                  storage::kSqliteBusy);
+                                  storage::StorageError::Condition::kBusy);
     }
   }
 }

@@ -6,20 +6,10 @@
 #include <utility>
 
 #include "storage/postgres/pg_migrations.hpp"
+#include "storage/postgres/pg_stores.hpp"
 
 namespace magcal::storage {
 namespace {
-
-// What a retry can heal (see the header). `sqlstate` is five characters.
-bool transient_sqlstate(std::string_view sqlstate) {
-  const std::string_view cls = sqlstate.substr(0, 2);
-  if (cls == "08" || cls == "53" || cls == "58") return true;  // connection, resources, I/O
-  for (const char* code :
-       {"40001", "40P01", "55P03", "57014", "57P01", "57P02", "57P03", "57P05", "25006", "72000"}) {
-    if (sqlstate == code) return true;
-  }
-  return false;
-}
 
 std::string trimmed(std::string text) {
   while (!text.empty() && (text.back() == '\n' || text.back() == ' ')) text.pop_back();
@@ -145,17 +135,17 @@ void PgDatabase::connect() {
                        why.find("pg_hba.conf") != std::string::npos ||
                        why.find("password") != std::string::npos;
   const std::string message = "cannot connect to " + name_ + ": " + why;
-  if (no_database) throw StorageError(StorageError::Kind::kNotFound, message, "3D000", false);
-  if (refused) throw StorageError(StorageError::Kind::kPostgres, message, "28000", false);
-  throw StorageError(StorageError::Kind::kPostgres, message, "08001", true);
+  if (no_database) throw StorageError::postgres(StorageError::Kind::kNotFound, message, "3D000");
+  if (refused) throw StorageError::postgres(StorageError::Kind::kEngine, message, "28000");
+  throw StorageError::postgres(StorageError::Kind::kEngine, message, "08001");
 }
 
 void PgDatabase::ensure_connected() {
   if (conn_ != nullptr && PQstatus(conn_) == CONNECTION_OK) return;
   if (open_transactions_ > 0) {
     // The transaction is gone with the connection: its caller must start over.
-    throw StorageError(StorageError::Kind::kPostgres,
-                       name_ + ": connection lost inside a transaction", "08006", true);
+    throw StorageError::postgres(StorageError::Kind::kEngine,
+                                 name_ + ": connection lost inside a transaction", "08006");
   }
   prepared_.clear();
   if (conn_ != nullptr) {
@@ -195,9 +185,9 @@ void PgDatabase::fail(std::string_view context, const pg_result* result) {
   }
   if (message.empty()) message = std::string(context) + " failed";
   const auto kind =
-      sqlstate == "3D000" ? StorageError::Kind::kNotFound : StorageError::Kind::kPostgres;
-  throw StorageError(kind, name_ + ": " + message + " (SQLSTATE " + sqlstate + ")", sqlstate,
-                     transient_sqlstate(sqlstate));
+      sqlstate == "3D000" ? StorageError::Kind::kNotFound : StorageError::Kind::kEngine;
+  throw StorageError::postgres(kind, name_ + ": " + message + " (SQLSTATE " + sqlstate + ")",
+                               sqlstate);
 }
 
 PgResult PgDatabase::checked(pg_result* raw, std::string_view sql) {
@@ -350,8 +340,8 @@ void PgDatabase::check_and_migrate(const OpenOptions& options) {
     check(state);
     if (m.version <= state.version) continue;
     if (m.version != state.version + 1) {
-      throw StorageError(StorageError::Kind::kPostgres,
-                         "migration gap before " + std::string(m.name), "XX000", false);
+      throw StorageError::postgres(StorageError::Kind::kEngine,
+                                   "migration gap before " + std::string(m.name), "XX000");
     }
     if (!state.has_version_table) exec(kCreateVersionTable);
     exec(m.sql);
@@ -367,49 +357,68 @@ void PgDatabase::check_and_migrate(const OpenOptions& options) {
   }
 }
 
-PgTransaction::PgTransaction(PgDatabase& db, Isolation isolation) : db_(db) {
-  if (db_.open_transactions_ == 0) db_.ensure_connected();
-  nested_ = db_.in_transaction();
-  if (nested_) {
-    savepoint_ = "magcal_tx_" + std::to_string(db_.open_transactions_);
-    db_.exec("SAVEPOINT " + savepoint_);
+bool PgDatabase::begin(Isolation isolation) {
+  if (open_transactions_ == 0) ensure_connected();
+  const bool nested = in_transaction();
+  if (nested) {
+    exec("SAVEPOINT magcal_tx_" + std::to_string(open_transactions_));
   } else {
     switch (isolation) {
       case Isolation::kReadCommitted:
-        db_.exec("BEGIN");
+        exec("BEGIN");
         break;
       case Isolation::kRepeatableRead:
-        db_.exec("BEGIN ISOLATION LEVEL REPEATABLE READ");
+        exec("BEGIN ISOLATION LEVEL REPEATABLE READ");
         break;
       case Isolation::kSerializable:
-        db_.exec("BEGIN ISOLATION LEVEL SERIALIZABLE");
+        exec("BEGIN ISOLATION LEVEL SERIALIZABLE");
         break;
     }
   }
-  ++db_.open_transactions_;
-  open_ = true;
+  ++open_transactions_;
+  return nested;
 }
 
-PgTransaction::~PgTransaction() {
-  --db_.open_transactions_;
-  if (!open_ || db_.conn_ == nullptr || PQstatus(db_.conn_) != CONNECTION_OK) return;
-  const std::string sql =
-      nested_ ? "ROLLBACK TO SAVEPOINT " + savepoint_ + "; RELEASE SAVEPOINT " + savepoint_
-              : "ROLLBACK";
-  PQclear(PQexec(db_.conn_, sql.c_str()));
+bool PgDatabase::begin_transaction(TransactionMode mode) {
+  return begin(mode == TransactionMode::kWrite ? Isolation::kReadCommitted
+                                               : Isolation::kRepeatableRead);
 }
 
-void PgTransaction::commit() {
+void PgDatabase::commit_transaction(bool nested) {
   // COMMIT of a transaction an earlier statement aborted "succeeds" as a ROLLBACK: refuse it.
-  if (db_.conn_ != nullptr && PQtransactionStatus(db_.conn_) == PQTRANS_INERROR) {
-    throw StorageError(StorageError::Kind::kPostgres,
-                       db_.name() +
-                           ": cannot commit, an earlier statement of the transaction "
-                           "failed",
-                       "25P02", false);
+  if (conn_ != nullptr && PQtransactionStatus(conn_) == PQTRANS_INERROR) {
+    throw StorageError::postgres(
+        StorageError::Kind::kEngine,
+        name_ + ": cannot commit, an earlier statement of the transaction failed", "25P02");
   }
-  db_.exec(nested_ ? "RELEASE SAVEPOINT " + savepoint_ : "COMMIT");
-  open_ = false;
+  exec(nested ? "RELEASE SAVEPOINT magcal_tx_" + std::to_string(open_transactions_ - 1)
+              : std::string("COMMIT"));
+}
+
+void PgDatabase::end_transaction(bool nested, bool committed) noexcept {
+  --open_transactions_;
+  if (committed || conn_ == nullptr || PQstatus(conn_) != CONNECTION_OK) return;
+  const std::string savepoint = "magcal_tx_" + std::to_string(open_transactions_);
+  const std::string sql =
+      nested ? "ROLLBACK TO SAVEPOINT " + savepoint + "; RELEASE SAVEPOINT " + savepoint
+             : "ROLLBACK";
+  PQclear(PQexec(conn_, sql.c_str()));
+}
+
+std::unique_ptr<SampleWindowStore> PgDatabase::make_sample_window_store() {
+  return std::make_unique<PgSampleWindowStore>(*this);
+}
+
+std::unique_ptr<RefitJobLog> PgDatabase::make_refit_job_log() {
+  return std::make_unique<PgRefitJobLog>(*this);
+}
+
+std::unique_ptr<FilterStateStore> PgDatabase::make_filter_state_store() {
+  return std::make_unique<PgFilterStateStore>(*this);
+}
+
+std::unique_ptr<MetaStore> PgDatabase::make_meta_store() {
+  return std::make_unique<PgMetaStore>(*this);
 }
 
 }  // namespace magcal::storage

@@ -2,15 +2,16 @@
 // schema migrations, statements, transactions and errors. The counterpart of
 // storage/database.hpp, with the same error policy and the same threading rule.
 //
-// Errors: every failure is a StorageError (Kind kPostgres unless a more specific kind applies)
-// carrying the SQLSTATE; transient() is true for what a retry can heal: the connection lost or
-// not established (class 08, and a lost connection without one), the server shutting down or
-// starting (57P01-57P03), serialization failure and deadlock (40001, 40P01), a lock not granted
-// in time (55P03), a query cancelled (57014), out of resources (class 53: disk full, too many
-// connections, ...), I/O (class 58) and a read-only server (25006: a standby being promoted).
-// Everything else (SQL, constraint, permission, a missing database or role, a foreign or newer
-// schema) is permanent. After a lost connection the same PgDatabase reconnects at its next
-// statement outside a transaction, so a caller heals a transient failure by retrying.
+// Errors: every failure is a StorageError (Kind kEngine unless a more specific kind applies)
+// carrying the SQLSTATE, classified by storage_error.cpp; transient() is true for what a retry can
+// heal: the connection lost or not established (class 08, and a lost connection without one), the
+// server shutting down or starting (57P01-57P03), serialization failure and deadlock (40001,
+// 40P01), a lock not granted in time (55P03), a query cancelled (57014), out of resources (class
+// 53: disk full, too many connections, ...), I/O (class 58) and a read-only server (25006: a
+// standby being promoted). Everything else (SQL, constraint, permission, a missing database or
+// role, a foreign or newer schema) is permanent. After a lost connection the same PgDatabase
+// reconnects at its next statement outside a transaction, so a caller heals a transient failure by
+// retrying.
 //
 // Threads: one PgDatabase (one connection) belongs to one thread at a time; give each thread its
 // own, as with SQLite.
@@ -24,28 +25,24 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
 #include <string>
 #include <string_view>
 #include <unordered_map>
 
-#include "storage/database.hpp"
+#include "storage/connection.hpp"
 #include "storage/postgres/pg_query.hpp"
 
 struct pg_conn;  // libpq's PGconn; <libpq-fe.h> stays out of public headers
 
 namespace magcal::storage {
 
-// A --db / db_path value naming a PostgreSQL database rather than an SQLite file.
-inline bool is_postgres_uri(std::string_view db) {
-  return db.starts_with("postgresql://") || db.starts_with("postgres://");
-}
-
 // The advisory lock (two-key form: class, object) held while migrating. Other magcal advisory
 // locks use kApplicationId as class too, with other objects.
 constexpr int32_t kPgLockClass = kApplicationId;
 constexpr int32_t kPgMigrationLock = 1;
 
-class PgDatabase {
+class PgDatabase final : public Connection {
  public:
   // `uri`: any libpq connection URI (postgresql:// or postgres://, e.g. with ?host=/socket/dir).
   // Options as for SQLite: read_only never migrates or writes (the session is read-only);
@@ -66,11 +63,11 @@ class PgDatabase {
   int schema_version();
 
   // The URI without its password, for messages and logs.
-  const std::string& name() const { return name_; }
-  bool read_only() const { return read_only_; }
+  const std::string& name() const override { return name_; }
+  bool read_only() const override { return read_only_; }
 
   // Runs one or more SQL statements without parameters or results (DDL, SET, tests).
-  void exec(std::string_view sql);
+  void exec(std::string_view sql) override;
   // One statement with $1..$n parameters.
   PgResult execute(std::string_view sql, const PgParams& params = {},
                    PgFormat format = PgFormat::kText);
@@ -84,8 +81,23 @@ class PgDatabase {
   // Inside a transaction (PgTransaction, or an explicit BEGIN).
   bool in_transaction() const;
 
+  std::unique_ptr<SampleWindowStore> make_sample_window_store() override;
+  std::unique_ptr<RefitJobLog> make_refit_job_log() override;
+  std::unique_ptr<FilterStateStore> make_filter_state_store() override;
+  std::unique_ptr<MetaStore> make_meta_store() override;
+
  private:
   friend class PgTransaction;
+
+  // Transactions (storage::Transaction, PgTransaction): BEGIN at the isolation level, or
+  // SAVEPOINT magcal_tx_<depth> inside an open transaction (returns true then).
+  enum class Isolation { kReadCommitted, kRepeatableRead, kSerializable };
+  bool begin(Isolation isolation);
+  // A write is READ COMMITTED (row locks as statements touch them), a read snapshot REPEATABLE
+  // READ (one snapshot for all its statements).
+  bool begin_transaction(TransactionMode mode) override;
+  void commit_transaction(bool nested) override;
+  void end_transaction(bool nested, bool committed) noexcept override;
 
   void connect();
   // Reconnects a lost connection, outside a transaction (see the header comment).
@@ -100,30 +112,17 @@ class PgDatabase {
   std::string name_;
   bool read_only_ = false;
   int lock_timeout_ms_ = 5000;
-  int open_transactions_ = 0;  // PgTransaction objects alive on this connection
+  int open_transactions_ = 0;  // transactions and savepoints open on this connection
   std::unordered_map<std::string, std::string> prepared_;  // SQL text -> statement name
 };
 
-// RAII transaction: BEGIN (READ COMMITTED, or the given isolation), rolled back on destruction
-// unless commit() was called. Inside an open transaction it becomes a SAVEPOINT, so a caller
-// can group several store calls into one commit. Where SQLite takes its write lock up front
-// (BEGIN IMMEDIATE), PostgreSQL locks rows as statements touch them: writers that may touch the
-// same rows keep one global key order (toolchain.md: deadlocks otherwise) and retry 40001 /
-// 40P01 (transient).
-class PgTransaction {
+// storage::Transaction at a chosen isolation level (fleet code that needs REPEATABLE READ or
+// SERIALIZABLE for a write). The same nesting and rollback as storage::Transaction.
+class PgTransaction : public Transaction {
  public:
-  enum class Isolation { kReadCommitted, kRepeatableRead, kSerializable };
-  explicit PgTransaction(PgDatabase& db, Isolation isolation = Isolation::kReadCommitted);
-  ~PgTransaction();
-  PgTransaction(const PgTransaction&) = delete;
-  PgTransaction& operator=(const PgTransaction&) = delete;
-  void commit();
-
- private:
-  PgDatabase& db_;
-  bool open_ = false;
-  bool nested_ = false;
-  std::string savepoint_;
+  using Isolation = PgDatabase::Isolation;
+  explicit PgTransaction(PgDatabase& db, Isolation isolation = Isolation::kReadCommitted)
+      : Transaction(db, db.begin(isolation)) {}
 };
 
 }  // namespace magcal::storage

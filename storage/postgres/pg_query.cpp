@@ -56,8 +56,10 @@ PgParams& PgParams::add(double value) {
 }
 
 PgParams& PgParams::add(std::string_view text) {
-  // Text-format parameters are read up to their NUL (libpq ignores their length).
-  push(kInferredOid, text.data(), text.size(), 0);
+  // Text-format parameters are read up to their NUL (libpq ignores their length). An empty
+  // view may have no data at all: still '', not NULL.
+  static const char kEmpty = 0;
+  push(kInferredOid, text.empty() ? &kEmpty : text.data(), text.size(), 0);
   bytes_.push_back('\0');
   return *this;
 }

@@ -16,6 +16,7 @@
 #include <Eigen/LU>
 
 #include "service/daemon/refit_runner.hpp"
+#include "storage/sqlite_stores.hpp"
 
 using namespace magcal;
 
@@ -26,7 +27,7 @@ constexpr int64_t kStep = 10'000'000;
 constexpr int kWindowSamples = 4320;  // 12 h at 10 s
 
 void fill(storage::Database& db, int n_sats) {
-  storage::SampleWindowStore store(db);
+  storage::SqliteSampleWindowStore store(db);
   std::mt19937 rng(11);
   std::normal_distribution<double> noise(0.0, 3.0);
   std::uniform_real_distribution<double> bias(-3000.0, 3000.0);

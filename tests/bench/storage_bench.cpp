@@ -1,18 +1,24 @@
 // Storage speed (issue 5 targets): batched sample inserts (>= 200 000 samples/s in batches of
 // 200), reading a 12 h window of 4320 samples (< 3 ms), history queries.
 //   build/bin/storage_bench --benchmark_format=json
-// Databases are temporary files in WAL mode with the daemon's pragmas (not :memory:).
+// Databases are temporary files in WAL mode with the daemon's pragmas (not :memory:). The
+// *Postgres benchmarks run the same on the PostgreSQL database MAGCAL_BENCH_PG_URI names (an
+// empty one: its samples table is emptied first; skipped when the variable is unset).
 #include <benchmark/benchmark.h>
 #include <unistd.h>
 
 #include <cmath>
+#include <cstdlib>
 #include <filesystem>
+#include <memory>
 #include <string>
 #include <vector>
 
 #include "storage/calibration_history.hpp"
+#include "storage/connection.hpp"
 #include "storage/database.hpp"
 #include "storage/sample_window_store.hpp"
+#include "storage/sqlite_stores.hpp"
 
 namespace fs = std::filesystem;
 using namespace magcal::storage;
@@ -56,11 +62,21 @@ StoredSample make_sample(const std::string& sat, int64_t utime, int64_t seq) {
   return s;
 }
 
-void BM_InsertBatch(benchmark::State& state) {
+// The PostgreSQL database of the *Postgres benchmarks, emptied; nullptr (the benchmark skipped)
+// when MAGCAL_BENCH_PG_URI is unset.
+std::unique_ptr<Connection> bench_postgres(benchmark::State& state) {
+  const char* uri = std::getenv("MAGCAL_BENCH_PG_URI");
+  if (uri == nullptr || !is_postgres_uri(uri)) {
+    state.SkipWithError("MAGCAL_BENCH_PG_URI (a postgresql:// URI) is not set");
+    return nullptr;
+  }
+  auto db = open_database(uri);
+  db->exec("TRUNCATE samples");
+  return db;
+}
+
+void insert_batches(benchmark::State& state, SampleWindowStore& store) {
   const int batch_size = static_cast<int>(state.range(0));
-  TempDb tmp("insert");
-  Database db(tmp.path);
-  SampleWindowStore store(db);
   std::vector<StoredSample> batch(static_cast<size_t>(batch_size));
   int64_t seq = 0;
   for (auto _ : state) {
@@ -75,12 +91,28 @@ void BM_InsertBatch(benchmark::State& state) {
   }
   state.SetItemsProcessed(state.iterations() * batch_size);  // items_per_second = samples/s
 }
+
+void BM_InsertBatch(benchmark::State& state) {
+  TempDb tmp("insert");
+  Database db(tmp.path);
+  SqliteSampleWindowStore store(db);
+  insert_batches(state, store);
+}
 BENCHMARK(BM_InsertBatch)->Arg(200)->Arg(4000)->Unit(benchmark::kMicrosecond);
 
-void BM_ReadWindow4320(benchmark::State& state) {
-  TempDb tmp("window");
-  Database db(tmp.path);
-  SampleWindowStore store(db);
+void BM_InsertBatchPostgres(benchmark::State& state) {
+  const auto db = bench_postgres(state);
+  if (!db) return;
+  insert_batches(state, *db->make_sample_window_store());
+}
+// Real time: the work is the server's, not this process's CPU.
+BENCHMARK(BM_InsertBatchPostgres)
+    ->Arg(200)
+    ->Arg(4000)
+    ->UseRealTime()
+    ->Unit(benchmark::kMicrosecond);
+
+void read_windows(benchmark::State& state, SampleWindowStore& store) {
   // 8 spacecraft x 14 h at 10 s: the 12 h window of one is 4320 of 40 320 rows.
   const int64_t step = 10 * kSecond;
   const int64_t n_per_sat = 14 * 360;
@@ -101,7 +133,21 @@ void BM_ReadWindow4320(benchmark::State& state) {
   if (window.size() != 4320) state.SkipWithError("window does not hold 4320 samples");
   state.SetItemsProcessed(state.iterations() * static_cast<int64_t>(window.size()));
 }
+
+void BM_ReadWindow4320(benchmark::State& state) {
+  TempDb tmp("window");
+  Database db(tmp.path);
+  SqliteSampleWindowStore store(db);
+  read_windows(state, store);
+}
 BENCHMARK(BM_ReadWindow4320)->Unit(benchmark::kMillisecond);
+
+void BM_ReadWindow4320Postgres(benchmark::State& state) {
+  const auto db = bench_postgres(state);
+  if (!db) return;
+  read_windows(state, *db->make_sample_window_store());
+}
+BENCHMARK(BM_ReadWindow4320Postgres)->UseRealTime()->Unit(benchmark::kMillisecond);
 
 void BM_HistoryQuery(benchmark::State& state) {
   TempDb tmp("history");

@@ -361,24 +361,7 @@ TEST_CASE("invalid records are refused") {
   CHECK(history.query(q).empty());
 }
 
-TEST_CASE("calibration_t converts both ways without loss") {
-  const CalibrationRecord r = make_record("SAT9", "twostep", kT0, 1);
-  const magcal::calibration_t msg = message_from_record(r);
-  CHECK(msg.sat_id == "SAT9");
-  CHECK(msg.status == 0);
-  const CalibrationRecord back = record_from_message(msg);
-  CHECK(back.bias_nT == r.bias_nT);
-  CHECK(back.D == r.D);
-  CHECK(back.cov == r.cov);
-  CHECK(back.R_sensor_from_body == r.R_sensor_from_body);
-  CHECK(back.has_alignment == r.has_alignment);
-  CHECK(back.window_start_utime == r.window_start_utime);
-  CHECK(back.n_samples == r.n_samples);
-  CHECK(back.verdict == "accepted");
-  CHECK(back.bias_sigma_nT[0] == std::sqrt(r.cov[0]));
-  auto rejected = msg;
-  rejected.status = 4;
-  CHECK(record_from_message(rejected).verdict == "rejected");
+TEST_CASE("status names") {
   CHECK(std::string(status_name(4)) == "rejected");
   CHECK(std::string(status_name(1)) == "not_converged");
   CHECK(std::string(status_name(9)) == "unknown");

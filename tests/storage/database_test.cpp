@@ -16,6 +16,7 @@
 #include "storage/calibration_history.hpp"
 #include "storage/meta_store.hpp"
 #include "storage/migrations.hpp"
+#include "storage/sqlite_stores.hpp"
 #include "storage/statement.hpp"
 #include "tests/test_skip.hpp"
 
@@ -55,7 +56,7 @@ StorageError::Kind open_error(const std::string& path, OpenOptions options = {})
     return e.kind();
   }
   FAIL("open of " << path << " succeeded");
-  return StorageError::Kind::kSqlite;
+  return StorageError::Kind::kEngine;
 }
 
 }  // namespace
@@ -79,7 +80,7 @@ TEST_CASE("a new file gets the newest schema, WAL and the application id") {
 TEST_CASE("an in-memory database works the same") {
   Database db(":memory:");
   CHECK(db.schema_version() == Database::latest_schema_version());
-  MetaStore meta(db);
+  SqliteMetaStore meta(db);
   meta.set("k", "v");
   CHECK(meta.get("k") == "v");
   CHECK_FALSE(meta.get("absent").has_value());
@@ -232,7 +233,7 @@ TEST_CASE("read-only connections cannot write") {
 
 TEST_CASE("a transaction rolls back unless committed, and nests as a savepoint") {
   Database db(":memory:");
-  MetaStore meta(db);
+  SqliteMetaStore meta(db);
   {
     Transaction tx(db);
     meta.set("a", "1");
@@ -265,6 +266,7 @@ TEST_CASE("errors carry SQLite's result code: transient faults apart from perman
       FAIL("a second writer got the write lock");
     } catch (const StorageError& e) {
       CHECK((e.sqlite_code() & 0xff) == 5);  // SQLITE_BUSY
+      CHECK(e.condition() == StorageError::Condition::kBusy);
       CHECK(e.transient());
     }
   }
@@ -276,6 +278,7 @@ TEST_CASE("errors carry SQLite's result code: transient faults apart from perman
     FAIL("NULL accepted in a NOT NULL column");
   } catch (const StorageError& e) {
     CHECK((e.sqlite_code() & 0xff) == 19);  // SQLITE_CONSTRAINT
+    CHECK(e.condition() == StorageError::Condition::kConstraint);
     CHECK_FALSE(e.transient());
   }
   // Not SQLite's failure at all: no code, not transient.
@@ -293,6 +296,7 @@ TEST_CASE("a database file deleted or moved while open is reported, not written 
     FAIL("the move went unnoticed");
   } catch (const StorageError& e) {
     CHECK(e.sqlite_code() == kSqliteReadonlyDbMoved);
+    CHECK(e.condition() == StorageError::Condition::kFileMoved);
     CHECK(e.transient());  // moved back, it works again
   }
   fs::rename(tmp.file("elsewhere.db"), path);
@@ -354,4 +358,39 @@ TEST_CASE("a new database whose directory is not writable names the directory") 
                Catch::Contains("(directory " + locked + ": " + std::strerror(EACCES) + ")"));
   }
   fs::permissions(locked, fs::perms::owner_all);
+}
+
+TEST_CASE("a write transaction refuses a file moved while open, and works once it is back") {
+  TempDir tmp;
+  const std::string path = tmp.file("moving.db");
+  Database db(path);
+  fs::rename(path, tmp.file("elsewhere.db"));
+  try {
+    Transaction tx(db);
+    FAIL("a write transaction began on a moved file");
+  } catch (const StorageError& e) {
+    CHECK(e.condition() == StorageError::Condition::kFileMoved);
+  }
+  {
+    Transaction read(db, Transaction::Mode::kReadSnapshot);  // reading is harmless
+    read.commit();
+  }
+  fs::rename(tmp.file("elsewhere.db"), path);
+  Transaction tx(db);
+  tx.commit();
+}
+
+TEST_CASE("open_database: a postgresql:// or postgres:// URI is PostgreSQL, anything else a file") {
+  CHECK(is_postgres_uri("postgresql://magcal@db.example/magcal"));
+  CHECK(is_postgres_uri("postgres:///magcal?host=/run/postgresql"));
+  CHECK_FALSE(is_postgres_uri("/var/lib/magcal/magcal.db"));
+  CHECK_FALSE(is_postgres_uri("postgresql.db"));
+  CHECK(dynamic_cast<Database*>(open_database(":memory:").get()) != nullptr);
+  // A URI is never taken for a file name: a bad one is refused as a URI.
+  try {
+    open_database("postgresql://magcal@/db?no_such_option=1");
+    FAIL("a bad URI was accepted");
+  } catch (const StorageError& e) {
+    CHECK(e.kind() == StorageError::Kind::kInvalidArgument);
+  }
 }

@@ -1,4 +1,5 @@
-// filter_states table: bit-exact round trip of x and P, upsert per (sat, method).
+// filter_states table, on SQLite and on PostgreSQL (tests/storage/storage_backends.hpp):
+// bit-exact round trip of x and P, upsert per (sat, method).
 #include "storage/filter_state_store.hpp"
 
 #include <catch2/catch.hpp>
@@ -7,9 +8,12 @@
 #include <limits>
 #include <random>
 
-#include "storage/statement.hpp"
+#include "tests/storage/storage_backends.hpp"
 
 using namespace magcal::storage;
+using magcal::test::BackendTest;
+using magcal::test::PostgresBackend;
+using magcal::test::SqliteBackend;
 
 namespace {
 
@@ -37,13 +41,15 @@ FilterState random_state(const std::string& sat, std::mt19937_64& rng) {
 
 }  // namespace
 
-TEST_CASE("filter state round-trips bit for bit and is replaced per (sat, method)") {
-  Database db(":memory:");
-  FilterStateStore store(db);
+TEMPLATE_TEST_CASE_METHOD(BackendTest,
+                          "filter state round-trips bit for bit and is replaced per (sat, method)",
+                          "[filter_states]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto store = this->db->make_filter_state_store();
   std::mt19937_64 rng(11);
   const FilterState a = random_state("SAT1", rng);
-  store.save(a);
-  auto back = store.load("SAT1", "ukf");
+  store->save(a);
+  auto back = store->load("SAT1", "ukf");
   REQUIRE(back.has_value());
   for (size_t i = 0; i < a.x.size(); ++i) CHECK(bit_equal(back->x[i], a.x[i]));
   for (size_t i = 0; i < a.P.size(); ++i) CHECK(bit_equal(back->P[i], a.P[i]));
@@ -55,41 +61,45 @@ TEST_CASE("filter state round-trips bit for bit and is replaced per (sat, method
   FilterState a2 = random_state("SAT1", rng);
   a2.counters.clear();
   a2.updated_utime = 0;  // now
-  store.save(a2);
-  back = store.load("SAT1", "ukf");
+  store->save(a2);
+  back = store->load("SAT1", "ukf");
   CHECK(back->x == a2.x);
   CHECK(back->counters.empty());
   CHECK(back->updated_utime > 1'700'000'000'000'000LL);
 
   FilterState e = random_state("SAT1", rng);
   e.method = "ekf";
-  store.save(e);
-  CHECK(store.load_all().size() == 2);
-  CHECK_FALSE(store.load("SAT2", "ukf").has_value());
+  store->save(e);
+  CHECK(store->load_all().size() == 2);
+  CHECK_FALSE(store->load("SAT2", "ukf").has_value());
 }
 
-TEST_CASE(
-    "the refit a state was re-anchored on round-trips, a state from before schema 4 has none") {
-  Database db(":memory:");
-  FilterStateStore store(db);
+TEMPLATE_TEST_CASE_METHOD(
+    BackendTest,
+    "the refit a state was re-anchored on round-trips, a state from before schema 4 has none",
+    "[filter_states]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto store = this->db->make_filter_state_store();
   std::mt19937_64 rng(5);
   FilterState s = random_state("SAT1", rng);
   CHECK(s.anchor_calibration_id == 0);  // none, unless set
-  store.save(s);
-  CHECK(store.load("SAT1", "ukf")->anchor_calibration_id == 0);
+  store->save(s);
+  CHECK(store->load("SAT1", "ukf")->anchor_calibration_id == 0);
   s.anchor_calibration_id = 1234;
-  store.save(s);
-  CHECK(store.load("SAT1", "ukf")->anchor_calibration_id == 1234);
-  db.exec("UPDATE filter_states SET anchor_calibration_id = NULL");  // as migrated from 3
-  CHECK_FALSE(store.load("SAT1", "ukf")->anchor_calibration_id.has_value());
-  CHECK_FALSE(store.load_all().front().anchor_calibration_id.has_value());
+  store->save(s);
+  CHECK(store->load("SAT1", "ukf")->anchor_calibration_id == 1234);
+  this->db->exec("UPDATE filter_states SET anchor_calibration_id = NULL");  // as migrated from 3
+  CHECK_FALSE(store->load("SAT1", "ukf")->anchor_calibration_id.has_value());
+  CHECK_FALSE(store->load_all().front().anchor_calibration_id.has_value());
 }
 
-TEST_CASE("a filter state blob of the wrong size is reported, not misread") {
-  Database db(":memory:");
-  FilterStateStore store(db);
+TEMPLATE_TEST_CASE_METHOD(BackendTest,
+                          "a filter state blob of the wrong size is reported, not misread",
+                          "[filter_states]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto store = this->db->make_filter_state_store();
   std::mt19937_64 rng(3);
-  store.save(random_state("SAT1", rng));
-  db.exec("UPDATE filter_states SET P = zeroblob(80)");
-  CHECK_THROWS_AS(store.load("SAT1", "ukf"), StorageError);
+  store->save(random_state("SAT1", rng));
+  this->db->exec("UPDATE filter_states SET P = " + TestType::zero_blob_sql(80));
+  CHECK_THROWS_AS(store->load("SAT1", "ukf"), StorageError);
 }

@@ -23,6 +23,7 @@
 #include "storage/sample_window_store.hpp"
 
 namespace fs = std::filesystem;
+#include "storage/sqlite_stores.hpp"
 #include "tests/service/cli_test_support.hpp"
 
 using namespace magcal;
@@ -308,7 +309,7 @@ TEST_CASE("history and status read while a writer is writing") {
     ::close(fds[0]);
     try {
       Database wdb(db);
-      SampleWindowStore samples(wdb);
+      SqliteSampleWindowStore samples(wdb);
       CalibrationHistory history(wdb);
       std::vector<StoredSample> batch(200);
       for (int64_t n = 0;; ++n) {

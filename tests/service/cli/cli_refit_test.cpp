@@ -10,6 +10,7 @@
 
 #include "storage/database.hpp"
 #include "storage/sample_window_store.hpp"
+#include "storage/sqlite_stores.hpp"
 #include "storage/statement.hpp"
 #include "tests/service/cli_test_support.hpp"
 #include "tests/service/daemon_test_support.hpp"
@@ -38,7 +39,7 @@ TEST_CASE("a refit that cannot run is refused and writes nothing") {
   {
     // SAT1: 20 samples, fewer than the default [refit] min_samples.
     magcal::storage::Database d(db);
-    magcal::storage::SampleWindowStore samples(d);
+    magcal::storage::SqliteSampleWindowStore samples(d);
     std::vector<magcal::storage::StoredSample> batch(20);
     for (size_t k = 0; k < batch.size(); ++k) {
       batch[k].sat_id = "SAT1";

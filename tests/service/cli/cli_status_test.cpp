@@ -17,6 +17,7 @@
 #include "storage/sample_window_store.hpp"
 
 namespace fs = std::filesystem;
+#include "storage/sqlite_stores.hpp"
 #include "tests/service/cli_test_support.hpp"
 
 using namespace magcal;
@@ -55,9 +56,9 @@ struct Fixture {
   int64_t newest = 0;
   Fixture() {
     Database d(db);
-    SampleWindowStore samples(d);
+    SqliteSampleWindowStore samples(d);
     CalibrationHistory history(d);
-    RefitJobLog jobs(d);
+    SqliteRefitJobLog jobs(d);
     // SAT1: 20 h of samples every 10 s (so the 12 h window holds 4320 of them).
     std::vector<StoredSample> batch;
     for (int64_t t = kT0; t < kT0 + 20 * kHour; t += 10 * kSecond) {
@@ -140,7 +141,7 @@ TEST_CASE("status labels its times: data time, and the refit job's run as wall c
   constexpr int64_t kWall = 1'796'145'912LL * kSecond;  // 2026-12-01T17:25:12Z
   {
     Database d(f.db);
-    RefitJobLog jobs(d);
+    SqliteRefitJobLog jobs(d);
     jobs.finish(jobs.start("SAT1", "manual", kWall, kWall), job_outcome::kOk, kWall + kSecond);
   }
   Run r = run_magcal("status --db " + f.db, f.dir);

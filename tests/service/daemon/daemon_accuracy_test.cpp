@@ -30,6 +30,7 @@
 #include "storage/calibration_history.hpp"
 #include "storage/database.hpp"
 #include "storage/refit_job_log.hpp"
+#include "storage/sqlite_stores.hpp"
 #include "tests/service/cli_test_support.hpp"
 #include "tests/service/daemon_test_support.hpp"
 
@@ -229,7 +230,7 @@ TEST_CASE("a new spacecraft on the embedded schedule: UKF ok within 9 h, honest,
     magcal::storage::OpenOptions ro;
     ro.read_only = true;
     magcal::storage::Database d(db, ro);
-    magcal::storage::RefitJobLog jobs(d);
+    magcal::storage::SqliteRefitJobLog jobs(d);
     std::vector<int64_t> ends;
     int n_early = 0;
     for (const auto& job : jobs.recent(truth.sat_id, 1000)) {

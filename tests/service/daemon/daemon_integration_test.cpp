@@ -27,6 +27,7 @@
 #include "schemas/magcal_messages.hpp"
 #include "storage/calibration_history.hpp"
 #include "storage/sample_window_store.hpp"
+#include "storage/sqlite_stores.hpp"
 #include "tests/service/daemon_test_support.hpp"
 
 namespace {
@@ -70,7 +71,7 @@ int64_t stored_count(const std::string& db, const std::string& sat) {
     magcal::storage::OpenOptions ro;
     ro.read_only = true;
     magcal::storage::Database d(db, ro);
-    magcal::storage::SampleWindowStore s(d);
+    magcal::storage::SqliteSampleWindowStore s(d);
     return s.count(sat);
   } catch (const magcal::storage::StorageError&) {
     return -1;  // not created yet

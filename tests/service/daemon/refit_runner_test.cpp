@@ -10,6 +10,7 @@
 #include "pipeline/simulator.hpp"
 #include "service/daemon/refit_runner.hpp"
 #include "service/io/calibration_record.hpp"
+#include "storage/sqlite_stores.hpp"
 #include "tests/service/cli_test_support.hpp"
 
 using namespace magcal;
@@ -37,7 +38,7 @@ TruthParameters store_simulation(storage::Database& db, const Scenario& sc, cons
     r.temperature_C = s.temperature_C;
     rows.push_back(r);
   }
-  storage::SampleWindowStore(db).insert_batch(rows);
+  storage::SqliteSampleWindowStore(db).insert_batch(rows);
   return sim.truth();
 }
 
@@ -229,7 +230,7 @@ TEST_CASE("an early refit runs once: the same key again is skipped without a job
   storage::Database db(config.storage.db_path);
   int64_t seq = 0;
   store_simulation(db, paper_scenario(3, 3.0), "PAPER-1", &seq);
-  storage::SampleWindowStore samples(db);
+  storage::SqliteSampleWindowStore samples(db);
   const int64_t t_ref = *samples.utime_at_rank("PAPER-1", config.refit.min_samples - 1);
 
   RefitRunner runner(config, db);
@@ -240,7 +241,7 @@ TEST_CASE("an early refit runs once: the same key again is skipped without a job
   CHECK(again.kind == RefitOutcome::Kind::kSkipped);
   CHECK(again.job_id == first.job_id);
   CHECK_THAT(again.message, Catch::Contains("already ran"));
-  storage::RefitJobLog jobs(db);
+  storage::SqliteRefitJobLog jobs(db);
   CHECK(jobs.recent("PAPER-1", 10).size() == 1);
   // A scheduled refit of the same end is not an early one: it runs.
   CHECK(runner.run("PAPER-1", t_ref, "scheduled", t_ref).kind == RefitOutcome::Kind::kComputed);

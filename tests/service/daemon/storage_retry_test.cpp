@@ -12,12 +12,14 @@ using magcal::storage::StorageError;
 
 namespace {
 
-constexpr int kSqliteBusy = 5;
-constexpr int kSqliteFull = 13;
-constexpr int kSqliteCorrupt = 11;
+using Condition = StorageError::Condition;
+constexpr Condition kBusy = Condition::kBusy;
+constexpr Condition kDiskFull = Condition::kDiskFull;
+constexpr Condition kCorrupt = Condition::kCorrupt;
 
-StorageError sqlite_error(int code) {
-  return StorageError(StorageError::Kind::kSqlite, "injected", code);
+// Conditions, as each backend maps its own codes (storage/storage_error.cpp).
+StorageError injected_error(Condition condition) {
+  return StorageError(StorageError::Kind::kEngine, "injected", condition);
 }
 
 }  // namespace
@@ -30,7 +32,7 @@ TEST_CASE("transient errors are retried with backoff until the operation succeed
   const auto t0 = StorageRetry::Clock::now();
   const int result = retry.run_blocking([&] {
     ++calls;
-    if (calls <= 3) throw sqlite_error(calls == 2 ? kSqliteFull : kSqliteBusy);
+    if (calls <= 3) throw injected_error(calls == 2 ? kDiskFull : kBusy);
     CHECK_FALSE(counters.storage_healthy());  // unhealthy while it is failing
     return 42;
   });
@@ -52,7 +54,7 @@ TEST_CASE("a permanent error ends in StorageOutage at once", "[storage_retry]") 
   int calls = 0;
   CHECK_THROWS_AS(retry.run_blocking([&] {
     ++calls;
-    throw sqlite_error(kSqliteCorrupt);
+    throw injected_error(kCorrupt);
   }),
                   StorageOutage);
   CHECK(calls == 1);
@@ -67,7 +69,7 @@ TEST_CASE("an outage longer than max_failure_s ends in StorageOutage on time", "
   try {
     retry.run_blocking([&] {
       ++calls;
-      throw sqlite_error(kSqliteBusy);
+      throw injected_error(kBusy);
     });
     FAIL("no StorageOutage");
   } catch (const StorageOutage& e) {
@@ -86,7 +88,7 @@ TEST_CASE("the non-blocking form schedules the next attempt and clears health on
   {
     StorageRetry retry("commit", 10.0, counters);
     CHECK(retry.due());
-    retry.failed(sqlite_error(kSqliteBusy));
+    retry.failed(injected_error(kBusy));
     CHECK(retry.failing());
     CHECK_FALSE(retry.due());
     CHECK(retry.due(retry.next_attempt()));
@@ -94,7 +96,7 @@ TEST_CASE("the non-blocking form schedules the next attempt and clears health on
     retry.attempting();
     retry.succeeded();
     CHECK(counters.storage_healthy());
-    retry.failed(sqlite_error(kSqliteBusy));
+    retry.failed(injected_error(kBusy));
     CHECK_FALSE(counters.storage_healthy());
   }
   // A path that goes away while failing does not leave the daemon unhealthy for ever.

@@ -13,6 +13,7 @@
 
 #include "storage/calibration_history.hpp"
 #include "storage/sample_window_store.hpp"
+#include "storage/sqlite_stores.hpp"
 #include "tests/service/prometheus_text.hpp"
 
 namespace {
@@ -169,7 +170,7 @@ TEST_CASE("database metrics (magcal serve): what the database holds", "[metrics]
   std::map<std::string, int> stored;
   {
     st::Database db(tmp.path());
-    st::SampleWindowStore samples(db);
+    st::SqliteSampleWindowStore samples(db);
     std::vector<st::StoredSample> rows;
     for (int i = 0; i < 250; ++i) {
       st::StoredSample s;

@@ -11,6 +11,7 @@
 
 #include "storage/calibration_history.hpp"
 #include "storage/sample_window_store.hpp"
+#include "storage/sqlite_stores.hpp"
 #include "tests/service/http_test_support.hpp"
 #include "tests/service/prometheus_text.hpp"
 
@@ -161,7 +162,7 @@ TEST_CASE("serve over a replayed day: /metrics is what the database holds") {
   st::OpenOptions ro;
   ro.read_only = true;
   st::Database d(db, ro);
-  st::SampleWindowStore samples(d);
+  st::SqliteSampleWindowStore samples(d);
   st::CalibrationHistory history(d);
   CHECK(p.value("magcal_window_samples", {{"sat", kSat}}) == samples.count(kSat));
   CHECK_FALSE(p.has("magcal_samples_stored_total"));  // retention deletes: not a counter here

@@ -1,13 +1,19 @@
 // What goes out on LCM (calibration_t) never carries NaN or Inf (issue 11): a failed refit's
 // unknown residual and non-finite estimates are replaced by the documented conventions
-// (service/io/calibration_record.hpp), and a finite result goes out unchanged.
+// (service/io/calibration_record.hpp), and a finite result goes out unchanged. calibration_t <->
+// history record. The filter-state blob: one versioned format, round trip on SQLite and
+// PostgreSQL, unknown versions refused.
 #include <catch2/catch.hpp>
 
 #include <cmath>
 #include <limits>
+#include <random>
 #include <vector>
 
+#include "pipeline/magnetometer_ukf.hpp"
 #include "service/io/calibration_record.hpp"
+#include "storage/filter_state_store.hpp"
+#include "tests/storage/storage_backends.hpp"
 
 using namespace magcal;
 
@@ -52,7 +58,7 @@ std::vector<double> doubles_on_the_wire(const calibration_t& msg) {
 TEST_CASE("a finite result goes out unchanged", "[calibration_record]") {
   const auto r = finite_result();
   const calibration_t msg = message_from_result("SAT-1", r);
-  const calibration_t raw = storage::message_from_record(record_from_result("SAT-1", r));
+  const calibration_t raw = message_from_record(record_from_result("SAT-1", r));
   CHECK(msg.residual_rms_nT == raw.residual_rms_nT);
   CHECK(msg.status == raw.status);
   for (int i = 0; i < 45; ++i) CHECK(msg.cov[i] == raw.cov[i]);
@@ -149,4 +155,114 @@ TEST_CASE("a stored sample's temperature comes back with it (refit windows, UKF 
     else
       CHECK(back.temperature_C == t);
   }
+}
+
+TEST_CASE("calibration_t converts to and from a history record without loss") {
+  storage::CalibrationRecord r;
+  r.sat_id = "SAT9";
+  r.method = "twostep";
+  r.utime = 1704067200000000;
+  r.window_start_utime = r.utime - 43200000000;
+  r.window_end_utime = r.utime;
+  r.n_samples = 4321;
+  r.bias_nT = {101.0, -49.5, 24.0};
+  r.D = {1e-3, -2e-3, 3e-3, 1e-4, -1e-4, 2e-4};
+  for (int i = 0; i < 45; ++i) r.cov[static_cast<size_t>(i)] = 1e-6 * (i + 1);
+  r.cov[storage::cov_index(0, 0)] = 5.0;  // bias variances, nT^2
+  r.has_alignment = true;
+  r.R_sensor_from_body = {0.0, 1.0, 0.0, -1.0, 0.0, 0.0, 0.0, 0.0, 1.0};
+  r.residual_rms_nT = 3.11;
+  r.status = 0;
+  r.verdict = "accepted";
+  const calibration_t msg = message_from_record(r);
+  CHECK(msg.sat_id == "SAT9");
+  CHECK(msg.status == 0);
+  const storage::CalibrationRecord back = record_from_message(msg);
+  CHECK(back.bias_nT == r.bias_nT);
+  CHECK(back.D == r.D);
+  CHECK(back.cov == r.cov);
+  CHECK(back.R_sensor_from_body == r.R_sensor_from_body);
+  CHECK(back.has_alignment == r.has_alignment);
+  CHECK(back.window_start_utime == r.window_start_utime);
+  CHECK(back.n_samples == r.n_samples);
+  CHECK(back.verdict == "accepted");
+  CHECK(back.bias_sigma_nT[0] == std::sqrt(r.cov[0]));
+  auto rejected = msg;
+  rejected.status = 4;
+  CHECK(record_from_message(rejected).verdict == "rejected");
+}
+
+namespace {
+
+// A filter state with every field set: a UKF run over noisy samples, re-anchored half-way (the
+// model error), its state as the daemon saves it.
+FilterState run_filter_state() {
+  std::mt19937_64 rng(17);
+  std::normal_distribution<double> n(0.0, 1.0);
+  MagnetometerUkf ukf;
+  const Eigen::Vector3d b(1000.0, 800.0, 900.0);
+  Vector9d model_error;
+  model_error << 1.2, -4.2, 0.1, 1e-5, 2e-5, -3e-5, 4e-6, -5e-5, 6e-6;
+  for (int k = 0; k < 300; ++k) {
+    const Eigen::Vector3d h = 40000.0 * Eigen::Vector3d(n(rng), n(rng), n(rng)).normalized();
+    ukf.update(h + b + 3.0 * Eigen::Vector3d(n(rng), n(rng), n(rng)), 40000.0,
+               1704067200000000 + k * 10'000'000LL);
+    if (k == 150) ukf.reanchor(ukf.x(), ukf.P(), model_error * model_error.transpose());
+  }
+  REQUIRE(ukf.initialized());
+  return ukf.state();
+}
+
+template <typename Backend>
+void check_filter_state_round_trip() {
+  Backend backend;
+  const auto db = backend.open();
+  if (!db) return;
+  const FilterState state = run_filter_state();
+  db->make_filter_state_store()->save(stored_filter_state("SAT-1", "ukf", state));
+  // Read back on another connection: what a restarted daemon (or another one) finds.
+  const auto stored = backend.open_again()->make_filter_state_store()->load("SAT-1", "ukf");
+  REQUIRE(stored.has_value());
+  FilterState back;
+  REQUIRE(filter_state_from_stored(*stored, back) == "");
+  CHECK(back == state);  // bit for bit
+}
+
+}  // namespace
+
+TEST_CASE("the filter state round-trips bit for bit through SQLite", "[filter_state]") {
+  check_filter_state_round_trip<test::SqliteBackend>();
+}
+
+TEST_CASE("the filter state round-trips bit for bit through PostgreSQL", "[filter_state]") {
+  check_filter_state_round_trip<test::PostgresBackend>();
+}
+
+TEST_CASE("a filter state blob of an unknown version or format is refused, naming it",
+          "[filter_state]") {
+  storage::FilterState stored = stored_filter_state("SAT-1", "ukf", run_filter_state());
+  FilterState back;
+  REQUIRE(stored.counters.size() > 4);
+  CHECK(stored.counters[0] == '3');  // "MCF" + version, little-endian: the version comes first
+  auto newer = stored;
+  newer.counters[0] = '7';
+  CHECK(filter_state_from_stored(newer, back) ==
+        "filter state blob version 7: this magcal reads 1 to 3");
+  auto foreign = stored;
+  foreign.counters[3] = 'X';
+  CHECK(filter_state_from_stored(foreign, back).starts_with("not a magcal filter state"));
+  auto truncated = stored;
+  truncated.counters.resize(truncated.counters.size() - 1);
+  CHECK(filter_state_from_stored(truncated, back).find("inside its fields") != std::string::npos);
+  auto longer = stored;
+  longer.counters.push_back(0);
+  CHECK(filter_state_from_stored(longer, back).find("1 bytes after its fields") !=
+        std::string::npos);
+  // Version 2 had the same fields (the later ones optional): a version 2 blob still restores.
+  auto v2 = stored;
+  v2.counters[0] = '2';
+  REQUIRE(filter_state_from_stored(v2, back) == "");
+  FilterState from_v3;
+  REQUIRE(filter_state_from_stored(stored, from_v3) == "");
+  CHECK(back == from_v3);
 }

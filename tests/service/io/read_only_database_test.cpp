@@ -27,6 +27,7 @@
 #include "storage/calibration_history.hpp"
 #include "storage/database.hpp"
 #include "storage/sample_window_store.hpp"
+#include "storage/sqlite_stores.hpp"
 #include "tests/service/http_test_support.hpp"
 #include "tests/test_skip.hpp"
 
@@ -121,7 +122,7 @@ CalibrationRecord record(const std::string& sat, int64_t utime, double bias_x) {
 // A closed database with samples and two results of SAT1 (no -wal or -shm left).
 void build_database(const std::string& path) {
   Database db(path);
-  magcal::storage::SampleWindowStore samples(db);
+  magcal::storage::SqliteSampleWindowStore samples(db);
   std::vector<magcal::storage::StoredSample> batch(100);
   for (size_t k = 0; k < batch.size(); ++k) {
     batch[k].sat_id = "SAT1";

@@ -251,7 +251,7 @@ TEST_CASE("PostgreSQL errors: what a retry heals is transient, the rest is not")
     const StorageError lost = error_of([&] { db.execute_prepared(count); });
     INFO(lost.what());
     CHECK(lost.transient());
-    CHECK(lost.kind() == StorageError::Kind::kPostgres);
+    CHECK(lost.kind() == StorageError::Kind::kEngine);
     CHECK((lost.sqlstate() == "57P01" || lost.sqlstate() == "08006"));
     // A new session: the statement is prepared again there.
     CHECK(db.execute_prepared(count).get_int64(0, 0) == 2);
@@ -299,6 +299,7 @@ TEST_CASE("PostgreSQL errors: what a retry heals is transient, the rest is not")
       const StorageError e =
           error_of([&] { other.exec("UPDATE meta SET value = 'y' WHERE key = 'a'"); });
       CHECK(e.sqlstate() == "40001");
+      CHECK(e.condition() == StorageError::Condition::kConflict);
       CHECK(e.transient());
     }
     {
@@ -307,6 +308,7 @@ TEST_CASE("PostgreSQL errors: what a retry heals is transient, the rest is not")
       const StorageError e =
           error_of([&] { other.exec("UPDATE meta SET value = 'w' WHERE key = 'a'"); });
       CHECK(e.sqlstate() == "55P03");  // lock_timeout = busy_timeout_ms
+      CHECK(e.condition() == StorageError::Condition::kBusy);
       CHECK(e.transient());
     }
     {
@@ -343,6 +345,7 @@ TEST_CASE("PostgreSQL errors: what a retry heals is transient, the rest is not")
     CHECK_FALSE(syntax.transient());
     const StorageError duplicate = error_of([&] { db.exec("INSERT INTO meta VALUES ('a', '9')"); });
     CHECK(duplicate.sqlstate() == "23505");
+    CHECK(duplicate.condition() == StorageError::Condition::kConstraint);
     CHECK_FALSE(duplicate.transient());
     CHECK(query_int(db, "SELECT count(*) FROM meta") == 2);
   }

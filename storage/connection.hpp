@@ -1,0 +1,125 @@
+// One thread's connection to a magcal database, whichever engine holds it: an SQLite file (the
+// embedded default, storage/database.hpp) or a PostgreSQL database shared by a fleet
+// (storage/postgres/pg_database.hpp, design.md "Fleet"). open_database() chooses by the --db /
+// [storage] db_path value. A connection makes its stores (make_*: the sample window, the refit
+// job log, the filter states, the meta values), and groups their calls into one commit with a
+// Transaction. Nothing of the engine shows here: errors are StorageError with a backend-neutral
+// condition (storage/storage_error.hpp).
+//
+// Threads: a connection and the stores made on it belong to one thread at a time (prepared
+// statements are per connection). Give each thread (ingest worker, refit scheduler, CLI) its own.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <string_view>
+
+#include "storage/storage_error.hpp"
+
+namespace magcal::storage {
+
+class SampleWindowStore;
+class RefitJobLog;
+class FilterStateStore;
+class MetaStore;
+
+// 'MGCL': SQLite's `PRAGMA application_id` of a magcal file, and the application_id of
+// PostgreSQL's magcal_schema_version rows.
+constexpr int32_t kApplicationId = 0x4D47434C;
+
+struct OpenOptions {
+  // Read-only never creates, migrates or writes (magcal status/history/serve use it). SQLite:
+  // also in a directory the user cannot write; a WAL database is read through its -shm file
+  // (the index its writers share), which SQLite creates when the directory is writable and
+  // otherwise needs present and readable. When it is absent and cannot be created, no
+  // connection has the file open (a WAL connection keeps -shm while open), so it is opened
+  // immutable: no locks, no -shm (see Database::immutable()). A -wal file holding commits
+  // without its -shm (a writer crashed) cannot be read safely that way: refused, naming the file.
+  // PostgreSQL: the session is read-only.
+  bool read_only = false;
+  // Migrate up to this version only (-1: the newest this code knows). For tests that build an
+  // old database; production code leaves it alone.
+  int migrate_to = -1;
+  // How long a statement waits on another connection's lock before failing (SQLite's busy
+  // timeout, PostgreSQL's lock_timeout): StorageError condition kBusy.
+  int busy_timeout_ms = 5000;
+};
+
+// The schema version an open should reach: options.migrate_to, or `latest` when it is -1.
+// Throws StorageError (kInvalidArgument) for a version beyond `latest`. Both backends use it.
+int migration_target(const OpenOptions& options, int latest);
+
+// A --db / db_path value naming a PostgreSQL database (a libpq URI) rather than an SQLite file.
+inline bool is_postgres_uri(std::string_view db) {
+  return db.starts_with("postgresql://") || db.starts_with("postgres://");
+}
+
+enum class TransactionMode {
+  kWrite,         // a writer: SQLite takes its write lock up front, so it waits at the start
+                  // (busy timeout) instead of failing half-way
+  kReadSnapshot,  // several reads that must see one state of the database
+};
+
+class Connection {
+ public:
+  virtual ~Connection() = default;
+
+  // The database for messages and logs: the file path, or the URI without its password.
+  virtual const std::string& name() const = 0;
+  virtual bool read_only() const = 0;
+  // Runs SQL statements without parameters or results, in the engine's own dialect (DDL, tests).
+  virtual void exec(std::string_view sql) = 0;
+  // True when what this connection read may mix two states of the database and a reopen is
+  // needed (an SQLite file read without locks that a writer opened meanwhile: see
+  // Database::immutable()); false for every other connection.
+  virtual bool changed_since_open() const { return false; }
+
+  virtual std::unique_ptr<SampleWindowStore> make_sample_window_store() = 0;
+  virtual std::unique_ptr<RefitJobLog> make_refit_job_log() = 0;
+  virtual std::unique_ptr<FilterStateStore> make_filter_state_store() = 0;
+  virtual std::unique_ptr<MetaStore> make_meta_store() = 0;
+
+ protected:
+  friend class Transaction;
+  // Opens a transaction, or a savepoint inside an open one (returns true then).
+  virtual bool begin_transaction(TransactionMode mode) = 0;
+  virtual void commit_transaction(bool nested) = 0;
+  // Ends what begin_transaction opened: rolled back unless committed. Never throws.
+  virtual void end_transaction(bool nested, bool committed) noexcept = 0;
+};
+
+// Opens `db`: a postgresql:// or postgres:// URI is a PostgreSQL database, anything else an
+// SQLite file path (or ":memory:"). Throws StorageError.
+std::unique_ptr<Connection> open_database(const std::string& db, const OpenOptions& options = {});
+
+// RAII transaction, rolled back on destruction unless commit() was called. Inside an already
+// open transaction it becomes a savepoint, so a caller can group several store calls into one
+// commit. A write transaction on SQLite first checks that the file is still the one open (in
+// WAL mode SQLite keeps committing into a deleted or replaced file without an error): condition
+// kFileMoved otherwise. PostgreSQL locks rows as statements touch them: writers that may touch
+// the same rows keep one global key order, and retry kConflict (transient).
+class Transaction {
+ public:
+  using Mode = TransactionMode;
+  explicit Transaction(Connection& db, Mode mode = Mode::kWrite)
+      : Transaction(db, db.begin_transaction(mode)) {}
+  ~Transaction() { db_.end_transaction(nested_, committed_); }
+  Transaction(const Transaction&) = delete;
+  Transaction& operator=(const Transaction&) = delete;
+  void commit() {
+    db_.commit_transaction(nested_);
+    committed_ = true;
+  }
+
+ protected:
+  // A transaction the backend has begun (a backend's own kinds: PgTransaction).
+  Transaction(Connection& db, bool nested) : db_(db), nested_(nested) {}
+
+ private:
+  Connection& db_;
+  bool nested_;
+  bool committed_ = false;
+};
+
+}  // namespace magcal::storage

@@ -1,0 +1,409 @@
+#include "storage/postgres/pg_stores.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <numeric>
+
+#include "storage/store_columns.hpp"
+
+namespace magcal::storage {
+namespace {
+
+constexpr int kParamsPerSample = 20;
+
+// NaN is stored as NULL, as on SQLite (a NOT NULL column then refuses it).
+void add_value(PgParams& p, double value) {
+  if (std::isnan(value)) {
+    p.add_null();
+  } else {
+    p.add(value);
+  }
+}
+
+// A group of columns stored together or not at all (NULL when the sample lacks it).
+void add_group(PgParams& p, std::span<const double> values, bool present) {
+  for (const double v : values) {
+    if (present) {
+      add_value(p, v);
+    } else {
+      p.add_null();
+    }
+  }
+}
+
+void add_sample(PgParams& p, const StoredSample& s) {
+  p.add(s.sat_id).add(s.utime).add(s.seq).add(s.receive_utime);
+  add_group(p, s.b_sensor_nT, true);
+  p.add(int64_t{s.has_direction ? 1 : 0});
+  add_group(p, s.h_body_nT, s.has_direction);
+  add_value(p, s.h_norm_nT);
+  add_group(p, s.q_body_from_eci, s.has_attitude);
+  add_group(p, s.r_ecef_m, s.has_position);
+  add_value(p, s.temperature_C);
+}
+
+// INSERT of `rows` samples (parameters $1 .. $20*rows), returning the keys it stored.
+std::string insert_sql(size_t rows) {
+  std::string sql = std::string("INSERT INTO samples (") + columns::kSampleInsert + ") VALUES ";
+  int param = 1;
+  for (size_t row = 0; row < rows; ++row) {
+    sql += row == 0 ? "(" : ", (";
+    for (int c = 0; c < kParamsPerSample; ++c, ++param) {
+      if (c > 0) sql += ", ";
+      sql += '$';
+      sql += std::to_string(param);
+    }
+    sql += ")";
+  }
+  // Only a repeated key is ignored (and counted); a NOT NULL violation is an error.
+  sql += " ON CONFLICT (sat_id, utime) DO NOTHING RETURNING sat_id, utime";
+  return sql;
+}
+
+std::optional<int64_t> optional_int(const PgResult& r, int row, int column) {
+  return r.get_optional_int64(row, column);
+}
+
+}  // namespace
+
+PgSampleWindowStore::PgSampleWindowStore(PgDatabase& db) : SampleWindowStore(db), pg_(db) {
+  for (size_t rows = 1; rows <= kMaxRowsPerInsert; rows *= 2)
+    insert_sql_.push_back(insert_sql(rows));
+}
+
+InsertStats PgSampleWindowStore::insert_batch(std::span<const StoredSample> samples,
+                                              std::vector<size_t>* duplicate_rows) {
+  InsertStats stats;
+  if (duplicate_rows) duplicate_rows->clear();
+  if (samples.empty()) return stats;
+  // One global key order; stable, so of two copies of a key in the batch the first is stored.
+  order_.resize(samples.size());
+  std::iota(order_.begin(), order_.end(), size_t{0});
+  std::stable_sort(order_.begin(), order_.end(), [&](size_t a, size_t b) {
+    const StoredSample& x = samples[a];
+    const StoredSample& y = samples[b];
+    if (const int c = x.sat_id.compare(y.sat_id); c != 0) return c < 0;
+    return x.utime < y.utime;
+  });
+  Transaction tx(pg_);
+  stored_keys_.clear();
+  for (size_t begin = 0; begin < order_.size();) {
+    // The largest power of two not above what is left (at most kMaxRowsPerInsert).
+    size_t k = insert_sql_.size() - 1;
+    while ((size_t{1} << k) > order_.size() - begin) --k;
+    const size_t n = size_t{1} << k;
+    params_.clear();
+    for (size_t row = begin; row < begin + n; ++row) add_sample(params_, samples[order_[row]]);
+    const PgResult r = pg_.execute_prepared(insert_sql_[k], params_, PgFormat::kBinary);
+    for (int row = 0; row < r.rows(); ++row) {
+      stored_keys_.emplace_back(r.get_text(row, 0), r.get_int64(row, 1));
+    }
+    begin += n;
+  }
+  tx.commit();
+  // The stored keys against the batch, both in key order: a row whose key was stored and not
+  // yet claimed by an earlier copy was inserted; any other row is a duplicate.
+  std::sort(stored_keys_.begin(), stored_keys_.end());
+  size_t next = 0;
+  for (const size_t row : order_) {
+    const StoredSample& s = samples[row];
+    if (next < stored_keys_.size() && stored_keys_[next].first == s.sat_id &&
+        stored_keys_[next].second == s.utime) {
+      ++next;
+      ++stats.inserted;
+    } else {
+      ++stats.duplicates;
+      if (duplicate_rows) duplicate_rows->push_back(row);
+    }
+  }
+  if (duplicate_rows) std::sort(duplicate_rows->begin(), duplicate_rows->end());
+  return stats;
+}
+
+void PgSampleWindowStore::read_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime,
+                                      std::vector<StoredSample>& out) {
+  out.clear();
+  PgParams p;
+  p.add(sat_id).add(t0_utime).add(t1_utime);
+  const PgResult r = pg_.execute_prepared(
+      std::string("SELECT ") + columns::kSampleRead +
+          " FROM samples WHERE sat_id = $1 AND utime >= $2 AND utime < $3 ORDER BY utime",
+      p, PgFormat::kBinary);
+  constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+  out.reserve(static_cast<size_t>(r.rows()));
+  for (int row = 0; row < r.rows(); ++row) {
+    StoredSample& s = out.emplace_back();
+    s.sat_id = sat_id;
+    s.utime = r.get_int64(row, 0);
+    s.seq = r.get_int64(row, 1);
+    s.receive_utime = r.get_int64(row, 2);
+    for (int i = 0; i < 3; ++i) s.b_sensor_nT[i] = r.get_double(row, 3 + i);
+    s.has_direction = r.get_int64(row, 6) != 0;
+    for (int i = 0; i < 3; ++i) s.h_body_nT[i] = s.has_direction ? r.get_double(row, 7 + i) : kNaN;
+    s.h_norm_nT = r.get_double(row, 10);
+    s.has_attitude = !r.is_null(row, 11);
+    if (s.has_attitude) {
+      for (int i = 0; i < 4; ++i) s.q_body_from_eci[i] = r.get_double(row, 11 + i);
+    }
+    s.has_position = !r.is_null(row, 15);
+    if (s.has_position) {
+      for (int i = 0; i < 3; ++i) s.r_ecef_m[i] = r.get_double(row, 15 + i);
+    }
+    s.temperature_C = r.get_optional_double(row, 18).value_or(kNaN);
+  }
+}
+
+int64_t PgSampleWindowStore::count_in_window(std::string_view sat_id, int64_t t0_utime,
+                                             int64_t t1_utime) {
+  PgParams p;
+  p.add(sat_id).add(t0_utime).add(t1_utime);
+  return pg_
+      .execute_prepared(
+          "SELECT count(*) FROM samples WHERE sat_id = $1 AND utime >= $2 AND utime < $3", p,
+          PgFormat::kBinary)
+      .get_int64(0, 0);
+}
+
+std::optional<int64_t> PgSampleWindowStore::single_utime(const char* sql, std::string_view sat_id) {
+  PgParams p;
+  p.add(sat_id);
+  const PgResult r = pg_.execute_prepared(sql, p, PgFormat::kBinary);
+  if (r.rows() == 0) return std::nullopt;
+  return optional_int(r, 0, 0);
+}
+
+std::optional<int64_t> PgSampleWindowStore::newest_utime(std::string_view sat_id) {
+  return single_utime("SELECT max(utime) FROM samples WHERE sat_id = $1", sat_id);
+}
+
+std::optional<int64_t> PgSampleWindowStore::oldest_utime(std::string_view sat_id) {
+  return single_utime("SELECT min(utime) FROM samples WHERE sat_id = $1", sat_id);
+}
+
+int64_t PgSampleWindowStore::count(std::string_view sat_id) {
+  PgParams p;
+  p.add(sat_id);
+  return pg_
+      .execute_prepared("SELECT count(*) FROM samples WHERE sat_id = $1", p, PgFormat::kBinary)
+      .get_int64(0, 0);
+}
+
+std::optional<int64_t> PgSampleWindowStore::utime_at_rank(std::string_view sat_id, int64_t rank) {
+  if (rank < 0) return std::nullopt;
+  PgParams p;
+  p.add(sat_id).add(rank);
+  const PgResult r = pg_.execute_prepared(
+      "SELECT utime FROM samples WHERE sat_id = $1 ORDER BY utime LIMIT 1 OFFSET $2", p,
+      PgFormat::kBinary);
+  if (r.rows() == 0) return std::nullopt;
+  return r.get_int64(0, 0);
+}
+
+std::vector<std::string> PgSampleWindowStore::spacecraft() {
+  // Skip-scan over the primary key: one index descent per spacecraft, not a full scan.
+  const PgResult r = pg_.execute_prepared(
+      "WITH RECURSIVE s(id) AS (SELECT min(sat_id) FROM samples UNION ALL "
+      "SELECT (SELECT min(sat_id) FROM samples WHERE sat_id > s.id) FROM s "
+      "WHERE s.id IS NOT NULL) SELECT id FROM s WHERE id IS NOT NULL");
+  std::vector<std::string> out;
+  for (int row = 0; row < r.rows(); ++row) out.push_back(r.get_text(row, 0));
+  return out;
+}
+
+int64_t PgSampleWindowStore::delete_chunk(std::string_view sat_id, int64_t cutoff_utime,
+                                          int chunk_rows) {
+  PgParams p;
+  p.add(sat_id).add(cutoff_utime).add(int64_t{chunk_rows});
+  return pg_
+      .execute_prepared(
+          "DELETE FROM samples WHERE sat_id = $1 AND utime IN (SELECT utime FROM samples "
+          "WHERE sat_id = $1 AND utime < $2 ORDER BY utime LIMIT $3)",
+          p)
+      .affected_rows();
+}
+
+namespace {
+
+const std::string kJobSelect = std::string("SELECT ") + columns::kRefitJob + " FROM refit_jobs ";
+
+RefitJob job_from_row(const PgResult& r, int row) {
+  RefitJob j;
+  j.id = r.get_int64(row, 0);
+  j.sat_id = r.get_text(row, 1);
+  j.trigger = r.get_text(row, 2);
+  j.scheduled_utime = r.get_int64(row, 3);
+  j.started_utime = r.get_optional_int64(row, 4);
+  j.finished_utime = r.get_optional_int64(row, 5);
+  j.outcome = r.get_text(row, 6);
+  j.error = r.get_text(row, 7);
+  j.calibration_id = r.get_optional_int64(row, 8);
+  return j;
+}
+
+// The one value of a query on sat_id ($1); nullopt when NULL (max() of no rows).
+std::optional<int64_t> single_int(PgDatabase& db, const char* sql, std::string_view sat_id) {
+  PgParams p;
+  p.add(sat_id);
+  const PgResult r = db.execute_prepared(sql, p, PgFormat::kBinary);
+  if (r.rows() == 0) return std::nullopt;
+  return r.get_optional_int64(0, 0);
+}
+
+}  // namespace
+
+int64_t PgRefitJobLog::start(std::string_view sat_id, std::string_view trigger,
+                             int64_t scheduled_utime, int64_t started_utime) {
+  PgParams p;
+  p.add(sat_id).add(trigger).add(scheduled_utime).add(started_utime);
+  return db_
+      .execute_prepared(
+          "INSERT INTO refit_jobs (sat_id, trigger_kind, scheduled_utime, started_utime, "
+          "outcome) VALUES ($1, $2, $3, $4, 'running') RETURNING id",
+          p, PgFormat::kBinary)
+      .get_int64(0, 0);
+}
+
+void PgRefitJobLog::finish(int64_t job_id, std::string_view outcome, int64_t finished_utime,
+                           std::string_view error, std::optional<int64_t> calibration_id) {
+  PgParams p;
+  p.add(job_id).add(outcome).add(finished_utime).add(error).add(calibration_id);
+  const PgResult r = db_.execute_prepared(
+      "UPDATE refit_jobs SET outcome = $2, finished_utime = $3, error = $4, calibration_id = $5 "
+      "WHERE id = $1",
+      p);
+  if (r.affected_rows() != 1) {
+    throw StorageError(StorageError::Kind::kInvalidArgument,
+                       "no refit job with id " + std::to_string(job_id));
+  }
+}
+
+int PgRefitJobLog::mark_running_interrupted(int64_t now_utime) {
+  PgParams p;
+  p.add(now_utime);
+  return static_cast<int>(
+      db_.execute_prepared("UPDATE refit_jobs SET outcome = 'interrupted', finished_utime = $1, "
+                           "error = 'process ended while the refit was running' "
+                           "WHERE outcome = 'running'",
+                           p)
+          .affected_rows());
+}
+
+std::optional<int64_t> PgRefitJobLog::newest_reanchor_calibration_id(std::string_view sat_id) {
+  return single_int(db_,
+                    "SELECT max(calibration_id) FROM refit_jobs WHERE sat_id = $1 AND "
+                    "outcome = 'ok' AND trigger_kind <> 'manual'",
+                    sat_id);
+}
+
+std::optional<int64_t> PgRefitJobLog::newest_finished_scheduled_utime(std::string_view sat_id) {
+  return single_int(db_,
+                    "SELECT max(scheduled_utime) FROM refit_jobs WHERE sat_id = $1 AND "
+                    "trigger_kind = 'scheduled' AND outcome NOT IN ('running', 'interrupted')",
+                    sat_id);
+}
+
+std::optional<RefitJob> PgRefitJobLog::get(int64_t job_id) {
+  PgParams p;
+  p.add(job_id);
+  const PgResult r = db_.execute_prepared(kJobSelect + "WHERE id = $1", p, PgFormat::kBinary);
+  if (r.rows() == 0) return std::nullopt;
+  return job_from_row(r, 0);
+}
+
+std::vector<RefitJob> PgRefitJobLog::recent(std::string_view sat_id, int limit) {
+  PgParams p;
+  p.add(sat_id).add(int64_t{limit});
+  const PgResult r = db_.execute_prepared(
+      kJobSelect + "WHERE sat_id = $1 ORDER BY id DESC LIMIT $2", p, PgFormat::kBinary);
+  std::vector<RefitJob> out;
+  for (int row = 0; row < r.rows(); ++row) out.push_back(job_from_row(r, row));
+  return out;
+}
+
+namespace {
+
+const std::string kFilterSelect =
+    std::string("SELECT ") + columns::kFilterState + " FROM filter_states ";
+
+FilterState filter_state_from_row(const PgResult& r, int row) {
+  FilterState s;
+  s.sat_id = r.get_text(row, 0);
+  s.method = r.get_text(row, 1);
+  const auto x = r.get_bytes(row, 2);
+  doubles_from_blob(x.data(), x.size(), s.x, "x");
+  const auto P = r.get_bytes(row, 3);
+  doubles_from_blob(P.data(), P.size(), s.P, "P");
+  s.last_utime = r.get_int64(row, 4);
+  s.n_samples = r.get_int64(row, 5);
+  if (!r.is_null(row, 6)) {
+    const auto counters = r.get_bytes(row, 6);
+    s.counters.resize(counters.size());
+    std::transform(counters.begin(), counters.end(), s.counters.begin(),
+                   [](std::byte b) { return static_cast<uint8_t>(b); });
+  }
+  s.updated_utime = r.get_int64(row, 7);
+  s.anchor_calibration_id = r.get_optional_int64(row, 8);
+  return s;
+}
+
+std::span<const std::byte> bytes_of(const void* data, size_t size) {
+  return {static_cast<const std::byte*>(data), size};
+}
+
+}  // namespace
+
+void PgFilterStateStore::save(const FilterState& s) {
+  PgParams p;
+  p.add(s.sat_id).add(s.method);
+  p.add_bytes(bytes_of(s.x.data(), sizeof(double) * s.x.size()));
+  p.add_bytes(bytes_of(s.P.data(), sizeof(double) * s.P.size()));
+  p.add(s.last_utime).add(s.n_samples);
+  p.add_bytes(bytes_of(s.counters.data(), s.counters.size()));
+  p.add(save_utime(s)).add(s.anchor_calibration_id);
+  db_.execute_prepared(
+      std::string("INSERT INTO filter_states (") + columns::kFilterState +
+          ") VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9) "
+          "ON CONFLICT (sat_id, method) DO UPDATE SET x = excluded.x, P = excluded.P, "
+          "last_utime = excluded.last_utime, n_samples = excluded.n_samples, "
+          "counters = excluded.counters, updated_utime = excluded.updated_utime, "
+          "anchor_calibration_id = excluded.anchor_calibration_id",
+      p);
+}
+
+std::optional<FilterState> PgFilterStateStore::load(std::string_view sat_id,
+                                                    std::string_view method) {
+  PgParams p;
+  p.add(sat_id).add(method);
+  const PgResult r = db_.execute_prepared(kFilterSelect + "WHERE sat_id = $1 AND method = $2", p,
+                                          PgFormat::kBinary);
+  if (r.rows() == 0) return std::nullopt;
+  return filter_state_from_row(r, 0);
+}
+
+std::vector<FilterState> PgFilterStateStore::load_all() {
+  const PgResult r =
+      db_.execute_prepared(kFilterSelect + "ORDER BY sat_id, method", {}, PgFormat::kBinary);
+  std::vector<FilterState> out;
+  for (int row = 0; row < r.rows(); ++row) out.push_back(filter_state_from_row(r, row));
+  return out;
+}
+
+void PgMetaStore::set(std::string_view key, std::string_view value) {
+  PgParams p;
+  p.add(key).add(value);
+  db_.execute_prepared(
+      "INSERT INTO meta (key, value) VALUES ($1, $2) "
+      "ON CONFLICT (key) DO UPDATE SET value = excluded.value",
+      p);
+}
+
+std::optional<std::string> PgMetaStore::get(std::string_view key) {
+  PgParams p;
+  p.add(key);
+  const PgResult r = db_.execute_prepared("SELECT value FROM meta WHERE key = $1", p);
+  if (r.rows() == 0) return std::nullopt;
+  return r.get_text(0, 0);
+}
+
+}  // namespace magcal::storage

@@ -1,0 +1,99 @@
+// The SQLite implementations of the stores (storage/sample_window_store.hpp, refit_job_log.hpp,
+// filter_state_store.hpp, meta_store.hpp) on one Database: statements prepared once in the
+// constructor, reset and re-bound for every use. Made by Database::make_*(); tests and tools
+// that hold a Database may construct them directly.
+#pragma once
+
+#include <span>
+#include <vector>
+
+#include "storage/database.hpp"
+#include "storage/filter_state_store.hpp"
+#include "storage/meta_store.hpp"
+#include "storage/refit_job_log.hpp"
+#include "storage/sample_window_store.hpp"
+#include "storage/statement.hpp"
+
+namespace magcal::storage {
+
+class SqliteSampleWindowStore final : public SampleWindowStore {
+ public:
+  explicit SqliteSampleWindowStore(Database& db);  // prepares its statements; throws StorageError
+
+  InsertStats insert_batch(std::span<const StoredSample> samples,
+                           std::vector<size_t>* duplicate_rows = nullptr) override;
+  void read_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime,
+                   std::vector<StoredSample>& out) override;
+  int64_t count_in_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime) override;
+  std::optional<int64_t> newest_utime(std::string_view sat_id) override;
+  std::optional<int64_t> oldest_utime(std::string_view sat_id) override;
+  int64_t count(std::string_view sat_id) override;
+  std::optional<int64_t> utime_at_rank(std::string_view sat_id, int64_t rank) override;
+  std::vector<std::string> spacecraft() override;
+
+ private:
+  int64_t delete_chunk(std::string_view sat_id, int64_t cutoff_utime, int chunk_rows) override;
+
+  Statement insert_;
+  Statement window_;
+  Statement count_window_;
+  Statement newest_;
+  Statement oldest_;
+  Statement count_;
+  Statement utime_at_rank_;
+  Statement spacecraft_;
+  Statement delete_chunk_;
+};
+
+class SqliteRefitJobLog final : public RefitJobLog {
+ public:
+  explicit SqliteRefitJobLog(Database& db);
+
+  int64_t start(std::string_view sat_id, std::string_view trigger, int64_t scheduled_utime,
+                int64_t started_utime) override;
+  void finish(int64_t job_id, std::string_view outcome, int64_t finished_utime,
+              std::string_view error = {}, std::optional<int64_t> calibration_id = {}) override;
+  int mark_running_interrupted(int64_t now_utime) override;
+  std::optional<int64_t> newest_reanchor_calibration_id(std::string_view sat_id) override;
+  std::optional<int64_t> newest_finished_scheduled_utime(std::string_view sat_id) override;
+  std::optional<RefitJob> get(int64_t job_id) override;
+  std::vector<RefitJob> recent(std::string_view sat_id, int limit) override;
+
+ private:
+  Database& db_;
+  Statement insert_;
+  Statement finish_;
+  Statement interrupt_;
+  Statement get_;
+  Statement recent_;
+  Statement newest_reanchor_;
+  Statement newest_scheduled_;
+};
+
+class SqliteFilterStateStore final : public FilterStateStore {
+ public:
+  explicit SqliteFilterStateStore(Database& db);
+
+  void save(const FilterState& state) override;
+  std::optional<FilterState> load(std::string_view sat_id, std::string_view method) override;
+  std::vector<FilterState> load_all() override;
+
+ private:
+  FilterState read_row(Statement& st);
+  Statement upsert_;
+  Statement load_;
+  Statement load_all_;
+};
+
+class SqliteMetaStore final : public MetaStore {
+ public:
+  explicit SqliteMetaStore(Database& db);
+  void set(std::string_view key, std::string_view value) override;
+  std::optional<std::string> get(std::string_view key) override;
+
+ private:
+  Statement set_;
+  Statement get_;
+};
+
+}  // namespace magcal::storage

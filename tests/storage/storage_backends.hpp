@@ -1,0 +1,78 @@
+// The backends a store test runs on, as Catch2 template types: TEMPLATE_TEST_CASE(...,
+// SqliteBackend, PostgresBackend) runs the same test on an SQLite file and on a PostgreSQL database
+// (a throwaway server per test process, tests/storage/postgres/pg_test_server.hpp), each reported
+// on its own. Without the PostgreSQL programs the PostgreSQL case is skipped (tests/test_skip.hpp;
+// with CI=true it fails).
+//
+//   TestType backend;
+//   auto db = backend.open();    // a new, empty database; nullptr: skipped, return at once
+//   backend.open_again(options)  // another connection to the same database
+#pragma once
+
+#include <unistd.h>
+
+#include <filesystem>
+#include <memory>
+#include <string>
+
+#include "storage/connection.hpp"
+#include "storage/database.hpp"
+#include "storage/postgres/pg_database.hpp"
+#include "tests/storage/postgres/pg_test_server.hpp"
+
+namespace magcal::test {
+
+class SqliteBackend {
+ public:
+  static constexpr const char* kName = "sqlite";
+  SqliteBackend() {
+    static int counter = 0;
+    dir_ = std::filesystem::temp_directory_path() /
+           ("magcal_backend_test_" + std::to_string(::getpid()) + "_" + std::to_string(counter++));
+    std::filesystem::create_directories(dir_);
+  }
+  ~SqliteBackend() {
+    std::error_code ignored;
+    std::filesystem::remove_all(dir_, ignored);
+  }
+  SqliteBackend(const SqliteBackend&) = delete;
+  SqliteBackend& operator=(const SqliteBackend&) = delete;
+
+  std::unique_ptr<storage::Connection> open() { return open_again(); }
+  std::unique_ptr<storage::Connection> open_again(const storage::OpenOptions& options = {}) {
+    return storage::open_database((dir_ / "test.db").string(), options);
+  }
+  // SQL for a blob of n zero bytes.
+  static std::string zero_blob_sql(int n) { return "zeroblob(" + std::to_string(n) + ")"; }
+
+ private:
+  std::filesystem::path dir_;
+};
+
+class PostgresBackend {
+ public:
+  static constexpr const char* kName = "postgres";
+  std::unique_ptr<storage::Connection> open() {
+    PgTestServer* server = pg_server_or_skip();
+    if (server == nullptr) return nullptr;
+    uri_ = server->create_database();
+    return open_again();
+  }
+  std::unique_ptr<storage::Connection> open_again(const storage::OpenOptions& options = {}) {
+    return storage::open_database(uri_, options);
+  }
+  static std::string zero_blob_sql(int n) {
+    return "decode(repeat('00', " + std::to_string(n) + "), 'hex')";
+  }
+
+ private:
+  std::string uri_;
+};
+
+template <typename Backend>
+struct BackendTest {
+  Backend backend;
+  std::unique_ptr<storage::Connection> db = backend.open();  // nullptr: skipped
+};
+
+}  // namespace magcal::test
