@@ -2,6 +2,7 @@
 // refused, read-only never creates, embedded migrations identical to storage/migrations/*.sql.
 #include "storage/database.hpp"
 
+#include <sys/wait.h>
 #include <unistd.h>
 
 #include <cerrno>
@@ -342,21 +343,49 @@ TEST_CASE("a new database whose directory is missing names the directory") {
 
 TEST_CASE("a new database whose directory is not writable names the directory") {
   TempDir tmp;
-  if (::geteuid() == 0) {
-    // root writes anywhere: the permission case cannot be set up (CI runs as root).
-    magcal::test::skip("running as root: an unwritable directory cannot be made");
-    return;
-  }
   const std::string locked = tmp.file("locked");
   fs::create_directories(locked);
   fs::permissions(locked, fs::perms::owner_read | fs::perms::owner_exec);
-  try {
-    Database db(locked + "/new.db");
-    FAIL("opened a database in an unwritable directory");
-  } catch (const StorageError& e) {
-    CHECK_THAT(e.what(),
-               Catch::Contains("(directory " + locked + ": " + std::strerror(EACCES) + ")"));
+  // Root writes anywhere (CI runs as root): the open is then tried by a child that has dropped to
+  // the unprivileged user "nobody" (65534), which the directory does not let write.
+  auto open_message = []([[maybe_unused]] const std::string& path) -> std::string {
+    try {
+      Database db(path);
+      return "opened";
+    } catch (const StorageError& e) {
+      return e.what();
+    }
+  };
+  std::string message;
+  if (::geteuid() != 0) {
+    message = open_message(locked + "/new.db");
+  } else {
+    int fds[2];
+    REQUIRE(::pipe(fds) == 0);
+    const pid_t child = ::fork();
+    REQUIRE(child >= 0);
+    if (child == 0) {
+      ::close(fds[0]);
+      const std::string m = ::setgid(65534) == 0 && ::setuid(65534) == 0
+                                ? open_message(locked + "/new.db")
+                                : "cannot drop to nobody";
+      const ssize_t written = ::write(fds[1], m.data(), m.size());
+      ::_exit(written == static_cast<ssize_t>(m.size()) ? 0 : 1);
+    }
+    ::close(fds[1]);
+    char buffer[512];
+    ssize_t n = 0;
+    while ((n = ::read(fds[0], buffer, sizeof buffer)) > 0) message.append(buffer, buffer + n);
+    ::close(fds[0]);
+    int status = 0;
+    REQUIRE(::waitpid(child, &status, 0) == child);
+    REQUIRE(WIFEXITED(status));
+    CHECK(WEXITSTATUS(status) == 0);
   }
+  INFO(message);
+  CHECK_THAT(message, Catch::Contains("cannot open database " + locked + "/new.db"));
+  CHECK_THAT(message, Catch::Contains("(directory " + locked + ": " + std::strerror(EACCES) + ")"));
+  CHECK_FALSE(fs::exists(locked + "/new.db"));
   fs::permissions(locked, fs::perms::owner_all);
 }
 
