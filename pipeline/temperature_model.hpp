@@ -35,15 +35,16 @@ using Matrix4d = Eigen::Matrix<double, 4, 4>;
 // The model is a candidate only when enough samples carry a finite temperature with a usable
 // spread (batch_calibration.cpp chooses it by BIC among the candidates):
 // - at least kMinTemperatureSampleFraction of the samples (the fit then runs on those alone: a
-//   sample of unknown temperature has an unknown bias), and at least kMinTemperatureSamples;
-// - a standard deviation of at least kMinTemperatureSpread_C: the bias swing a coefficient of
-//   2 nT/degC (the top of the usual range) makes over a smaller spread is below the 9-parameter
-//   fit's own systematic error on the paper scenario (~1 nT, estimation.md section 7), and the
-//   coefficient's sigma grows as 1 / spread (measured, paper 12 h, 2 nT/degC: sigma(k) 0.027
-//   nT/degC at 10.6 degC std, 0.30 at 1 degC).
+//   sample of unknown temperature has an unknown bias; below half, that would discard most of
+//   the window) and at least kMinTemperatureSamples (a third of an orbit at the paper's 10 s: a
+//   floor chosen, not measured);
+// - a standard deviation of at least kMinTemperatureSpread_C. Paper 12 h, 2 nT/degC on every
+//   axis, 3 seeds each: at 0.5 degC std BIC took the model in 3/3 (the fit without it was up to
+//   2.7 sigma off on x); at 0.2 and 0.1 degC in 0/3, the fit without it within its sigmas. Below
+//   0.2 degC the extra fits are not run.
 constexpr double kMinTemperatureSampleFraction = 0.5;
 constexpr int kMinTemperatureSamples = 200;
-constexpr double kMinTemperatureSpread_C = 1.0;
+constexpr double kMinTemperatureSpread_C = 0.2;
 
 // The samples' temperatures: how many are finite, their mean and standard deviation.
 struct TemperatureSpread {
