@@ -63,7 +63,8 @@ struct BatchCalibrationOptions {
   bool model_extension = true;
   // Also fit the bias temperature coefficient k_T (pipeline/temperature_model.hpp) jointly with
   // b and D and keep it when BIC prefers it, where enough samples carry a temperature with a
-  // usable spread (then only those samples enter the fit).
+  // usable spread. When only some do, a result with the model rests on those alone (n_samples
+  // and the window count them); without it, on all samples.
   bool temperature_model = true;
   // Hard geometry limits (beyond them no estimate is reported: kUnobservable). The acceptance
   // gates have their own, stricter, thresholds for "computed but not trusted".
