@@ -16,6 +16,7 @@
 #include "pipeline/lm_refinement.hpp"
 #include "pipeline/model_extension.hpp"
 #include "pipeline/parameter_recovery.hpp"
+#include "pipeline/temperature_model.hpp"
 
 namespace magcal {
 
@@ -234,6 +235,12 @@ struct Stage1Solution {
   Matrix9d covariance_white = Matrix9d::Zero();
   Vector9d refused_extension_shift = Vector9d::Zero();  // p_ext - p_9 when BIC's pick is refused
   double mean_h_nT = 0.0;
+  // The model extension's columns when choose_model_by_bic() computed them.
+  std::vector<Vector6d> extension_regressors;
+  // The temperature model is a candidate (temperature_model_unusable() says nothing against it)
+  // about this reference temperature.
+  bool temperature_candidate = false;
+  double reference_temperature_C = 0.0;
 };
 
 LmOptions lm_options(const BatchCalibrationOptions& options, int min_samples) {
@@ -276,17 +283,20 @@ LmResult refine_from_best_start(const SampleSet& samples, const CenteredResult& 
 // outliers (spikes made BIC pick the extension and moved the bias by > 1000 nT);
 // calibrate_batch() refits without them. Where BIC prefers an extension of a sensor's size that
 // is not published, the two models' disagreement goes to s1->refused_extension_shift.
-void choose_model_by_bic(const SampleSet& samples, const LmOptions& lopt, LmResult* lm,
-                         Stage1Solution* s1, CalibrationResult* r) {
+// With lopt.temperature_model both fits carry the temperature columns. base9: the 9-parameter
+// fit, whose moments the extended fit reuses.
+void choose_model_by_bic(const SampleSet& samples, const LmOptions& lopt, const LmResult& base9,
+                         LmResult* lm, Stage1Solution* s1, CalibrationResult* r) {
   const RecoveryResult base = recover_parameters(lm->theta, &lm->theta_covariance);
   if (!base.ok()) return;
-  const std::vector<Vector6d> phi =
+  s1->extension_regressors =
       model_extension_regressors(extension_inputs(samples, base.parameters, lopt.sigma_nT));
+  const std::vector<Vector6d>& phi = s1->extension_regressors;
   // From the converged theta and a = 0 (linear in a) plain Gauss-Newton converges in ~3
   // iterations instead of ~5 with the default damping (paper scenario).
   LmOptions ext_options = lopt;
   ext_options.initial_lambda = 0.0;
-  LmResult ext = refine_lm_extended(samples, lm->theta, phi, ext_options, lm);
+  LmResult ext = refine_lm_extended(samples, lm->theta, phi, ext_options, &base9);
   const RecoveryResult extended = recover_parameters(ext.theta);
   // The published b, D alone (what calibration_t carries) must fit the data within
   // kMaxExtensionResidualRatio of the 9-parameter fit's residual: they are closer to the truth,
@@ -316,6 +326,90 @@ void choose_model_by_bic(const SampleSet& samples, const LmOptions& lopt, LmResu
     // at b, D (estimate_alignment).
     s1->refused_extension_shift = extended.parameters.packed() - base.parameters.packed();
     r->model_error = -s1->refused_extension_shift;  // a 9-parameter filter has the same doubt
+  }
+}
+
+// Publishes the temperature model a fit chose.
+void set_temperature_model(const Eigen::Vector3d& k_nT_per_C, const Eigen::Matrix3d& k_covariance,
+                           const Stage1Solution& s1, CalibrationResult* r) {
+  r->has_temperature_model = true;
+  r->reference_temperature_C = s1.reference_temperature_C;
+  r->temperature_coefficient_nT_per_C = k_nT_per_C;
+  r->temperature_coefficient_covariance = k_covariance;
+}
+
+// The refinement from base9 with the model extension's columns (s1.extension_regressors) and/or
+// the temperature columns.
+// The temperature columns are linearised at base9, then once more at that fit's estimate (the
+// 9-parameter fit of a thermal set can be tens of nT off, which would leave ~1 % of the scalar
+// noise in the columns).
+LmResult refine_with_columns(const SampleSet& samples, const LmOptions& lopt, const LmResult& base9,
+                             const Stage1Solution& s1, bool extension, bool temperature) {
+  LmOptions o = lopt;
+  o.temperature_model = temperature;
+  o.reference_temperature_C = s1.reference_temperature_C;
+  o.initial_lambda = 0.0;  // linear in the new terms: plain Gauss-Newton from base9
+  auto fit = [&] {
+    return extension ? refine_lm_extended(samples, base9.theta, s1.extension_regressors, o, &base9)
+                     : refine_lm(samples, base9.theta, o, &base9);
+  };
+  const RecoveryResult at_base = recover_parameters(base9.theta);
+  if (!temperature || !at_base.ok()) return fit();
+  o.temperature_linearisation = at_base.parameters;
+  LmResult first = fit();
+  const RecoveryResult at_first = recover_parameters(first.theta);
+  if (first.status != LmStatus::kOk || !at_first.ok()) return first;
+  o.temperature_linearisation = at_first.parameters;
+  return fit();
+}
+
+// Model choice by BIC, twostep, between the 9-parameter fit (base9), the sensor-model extension
+// and the bias temperature model (3 columns, fitted jointly with everything else):
+// - the extension is decided first, with the temperature columns in both its fits when BIC
+//   prefers them to the 9-parameter model (so that a temperature effect does not make the
+//   extension look wrong: paper scenario, +-15 degC, 1-2 nT/degC, where the extension decided
+//   without them was refused, the bias came out 16 nT off with the temperature model on top);
+// - the temperature model is then kept when BIC prefers it on top of the extension's choice (so
+//   that the orbit-periodic residual of the nonlinearity and hysteresis, which an
+//   orbit-synchronous temperature resembles, is not taken for a temperature effect).
+void choose_model_by_bic_with_temperature(const SampleSet& samples, const LmOptions& lopt,
+                                          const BatchCalibrationOptions& options,
+                                          const LmResult& base9, LmResult* lm, Stage1Solution* s1,
+                                          CalibrationResult* r) {
+  auto bic_prefers_temperature = [&](const LmResult& without, const LmResult& with) {
+    return with.status == LmStatus::kOk && recover_parameters(with.theta).ok() &&
+           bic_prefers_more_parameters(2.0 * without.cost, 2.0 * with.cost, r->n_samples, 3);
+  };
+  LmResult temperature_only = refine_with_columns(samples, lopt, base9, *s1, false, true);
+  const bool temperature_first = bic_prefers_temperature(base9, temperature_only);
+  LmOptions extension_options = lopt;
+  if (temperature_first) {
+    *lm = temperature_only;
+    extension_options.temperature_model = true;
+    extension_options.reference_temperature_C = s1->reference_temperature_C;
+    extension_options.temperature_linearisation = recover_parameters(lm->theta).parameters;
+  }
+  if (options.model_extension) {
+    choose_model_by_bic(samples, extension_options, base9, lm, s1, r);
+  }
+  const bool extension = r->has_nonlinearity;
+  LmResult without = extension && temperature_first
+                         ? refine_with_columns(samples, lopt, base9, *s1, true, false)
+                         : (temperature_first ? base9 : *lm);
+  LmResult with = extension ? refine_with_columns(samples, lopt, base9, *s1, true, true)
+                            : std::move(temperature_only);
+  const bool temperature = bic_prefers_temperature(without, with);
+  *lm = temperature ? std::move(with) : std::move(without);
+  if (lm->status != LmStatus::kOk) return;
+  if (temperature) {
+    set_temperature_model(lm->temperature_coefficient, lm->temperature_covariance, *s1, r);
+  }
+  if (extension) {  // the published extension is the final fit's
+    r->nonlinearity_k3 = lm->extension.head<3>();
+    r->hysteresis_nT = lm->extension.tail<3>();
+    r->extension_covariance = lm->extension_covariance;
+    const RecoveryResult p9 = recover_parameters(base9.theta), p = recover_parameters(lm->theta);
+    if (p9.ok() && p.ok()) r->model_error = p9.parameters.packed() - p.parameters.packed();
   }
 }
 
@@ -361,14 +455,36 @@ bool solve_stage1(const SampleSet& samples, const BatchCalibrationOptions& optio
                 "singular): use twostep");
       return false;
     }
-    s1->theta = centered.theta;
-    s1->covariance = centered.theta_covariance;
-    s1->covariance_white = centered.theta_covariance_white;
+    const CenteredResult* chosen = &centered;
+    CenteredResult with_temperature;
+    if (s1->temperature_candidate) {
+      // The temperature model's 4 columns in the same centered solve, kept when BIC prefers them.
+      CenteredOptions topt = copt;
+      topt.temperature_model = true;
+      topt.reference_temperature_C = s1->reference_temperature_C;
+      with_temperature = centered_solution(samples, topt);
+      if (with_temperature.status == CenteredStatus::kOk &&
+          bic_prefers_more_parameters(centered.chi2, with_temperature.chi2, r->n_samples, 4)) {
+        const RecoveryResult rec = recover_parameters(with_temperature.theta);
+        if (rec.ok()) {
+          chosen = &with_temperature;
+          Eigen::Vector3d k;
+          Eigen::Matrix3d k_covariance;
+          temperature_coefficient_from_terms(chosen->temperature_terms,
+                                             chosen->temperature_covariance, rec.parameters.D, &k,
+                                             &k_covariance);
+          set_temperature_model(k, k_covariance, *s1, r);
+        }
+      }
+    }
+    s1->theta = chosen->theta;
+    s1->covariance = chosen->theta_covariance;
+    s1->covariance_white = chosen->theta_covariance_white;
     r->iterations = 0;
     r->converged = true;
-    r->noise_scale = centered.noise_scale;
-    r->residual_autocorrelation = centered.residual_autocorrelation;
-    r->covariance_lag_window = centered.lag_window;
+    r->noise_scale = chosen->noise_scale;
+    r->residual_autocorrelation = chosen->residual_autocorrelation;
+    r->covariance_lag_window = chosen->lag_window;
     return true;
   }
   const LmOptions lopt = lm_options(options, copt.min_samples);
@@ -377,8 +493,13 @@ bool solve_stage1(const SampleSet& samples, const BatchCalibrationOptions& optio
     *r = fail(*r, CalibrationStatus::kUnobservable, lm.message);
     return false;
   }
-  if (options.model_extension && !options.robust && lm.status == LmStatus::kOk) {
-    choose_model_by_bic(samples, lopt, &lm, s1, r);
+  if (!options.robust && lm.status == LmStatus::kOk) {
+    const LmResult base9 = lm;
+    if (s1->temperature_candidate) {
+      choose_model_by_bic_with_temperature(samples, lopt, options, base9, &lm, s1, r);
+    } else if (options.model_extension) {
+      choose_model_by_bic(samples, lopt, base9, &lm, s1, r);
+    }
   }
   if (lm.status != LmStatus::kOk && lm.status != LmStatus::kNotConverged) {
     *r = fail(*r, CalibrationStatus::kFailed, lm.message);
@@ -503,9 +624,11 @@ void residual_evidence(const SampleSet& samples, const BatchCalibrationOptions& 
   }
 }
 
-CalibrationResult calibrate_batch_core(const SampleSet& samples,
-                                       const BatchCalibrationOptions& options,
-                                       const CalibrationResult* previous_accepted) {
+// One fit of the samples; temperature: the temperature model is a candidate, about its mean.
+CalibrationResult calibrate_batch_window(const SampleSet& samples,
+                                         const BatchCalibrationOptions& options,
+                                         const CalibrationResult* previous_accepted,
+                                         const TemperatureSpread* temperature) {
   CalibrationResult r;
   r.method = to_string(options.method);
   r.n_samples = static_cast<int>(samples.size());
@@ -525,6 +648,10 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
   Stage1Solution s1;
   for (const CalibrationSample& s : samples) s1.mean_h_nT += s.h_body_nT.norm();
   s1.mean_h_nT /= static_cast<double>(samples.size());
+  if (temperature) {
+    s1.temperature_candidate = true;
+    s1.reference_temperature_C = temperature->mean_C;
+  }
   if (!solve_stage1(samples, options, &r, &s1)) return r;
 
   const RecoveryResult rec = recover_parameters(s1.theta, &s1.covariance);
@@ -534,13 +661,22 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
       rec.covariance + s1.refused_extension_shift * s1.refused_extension_shift.transpose();
   r.covariance_white_noise = recover_parameters(s1.theta, &s1.covariance_white).covariance;
 
+  // Every later stage sees the samples as the published model explains them: with the fitted
+  // temperature term removed.
+  SampleSet temperature_corrected;
+  if (r.has_temperature_model) {
+    temperature_corrected = temperature_corrected_samples(
+        samples, r.parameters.D, r.temperature_coefficient_nT_per_C, r.reference_temperature_C);
+  }
+  const SampleSet& corrected = r.has_temperature_model ? temperature_corrected : samples;
+
   GateInputs gate_inputs;
   if (options.method == BatchCalibrationOptions::Method::kTwoStep && options.bias_correction) {
-    correct_estimator_bias(samples, options, &r);
+    correct_estimator_bias(corrected, options, &r);
   }
-  residual_evidence(samples, options, &r, &gate_inputs);
+  residual_evidence(corrected, options, &r, &gate_inputs);
 
-  const CrlbResult crlb = compute_crlb(samples, r.parameters, options.sigma_nT);
+  const CrlbResult crlb = compute_crlb(corrected, r.parameters, options.sigma_nT);
   r.fisher_condition_number = crlb.condition_number;
   r.status = r.converged ? CalibrationStatus::kOk : CalibrationStatus::kNotConverged;
   if (!(crlb.condition_number <= options.max_fisher_condition)) {
@@ -553,7 +689,7 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
   }
 
   if (options.alignment) {
-    estimate_alignment(samples, options.sigma_nT, options.min_alignment_samples, &r);
+    estimate_alignment(corrected, options.sigma_nT, options.min_alignment_samples, &r);
   }
 
   if (options.gates) {
@@ -564,12 +700,39 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
     // it is evidence for its gate.
     gate_inputs.unmodelled_effects =
         options.method == BatchCalibrationOptions::Method::kCentered &&
-        fit_extension_at_estimate(
-            samples, extension_inputs(samples, r.parameters, options.sigma_nT), options.sigma_nT)
+        fit_extension_at_estimate(corrected,
+                                  extension_inputs(corrected, r.parameters, options.sigma_nT),
+                                  options.sigma_nT)
             .supported;
     apply_verdict(r, evaluate_gates(r, gate_inputs, options.gate_options));
   }
   return r;
+}
+
+// The temperature model, where the samples allow it (temperature_model_unusable()), is chosen by
+// BIC within one fit; when only some samples carry a temperature, that fit runs on those alone
+// (a sample of unknown temperature has an unknown bias), and is kept only when it takes the
+// temperature model: otherwise all samples enter the fit without it.
+CalibrationResult calibrate_batch_core(const SampleSet& samples,
+                                       const BatchCalibrationOptions& options,
+                                       const CalibrationResult* previous_accepted) {
+  if (options.temperature_model) {
+    const TemperatureSpread spread = temperature_spread(samples);
+    if (temperature_model_unusable(spread, static_cast<int>(samples.size())).empty()) {
+      if (spread.n_with_temperature == static_cast<int>(samples.size())) {
+        return calibrate_batch_window(samples, options, previous_accepted, &spread);
+      }
+      SampleSet with_temperature;
+      with_temperature.reserve(static_cast<std::size_t>(spread.n_with_temperature));
+      for (const CalibrationSample& s : samples) {
+        if (std::isfinite(s.temperature_C)) with_temperature.push_back(s);
+      }
+      CalibrationResult r =
+          calibrate_batch_window(with_temperature, options, previous_accepted, &spread);
+      if (r.has_temperature_model) return r;
+    }
+  }
+  return calibrate_batch_window(samples, options, previous_accepted, nullptr);
 }
 }  // namespace
 
@@ -629,6 +792,7 @@ CalibrationResult calibrate_batch_robust(const SampleSet& samples,
   BatchCalibrationOptions outlier_pass = options;
   outlier_pass.method = BatchCalibrationOptions::Method::kTwoStep;  // the IRLS is in the LM
   outlier_pass.model_extension = false;
+  outlier_pass.temperature_model = false;
   outlier_pass.bias_correction = false;
   outlier_pass.alignment = false;
   outlier_pass.gates = false;

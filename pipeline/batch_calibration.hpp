@@ -7,6 +7,9 @@
 //      Levenberg–Marquardt refinement (2b; from an algebraic ellipsoid fit when the centered
 //      solution is degenerate), HAC covariance
 //   -> [twostep] model choice by BIC: the sensor-model extension (estimation.md section 7)
+//   -> model choice by BIC: the bias temperature coefficient (pipeline/temperature_model.hpp),
+//      where the samples carry temperatures; every later stage sees the samples with the
+//      temperature term removed
 //   -> recovery of b, D and their covariance (2c)
 //   -> [twostep] estimator bias: where noise is large against the coverage, a parametric
 //      bootstrap measures the bias of this estimator and removes it (see below)
@@ -58,6 +61,11 @@ struct BatchCalibrationOptions {
   // twostep: also fit the sensor-model extension (per-axis nonlinearity and hysteresis,
   // pipeline/model_extension.hpp) and keep it when BIC prefers it (off on white-noise data).
   bool model_extension = true;
+  // Also fit the bias temperature coefficient k_T (pipeline/temperature_model.hpp) jointly with
+  // b and D and keep it when BIC prefers it, where enough samples carry a temperature with a
+  // usable spread. When only some do, a result with the model rests on those alone (n_samples
+  // and the window count them); without it, on all samples.
+  bool temperature_model = true;
   // Hard geometry limits (beyond them no estimate is reported: kUnobservable). The acceptance
   // gates have their own, stricter, thresholds for "computed but not trusted".
   double min_coverage_eigenvalue = 1e-4;  // smallest eigenvalue of mean(d d^T), d = B/|B|

@@ -20,6 +20,7 @@
 #include <Eigen/Core>
 
 #include "pipeline/calibration_types.hpp"
+#include "pipeline/temperature_model.hpp"
 
 namespace magcal {
 
@@ -34,6 +35,10 @@ struct CenteredOptions {
   // white F~^-1 leaves out the error the unmodelled sensor effects cause (paper scenario, 12 h:
   // z bias up to 6 sigma off). Off for the LM start, whose covariance nobody reads.
   bool residual_covariance = false;
+  // Also estimate the bias temperature model's terms a jointly, as 4 more centered columns
+  // (pipeline/temperature_model.hpp) about this reference temperature (degC).
+  bool temperature_model = false;
+  double reference_temperature_C = 0.0;
   std::string validate() const;  // empty when valid
 };
 
@@ -58,6 +63,10 @@ struct CenteredResult {
   double noise_scale = std::numeric_limits<double>::quiet_NaN();
   double residual_autocorrelation = std::numeric_limits<double>::quiet_NaN();
   int lag_window = 0;
+  double chi2 = std::numeric_limits<double>::quiet_NaN();  // sum w e~^2 (residual_covariance)
+  // temperature_model: a = [kappa; beta] and its covariance (HAC with residual_covariance).
+  Vector4d temperature_terms = Vector4d::Zero();
+  Matrix4d temperature_covariance = Matrix4d::Zero();
   double condition_number = 0.0;  // of the scaled F~
   int n_samples = 0;
 };

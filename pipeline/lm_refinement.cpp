@@ -85,11 +85,13 @@ namespace {
 // is declared not converged.
 constexpr int kMaxMomentPasses = 5;
 
-// The samples as the scalar problem with NX extension columns sees them: the regressor row v_k
-// (scalar_moments_cost), the weight w_k and the robust weights u_k.
-template <int NX>
+// The samples as the scalar problem with NE model-extension and NT temperature columns (NX in
+// all) sees them: the regressor row v_k (scalar_moments_cost), the weight w_k and the robust
+// weights u_k.
+template <int NE, int NT>
 class ScalarProblem {
  public:
+  static constexpr int NX = NE + NT;
   static constexpr int P = 9 + NX;
   static constexpr int N = 11 + NX;
   using VectorP = Eigen::Matrix<double, P, 1>;
@@ -117,7 +119,11 @@ class ScalarProblem {
     v.template head<9>() = scalar_regressor(s.b_sensor_nT).transpose();
     v(9) = 1.0;
     v(10) = s.b_sensor_nT.squaredNorm() - h2 - mu_;
-    if constexpr (NX > 0) v.template tail<NX>() = (*phi_)[k].template head<NX>();
+    if constexpr (NE > 0) v.template segment<NE>(11) = (*phi_)[k].template head<NE>();
+    if constexpr (NT > 0) {
+      v.template tail<NT>() = temperature_columns_at(s, options_.temperature_linearisation,
+                                                     options_.reference_temperature_C);
+    }
     v(10) = v.dot(c_ref);  // r_k at the reference (c_ref(10) = 1)
     if (options_.robust) {
       // Robust: |y_k|^2 = r_k + |h_k|^2 + mu at the reference estimate (estimation.md 2, second
@@ -258,10 +264,11 @@ std::string check_inputs(const SampleSet& samples, const Vector9d& theta0, const
   return {};
 }
 
-template <int NX>
+template <int NE, int NT>
 LmResult refine(const SampleSet& samples, const Vector9d& theta0, const LmOptions& options,
                 const std::vector<Vector6d>* phi, const LmResult* base) {
-  using Problem = ScalarProblem<NX>;
+  using Problem = ScalarProblem<NE, NT>;
+  constexpr int NX = Problem::NX;
   constexpr int P = Problem::P;
   using VectorP = typename Problem::VectorP;
   using MatrixP = typename Problem::MatrixP;
@@ -358,7 +365,8 @@ LmResult refine(const SampleSet& samples, const Vector9d& theta0, const LmOption
   res.n_downweighted = n_down;
   res.robust_scale = problem.scale();
   res.theta = x.template head<9>();
-  if constexpr (NX > 0) res.extension = x.template tail<NX>();
+  if constexpr (NE > 0) res.extension = x.template segment<NE>(9);
+  if constexpr (NT > 0) res.temperature_coefficient = x.template tail<NT>();
   res.cost = 0.5 * chi2;
   const VectorP d = F.diagonal();
   if (!(d.minCoeff() > 0.0)) {
@@ -379,7 +387,10 @@ LmResult refine(const SampleSet& samples, const Vector9d& theta0, const LmOption
                         eig.eigenvectors().transpose() * s_inv.asDiagonal();
   res.theta_covariance_white = F_inv.template topLeftCorner<9, 9>();
   res.theta_covariance = res.theta_covariance_white;
-  if constexpr (NX > 0) res.extension_covariance = F_inv.template bottomRightCorner<NX, NX>();
+  if constexpr (NE > 0) res.extension_covariance = F_inv.template block<NE, NE>(9, 9);
+  if constexpr (NT > 0) {
+    res.temperature_covariance = F_inv.template bottomRightCorner<NT, NT>();
+  }
   const double dof = static_cast<double>(samples.size()) - P;
   res.n_parameters = P;
   res.noise_scale = std::sqrt(chi2 / dof);
@@ -402,10 +413,14 @@ LmResult refine(const SampleSet& samples, const Vector9d& theta0, const LmOption
       const MatrixP hac_full = F_inv * omega * F_inv;
       const Matrix9d hac = hac_full.template topLeftCorner<9, 9>();
       res.theta_covariance = covariance_not_below(res.theta_covariance_white, hac);
-      if constexpr (NX > 0) {
-        const Eigen::Matrix<double, NX, NX> hac_extension =
-            hac_full.template bottomRightCorner<NX, NX>();
+      if constexpr (NE > 0) {
+        const Matrix6d hac_extension = hac_full.template block<NE, NE>(9, 9);
         res.extension_covariance = covariance_not_below(res.extension_covariance, hac_extension);
+      }
+      if constexpr (NT > 0) {
+        const Eigen::Matrix3d hac_temperature = hac_full.template bottomRightCorner<NT, NT>();
+        res.temperature_covariance =
+            covariance_not_below(res.temperature_covariance, hac_temperature);
       }
     }
   }
@@ -421,8 +436,10 @@ LmResult refine(const SampleSet& samples, const Vector9d& theta0, const LmOption
 
 }  // namespace
 
-LmResult refine_lm(const SampleSet& samples, const Vector9d& theta0, const LmOptions& options) {
-  return refine<0>(samples, theta0, options, nullptr, nullptr);
+LmResult refine_lm(const SampleSet& samples, const Vector9d& theta0, const LmOptions& options,
+                   const LmResult* base) {
+  if (options.temperature_model) return refine<0, 3>(samples, theta0, options, nullptr, base);
+  return refine<0, 0>(samples, theta0, options, nullptr, nullptr);
 }
 
 LmResult refine_lm_extended(const SampleSet& samples, const Vector9d& theta0,
@@ -433,7 +450,10 @@ LmResult refine_lm_extended(const SampleSet& samples, const Vector9d& theta0,
     res.message = "extension regressors: one row per sample required";
     return res;
   }
-  return refine<6>(samples, theta0, options, &extension_regressors, base);
+  if (options.temperature_model) {
+    return refine<6, 3>(samples, theta0, options, &extension_regressors, base);
+  }
+  return refine<6, 0>(samples, theta0, options, &extension_regressors, base);
 }
 
 }  // namespace magcal

@@ -31,6 +31,7 @@
 #include <Eigen/Core>
 
 #include "pipeline/calibration_types.hpp"
+#include "pipeline/temperature_model.hpp"
 
 namespace magcal {
 
@@ -46,6 +47,11 @@ struct LmOptions {
   // Report the HAC (Newey–West) covariance, never below the white-noise one
   // (pipeline/hac_covariance.hpp); false: the white-noise inverse information only.
   bool hac = true;
+  // Also fit the bias temperature coefficient k (pipeline/temperature_model.hpp: columns
+  // 2 (T - T0) y_k, y_k at temperature_linearisation) about this reference temperature T0, degC.
+  bool temperature_model = false;
+  double reference_temperature_C = 0.0;
+  CalibrationParameters temperature_linearisation;
   std::string validate() const;  // empty when valid
 };
 
@@ -70,10 +76,14 @@ struct LmResult {
   double residual_autocorrelation = 0.0;  // lag 1, normalised residuals, sample order
   int lag_window = 0;                     // HAC Bartlett lag window (samples)
   std::vector<double> robust_weights;     // robust mode: u_k per sample (1 = kept unchanged)
-  int n_parameters = 9;                   // 9, or 15 with the model extension
+  int n_parameters = 9;  // 9, + 6 with the model extension, + 4 with the temperature model
   Vector6d extension = Vector6d::Zero();  // refine_lm_extended: the coefficients a
   // Marginal covariance of a: the HAC one not below the white-noise one (as theta_covariance).
   Matrix6d extension_covariance = Matrix6d::Zero();
+  // options.temperature_model: the temperature coefficient k (nT/degC) and its marginal
+  // covariance (as extension_covariance).
+  Eigen::Vector3d temperature_coefficient = Eigen::Vector3d::Zero();
+  Eigen::Matrix3d temperature_covariance = Eigen::Matrix3d::Zero();
   // M = sum w u v^T v of the fit's samples about theta_ref (scalar_moments_cost, 9-parameter
   // rows): without robust weights refine_lm_extended takes it instead of summing that block again.
   Eigen::Matrix<double, 11, 11> moments = Eigen::Matrix<double, 11, 11>::Zero();
@@ -148,11 +158,15 @@ bool scalar_moments_cost(const Eigen::Matrix<double, 11 + NX, 11 + NX>& M,
 }
 
 // Refines theta0 (e.g. the centered solution, or zero). When I + E is not positive definite at
-// theta0 the refinement starts from [c; 0].
-LmResult refine_lm(const SampleSet& samples, const Vector9d& theta0, const LmOptions& options = {});
+// theta0 the refinement starts from [c; 0]. options.temperature_model: with the 3 temperature
+// columns (r_k gains - phi_k^T k as below, phi_k = temperature_columns_at()).
+// base: as for refine_lm_extended (only used with the temperature columns).
+LmResult refine_lm(const SampleSet& samples, const Vector9d& theta0, const LmOptions& options = {},
+                   const LmResult* base = nullptr);
 
 // The same refinement with 6 linear model-extension columns phi_k (fixed per sample, e.g. the
-// sensor nonlinearity and hysteresis terms of pipeline/model_extension.hpp):
+// sensor nonlinearity and hysteresis terms of pipeline/model_extension.hpp), and the temperature
+// columns after them when options.temperature_model:
 //   r_k = z_k - mu_k - L_k theta + |b(theta)|^2 - phi_k^T a,   unknowns [theta; a], a0 = 0.
 // theta_covariance(_white) are the marginal 9x9 blocks (a estimated jointly).
 // base: a non-robust refine_lm on the same samples and sigma (or nullptr), whose moments are

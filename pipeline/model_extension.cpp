@@ -180,10 +180,15 @@ std::vector<Eigen::Vector3d> extension_corrected_vectors(const ExtensionInputs& 
   return x;
 }
 
-bool bic_prefers_extension(double chi2_base, double chi2_extended, int n_samples) {
-  if (!(chi2_base > 0.0) || !(chi2_extended > 0.0) || n_samples < 20) return false;
+bool bic_prefers_more_parameters(double chi2_base, double chi2_more, int n_samples,
+                                 int n_extra_parameters) {
+  if (!(chi2_base > 0.0) || !(chi2_more > 0.0) || n_samples < 20) return false;
   const double n = static_cast<double>(n_samples);
-  return n * std::log(chi2_base / chi2_extended) > 6.0 * std::log(n);
+  return n * std::log(chi2_base / chi2_more) > n_extra_parameters * std::log(n);
+}
+
+bool bic_prefers_extension(double chi2_base, double chi2_extended, int n_samples) {
+  return bic_prefers_more_parameters(chi2_base, chi2_extended, n_samples, 6);
 }
 
 bool extension_effects_small(const Vector6d& a, double mean_h_nT, double max_fraction) {

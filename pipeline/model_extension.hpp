@@ -59,6 +59,10 @@ std::vector<Eigen::Vector3d> extension_corrected_vectors(const ExtensionInputs& 
                                                          const Eigen::Vector3d& k_per_nT,
                                                          const Eigen::Vector3d& eta_nT);
 
+// BIC prefers a model with n_extra_parameters more (chi-square chi2_more) to the base one:
+//   n ln(chi2_base / chi2_more) > n_extra_parameters ln n.
+bool bic_prefers_more_parameters(double chi2_base, double chi2_more, int n_samples,
+                                 int n_extra_parameters);
 // BIC prefers the 6 extra parameters when this is true.
 bool bic_prefers_extension(double chi2_base, double chi2_extended, int n_samples);
 

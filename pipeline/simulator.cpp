@@ -3,8 +3,8 @@
 #include <cassert>
 #include <cmath>
 
-#include "pipeline/time_utc.hpp"
 #include "pipeline/rotation.hpp"
+#include "pipeline/time_utc.hpp"
 
 namespace magcal {
 
@@ -30,6 +30,7 @@ CalibrationSample SimulatedSample::calibration_sample() const {
   s.b_sensor_nT = b_sensor_nT;
   s.h_body_nT = h_body_reported_nT;
   s.has_reference_direction = true;
+  s.temperature_C = temperature_C;
   return s;
 }
 

@@ -26,6 +26,9 @@ std::string EvaluationOptions::validate() const {
     return "online_hours must exceed offline_hours (warm starts filter the data after the "
            "offline window)";
   }
+  if (thermal && (!(thermal_amplitude_C > 0.0) || !thermal_coefficient_nT_per_C.allFinite())) {
+    return "thermal: the amplitude must be positive and the coefficient finite";
+  }
   return scenario.validate();
 }
 
@@ -129,6 +132,19 @@ struct Accumulator {
   }
 };
 
+// A batch result in its row: failed / unobservable runs count as having no estimate.
+void add_batch_result(const CalibrationResult& r, double compute_ms, const TruthParameters& truth,
+                      const CrlbResult& crlb, std::size_t n_samples, Accumulator* acc) {
+  if (r.status == CalibrationStatus::kFailed || r.status == CalibrationStatus::kUnobservable) {
+    return;
+  }
+  acc->compute += compute_ms;
+  acc->add_estimate(r.parameters, r.covariance, truth, crlb);
+  if (!r.accepted || r.status != CalibrationStatus::kOk) ++acc->stats.runs_rejected;
+  if (r.has_alignment) acc->add_alignment(r.alignment.R_sensor_from_body, truth);
+  acc->stats.memory_bytes = static_cast<double>(n_samples * sizeof(CalibrationSample));
+}
+
 template <typename Filter>
 void run_filter(Filter& filter, const SampleSet& samples, std::size_t begin, Accumulator& acc,
                 const TruthParameters& truth, const CrlbResult& crlb) {
@@ -152,6 +168,41 @@ void run_filter(Filter& filter, const SampleSet& samples, std::size_t begin, Acc
   }
 }
 
+// The thermal rows of one run: the run's scenario (same seed) with the thermal options, its
+// offline span fitted by centered+LM without (no_model) and with (with_model) the bias
+// temperature model; both against the true bias at the samples' mean temperature.
+void run_thermal(const EvaluationOptions& options, Scenario sc, double sigma, Accumulator* no_model,
+                 Accumulator* with_model) {
+  sc.duration_s = options.offline_hours * 3600.0;
+  sc.sensor.temperature_amplitude_C = options.thermal_amplitude_C;
+  sc.sensor.temperature_period_s = 0.0;  // orbit-synchronous
+  sc.sensor.temperature_coefficient_nT_per_C = options.thermal_coefficient_nT_per_C;
+  Simulator sim(sc);
+  TruthParameters truth = sim.truth();
+  SampleSet samples;
+  samples.reserve(static_cast<std::size_t>(sim.sample_count()));
+  SimulatedSample ss;
+  double sum_T = 0.0;
+  while (sim.next(&ss)) {
+    samples.push_back(ss.calibration_sample());
+    sum_T += ss.temperature_C;
+  }
+  truth.bias_nT += truth.temperature_coefficient_nT_per_C *
+                   (sum_T / static_cast<double>(samples.size()) - truth.reference_temperature_C);
+  CalibrationParameters truth_p;
+  truth_p.bias_nT = truth.bias_nT;
+  truth_p.D = truth.D;
+  const CrlbResult crlb = compute_crlb(samples, truth_p, sigma);
+  for (Accumulator* acc : {no_model, with_model}) {
+    BatchCalibrationOptions bo;
+    bo.sigma_nT = sigma;
+    bo.temperature_model = acc == with_model;
+    const auto t0 = Clock::now();
+    const CalibrationResult r = calibrate_batch(samples, bo);
+    add_batch_result(r, ms_since(t0), truth, crlb, samples.size(), acc);
+  }
+}
+
 }  // namespace
 
 EvaluationReport run_evaluation(const EvaluationOptions& options) {
@@ -168,7 +219,8 @@ EvaluationReport run_evaluation(const EvaluationOptions& options) {
   const std::string on = fmt::format("{:g} h", options.online_hours);
   const std::string warm = fmt::format("{:g} h + {:g} h", options.offline_hours,
                                        options.online_hours - options.offline_hours);
-  std::vector<Accumulator> acc(options.online ? 8 : 4);
+  const int thermal_row = options.online ? 8 : 4;
+  std::vector<Accumulator> acc(static_cast<std::size_t>(thermal_row + (options.thermal ? 2 : 0)));
   auto label = [&](int i, const char* method, const std::string& data, PaperFigures paper) {
     acc[i].stats.method = method;
     acc[i].stats.data = data;
@@ -186,6 +238,11 @@ EvaluationReport run_evaluation(const EvaluationOptions& options) {
     label(5, tuned ? "EKF warm (sigma=refit rms)" : "EKF warm", warm, paper_ekf());
     label(6, tuned ? "UKF data start (sigma=refit rms)" : "UKF data start", on, paper_ukf());
     label(7, tuned ? "UKF warm (sigma=refit rms)" : "UKF warm", warm, paper_ukf());
+  }
+  if (options.thermal) {
+    const std::string thermal = fmt::format("{} +-{:g}C", off, options.thermal_amplitude_C);
+    label(thermal_row, "LM thermal, no k_T", thermal, {});
+    label(thermal_row + 1, "LM thermal + k_T", thermal, {});
   }
 
   for (int run = 0; run < options.runs; ++run) {
@@ -215,17 +272,13 @@ EvaluationReport run_evaluation(const EvaluationOptions& options) {
       bo.sigma_nT = sigma;
       const auto t0 = Clock::now();
       const CalibrationResult r = calibrate_batch(offline, bo);
-      const double t = ms_since(t0);
-      if (r.status == CalibrationStatus::kFailed || r.status == CalibrationStatus::kUnobservable) {
-        continue;
+      add_batch_result(r, ms_since(t0), truth, crlb_off, n_off, &acc[m]);
+      if (m == 1 && r.status != CalibrationStatus::kFailed &&
+          r.status != CalibrationStatus::kUnobservable) {
+        lm_result = r;
       }
-      acc[m].compute += t;
-      acc[m].add_estimate(r.parameters, r.covariance, truth, crlb_off);
-      if (!r.accepted || r.status != CalibrationStatus::kOk) ++acc[m].stats.runs_rejected;
-      if (r.has_alignment) acc[m].add_alignment(r.alignment.R_sensor_from_body, truth);
-      acc[m].stats.memory_bytes = static_cast<double>(n_off * sizeof(CalibrationSample));
-      if (m == 1) lm_result = r;
     }
+    if (options.thermal) run_thermal(options, sc, sigma, &acc[thermal_row], &acc[thermal_row + 1]);
     if (lm_result.status != CalibrationStatus::kFailed) {
       const std::vector<AlignmentPair> pairs = make_alignment_pairs(offline, lm_result.parameters);
       auto t0 = Clock::now();

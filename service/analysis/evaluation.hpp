@@ -17,7 +17,8 @@
 //   compute        wall time per run of the method (ms)
 // Online methods run with their default settings from a data start over the whole online span,
 // and warm (seeded, state, covariance and noise, from the centered+LM refit of the offline
-// window, then filtering the samples after it), side by side (estimation.md 3a).
+// window, then filtering the samples after it), side by side (estimation.md 3a). The thermal
+// rows (EvaluationOptions::thermal) run centered+LM on the offline span of a thermal variant.
 #pragma once
 
 #include <cstdint>
@@ -25,6 +26,7 @@
 #include <string>
 #include <vector>
 
+#include <Eigen/Core>
 #include <nlohmann/json.hpp>
 
 #include "pipeline/scenario.hpp"
@@ -42,6 +44,13 @@ struct EvaluationOptions {
   // centered+LM refit when larger than the white noise. Default: sigma_nT = the white noise and
   // the filters estimate the effective noise themselves (filter_common.hpp).
   bool filter_sigma_from_residual = false;
+  // Two more centered+LM rows on a thermal variant of each run (the scenario with an
+  // orbit-synchronous temperature of +-thermal_amplitude_C and a bias temperature coefficient
+  // thermal_coefficient_nT_per_C), without and with the bias temperature model, against the true
+  // bias at the fit's reference temperature (the samples' mean temperature).
+  bool thermal = true;
+  double thermal_amplitude_C = 15.0;
+  Eigen::Vector3d thermal_coefficient_nT_per_C = Eigen::Vector3d(1.0, -0.8, 1.2);
   std::string validate() const;
 };
 

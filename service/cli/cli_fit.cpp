@@ -234,6 +234,13 @@ void print_text(const CalibrationResult& r, double compute_ms, double convergenc
   }
   line("D_sigma", fmt::format("{:.2e} {:.2e} {:.2e} {:.2e} {:.2e} {:.2e}", sd(3), sd(4), sd(5),
                               sd(6), sd(7), sd(8)));
+  if (r.has_temperature_model) {  // bias_nT is then the bias at the reference temperature
+    const Eigen::Vector3d k = r.temperature_coefficient_nT_per_C;
+    const Eigen::Vector3d ks = r.temperature_coefficient_sigma_nT_per_C();
+    line("reference_temp_C", fmt::format("{:.3f}", r.reference_temperature_C));
+    line("temp_coeff_nT/C", fmt::format("{:12.4f} {:12.4f} {:12.4f}", k.x(), k.y(), k.z()));
+    line("temp_coeff_sigma", fmt::format("{:12.4f} {:12.4f} {:12.4f}", ks.x(), ks.y(), ks.z()));
+  }
   if (r.has_alignment) {
     const Eigen::Matrix3d& R = r.alignment.R_sensor_from_body;
     for (int i = 0; i < 3; ++i) {

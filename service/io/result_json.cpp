@@ -46,6 +46,12 @@ nlohmann::json calibration_result_to_json(const CalibrationResult& result,
   j["bias_sigma_nT"] = json_vector(sigma.head<3>());
   j["D_sigma"] = json_vector(sigma.tail<6>());
   j["covariance"] = json_matrix(result.covariance);
+  if (result.has_temperature_model) {  // bias_nT is the bias at reference_temperature_C
+    j["reference_temperature_C"] = json_number(result.reference_temperature_C);
+    j["temperature_coefficient_nT_per_C"] = json_vector(result.temperature_coefficient_nT_per_C);
+    j["temperature_coefficient_sigma_nT_per_C"] =
+        json_vector(result.temperature_coefficient_sigma_nT_per_C());
+  }
   if (result.has_alignment) {
     const Eigen::Matrix3d& R = result.alignment.R_sensor_from_body;
     const Eigen::Matrix3d& covariance = result.alignment.angle_covariance_rad2;

@@ -224,7 +224,7 @@ CsvReadResult read_sample_csv(const std::string& path) {
       if (ok) row.extras.r_ecef_m = rr;
     }
     double tc = 0.0;
-    if (temp >= 0 && field(temp, &tc)) row.extras.temperature_C = tc;
+    if (temp >= 0 && field(temp, &tc)) row.extras.temperature_C = row.sample.temperature_C = tc;
     const auto [seen, first] =
         row_of_utime.try_emplace(row.sample.utime, result.rows.size(), line_no);
     if (!first) {
@@ -478,6 +478,7 @@ CalibrationSample to_calibration_sample(const mag_sample_t& msg) {
   CalibrationSample s;
   s.utime = msg.utime;
   s.b_sensor_nT = Eigen::Vector3d(msg.b_sensor_nT[0], msg.b_sensor_nT[1], msg.b_sensor_nT[2]);
+  s.temperature_C = static_cast<double>(msg.temperature_C);  // NaN: unknown
   if (msg.has_reference) {
     s.h_body_nT = Eigen::Vector3d(msg.h_body_nT[0], msg.h_body_nT[1], msg.h_body_nT[2]);
     s.has_reference_direction = true;

@@ -41,7 +41,9 @@ struct CsvSampleExtras {
 };
 
 struct CsvSampleRow {
-  CalibrationSample sample;  // utime = round(t_s * 1e6); has_reference_direction = true
+  // utime = round(t_s * 1e6); has_reference_direction = true; temperature_C from the column
+  // (NaN when absent or empty).
+  CalibrationSample sample;
   CsvSampleExtras extras;
 };
 
@@ -149,7 +151,8 @@ struct LcmReadResult {
 // (their indices in `samples` order and their seq).
 LcmReadResult read_sample_lcm_log(const std::string& path, const LcmReadOptions& options = {});
 
-// Conversion used by `magcal fit`: has_reference => h_body_nT with direction; otherwise
+// Conversion used by `magcal fit` (temperature_C carried over, NaN = unknown): has_reference =>
+// h_body_nT with direction; otherwise
 // has_reference_direction = false and h_body_nT is left zero (the caller computes |h| from
 // IGRF at r_ecef).
 CalibrationSample to_calibration_sample(const mag_sample_t& msg);

@@ -184,6 +184,56 @@ TEST_CASE("fit --json on a CSV prints design.md's keys and recovers the paramete
   std::filesystem::remove(csv);
 }
 
+TEST_CASE("fit on thermal data (CSV temperature_C, LCM temperature_C): the temperature keys",
+          "[cli][fit]") {
+  // magcal sim of the paper scenario with +-15 degC orbit-synchronous and 1 nT/degC-sized
+  // coefficients; truth from its --truth file.
+  const auto toml = temp_path("thermal.toml");
+  const auto truth = temp_path("thermal_truth.json");
+  {
+    std::ofstream f(toml);
+    f << "base = \"paper\"\nduration_h = 12\nseed = 7\n[sensor]\n"
+         "temperature_coefficient_nT_per_C = [1.0, -0.8, 1.2]\nreference_temperature_C = 20\n"
+         "[temperature]\nmean_C = 20\namplitude_C = 15\nperiod_s = 0\n";
+  }
+  for (const char* ext : {"csv", "lcm"}) {
+    const auto data = temp_path(std::string("thermal.") + ext);
+    REQUIRE(run_magcal("sim --scenario " + toml.string() + " --out " + data.string() + " --truth " +
+                       truth.string())
+                .exit_code == 0);
+    std::ifstream tf(truth);
+    const nlohmann::json t = nlohmann::json::parse(tf);
+    const Run r = run_magcal("fit --input " + data.string() + " --method twostep --json");
+    INFO(ext << ": " << r.err);
+    REQUIRE(r.exit_code == 0);
+    const nlohmann::json j = nlohmann::json::parse(r.out);
+    REQUIRE(j.contains("temperature_coefficient_nT_per_C"));
+    REQUIRE(j.contains("temperature_coefficient_sigma_nT_per_C"));
+    REQUIRE(j.contains("reference_temperature_C"));
+    CHECK(j["verdict"] == "accepted");
+    const double T0 = j["reference_temperature_C"].get<double>();
+    for (int i = 0; i < 3; ++i) {
+      const double k = t["temperature_coefficient_nT_per_C"][i].get<double>();
+      const double b_T0 =
+          t["bias_nT"][i].get<double>() + k * (T0 - t["reference_temperature_C"].get<double>());
+      CHECK(std::abs(j["bias_nT"][i].get<double>() - b_T0) <=
+            3.0 * j["bias_sigma_nT"][i].get<double>());
+      CHECK(std::abs(j["temperature_coefficient_nT_per_C"][i].get<double>() - k) <=
+            3.0 * j["temperature_coefficient_sigma_nT_per_C"][i].get<double>());
+    }
+    std::filesystem::remove(data);
+  }
+  // Without temperatures (model_data writes none): no temperature keys.
+  const auto csv = temp_path("no_temperature.csv");
+  REQUIRE(write_sample_csv(csv.string(), model_data(600, 3.0, 1)).empty());
+  const Run r = run_magcal("fit --input " + csv.string() + " --method twostep --json");
+  REQUIRE(r.exit_code == 0);
+  CHECK_FALSE(nlohmann::json::parse(r.out).contains("temperature_coefficient_nT_per_C"));
+  std::filesystem::remove(csv);
+  std::filesystem::remove(toml);
+  std::filesystem::remove(truth);
+}
+
 TEST_CASE("fit --robust reports down-weighted samples", "[cli][fit]") {
   SampleSet s = model_data(600, 3.0, 2);
   for (int k = 0; k < 600; k += 100) s[k].b_sensor_nT(0) += 5000.0;

@@ -1,0 +1,64 @@
+#include "pipeline/temperature_model.hpp"
+
+#include <cmath>
+#include <cstdio>
+
+#include <Eigen/Dense>
+
+namespace magcal {
+
+TemperatureSpread temperature_spread(const SampleSet& samples) {
+  TemperatureSpread out;
+  double sum = 0.0;
+  for (const CalibrationSample& s : samples) {
+    if (!std::isfinite(s.temperature_C)) continue;
+    ++out.n_with_temperature;
+    sum += s.temperature_C;
+  }
+  if (out.n_with_temperature == 0) return out;
+  out.mean_C = sum / out.n_with_temperature;
+  double sum_sq = 0.0;  // about the mean: no cancellation at large mean temperatures
+  for (const CalibrationSample& s : samples) {
+    if (std::isfinite(s.temperature_C)) sum_sq += std::pow(s.temperature_C - out.mean_C, 2);
+  }
+  out.std_C = std::sqrt(sum_sq / out.n_with_temperature);
+  return out;
+}
+
+std::string temperature_model_unusable(const TemperatureSpread& spread, int n_samples) {
+  char buf[160];
+  if (spread.n_with_temperature < kMinTemperatureSamples ||
+      spread.n_with_temperature < kMinTemperatureSampleFraction * n_samples) {
+    std::snprintf(buf, sizeof buf, "%d of %d samples carry a temperature",
+                  spread.n_with_temperature, n_samples);
+    return buf;
+  }
+  if (!(spread.std_C >= kMinTemperatureSpread_C)) {
+    std::snprintf(buf, sizeof buf, "temperature spread %.2g degC < %.2g degC", spread.std_C,
+                  kMinTemperatureSpread_C);
+    return buf;
+  }
+  return {};
+}
+
+void temperature_coefficient_from_terms(const Vector4d& a, const Matrix4d& a_covariance,
+                                        const Eigen::Matrix3d& D, Eigen::Vector3d* k_nT_per_C,
+                                        Eigen::Matrix3d* k_covariance) {
+  const Eigen::Matrix3d to_k = (Eigen::Matrix3d::Identity() + D).inverse();
+  *k_nT_per_C = to_k * a.head<3>();
+  *k_covariance = to_k * a_covariance.topLeftCorner<3, 3>() * to_k.transpose();
+}
+
+SampleSet temperature_corrected_samples(const SampleSet& samples, const Eigen::Matrix3d& D,
+                                        const Eigen::Vector3d& k_nT_per_C,
+                                        double reference_temperature_C) {
+  const Eigen::Vector3d shift_per_C = (Eigen::Matrix3d::Identity() + D).inverse() * k_nT_per_C;
+  SampleSet out = samples;
+  for (CalibrationSample& s : out) {
+    const double dT = s.temperature_C - reference_temperature_C;
+    if (std::isfinite(dT)) s.b_sensor_nT -= dT * shift_per_C;
+  }
+  return out;
+}
+
+}  // namespace magcal
