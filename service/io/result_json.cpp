@@ -99,12 +99,6 @@ nlohmann::json calibration_result_to_json(const CalibrationResult& result,
     j["nonlinearity_k3"] = json_vector(result.nonlinearity_k3);  // of k_i y_i^2, 1/nT
     j["hysteresis_nT"] = json_vector(result.hysteresis_nT);
   }
-  if (result.has_temperature_model) {  // bias_nT is then the bias at reference_temperature_C
-    j["reference_temperature_C"] = json_number(result.reference_temperature_C);
-    j["temperature_coefficient_nT_per_C"] = json_vector(result.temperature_coefficient_nT_per_C);
-    j["temperature_coefficient_sigma_nT_per_C"] =
-        json_vector(result.temperature_coefficient_sigma_nT_per_C());
-  }
   j["nis_mean"] = json_number(result.nis_mean);
   j["measurement_noise_nT"] = json_number(result.measurement_noise_nT);
   j["message"] = result.message;
