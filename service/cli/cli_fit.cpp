@@ -29,6 +29,7 @@
 #include "pipeline/magnetometer_ukf.hpp"
 #include "pipeline/roll_pitch_yaw_report.hpp"
 #include "pipeline/rotation.hpp"
+#include "pipeline/temperature_model.hpp"
 #include "service/cli/cli_commands.hpp"
 #include "service/io/field_recording.hpp"
 #include "service/io/reference_field.hpp"
@@ -366,6 +367,20 @@ int run_fit(const FitArgs& args) {
         args.expected_residual_nT ? *args.expected_residual_nT
                                   : std::max(opt.gate_options.expected_residual_nT, args.sigma_nT);
     r = calibrate_batch(samples, opt);
+    // Temperatures that vary but are too few for the model leave a thermal bias unmodelled: say
+    // so (the fit itself cannot tell a thermal swing it does not model from noise).
+    const TemperatureSpread spread = temperature_spread(samples);
+    if (!r.has_temperature_model && spread.n_with_temperature > 0 &&
+        spread.std_C >= kMinTemperatureSpread_C) {
+      if (const std::string why =
+              temperature_model_unusable(spread, static_cast<int>(samples.size()));
+          !why.empty()) {
+        std::cerr << fmt::format(
+            "magcal fit: note: {}: too few for the bias temperature model (at least {:.0f} % and "
+            "{} samples); a thermal bias (temperature spread {:.2g} degC) stays unmodelled\n",
+            why, 100.0 * kMinTemperatureSampleFraction, kMinTemperatureSamples, spread.std_C);
+      }
+    }
   } else {
     BatchCalibrationOptions check;  // same input validation as the batch path
     if (static_cast<int>(samples.size()) < check.min_samples) {

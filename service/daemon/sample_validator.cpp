@@ -4,6 +4,7 @@
 #include <cmath>
 
 #include "pipeline/time_utc.hpp"
+#include "service/io/sample_files.hpp"
 
 namespace magcal {
 namespace {
@@ -62,9 +63,7 @@ std::optional<CalibrationSample> to_reference_sample(const mag_sample_t& s, Refe
   CalibrationSample out;
   out.utime = s.utime;
   out.b_sensor_nT = vec3(s.b_sensor_nT);
-  const double temperature_C = static_cast<double>(s.temperature_C);
-  if (temperature_C >= kMinPlausibleTemperature_C && temperature_C <= kMaxPlausibleTemperature_C)
-    out.temperature_C = temperature_C;  // (NaN fails both comparisons: stays unknown)
+  out.temperature_C = plausible_temperature_C(static_cast<double>(s.temperature_C));
   if (s.has_reference) {
     out.h_body_nT = vec3(s.h_body_nT);
     out.has_reference_direction = true;

@@ -48,14 +48,9 @@ inline const std::string& sample_sat_id(const mag_sample_t& s, const std::string
   return s.sat_id.empty() ? batch_sat_id : s.sat_id;
 }
 
-// A sensor temperature outside this range (deg C) is a telemetry fault, not a reading: beyond
-// what space-qualified parts survive (-55..125 deg C) with a wide margin. Such a temperature,
-// like a NaN or Inf one, is taken as unknown; the field reading itself stays valid.
-constexpr double kMinPlausibleTemperature_C = -150.0;
-constexpr double kMaxPlausibleTemperature_C = 200.0;
-
 // The sample as the estimators and the store see it, with its reference field and its
-// temperature (NaN when unknown or implausible); nullopt when IGRF refuses the date (reason
+// temperature (NaN when unknown or implausible: plausible_temperature_C, service/io/sample_files;
+// the field reading itself stays valid); nullopt when IGRF refuses the date (reason
 // reference_failed). `field` is used only without has_reference.
 std::optional<CalibrationSample> to_reference_sample(const mag_sample_t& s, ReferenceField& field);
 

@@ -9,6 +9,7 @@
 #include <cmath>
 #include <cstring>
 #include <fstream>
+#include <limits>
 #include <memory>
 #include <set>
 #include <unordered_map>
@@ -133,6 +134,13 @@ constexpr std::array<const char*, 3> kPos = {"r_ecef_x_m", "r_ecef_y_m", "r_ecef
 
 }  // namespace
 
+double plausible_temperature_C(double temperature_C) {
+  // (NaN fails both comparisons: stays unknown)
+  return temperature_C >= kMinPlausibleTemperature_C && temperature_C <= kMaxPlausibleTemperature_C
+             ? temperature_C
+             : std::numeric_limits<double>::quiet_NaN();
+}
+
 CsvReadResult read_sample_csv(const std::string& path) {
   CsvReadResult result;
   std::ifstream in(path);
@@ -223,8 +231,26 @@ CsvReadResult read_sample_csv(const std::string& path) {
       for (int i = 0; i < 3; ++i) ok = field(r[static_cast<size_t>(i)], &rr(i)) && ok;
       if (ok) row.extras.r_ecef_m = rr;
     }
-    double tc = 0.0;
-    if (temp >= 0 && field(temp, &tc)) row.extras.temperature_C = row.sample.temperature_C = tc;
+    if (temp >= 0 && temp < static_cast<int>(fields.size())) {
+      std::string_view text = fields[static_cast<size_t>(temp)];
+      while (!text.empty() && (text.front() == ' ' || text.front() == '\t')) text.remove_prefix(1);
+      while (!text.empty() && (text.back() == ' ' || text.back() == '\t' || text.back() == '\r'))
+        text.remove_suffix(1);
+      const bool unknown = text.empty() || text == "nan" || text == "NaN" || text == "NAN";
+      if (!unknown) {
+        double tc = 0.0;
+        if (!parse_double(text, &tc))
+          return fail("column temperature_C: not a number (empty or NaN = unknown)");
+        if (std::isnan(plausible_temperature_C(tc))) {
+          char value[32];
+          std::snprintf(value, sizeof value, "%g", tc);
+          return fail(std::string("column temperature_C: ") + value +
+                      " degC is no sensor temperature (within [-150, 200] degC; empty or NaN = "
+                      "unknown)");
+        }
+        row.extras.temperature_C = row.sample.temperature_C = tc;
+      }
+    }
     const auto [seen, first] =
         row_of_utime.try_emplace(row.sample.utime, result.rows.size(), line_no);
     if (!first) {
@@ -478,7 +504,7 @@ CalibrationSample to_calibration_sample(const mag_sample_t& msg) {
   CalibrationSample s;
   s.utime = msg.utime;
   s.b_sensor_nT = Eigen::Vector3d(msg.b_sensor_nT[0], msg.b_sensor_nT[1], msg.b_sensor_nT[2]);
-  s.temperature_C = static_cast<double>(msg.temperature_C);  // NaN: unknown
+  s.temperature_C = plausible_temperature_C(static_cast<double>(msg.temperature_C));
   if (msg.has_reference) {
     s.h_body_nT = Eigen::Vector3d(msg.h_body_nT[0], msg.h_body_nT[1], msg.h_body_nT[2]);
     s.has_reference_direction = true;

@@ -54,6 +54,14 @@ struct CsvSampleRow {
 // would otherwise only surface as a singular fit.
 inline constexpr double kMaxFieldComponent_nT = 1e7;
 
+// A sensor temperature outside this range (deg C) is a telemetry fault, not a reading: beyond
+// what space-qualified parts survive (-55..125 deg C) with a wide margin. One such value among
+// thousands moved a thermal fit's bias by 7 sigma (one row at -300 deg C).
+inline constexpr double kMinPlausibleTemperature_C = -150.0;
+inline constexpr double kMaxPlausibleTemperature_C = 200.0;
+// temperature_C when plausible, else NaN (unknown); NaN stays NaN.
+double plausible_temperature_C(double temperature_C);
+
 struct CsvReadResult {
   std::vector<CsvSampleRow> rows;
   std::string error;  // empty = ok; e.g. "file.csv line 17: column bz_nT: not a number"
@@ -63,7 +71,9 @@ struct CsvReadResult {
 
 // Reads a sample CSV. Blank lines are skipped; any unparsable or non-finite required field, or a
 // field component beyond kMaxFieldComponent_nT, is an error naming the line and column (no
-// partial result is returned then: rows is empty).
+// partial result is returned then: rows is empty). The optional temperature_C column: empty or
+// NaN = unknown; anything else that is not a number within the plausible range above is an
+// error naming the line, as for the field columns.
 // One time tag holds one sample (as magcald's ingest, which keeps the first sample of a
 // spacecraft's utime and drops later ones): a row repeating an earlier row's utime with
 // identical values (b, h and the extras) is dropped and counted in duplicates_dropped (counted
@@ -151,7 +161,8 @@ struct LcmReadResult {
 // (their indices in `samples` order and their seq).
 LcmReadResult read_sample_lcm_log(const std::string& path, const LcmReadOptions& options = {});
 
-// Conversion used by `magcal fit` (temperature_C carried over, NaN = unknown): has_reference =>
+// Conversion used by `magcal fit` (temperature_C carried over when plausible, else NaN =
+// unknown, as magcald's ingest takes it): has_reference =>
 // h_body_nT with direction; otherwise
 // has_reference_direction = false and h_body_nT is left zero (the caller computes |h| from
 // IGRF at r_ecef).

@@ -13,10 +13,24 @@ namespace magcal {
 
 namespace {
 
+// The last refit's bias minus the previous one's. Where both model the bias temperature, the
+// previous bias is moved to the last one's T0 first, b + k_T (T0_last - T0_previous), as the
+// refit's change gate compares them: at 1.5 nT/degC a 10 degC change of the window's mean
+// temperature is a 15 nT "change" of a sensor that did not change.
 std::optional<std::array<double, 3>> bias_change(const SpacecraftStatus& s) {
   if (!s.last_refit || !s.previous_refit) return std::nullopt;
+  const storage::CalibrationRecord& last = *s.last_refit;
+  const storage::CalibrationRecord& previous = *s.previous_refit;
+  const bool same_temperature =
+      last.has_temperature_model == 1 && previous.has_temperature_model == 1;
   std::array<double, 3> d;
-  for (int i = 0; i < 3; ++i) d[i] = s.last_refit->bias_nT[i] - s.previous_refit->bias_nT[i];
+  for (size_t i = 0; i < 3; ++i) {
+    const double shift = same_temperature
+                             ? previous.temperature_coefficient_nT_per_C[i] *
+                                   (last.reference_temperature_C - previous.reference_temperature_C)
+                             : 0.0;
+    d[i] = last.bias_nT[i] - (previous.bias_nT[i] + shift);
+  }
   return d;
 }
 
@@ -174,6 +188,9 @@ std::string status_text(const std::vector<SpacecraftStatus>& all, int64_t window
                     "bias change", (*d)[0], (*d)[1], (*d)[2],
                     std::sqrt((*d)[0] * (*d)[0] + (*d)[1] * (*d)[1] + (*d)[2] * (*d)[2]),
                     format_iso8601_utc(s.previous_refit->utime).c_str());
+      if (s.last_refit->has_temperature_model == 1 && s.previous_refit->has_temperature_model == 1)
+        append_printf(&text, "  %-16s both at %.2f degC (the last refit's T0)\n", "",
+                      s.last_refit->reference_temperature_C);
     }
   }
   return text;

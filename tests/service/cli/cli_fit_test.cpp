@@ -4,6 +4,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <cstdio>
@@ -232,6 +233,50 @@ TEST_CASE("fit on thermal data (CSV temperature_C, LCM temperature_C): the tempe
   std::filesystem::remove(csv);
   std::filesystem::remove(toml);
   std::filesystem::remove(truth);
+}
+
+TEST_CASE("fit: temperatures too sparse for the model are named on stderr", "[cli][fit]") {
+  // The thermal data above with the temperature of 3 rows in 5 blanked: the model is not tried
+  // (at least half the samples must carry one), and a thermal bias stays in the fit, so say so.
+  const auto toml = temp_path("sparse_thermal.toml");
+  {
+    std::ofstream f(toml);
+    f << "base = \"paper\"\nduration_h = 12\nseed = 7\n[sensor]\n"
+         "temperature_coefficient_nT_per_C = [1.0, -0.8, 1.2]\nreference_temperature_C = 20\n"
+         "[temperature]\nmean_C = 20\namplitude_C = 15\nperiod_s = 0\n";
+  }
+  const auto full = temp_path("sparse_full.csv");
+  REQUIRE(run_magcal("sim --scenario " + toml.string() + " --out " + full.string()).exit_code == 0);
+  const auto sparse = temp_path("sparse.csv");
+  {
+    std::ifstream in(full);
+    std::ofstream out(sparse);
+    std::string line;
+    REQUIRE(std::getline(in, line));
+    const size_t column = static_cast<size_t>(std::count(
+        line.begin(), line.begin() + static_cast<std::ptrdiff_t>(line.find("temperature_C")), ','));
+    out << line << "\n";
+    for (int row = 0; std::getline(in, line); ++row) {
+      if (row % 5 < 3) {  // blank this row's temperature_C field
+        size_t start = 0;
+        for (size_t c = 0; c < column; ++c) start = line.find(',', start) + 1;
+        const size_t end = line.find(',', start);
+        line.erase(start, end == std::string::npos ? std::string::npos : end - start);
+      }
+      out << line << "\n";
+    }
+  }
+  const Run r = run_magcal("fit --input " + sparse.string() + " --method twostep --json");
+  INFO(r.err);
+  REQUIRE(r.exit_code == 0);
+  CHECK_FALSE(nlohmann::json::parse(r.out).contains("temperature_coefficient_nT_per_C"));
+  CHECK(r.err.find("1728 of 4320 samples carry a temperature") != std::string::npos);
+  CHECK(r.err.find("stays unmodelled") != std::string::npos);
+  // The complete file takes the model and says nothing of the kind.
+  const Run whole = run_magcal("fit --input " + full.string() + " --method twostep --json");
+  REQUIRE(whole.exit_code == 0);
+  CHECK(whole.err.find("unmodelled") == std::string::npos);
+  for (const auto& f : {toml, full, sparse}) std::filesystem::remove(f);
 }
 
 TEST_CASE("fit --robust reports down-weighted samples", "[cli][fit]") {

@@ -2,9 +2,11 @@
 
 #include <catch2/catch.hpp>
 
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <vector>
 
 #include <lcm/lcm-cpp.hpp>
@@ -377,4 +379,50 @@ TEST_CASE(
   CHECK(r.error.find("samples 1 (seq 1) and 2 (seq 7) of spacecraft 'A'") != std::string::npos);
   CHECK(r.samples.empty());
   std::filesystem::remove(path);
+}
+
+TEST_CASE(
+    "CSV reader: temperature_C empty or NaN is unknown, text or an absurd value is an error") {
+  const std::string path = temp_file("temperature.csv");
+  const std::string header = "t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT,temperature_C\n";
+  write_text(path, header +
+                       "1,2,3,4,5,6,7,21.5\n2,2,3,4,5,6,7,\n3,2,3,4,5,6,7,NaN\n"
+                       "4,2,3,4,5,6,7,nan\n5,2,3,4,5,6,7\n6,2,3,4,5,6,7,-150\n");
+  CsvReadResult r = read_sample_csv(path);
+  REQUIRE(r.ok());
+  REQUIRE(r.rows.size() == 6);
+  CHECK(r.rows[0].sample.temperature_C == 21.5);
+  for (size_t i = 1; i < 5; ++i) CHECK(std::isnan(r.rows[i].sample.temperature_C));
+  CHECK(r.rows[5].sample.temperature_C == -150.0);  // the plausible range is inclusive
+
+  // Text where a number belongs: an error, as for the field columns (it used to be "unknown").
+  write_text(path, header + "1,2,3,4,5,6,7,21.5\n2,2,3,4,5,6,7,hot\n");
+  r = read_sample_csv(path);
+  CHECK(r.rows.empty());
+  CHECK(r.error.find("line 3") != std::string::npos);
+  CHECK(r.error.find("column temperature_C: not a number") != std::string::npos);
+  // A telemetry fault, not a temperature: one such row moved a thermal fit's bias by 7 sigma.
+  for (const std::string bad : {"-300", "1e6", "200.5", "inf"}) {
+    INFO(bad);
+    write_text(path, header + "1,2,3,4,5,6,7,21.5\n2,2,3,4,5,6,7," + bad + "\n");
+    r = read_sample_csv(path);
+    CHECK(r.rows.empty());
+    CHECK(r.error.find("line 3: column temperature_C") != std::string::npos);
+  }
+  std::filesystem::remove(path);
+}
+
+TEST_CASE("plausible_temperature_C: a reading within [-150, 200] degC, else unknown") {
+  CHECK(plausible_temperature_C(20.0) == 20.0);
+  CHECK(plausible_temperature_C(kMinPlausibleTemperature_C) == kMinPlausibleTemperature_C);
+  CHECK(plausible_temperature_C(kMaxPlausibleTemperature_C) == kMaxPlausibleTemperature_C);
+  CHECK(std::isnan(plausible_temperature_C(-300.0)));
+  CHECK(std::isnan(plausible_temperature_C(1e6)));
+  CHECK(std::isnan(plausible_temperature_C(std::numeric_limits<double>::quiet_NaN())));
+  CHECK(std::isnan(plausible_temperature_C(std::numeric_limits<double>::infinity())));
+  mag_sample_t m = make_sample(1, "SAT");
+  m.temperature_C = -300.0f;
+  CHECK(std::isnan(to_calibration_sample(m).temperature_C));  // `fit` on an LCM log, as magcald
+  m.temperature_C = 20.5f;
+  CHECK(to_calibration_sample(m).temperature_C == 20.5);
 }
