@@ -90,6 +90,14 @@ int run_refit(const RefitArgs& args) {
             : " (" + fmt::format("{}", fmt::join(r.rejection_reasons, "; ")) + ")",
         b.x(), b.y(), b.z(), s.x(), s.y(), s.z(), D(0, 0), D(0, 1), D(0, 2), D(1, 1), D(1, 2),
         D(2, 2), r.residual_rms_nT, r.iterations, r.has_alignment ? ", alignment estimated" : "");
+    if (r.has_temperature_model) {  // bias_nT is then the bias at T0
+      const Eigen::Vector3d& k = r.temperature_coefficient_nT_per_C;
+      const Eigen::Vector3d ks = r.temperature_coefficient_sigma_nT_per_C();
+      std::cout << fmt::format(
+          "  bias at T0 = {:.2f} degC; k_T [{:.3f}, {:.3f}, {:.3f}] +- [{:.3f}, {:.3f}, {:.3f}] "
+          "nT/degC\n",
+          r.reference_temperature_C, k.x(), k.y(), k.z(), ks.x(), ks.y(), ks.z());
+    }
   }
   return (r.status == CalibrationStatus::kOk || r.status == CalibrationStatus::kRejected)
              ? kExitOk

@@ -201,6 +201,9 @@ std::string history_table_text(const std::vector<storage::CalibrationRecord>& ro
     for (size_t k = 0; k < r.rejection_reasons.size(); ++k) {
       text += (k == 0 ? ": " : "; ") + r.rejection_reasons[k];
     }
+    // The bias of a result with a temperature model is the bias at its T0 (k_T: JSON and CSV).
+    if (r.has_temperature_model == 1)
+      append_printf(&text, "  (bias at T0 = %.2f degC)", r.reference_temperature_C);
     text += '\n';
   }
   return text;

@@ -243,4 +243,15 @@ TEST_CASE("history JSON and CSV: the bias temperature model, and whose it is") {
   CHECK(table[3][column("has_temperature_model")] == "0");
   CHECK(table[3][column("temperature_coefficient_x_nT_per_C")].empty());
   CHECK(table[4][column("has_temperature_model")].empty());
+
+  // The table's bias of a modelled row says it is the bias at T0; the others say nothing.
+  const std::string text = history_table_text(all);
+  std::vector<std::string> lines;
+  for (size_t from = 0, nl; (nl = text.find('\n', from)) != std::string::npos; from = nl + 1)
+    lines.push_back(text.substr(from, nl - from));
+  REQUIRE(lines.size() == 5);
+  CHECK(lines[1].ends_with("(bias at T0 = 12.50 degC)"));
+  CHECK(lines[2].ends_with("(bias at T0 = 12.50 degC)"));
+  CHECK(lines[3].find("bias at T0") == std::string::npos);
+  CHECK(lines[4].find("bias at T0") == std::string::npos);
 }
