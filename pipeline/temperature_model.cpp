@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <cstdio>
+#include <limits>
 
 #include <Eigen/Dense>
 
@@ -23,6 +24,28 @@ TemperatureSpread temperature_spread(const SampleSet& samples) {
   }
   out.std_C = std::sqrt(sum_sq / out.n_with_temperature);
   return out;
+}
+
+double mean_temperature_C(const SampleSet& samples) {
+  const TemperatureSpread spread = temperature_spread(samples);
+  return spread.n_with_temperature > 0 ? spread.mean_C : std::numeric_limits<double>::quiet_NaN();
+}
+
+Eigen::Vector3d temperature_shift_per_C(const Eigen::Matrix3d& D,
+                                        const Eigen::Vector3d& k_nT_per_C) {
+  return (Eigen::Matrix3d::Identity() + D).partialPivLu().solve(k_nT_per_C);
+}
+
+CalibrationResult at_temperature(CalibrationResult result, double temperature_C) {
+  if (!result.has_temperature_model || !std::isfinite(temperature_C) ||
+      !std::isfinite(result.reference_temperature_C)) {
+    return result;
+  }
+  const double dT = temperature_C - result.reference_temperature_C;
+  result.parameters.bias_nT += result.temperature_coefficient_nT_per_C * dT;
+  result.covariance.topLeftCorner<3, 3>() += result.temperature_coefficient_covariance * (dT * dT);
+  result.reference_temperature_C = temperature_C;
+  return result;
 }
 
 std::string temperature_model_unusable(const TemperatureSpread& spread, int n_samples) {
@@ -52,7 +75,7 @@ void temperature_coefficient_from_terms(const Vector4d& a, const Matrix4d& a_cov
 SampleSet temperature_corrected_samples(const SampleSet& samples, const Eigen::Matrix3d& D,
                                         const Eigen::Vector3d& k_nT_per_C,
                                         double reference_temperature_C) {
-  const Eigen::Vector3d shift_per_C = (Eigen::Matrix3d::Identity() + D).inverse() * k_nT_per_C;
+  const Eigen::Vector3d shift_per_C = temperature_shift_per_C(D, k_nT_per_C);
   SampleSet out = samples;
   for (CalibrationSample& s : out) {
     const double dT = s.temperature_C - reference_temperature_C;

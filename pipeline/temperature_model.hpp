@@ -25,6 +25,7 @@
 
 #include <Eigen/Core>
 
+#include "pipeline/calibration_result.hpp"
 #include "pipeline/calibration_types.hpp"
 
 namespace magcal {
@@ -53,6 +54,9 @@ struct TemperatureSpread {
   double std_C = 0.0;
 };
 TemperatureSpread temperature_spread(const SampleSet& samples);
+
+// The mean temperature of the samples that carry one, degC; NaN when none does. A window's T0.
+double mean_temperature_C(const SampleSet& samples);
 
 // Empty when the temperature model is a candidate for these samples, else why not.
 std::string temperature_model_unusable(const TemperatureSpread& spread, int n_samples);
@@ -84,6 +88,18 @@ inline Vector4d temperature_columns_centered(const CalibrationSample& s,
 void temperature_coefficient_from_terms(const Vector4d& a, const Matrix4d& a_covariance,
                                         const Eigen::Matrix3d& D, Eigen::Vector3d* k_nT_per_C,
                                         Eigen::Matrix3d* k_covariance);
+
+// The sensor-frame shift of a measurement per degC, (I + D)^-1 k (nT/degC): B' = B - shift (T - T0)
+// is the measurement of a sensor at T0. Non-finite when I + D is singular.
+Eigen::Vector3d temperature_shift_per_C(const Eigen::Matrix3d& D,
+                                        const Eigen::Vector3d& k_nT_per_C);
+
+// A result with a bias temperature model as the bias at temperature_C: b(T) = b + k_T (T - T0),
+// its bias variance grown by var(k_T) (T - T0)^2 (b at T0 and k_T are uncorrelated to first
+// order: T0 is the mean temperature of the samples that fitted them), and T0 = temperature_C.
+// Unchanged without a model or with a non-finite temperature. For comparing two results' biases
+// (the refit's change gate, `magcal status`): each is the bias at its own window's T0.
+CalibrationResult at_temperature(CalibrationResult result, double temperature_C);
 
 // The samples with the temperature term removed: B' = B - (I + D)^-1 k (T - T0), so that
 // (I + D) B' - b0 = (I + D) B - b(T). Every stage after the stage-1 solve (residual evidence,

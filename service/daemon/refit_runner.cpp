@@ -1,5 +1,6 @@
 #include "service/daemon/refit_runner.hpp"
 
+#include "pipeline/temperature_model.hpp"
 #include "pipeline/time_utc.hpp"
 
 #include <chrono>
@@ -14,39 +15,6 @@ namespace {
 // A refit whose window spans at least this fraction of window_hours is a full-window refit
 // (a 12 h window sampled every 10 s spans 99.98 %; the first refit, 8 h, spans 67 %).
 constexpr double kFullWindowFraction = 0.9;
-
-// The mean temperature of the window's samples that carry one (NaN: none): the reference
-// temperature a temperature model of this window takes (pipeline/calibration_result.hpp), and
-// the temperature the bias of a refit without one is the bias at (b(T) is linear in T).
-double mean_temperature_C(const SampleSet& window) {
-  double sum = 0.0;
-  int64_t n = 0;
-  for (const auto& s : window) {
-    if (!std::isfinite(s.temperature_C)) continue;
-    sum += s.temperature_C;
-    ++n;
-  }
-  return n > 0 ? sum / static_cast<double>(n) : std::numeric_limits<double>::quiet_NaN();
-}
-
-// The change gate compares a refit's bias with a reference refit's. With a bias temperature
-// model each is the bias at its own T0, which moves with the window's mean temperature (by a
-// fraction of a degree in a steady orbital cycle, by several over a season or with a heater:
-// 10 degC at 1.5 nT/degC is 15 nT, beyond the gate's floor): so the reference is moved to this
-// window's mean temperature first, b(T) = b + k_T (T - T0), its
-// variance grown by var(k_T) (T - T0)^2 (b at T0 and k_T are uncorrelated to first order: T0 is
-// the mean temperature of the samples that fitted them).
-CalibrationResult at_temperature(CalibrationResult refit, double temperature_C) {
-  if (!refit.has_temperature_model || !std::isfinite(temperature_C) ||
-      !std::isfinite(refit.reference_temperature_C)) {
-    return refit;
-  }
-  const double dT = temperature_C - refit.reference_temperature_C;
-  refit.parameters.bias_nT += refit.temperature_coefficient_nT_per_C * dT;
-  refit.covariance.topLeftCorner<3, 3>() += refit.temperature_coefficient_covariance * (dT * dT);
-  refit.reference_temperature_C = temperature_C;
-  return refit;
-}
 
 int64_t wall_utime() {
   return std::chrono::duration_cast<std::chrono::microseconds>(

@@ -3,8 +3,7 @@
 #include <algorithm>
 #include <cmath>
 
-#include <Eigen/LU>
-
+#include "pipeline/temperature_model.hpp"
 #include "pipeline/time_utc.hpp"
 
 namespace magcal {
@@ -17,8 +16,8 @@ void TemperatureCorrection::take_from(const CalibrationResult& refit,
       !refit.temperature_coefficient_nT_per_C.allFinite()) {
     return;
   }
-  const Eigen::Matrix3d scale = Eigen::Matrix3d::Identity() + refit.parameters.D;
-  const Eigen::Vector3d shift = scale.partialPivLu().solve(refit.temperature_coefficient_nT_per_C);
+  const Eigen::Vector3d shift =
+      temperature_shift_per_C(refit.parameters.D, refit.temperature_coefficient_nT_per_C);
   if (!shift.allFinite()) return;
   active = true;
   refit_id = refit_calibration_id;

@@ -3,6 +3,7 @@
 #include <cmath>
 #include <set>
 
+#include "pipeline/temperature_model.hpp"
 #include "pipeline/time_utc.hpp"
 #include "service/io/calibration_record.hpp"
 #include "service/io/printf_string.hpp"
@@ -14,23 +15,21 @@ namespace magcal {
 namespace {
 
 // The last refit's bias minus the previous one's. Where both model the bias temperature, the
-// previous bias is moved to the last one's T0 first, b + k_T (T0_last - T0_previous), as the
-// refit's change gate compares them: at 1.5 nT/degC a 10 degC change of the window's mean
-// temperature is a 15 nT "change" of a sensor that did not change.
+// previous one is taken at the last one's T0 first (at_temperature, as the refit's change gate
+// compares them): at 1.5 nT/degC a 10 degC change of the window's mean temperature is a 15 nT
+// "change" of a sensor that did not change.
 std::optional<std::array<double, 3>> bias_change(const SpacecraftStatus& s) {
   if (!s.last_refit || !s.previous_refit) return std::nullopt;
   const storage::CalibrationRecord& last = *s.last_refit;
-  const storage::CalibrationRecord& previous = *s.previous_refit;
   const bool same_temperature =
-      last.has_temperature_model == 1 && previous.has_temperature_model == 1;
+      last.has_temperature_model == 1 && s.previous_refit->has_temperature_model == 1;
+  const Eigen::Vector3d previous =
+      same_temperature
+          ? at_temperature(result_from_record(*s.previous_refit), last.reference_temperature_C)
+                .parameters.bias_nT
+          : Eigen::Vector3d(s.previous_refit->bias_nT.data());
   std::array<double, 3> d;
-  for (size_t i = 0; i < 3; ++i) {
-    const double shift = same_temperature
-                             ? previous.temperature_coefficient_nT_per_C[i] *
-                                   (last.reference_temperature_C - previous.reference_temperature_C)
-                             : 0.0;
-    d[i] = last.bias_nT[i] - (previous.bias_nT[i] + shift);
-  }
+  for (size_t i = 0; i < 3; ++i) d[i] = last.bias_nT[i] - previous(static_cast<Eigen::Index>(i));
   return d;
 }
 
