@@ -1,5 +1,8 @@
 // Table `calibrations`: every calibration result the service produces (UKF/EKF snapshots and
-// every refit), never deleted by retention.
+// every refit), never deleted by retention. An interface: SqliteCalibrationHistory
+// (storage/sqlite_stores.hpp) and PgCalibrationHistory
+// (storage/postgres/pg_calibration_history.hpp), made by Connection::make_calibration_history();
+// both store the same columns under the same rules (storage/calibration_row.hpp).
 //
 // Parameters as in calibration_t / estimation.md: p = [b1 b2 b3 D11 D22 D33 D12 D13 D23]
 // (nT, nT, nT, 1, 1, 1, 1, 1, 1); cov = upper triangle, row-major, of the 9x9 covariance of p;
@@ -14,8 +17,7 @@
 #include <string_view>
 #include <vector>
 
-#include "storage/database.hpp"
-#include "storage/statement.hpp"
+#include "storage/connection.hpp"
 
 namespace magcal::storage {
 
@@ -93,40 +95,31 @@ struct HistoryQuery {
 
 class CalibrationHistory {
  public:
-  explicit CalibrationHistory(Database& db);
+  virtual ~CalibrationHistory() = default;
 
   // Stores one result; returns its id. Throws StorageError.
-  int64_t append(const CalibrationRecord& record);
-  std::vector<CalibrationRecord> query(const HistoryQuery& q);
+  virtual int64_t append(const CalibrationRecord& record) = 0;
+  virtual std::vector<CalibrationRecord> query(const HistoryQuery& q) = 0;
 
-  std::optional<CalibrationRecord> latest(std::string_view sat_id, std::string_view method);
-  std::optional<CalibrationRecord> get(int64_t id);
+  virtual std::optional<CalibrationRecord> latest(std::string_view sat_id,
+                                                  std::string_view method) = 0;
+  virtual std::optional<CalibrationRecord> get(int64_t id) = 0;
   // Newest refit (centered or twostep), any verdict / only accepted ones.
   std::optional<CalibrationRecord> latest_refit(std::string_view sat_id);
   std::optional<CalibrationRecord> latest_accepted_refit(std::string_view sat_id);
   // Newest accepted refit whose window spans at least min_window_span_utime (end - start) and
   // holds at least min_samples samples: the reference later full-window refits are judged by.
-  std::optional<CalibrationRecord> latest_accepted_refit(std::string_view sat_id,
-                                                         int64_t min_window_span_utime,
-                                                         int min_samples);
+  virtual std::optional<CalibrationRecord> latest_accepted_refit(std::string_view sat_id,
+                                                                 int64_t min_window_span_utime,
+                                                                 int min_samples) = 0;
   // The refit before the newest one (any verdict).
   std::optional<CalibrationRecord> previous_refit(std::string_view sat_id);
   // Spacecraft with at least one stored result, sorted.
-  std::vector<std::string> spacecraft();
+  virtual std::vector<std::string> spacecraft() = 0;
 
- private:
-  CalibrationRecord read_row(Statement& st);
-  std::optional<CalibrationRecord> first(Statement& st);
-  Database& db_;
-  Statement insert_;
-  Statement query_all_;
-  Statement query_method_;
-  Statement latest_;
-  Statement get_;
-  Statement refits_;
-  Statement accepted_refit_;
-  Statement spacecraft_;
-  Statement reasons_;
+ protected:
+  // The newest `count` refits of sat_id (any verdict), newest first.
+  virtual std::vector<CalibrationRecord> newest_refits(std::string_view sat_id, int count) = 0;
 };
 
 }  // namespace magcal::storage

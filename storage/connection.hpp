@@ -1,10 +1,10 @@
 // One thread's connection to a magcal database, whichever engine holds it: an SQLite file (the
 // embedded default, storage/database.hpp) or a PostgreSQL database shared by a fleet
 // (storage/postgres/pg_database.hpp, design.md "Fleet"). open_database() chooses by the --db /
-// [storage] db_path value. A connection makes its stores (make_*: the sample window, the refit
-// job log, the filter states, the meta values), and groups their calls into one commit with a
-// Transaction. Nothing of the engine shows here: errors are StorageError with a backend-neutral
-// condition (storage/storage_error.hpp).
+// [storage] db_path value. A connection makes its stores (make_*: the sample window, the
+// calibration history, the refit job log, the filter states, the meta values), and groups their
+// calls into one commit with a Transaction. Nothing of the engine shows here: errors are
+// StorageError with a backend-neutral condition (storage/storage_error.hpp).
 //
 // Threads: a connection and the stores made on it belong to one thread at a time (prepared
 // statements are per connection). Give each thread (ingest worker, refit scheduler, CLI) its own.
@@ -23,6 +23,7 @@ class SampleWindowStore;
 class RefitJobLog;
 class FilterStateStore;
 class MetaStore;
+class CalibrationHistory;
 
 // 'MGCL': SQLite's `PRAGMA application_id` of a magcal file, and the application_id of
 // PostgreSQL's magcal_schema_version rows.
@@ -55,6 +56,10 @@ inline bool is_postgres_uri(std::string_view db) {
   return db.starts_with("postgresql://") || db.starts_with("postgres://");
 }
 
+// A --db / db_path value as messages and logs may show it: a PostgreSQL URI without its password
+// (user:***@host, password=***), a file path as it is. Connection::name() of an open connection.
+std::string database_name(const std::string& db);
+
 enum class TransactionMode {
   kWrite,         // a writer: SQLite takes its write lock up front, so it waits at the start
                   // (busy timeout) instead of failing half-way
@@ -79,6 +84,7 @@ class Connection {
   virtual std::unique_ptr<RefitJobLog> make_refit_job_log() = 0;
   virtual std::unique_ptr<FilterStateStore> make_filter_state_store() = 0;
   virtual std::unique_ptr<MetaStore> make_meta_store() = 0;
+  virtual std::unique_ptr<CalibrationHistory> make_calibration_history() = 0;
 
  protected:
   friend class Transaction;

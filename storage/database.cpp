@@ -367,4 +367,8 @@ std::unique_ptr<MetaStore> Database::make_meta_store() {
   return std::make_unique<SqliteMetaStore>(*this);
 }
 
+std::unique_ptr<CalibrationHistory> Database::make_calibration_history() {
+  return std::make_unique<SqliteCalibrationHistory>(*this);
+}
+
 }  // namespace magcal::storage

@@ -1,32 +1,18 @@
 #include "storage/filter_state_store.hpp"
 
-#include <bit>
 #include <chrono>
-#include <cstring>
 
+#include "storage/blob_doubles.hpp"
 #include "storage/sqlite_stores.hpp"
 #include "storage/store_columns.hpp"
 
 namespace magcal::storage {
-
-static_assert(std::endian::native == std::endian::little,
-              "blobs hold little-endian doubles; add byte swapping for this platform");
 
 int64_t save_utime(const FilterState& state) {
   if (state.updated_utime != 0) return state.updated_utime;
   return std::chrono::duration_cast<std::chrono::microseconds>(
              std::chrono::system_clock::now().time_since_epoch())
       .count();
-}
-
-void doubles_from_blob(const void* blob, size_t size, std::span<double> out, const char* column) {
-  if (size != sizeof(double) * out.size()) {
-    throw StorageError(StorageError::Kind::kEngine,
-                       std::string("filter_states.") + column + " has " + std::to_string(size) +
-                           " bytes, expected " + std::to_string(sizeof(double) * out.size()),
-                       StorageError::Condition::kCorrupt);
-  }
-  std::memcpy(out.data(), blob, size);
 }
 
 SqliteFilterStateStore::SqliteFilterStateStore(Database& db)
@@ -53,9 +39,9 @@ FilterState SqliteFilterStateStore::read_row(Statement& st) {
   s.sat_id = st.column_text(0);
   s.method = st.column_text(1);
   const auto x = st.column_blob(2);
-  doubles_from_blob(x.data(), x.size(), s.x, "x");
+  doubles_from_blob(x.data(), x.size(), s.x, "filter_states.x");
   const auto P = st.column_blob(3);
-  doubles_from_blob(P.data(), P.size(), s.P, "P");
+  doubles_from_blob(P.data(), P.size(), s.P, "filter_states.P");
   s.last_utime = st.column_int64(4);
   s.n_samples = st.column_int64(5);
   const auto counters = st.column_blob(6);

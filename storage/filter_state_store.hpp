@@ -43,8 +43,5 @@ class FilterStateStore {
 
 // updated_utime of a save: the state's own, or now when it is 0.
 int64_t save_utime(const FilterState& state);
-// x or P read back from its blob: exactly out.size() little-endian doubles, else StorageError
-// (condition kCorrupt) naming filter_states.<column>.
-void doubles_from_blob(const void* blob, size_t size, std::span<double> out, const char* column);
 
 }  // namespace magcal::storage

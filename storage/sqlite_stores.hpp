@@ -1,12 +1,13 @@
 // The SQLite implementations of the stores (storage/sample_window_store.hpp, refit_job_log.hpp,
-// filter_state_store.hpp, meta_store.hpp) on one Database: statements prepared once in the
-// constructor, reset and re-bound for every use. Made by Database::make_*(); tests and tools
-// that hold a Database may construct them directly.
+// filter_state_store.hpp, meta_store.hpp, calibration_history.hpp) on one Database: statements
+// prepared once in the constructor, reset and re-bound for every use. Made by Database::make_*();
+// tests and tools that hold a Database may construct them directly.
 #pragma once
 
 #include <span>
 #include <vector>
 
+#include "storage/calibration_history.hpp"
 #include "storage/database.hpp"
 #include "storage/filter_state_store.hpp"
 #include "storage/meta_store.hpp"
@@ -83,6 +84,40 @@ class SqliteFilterStateStore final : public FilterStateStore {
   Statement upsert_;
   Statement load_;
   Statement load_all_;
+};
+
+class SqliteCalibrationHistory final : public CalibrationHistory {
+ public:
+  explicit SqliteCalibrationHistory(Database& db);
+
+  int64_t append(const CalibrationRecord& record) override;
+  std::vector<CalibrationRecord> query(const HistoryQuery& q) override;
+  std::optional<CalibrationRecord> latest(std::string_view sat_id,
+                                          std::string_view method) override;
+  std::optional<CalibrationRecord> get(int64_t id) override;
+  using CalibrationHistory::latest_accepted_refit;
+  std::optional<CalibrationRecord> latest_accepted_refit(std::string_view sat_id,
+                                                         int64_t min_window_span_utime,
+                                                         int min_samples) override;
+  std::vector<std::string> spacecraft() override;
+
+ private:
+  std::vector<CalibrationRecord> newest_refits(std::string_view sat_id, int count) override;
+  static std::string insert_sql();
+  CalibrationRecord read_row(Statement& st);
+  std::vector<CalibrationRecord> rows(Statement& st);
+  std::optional<CalibrationRecord> first(Statement& st);
+
+  Database& db_;
+  Statement insert_;
+  Statement query_all_;
+  Statement query_method_;
+  Statement latest_;
+  Statement get_;
+  Statement refits_;
+  Statement accepted_refit_;
+  Statement spacecraft_;
+  Statement reasons_;
 };
 
 class SqliteMetaStore final : public MetaStore {

@@ -5,6 +5,7 @@
 #include <chrono>
 #include <utility>
 
+#include "storage/postgres/pg_calibration_history.hpp"
 #include "storage/postgres/pg_migrations.hpp"
 #include "storage/postgres/pg_stores.hpp"
 
@@ -14,24 +15,6 @@ namespace {
 std::string trimmed(std::string text) {
   while (!text.empty() && (text.back() == '\n' || text.back() == ' ')) text.pop_back();
   return text;
-}
-
-// The URI with any password replaced (user:PASSWORD@host, ?password=...).
-std::string without_password(std::string uri) {
-  const std::size_t authority = uri.find("://") + 3;  // is_postgres_uri() was checked
-  const std::size_t authority_end = uri.find_first_of("/?", authority);
-  const std::size_t at = uri.rfind('@', authority_end);
-  if (at != std::string::npos && at >= authority) {
-    const std::size_t colon = uri.find(':', authority);
-    if (colon < at) uri.replace(colon + 1, at - colon - 1, "***");
-  }
-  for (std::size_t key = uri.find("password=", authority); key != std::string::npos;
-       key = uri.find("password=", key + 1)) {
-    if (uri[key - 1] != '?' && uri[key - 1] != '&') continue;
-    const std::size_t value = key + 9;
-    uri.replace(value, uri.find('&', value) - value, "***");
-  }
-  return uri;
 }
 
 int64_t now_utime() {
@@ -55,7 +38,7 @@ CREATE TABLE magcal_schema_version (
 
 PgDatabase::PgDatabase(const std::string& uri, const OpenOptions& options)
     : uri_(uri),
-      name_(is_postgres_uri(uri) ? without_password(uri) : uri),
+      name_(database_name(uri)),
       read_only_(options.read_only),
       lock_timeout_ms_(options.busy_timeout_ms) {
   char* error = nullptr;
@@ -419,6 +402,10 @@ std::unique_ptr<FilterStateStore> PgDatabase::make_filter_state_store() {
 
 std::unique_ptr<MetaStore> PgDatabase::make_meta_store() {
   return std::make_unique<PgMetaStore>(*this);
+}
+
+std::unique_ptr<CalibrationHistory> PgDatabase::make_calibration_history() {
+  return std::make_unique<PgCalibrationHistory>(*this);
 }
 
 }  // namespace magcal::storage

@@ -5,6 +5,7 @@
 #include <limits>
 #include <numeric>
 
+#include "storage/blob_doubles.hpp"
 #include "storage/store_columns.hpp"
 
 namespace magcal::storage {
@@ -331,9 +332,9 @@ FilterState filter_state_from_row(const PgResult& r, int row) {
   s.sat_id = r.get_text(row, 0);
   s.method = r.get_text(row, 1);
   const auto x = r.get_bytes(row, 2);
-  doubles_from_blob(x.data(), x.size(), s.x, "x");
+  doubles_from_blob(x.data(), x.size(), s.x, "filter_states.x");
   const auto P = r.get_bytes(row, 3);
-  doubles_from_blob(P.data(), P.size(), s.P, "P");
+  doubles_from_blob(P.data(), P.size(), s.P, "filter_states.P");
   s.last_utime = r.get_int64(row, 4);
   s.n_samples = r.get_int64(row, 5);
   if (!r.is_null(row, 6)) {

@@ -152,7 +152,7 @@ BENCHMARK(BM_ReadWindow4320Postgres)->UseRealTime()->Unit(benchmark::kMillisecon
 void BM_HistoryQuery(benchmark::State& state) {
   TempDb tmp("history");
   Database db(tmp.path);
-  CalibrationHistory history(db);
+  SqliteCalibrationHistory history(db);
   {
     // 4 spacecraft x 30 days of ukf snapshots every 10 min plus a daily refit: ~17 000 rows.
     Transaction tx(db);

@@ -1,18 +1,21 @@
-// calibrations table: exact round trip, filters, limit-newest in either order, refit queries,
-// conversion from/to calibration_t.
+// calibrations table, on SQLite and on PostgreSQL (tests/storage/storage_backends.hpp): exact
+// round trip of every field (also the optional and absent ones), filters, limit-newest in either
+// order, refit queries, rows of older schemas.
 #include "storage/calibration_history.hpp"
-
-#include <unistd.h>
 
 #include <algorithm>
 #include <catch2/catch.hpp>
 #include <cmath>
-#include <filesystem>
 #include <string_view>
 
 #include "storage/migrations.hpp"
+#include "tests/storage/storage_backends.hpp"
 
 using namespace magcal::storage;
+using magcal::test::BackendTest;
+using magcal::test::PostgresBackend;
+using magcal::test::query_int;
+using magcal::test::SqliteBackend;
 
 namespace {
 
@@ -46,6 +49,63 @@ CalibrationRecord make_record(const std::string& sat, const std::string& method,
   return r;
 }
 
+// The same value bit for bit (-0.0 is not 0.0), or both NaN (unknown: NULL).
+bool same(double a, double b) {
+  if (std::isnan(a) || std::isnan(b)) return std::isnan(a) && std::isnan(b);
+  return a == b && std::signbit(a) == std::signbit(b);
+}
+template <size_t N>
+bool same(const std::array<double, N>& a, const std::array<double, N>& b) {
+  for (size_t i = 0; i < N; ++i) {
+    if (!same(a[i], b[i])) return false;
+  }
+  return true;
+}
+
+// `got` is `want` read back: every field (R only with an alignment: without one it is not
+// stored), bias_sigma_nT derived from cov.
+void check_round_trip(const CalibrationRecord& got, const CalibrationRecord& want) {
+  CHECK(got.sat_id == want.sat_id);
+  CHECK(got.method == want.method);
+  CHECK(got.utime == want.utime);
+  CHECK(got.window_start_utime == want.window_start_utime);
+  CHECK(got.window_end_utime == want.window_end_utime);
+  CHECK(got.n_samples == want.n_samples);
+  CHECK(same(got.bias_nT, want.bias_nT));
+  CHECK(same(got.D, want.D));
+  CHECK(same(got.cov, want.cov));
+  for (int i = 0; i < 3; ++i) {
+    CHECK(got.bias_sigma_nT[i] == std::sqrt(want.cov[cov_index(i, i)]));
+  }
+  CHECK(got.has_alignment == want.has_alignment);
+  if (want.has_alignment) CHECK(same(got.R_sensor_from_body, want.R_sensor_from_body));
+  CHECK(got.alignment_covariance_rad2.has_value() == want.alignment_covariance_rad2.has_value());
+  if (got.alignment_covariance_rad2 && want.alignment_covariance_rad2) {
+    CHECK(same(*got.alignment_covariance_rad2, *want.alignment_covariance_rad2));
+  }
+  CHECK(same(got.residual_rms_nT, want.residual_rms_nT));
+  CHECK(got.status == want.status);
+  CHECK(got.verdict == want.verdict);
+  CHECK(got.rejection_reasons == want.rejection_reasons);
+  CHECK(got.iterations == want.iterations);
+  CHECK(same(got.noise_scale, want.noise_scale));
+  CHECK(same(got.residual_autocorrelation, want.residual_autocorrelation));
+  CHECK(got.covariance_lag_window == want.covariance_lag_window);
+  CHECK(same(got.residual_rms_all_nT, want.residual_rms_all_nT));
+  CHECK(got.has_nonlinearity == want.has_nonlinearity);
+  CHECK(same(got.k3, want.k3));
+  CHECK(same(got.nis_mean, want.nis_mean));
+  CHECK(same(got.measurement_noise_nT, want.measurement_noise_nT));
+  CHECK(same(got.model_error, want.model_error));
+  CHECK(got.has_temperature_model == want.has_temperature_model);
+  CHECK(same(got.reference_temperature_C, want.reference_temperature_C));
+  CHECK(same(got.temperature_coefficient_nT_per_C, want.temperature_coefficient_nT_per_C));
+  CHECK(same(got.temperature_coefficient_cov, want.temperature_coefficient_cov));
+  CHECK(got.temperature_model_refit_id == want.temperature_model_refit_id);
+  CHECK(got.software_version == want.software_version);
+  CHECK(got.created_utime == want.created_utime);
+}
+
 }  // namespace
 
 TEST_CASE("cov_index addresses the row-major upper triangle") {
@@ -62,9 +122,12 @@ TEST_CASE("cov_index addresses the row-major upper triangle") {
   }
 }
 
-TEST_CASE("a calibration record round-trips exactly, bias sigma comes from cov") {
-  Database db(":memory:");
-  CalibrationHistory history(db);
+TEMPLATE_TEST_CASE_METHOD(BackendTest,
+                          "a calibration record round-trips exactly, bias sigma comes from cov",
+                          "[calibrations]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto history_store = this->db->make_calibration_history();
+  CalibrationHistory& history = *history_store;
   for (int k : {3, 4}) {  // with alignment + accepted, without alignment + rejected
     const CalibrationRecord r = make_record("SAT1", "twostep", kT0 + k * kHour, k);
     const int64_t id = history.append(r);
@@ -75,33 +138,60 @@ TEST_CASE("a calibration record round-trips exactly, bias sigma comes from cov")
     q.until_utime = r.utime;
     const auto rows = history.query(q);
     REQUIRE(rows.size() == 1);
-    const CalibrationRecord& got = rows[0];
-    CHECK(got.id == id);
-    CHECK(got.sat_id == r.sat_id);
-    CHECK(got.method == r.method);
-    CHECK(got.utime == r.utime);
-    CHECK(got.window_start_utime == r.window_start_utime);
-    CHECK(got.window_end_utime == r.window_end_utime);
-    CHECK(got.n_samples == r.n_samples);
-    CHECK(got.bias_nT == r.bias_nT);
-    CHECK(got.D == r.D);
-    CHECK(got.cov == r.cov);
-    for (int i = 0; i < 3; ++i) CHECK(got.bias_sigma_nT[i] == std::sqrt(r.cov[cov_index(i, i)]));
-    CHECK(got.has_alignment == r.has_alignment);
-    if (r.has_alignment) CHECK(got.R_sensor_from_body == r.R_sensor_from_body);
-    CHECK(got.residual_rms_nT == r.residual_rms_nT);
-    CHECK(got.status == r.status);
-    CHECK(got.verdict == r.verdict);
-    CHECK(got.rejection_reasons == r.rejection_reasons);
-    CHECK(got.iterations == r.iterations);
-    CHECK(got.software_version == r.software_version);
-    CHECK(got.created_utime == r.created_utime);
+    CHECK(rows[0].id == id);
+    check_round_trip(rows[0], r);
   }
 }
 
-TEST_CASE("history query: sat, method, inclusive range, limit newest, either order") {
-  Database db(":memory:");
-  CalibrationHistory history(db);
+TEMPLATE_TEST_CASE_METHOD(BackendTest, "every field of a record round-trips bit for bit at once",
+                          "[calibrations]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto history = this->db->make_calibration_history();
+  const int64_t refit_id = history->append(make_record("SAT1", "twostep", kT0, 1));
+  CalibrationRecord r = make_record("SAT1", "ukf", kT0 + kHour, 4);  // rejected
+  r.has_alignment = true;
+  r.R_sensor_from_body = {0.1 + 0.2, 1.0, 0.5, -1.0, 1e-300, 0.0, 0.0, 2.0 / 3.0, 1.0};
+  r.alignment_covariance_rad2 = std::array<double, 6>{1e-8 / 3.0, 2.5e-9, 7e-10, -1e-10, 0, 1};
+  r.rejection_reasons = {"tab\there, newline\nthere", "control \x01 and UTF-8 \u00b0C", ""};
+  r.noise_scale = 1.0 / 3.0;
+  r.residual_autocorrelation = -0.031;
+  r.covariance_lag_window = 0;
+  r.residual_rms_all_nT = 3.62;
+  r.has_nonlinearity = 1;
+  r.k3 = {1e-9, -2e-9, 3e-10};
+  r.nis_mean = 1.04;
+  r.measurement_noise_nT = 3.3;
+  r.model_error = {0.1 + 0.2, -3.5, 1e-300, 0, 2e-4, -1e-5, 0, 3e-6, -0.0};
+  r.has_temperature_model = 1;
+  r.reference_temperature_C = -12.5;
+  r.temperature_coefficient_nT_per_C = {1.25, -0.5, 1e-3 / 3.0};
+  r.temperature_coefficient_cov = {4e-4, 1e-5, -2e-6, 9e-4, 3e-6, 2.5e-5};
+  r.temperature_model_refit_id = refit_id;
+  const int64_t id = history->append(r);
+  const auto got = history->get(id);
+  REQUIRE(got);
+  CHECK(got->id == id);
+  check_round_trip(*got, r);
+
+  // Absent fields: an empty software version and creation time take this build's and now.
+  CalibrationRecord bare;
+  bare.sat_id = "SAT2";
+  bare.method = "ekf";
+  const auto back = history->get(history->append(bare));
+  REQUIRE(back);
+  CHECK_FALSE(back->software_version.empty());
+  CHECK(back->created_utime > kT0);
+  bare.software_version = back->software_version;
+  bare.created_utime = back->created_utime;
+  check_round_trip(*back, bare);
+}
+
+TEMPLATE_TEST_CASE_METHOD(BackendTest,
+                          "history query: sat, method, inclusive range, limit newest, either order",
+                          "[calibrations]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto history_store = this->db->make_calibration_history();
+  CalibrationHistory& history = *history_store;
   // 48 h of hourly ukf snapshots and daily twostep refits on two spacecraft.
   for (int k = 0; k < 48; ++k) {
     history.append(make_record("SAT1", "ukf", kT0 + k * kHour, k));
@@ -144,9 +234,12 @@ TEST_CASE("history query: sat, method, inclusive range, limit newest, either ord
   CHECK(history.spacecraft() == std::vector<std::string>{"SAT1", "SAT2"});
 }
 
-TEST_CASE("latest, latest refit, previous refit, latest accepted refit") {
-  Database db(":memory:");
-  CalibrationHistory history(db);
+TEMPLATE_TEST_CASE_METHOD(BackendTest,
+                          "latest, latest refit, previous refit, latest accepted refit",
+                          "[calibrations]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto history_store = this->db->make_calibration_history();
+  CalibrationHistory& history = *history_store;
   CHECK_FALSE(history.latest_refit("SAT1").has_value());
   CHECK_FALSE(history.previous_refit("SAT1").has_value());
   history.append(make_record("SAT1", "centered", kT0 + 1 * kHour, 1));  // accepted
@@ -175,9 +268,12 @@ TEST_CASE("latest, latest refit, previous refit, latest accepted refit") {
   CHECK_FALSE(is_refit_method("ukf"));
 }
 
-TEST_CASE("uncertainty evidence (schema 3) round-trips, unknown values stay NULL") {
-  Database db(":memory:");
-  CalibrationHistory history(db);
+TEMPLATE_TEST_CASE_METHOD(BackendTest,
+                          "uncertainty evidence (schema 3) round-trips, unknown values stay NULL",
+                          "[calibrations]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto history_store = this->db->make_calibration_history();
+  CalibrationHistory& history = *history_store;
   CalibrationRecord known = make_record("SAT1", "twostep", kT0, 1);
   known.noise_scale = 1.21;
   known.residual_autocorrelation = 0.031;
@@ -209,9 +305,12 @@ TEST_CASE("uncertainty evidence (schema 3) round-trips, unknown values stay NULL
   CHECK(std::isnan(b->k3[0]));
 }
 
-TEST_CASE("a refit's model error (schema 4) round-trips, zero stays NULL, rows read by id") {
-  Database db(":memory:");
-  CalibrationHistory history(db);
+TEMPLATE_TEST_CASE_METHOD(
+    BackendTest, "a refit's model error (schema 4) round-trips, zero stays NULL, rows read by id",
+    "[calibrations]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto history_store = this->db->make_calibration_history();
+  CalibrationHistory& history = *history_store;
   CalibrationRecord extended = make_record("SAT1", "twostep", kT0, 1);
   extended.model_error = {0.1 + 0.2, -3.5, 1e-300, 0, 2e-4, -1e-5, 0, 3e-6, -0.0};
   const int64_t a = history.append(extended);
@@ -221,18 +320,19 @@ TEST_CASE("a refit's model error (schema 4) round-trips, zero stays NULL, rows r
   CHECK(back->id == a);
   CHECK(back->model_error == extended.model_error);
   CHECK(history.get(b)->model_error == std::array<double, 9>{});
-  Statement nulls(db, "SELECT count(*) FROM calibrations WHERE model_error IS NULL");
-  REQUIRE(nulls.step());
-  CHECK(nulls.column_int64(0) == 1);
+  CHECK(query_int(*this->db, "SELECT count(*) FROM calibrations WHERE model_error IS NULL") == 1);
   CHECK_FALSE(history.get(b + 1).has_value());
-  db.exec("UPDATE calibrations SET model_error = zeroblob(8)");
+  this->db->exec("UPDATE calibrations SET model_error = " + TestType::zero_blob_sql(8));
   CHECK_THROWS_AS(history.get(a), StorageError);
 }
 
-TEST_CASE(
-    "the alignment covariance round-trips exactly, NULL without an alignment or when unknown") {
-  Database db(":memory:");
-  CalibrationHistory history(db);
+TEMPLATE_TEST_CASE_METHOD(
+    BackendTest,
+    "the alignment covariance round-trips exactly, NULL without an alignment or when unknown",
+    "[calibrations]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto history_store = this->db->make_calibration_history();
+  CalibrationHistory& history = *history_store;
   CalibrationRecord aligned = make_record("SAT1", "twostep", kT0, 1);
   REQUIRE(aligned.has_alignment);
   aligned.alignment_covariance_rad2 =
@@ -248,54 +348,51 @@ TEST_CASE(
   REQUIRE(history.get(a)->alignment_covariance_rad2 == aligned.alignment_covariance_rad2);
   CHECK_FALSE(history.get(u)->alignment_covariance_rad2.has_value());
   CHECK_FALSE(history.get(n)->alignment_covariance_rad2.has_value());
-  Statement nulls(db, "SELECT count(*) FROM calibrations WHERE alignment_covariance_rad2 IS NULL");
-  REQUIRE(nulls.step());
-  CHECK(nulls.column_int64(0) == 2);
-  db.exec("UPDATE calibrations SET alignment_covariance_rad2 = zeroblob(40) WHERE id = " +
-          std::to_string(a));
+  CHECK(query_int(*this->db,
+                  "SELECT count(*) FROM calibrations WHERE alignment_covariance_rad2 IS NULL") ==
+        2);
+  this->db->exec("UPDATE calibrations SET alignment_covariance_rad2 = " +
+                 TestType::zero_blob_sql(40) + " WHERE id = " + std::to_string(a));
   CHECK_THROWS_AS(history.get(a), StorageError);
 }
 
-TEST_CASE("rows stored before the alignment covariance was kept read it as unknown") {
-  const auto all = migrations();
+TEMPLATE_TEST_CASE("rows stored before the alignment covariance was kept read it as unknown",
+                   "[calibrations]", SqliteBackend, PostgresBackend) {
+  const auto all = migrations();  // version N is the same schema on both backends
   const auto it = std::find_if(all.begin(), all.end(), [](const Migration& m) {
     return std::string_view(m.name).ends_with("_alignment_covariance");
   });
   REQUIRE(it != all.end());
-  const int before = it->version - 1;
-  const std::filesystem::path dir = std::filesystem::temp_directory_path() /
-                                    ("magcal_history_test_" + std::to_string(::getpid()));
-  std::filesystem::create_directories(dir);
-  const std::string path = (dir / "old.db").string();
+  TestType backend;
   {
     OpenOptions old;
-    old.migrate_to = before;
-    Database db(path, old);
-    REQUIRE(db.schema_version() == before);
+    old.migrate_to = it->version - 1;
+    const auto db = backend.open(old);
+    if (!db) return;
     // A row as the previous schema stored it: an alignment without its covariance.
-    db.exec(
+    db->exec(
         "INSERT INTO calibrations (sat_id, method, utime, window_start_utime, window_end_utime, "
         "n_samples, bias_x_nT, bias_y_nT, bias_z_nT, D11, D22, D33, D12, D13, D23, cov, "
         "has_alignment, R11, R12, R13, R21, R22, R23, R31, R32, R33, residual_rms_nT, status, "
         "verdict, software_version, created_utime) VALUES ('SAT1', 'twostep', 42, 0, 0, 0, 0, 0, "
-        "0, 0, 0, 0, 0, 0, 0, zeroblob(360), 1, 1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 'accepted', "
-        "'old', 1)");
+        "0, 0, 0, 0, 0, 0, 0, " +
+        TestType::zero_blob_sql(360) +
+        ", 1, 1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 'accepted', 'old', 1)");
   }
-  {
-    Database db(path);
-    CHECK(db.schema_version() == static_cast<int>(migrations().size()));
-    CalibrationHistory history(db);
-    const auto old_row = history.latest("SAT1", "twostep");
-    REQUIRE(old_row);
-    CHECK(old_row->has_alignment);
-    CHECK_FALSE(old_row->alignment_covariance_rad2.has_value());
-  }
-  std::filesystem::remove_all(dir);
+  const auto db = backend.open_again();  // migrates to the newest schema
+  const auto old_row = db->make_calibration_history()->latest("SAT1", "twostep");
+  REQUIRE(old_row);
+  CHECK(old_row->has_alignment);
+  CHECK_FALSE(old_row->alignment_covariance_rad2.has_value());
+  CHECK(old_row->cov == std::array<double, 45>{});
 }
 
-TEST_CASE("the bias temperature model round-trips, not modelled stays NULL") {
-  Database db(":memory:");
-  CalibrationHistory history(db);
+TEMPLATE_TEST_CASE_METHOD(BackendTest,
+                          "the bias temperature model round-trips, not modelled stays NULL",
+                          "[calibrations]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto history_store = this->db->make_calibration_history();
+  CalibrationHistory& history = *history_store;
   CalibrationRecord refit = make_record("SAT1", "twostep", kT0, 1);
   refit.has_temperature_model = 1;
   refit.reference_temperature_C = 0.1 + 0.2;  // not exact in binary: must come back bit-exact
@@ -333,20 +430,20 @@ TEST_CASE("the bias temperature model round-trips, not modelled stays NULL") {
   CHECK(std::isnan(c->reference_temperature_C));
   CHECK(std::isnan(c->temperature_coefficient_nT_per_C[0]));
   CHECK(history.get(plain_id)->has_temperature_model == -1);
-  Statement nulls(db,
+  CHECK(query_int(*this->db,
                   "SELECT count(*) FROM calibrations WHERE reference_temperature_C IS NULL AND "
                   "temperature_coefficient_x_nT_per_C IS NULL AND temperature_coefficient_cov IS "
-                  "NULL AND temperature_model_refit_id IS NULL");
-  REQUIRE(nulls.step());
-  CHECK(nulls.column_int64(0) == 2);
-  db.exec("UPDATE calibrations SET temperature_coefficient_cov = zeroblob(8) WHERE id = " +
-          std::to_string(refit_id));
+                  "NULL AND temperature_model_refit_id IS NULL") == 2);
+  this->db->exec("UPDATE calibrations SET temperature_coefficient_cov = " +
+                 TestType::zero_blob_sql(8) + " WHERE id = " + std::to_string(refit_id));
   CHECK_THROWS_AS(history.get(refit_id), StorageError);
 }
 
-TEST_CASE("invalid records are refused") {
-  Database db(":memory:");
-  CalibrationHistory history(db);
+TEMPLATE_TEST_CASE_METHOD(BackendTest, "invalid records are refused", "[calibrations]",
+                          SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto history_store = this->db->make_calibration_history();
+  CalibrationHistory& history = *history_store;
   auto r = make_record("SAT1", "ukf", kT0, 0);
   r.verdict = "maybe";
   CHECK_THROWS_AS(history.append(r), StorageError);

@@ -138,7 +138,7 @@ TEST_CASE("a version-1 database is upgraded on open and keeps its data") {
   Database db(path);
   CHECK(db.schema_version() == Database::latest_schema_version());
   CHECK(query_int(db, "SELECT count(*) FROM sqlite_schema WHERE name = 'meta'") == 1);
-  CalibrationHistory history(db);
+  SqliteCalibrationHistory history(db);
   const auto latest = history.latest("SAT1", "twostep");
   REQUIRE(latest.has_value());
   CHECK(latest->utime == 42);

@@ -16,23 +16,12 @@ using magcal::test::SqliteBackend;
 
 namespace {
 
-// A calibrations row of SAT1 for a job to link to. The calibration history has no PostgreSQL
-// implementation yet: there the row is written by SQL.
+// A calibrations row of SAT1 for a job to link to.
 int64_t add_calibration(Connection& db) {
-  if (auto* sqlite = dynamic_cast<Database*>(&db)) {
-    CalibrationRecord r;
-    r.sat_id = "SAT1";
-    r.method = "twostep";
-    return CalibrationHistory(*sqlite).append(r);
-  }
-  return dynamic_cast<PgDatabase&>(db)
-      .execute(
-          "INSERT INTO calibrations (sat_id, method, utime, window_start_utime, window_end_utime, "
-          "n_samples, bias_x_nT, bias_y_nT, bias_z_nT, D11, D22, D33, D12, D13, D23, cov, "
-          "has_alignment, status, verdict, software_version, created_utime) VALUES ('SAT1', "
-          "'twostep', 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, '', 0, 0, 'accepted', 'test', 0) "
-          "RETURNING id")
-      .get_int64(0, 0);
+  CalibrationRecord r;
+  r.sat_id = "SAT1";
+  r.method = "twostep";
+  return db.make_calibration_history()->append(r);
 }
 
 }  // namespace

@@ -209,10 +209,7 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest,
                           "[samples]", SqliteBackend, PostgresBackend) {
   if (!this->db) return;
   const auto store = this->db->make_sample_window_store();
-  // The calibration history has no PostgreSQL implementation yet: checked on SQLite only.
-  auto* sqlite = dynamic_cast<Database*>(this->db.get());
-  std::optional<CalibrationHistory> history;
-  if (sqlite) history.emplace(*sqlite);
+  const auto history = this->db->make_calibration_history();
   const int64_t step = 10 * kSecond;
   const auto a = make_series("SAT1", 3000, step);  // 30 000 s of data
   const auto b = make_series("SAT2", 100, step);
@@ -222,7 +219,7 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest,
   r.sat_id = "SAT1";
   r.method = "ukf";
   r.utime = a.front().utime;  // a result about the oldest data: never deleted
-  if (history) history->append(r);
+  history->append(r);
 
   const int64_t window_utime = 6 * 3600 * kSecond / 3;  // 2 h
   const int64_t margin_utime = 1800 * kSecond;          // 0.5 h
@@ -241,7 +238,7 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest,
   REQUIRE(!kept.empty());
   CHECK(kept.front().utime == cutoff);  // the sample exactly at the cutoff stays (10 s grid)
   CHECK(store->count("SAT2") == 100);   // other spacecraft untouched
-  if (history) CHECK(history->latest("SAT1", "ukf").has_value());
+  CHECK(history->latest("SAT1", "ukf").has_value());
 
   // Idempotent; an unknown spacecraft is a no-op.
   CHECK(store->apply_retention("SAT1", window_utime, margin_utime, chunk).deleted == 0);

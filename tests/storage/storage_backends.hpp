@@ -6,7 +6,9 @@
 //
 //   TestType backend;
 //   auto db = backend.open();    // a new, empty database; nullptr: skipped, return at once
+//   backend.open(options)        // the same, opened with these options (e.g. an old schema)
 //   backend.open_again(options)  // another connection to the same database
+//   query_int(*db, sql)          // the one integer a query returns (a count), either backend
 #pragma once
 
 #include <unistd.h>
@@ -18,6 +20,7 @@
 #include "storage/connection.hpp"
 #include "storage/database.hpp"
 #include "storage/postgres/pg_database.hpp"
+#include "storage/statement.hpp"
 #include "tests/storage/postgres/pg_test_server.hpp"
 
 namespace magcal::test {
@@ -38,7 +41,9 @@ class SqliteBackend {
   SqliteBackend(const SqliteBackend&) = delete;
   SqliteBackend& operator=(const SqliteBackend&) = delete;
 
-  std::unique_ptr<storage::Connection> open() { return open_again(); }
+  std::unique_ptr<storage::Connection> open(const storage::OpenOptions& options = {}) {
+    return open_again(options);
+  }
   std::unique_ptr<storage::Connection> open_again(const storage::OpenOptions& options = {}) {
     return storage::open_database((dir_ / "test.db").string(), options);
   }
@@ -52,11 +57,11 @@ class SqliteBackend {
 class PostgresBackend {
  public:
   static constexpr const char* kName = "postgres";
-  std::unique_ptr<storage::Connection> open() {
+  std::unique_ptr<storage::Connection> open(const storage::OpenOptions& options = {}) {
     PgTestServer* server = pg_server_or_skip();
     if (server == nullptr) return nullptr;
     uri_ = server->create_database();
-    return open_again();
+    return open_again(options);
   }
   std::unique_ptr<storage::Connection> open_again(const storage::OpenOptions& options = {}) {
     return storage::open_database(uri_, options);
@@ -68,6 +73,15 @@ class PostgresBackend {
  private:
   std::string uri_;
 };
+
+inline int64_t query_int(storage::Connection& db, const std::string& sql) {
+  if (auto* sqlite = dynamic_cast<storage::Database*>(&db)) {
+    storage::Statement st(*sqlite, sql);
+    REQUIRE(st.step());
+    return st.column_int64(0);
+  }
+  return dynamic_cast<storage::PgDatabase&>(db).execute(sql).get_int64(0, 0);
+}
 
 template <typename Backend>
 struct BackendTest {

@@ -67,7 +67,7 @@ CalibrationRecord make_record(const std::string& sat, const std::string& method,
 // and 8 h (accepted, aligned); SAT2: one ukf snapshot.
 void populate(const std::string& path) {
   Database db(path);
-  CalibrationHistory history(db);
+  SqliteCalibrationHistory history(db);
   for (int k = 0; k < 10; ++k) history.append(make_record("SAT1", "ukf", kT0 + k * kHour, k));
   for (int k : {2, 5, 8}) history.append(make_record("SAT1", "twostep", kT0 + k * kHour + 1, k));
   history.append(make_record("SAT2", "ukf", kT0, 0));
@@ -125,7 +125,7 @@ TEST_CASE("history --format json matches the stored rows and design.md keys") {
   REQUIRE(j.size() == 13);
 
   Database check(db);
-  CalibrationHistory history(check);
+  SqliteCalibrationHistory history(check);
   HistoryQuery q;
   q.sat_id = "SAT1";
   const auto rows = history.query(q);
@@ -310,7 +310,7 @@ TEST_CASE("history and status read while a writer is writing") {
     try {
       Database wdb(db);
       SqliteSampleWindowStore samples(wdb);
-      CalibrationHistory history(wdb);
+      SqliteCalibrationHistory history(wdb);
       std::vector<StoredSample> batch(200);
       for (int64_t n = 0;; ++n) {
         {
@@ -368,7 +368,7 @@ TEST_CASE("history flags roll/yaw near gimbal lock in JSON and CSV (canonical sp
     for (int j = 0; j < 3; ++j) side.R_sensor_from_body[static_cast<size_t>(3 * i + j)] = R(i, j);
   {
     Database d(db);
-    CalibrationHistory(d).append(side);
+    SqliteCalibrationHistory(d).append(side);
   }
   const Run js = run_magcal("history --db " + db + " --sat SIDE --format json", dir);
   REQUIRE(js.exit_code == 0);
@@ -418,7 +418,7 @@ TEST_CASE("history JSON and CSV: quaternion, rotation-vector covariance and angl
   CalibrationRecord ukf = make_record("SAT1", "ukf", kT0 + 2 * kHour, 1);  // no alignment
   {
     Database d(db);
-    CalibrationHistory history(d);
+    SqliteCalibrationHistory history(d);
     history.append(aligned);
     history.append(old);
     history.append(ukf);

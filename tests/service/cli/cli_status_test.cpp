@@ -57,7 +57,7 @@ struct Fixture {
   Fixture() {
     Database d(db);
     SqliteSampleWindowStore samples(d);
-    CalibrationHistory history(d);
+    SqliteCalibrationHistory history(d);
     SqliteRefitJobLog jobs(d);
     // SAT1: 20 h of samples every 10 s (so the 12 h window holds 4320 of them).
     std::vector<StoredSample> batch;

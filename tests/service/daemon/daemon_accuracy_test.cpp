@@ -54,7 +54,7 @@ std::vector<CalibrationRecord> history(const std::string& db, const std::string&
   magcal::storage::OpenOptions ro;
   ro.read_only = true;
   magcal::storage::Database d(db, ro);
-  magcal::storage::CalibrationHistory h(d);
+  magcal::storage::SqliteCalibrationHistory h(d);
   magcal::storage::HistoryQuery q;
   q.sat_id = sat_id;
   q.method = method;

@@ -59,7 +59,7 @@ std::vector<magcal::storage::CalibrationRecord> history(const std::string& db,
   magcal::storage::OpenOptions ro;
   ro.read_only = true;
   magcal::storage::Database d(db, ro);
-  magcal::storage::CalibrationHistory h(d);
+  magcal::storage::SqliteCalibrationHistory h(d);
   magcal::storage::HistoryQuery q;
   q.sat_id = sat;
   q.method = method;

@@ -132,7 +132,7 @@ CalibrationResult accepted_refit(const std::vector<mag_sample_t>& s) {
 // Stores `refit` with its finished job (what the restart's re-anchor looks up); returns its id.
 int64_t store_refit(const std::string& db, const CalibrationResult& refit) {
   storage::Database d(db);
-  storage::CalibrationHistory history(d);
+  storage::SqliteCalibrationHistory history(d);
   storage::SqliteRefitJobLog jobs(d);
   const int64_t job = jobs.start("SAT-1", "scheduled", refit.utime, 1);
   const int64_t id = history.append(record_from_result("SAT-1", refit));
@@ -255,7 +255,7 @@ TEST_CASE("UKF snapshots follow the data clock", "[ingest_worker]") {
   const auto s = simulate(2161, 2, "SAT-1", 0.3);  // exactly six hours at 10 s
   feed(*w, s, 0, s.size());
   storage::Database db(tmp.path());
-  storage::CalibrationHistory history(db);
+  storage::SqliteCalibrationHistory history(db);
   storage::HistoryQuery q;
   q.sat_id = "SAT-1";
   q.method = "ukf";
@@ -379,7 +379,7 @@ TEST_CASE("the anchor refit's temperature model: snapshots carry it, a restart r
     storage::HistoryQuery q;
     q.sat_id = "SAT-1";
     q.method = "ukf";
-    const auto rows = storage::CalibrationHistory(d).query(q);
+    const auto rows = storage::SqliteCalibrationHistory(d).query(q);
     REQUIRE(rows.size() >= 10);
     for (const auto& r : rows) {
       CHECK(r.has_temperature_model == 1);
@@ -908,7 +908,7 @@ TEST_CASE(
   // The refit thread ran the first two only (the third was lost with the process).
   {
     storage::Database db(c.storage.db_path);
-    storage::CalibrationHistory history(db);
+    storage::SqliteCalibrationHistory history(db);
     for (int k = 0; k < 2; ++k) {
       CalibrationResult r;
       r.method = "twostep";

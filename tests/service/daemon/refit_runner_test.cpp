@@ -87,7 +87,7 @@ TEST_CASE("refits: the short first window is no reference, every full-window ref
   CHECK(full_refits == 3);
 
   // The evidence is stored with the result (schema 3) and read back.
-  storage::CalibrationHistory history(db);
+  storage::SqliteCalibrationHistory history(db);
   const auto last = history.latest_accepted_refit("PAPER-1");
   REQUIRE(last);
   CHECK(std::isfinite(last->noise_scale));
@@ -204,7 +204,7 @@ TEST_CASE("refits: a reference with a temperature model is compared at this wind
         reference.temperature_coefficient_nT_per_C = k_T;
         reference.temperature_coefficient_covariance = Eigen::Matrix3d::Identity() * 4e-4;
       }
-      storage::CalibrationHistory(db).append(record_from_result("WARM-1", reference));
+      storage::SqliteCalibrationHistory(db).append(record_from_result("WARM-1", reference));
 
       RefitRunner runner(config, db);
       const RefitOutcome out = runner.run("WARM-1", t_ref, "scheduled", t_ref);

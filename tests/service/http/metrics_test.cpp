@@ -181,7 +181,7 @@ TEST_CASE("database metrics (magcal serve): what the database holds", "[metrics]
       rows.push_back(s);
     }
     samples.insert_batch(rows);
-    st::CalibrationHistory history(db);
+    st::SqliteCalibrationHistory history(db);
     auto record = [](const std::string& method, int64_t utime, bool accepted, double bx) {
       st::CalibrationRecord r;
       r.sat_id = "SAT-A";

@@ -23,6 +23,7 @@
 #include "service/io/status_report.hpp"
 #include "storage/calibration_history.hpp"
 #include "storage/database.hpp"
+#include "storage/sqlite_stores.hpp"
 #include "tests/service/http_test_support.hpp"
 #include "tests/test_skip.hpp"
 
@@ -62,7 +63,7 @@ storage::CalibrationRecord record(const std::string& sat, const std::string& met
 // SAT-A: 120 UKF snapshots (one a minute) and 2 twostep refits; SAT-B: 3 UKF snapshots.
 void populate(const std::string& path) {
   storage::Database db(path);
-  storage::CalibrationHistory history(db);
+  storage::SqliteCalibrationHistory history(db);
   storage::Transaction tx(db);
   for (int k = 0; k < 120; ++k) history.append(record("SAT-A", "ukf", k));
   for (int k : {30, 90}) history.append(record("SAT-A", "twostep", k));
@@ -302,7 +303,7 @@ TEST_CASE("the server reads while a writer commits, and the writer is never refu
   std::atomic<int> written{0};
   std::thread writer([&] {
     storage::Database db(f.db);  // the daemon's role: its own read-write connection
-    storage::CalibrationHistory history(db);
+    storage::SqliteCalibrationHistory history(db);
     for (int k = 120; k < 420; ++k) {
       storage::Transaction tx(db);
       history.append(record("SAT-A", "ukf", k));

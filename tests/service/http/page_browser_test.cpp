@@ -17,6 +17,7 @@
 
 #include "storage/calibration_history.hpp"
 #include "storage/database.hpp"
+#include "storage/sqlite_stores.hpp"
 #include "tests/service/http_test_support.hpp"
 #include "tests/test_skip.hpp"
 
@@ -191,7 +192,7 @@ TEST_CASE("the page draws the replayed day in headless Chromium without console 
   std::filesystem::copy_file(magcal::test::replayed_day_db(), db);
   {
     magcal::storage::Database d(db);
-    magcal::storage::CalibrationHistory history(d);
+    magcal::storage::SqliteCalibrationHistory history(d);
     auto rejected = history.latest_refit("PAPER-1");
     REQUIRE(rejected);
     rejected->utime += 3600LL * 1000000;

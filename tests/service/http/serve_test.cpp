@@ -163,7 +163,7 @@ TEST_CASE("serve over a replayed day: /metrics is what the database holds") {
   ro.read_only = true;
   st::Database d(db, ro);
   st::SqliteSampleWindowStore samples(d);
-  st::CalibrationHistory history(d);
+  st::SqliteCalibrationHistory history(d);
   CHECK(p.value("magcal_window_samples", {{"sat", kSat}}) == samples.count(kSat));
   CHECK_FALSE(p.has("magcal_samples_stored_total"));  // retention deletes: not a counter here
   st::HistoryQuery q;

@@ -32,7 +32,7 @@
 #include "tests/test_skip.hpp"
 
 namespace fs = std::filesystem;
-using magcal::storage::CalibrationHistory;
+using magcal::storage::SqliteCalibrationHistory;
 using magcal::storage::CalibrationRecord;
 using magcal::storage::Database;
 using magcal::test::Run;
@@ -130,7 +130,7 @@ void build_database(const std::string& path) {
     batch[k].h_norm_nT = 30000.0;
   }
   samples.insert_batch(batch);
-  CalibrationHistory history(db);
+  SqliteCalibrationHistory history(db);
   history.append(record("SAT1", kT0 + 500 * kSecond, 10.0));
   history.append(record("SAT1", kT0 + 990 * kSecond, 11.0));
 }
@@ -188,7 +188,7 @@ TEST_CASE("with a writer holding the database (its -wal and -shm present), they 
   fs::create_directories(data);
   build_database(data + "/m.db");
   Database writer(data + "/m.db");
-  CalibrationHistory(writer).append(record("SAT2", kT0 + 1000 * kSecond, 5.0));
+  SqliteCalibrationHistory(writer).append(record("SAT2", kT0 + 1000 * kSecond, 5.0));
   REQUIRE(fs::exists(data + "/m.db-shm"));
   const auto read_only = read_only_view_or_skip(data, view);
   if (!read_only) return;
@@ -205,34 +205,36 @@ TEST_CASE("a lock-free read notices a writer that opened the file meanwhile and 
   build_database(data + "/m.db");
   const auto read_only = read_only_view_or_skip(data, view);
   if (!read_only) return;
-  std::optional<Database> reader;
-  const auto ids = [](Database& db) {
+  std::unique_ptr<magcal::storage::Connection> reader;
+  // An SQLite reader: its immutable() open is what this case is about.
+  const auto immutable = [&reader] { return dynamic_cast<Database&>(*reader).immutable(); };
+  const auto ids = [](magcal::storage::Connection& db) {
     std::vector<std::string> out;
     for (const auto& s : magcal::read_status(db, 3600 * kSecond)) out.push_back(s.sat_id);
     return out;
   };
   CHECK(magcal::read_consistently(reader, view + "/m.db", ids) == std::vector<std::string>{"SAT1"});
-  REQUIRE(reader->immutable());
+  REQUIRE(immutable());
   CHECK_FALSE(reader->changed_since_open());
   {
     Database writer(data + "/m.db");
     CHECK(reader->changed_since_open());  // its -shm appeared
-    CalibrationHistory(writer).append(record("SAT2", kT0 + 1000 * kSecond, 5.0));
+    SqliteCalibrationHistory(writer).append(record("SAT2", kT0 + 1000 * kSecond, 5.0));
     // The next read reopens, through the writer's -shm, and sees its commit.
     CHECK(magcal::read_consistently(reader, view + "/m.db", ids) ==
           std::vector<std::string>{"SAT1", "SAT2"});
-    CHECK_FALSE(reader->immutable());
+    CHECK_FALSE(immutable());
     reader.reset();  // the writer, last to close, checkpoints and removes its -wal and -shm
   }
   // The writer closed: an immutable read again, of the new content.
   REQUIRE_FALSE(fs::exists(data + "/m.db-shm"));
   CHECK(magcal::read_consistently(reader, view + "/m.db", ids) ==
         std::vector<std::string>{"SAT1", "SAT2"});
-  CHECK(reader->immutable());
+  CHECK(immutable());
   // A file changed under an immutable connection (size, time) is noticed too.
   {
     Database writer(data + "/m.db");
-    CalibrationHistory(writer).append(record("SAT3", kT0 + 1100 * kSecond, 6.0));
+    SqliteCalibrationHistory(writer).append(record("SAT3", kT0 + 1100 * kSecond, 6.0));
   }
   CHECK(reader->changed_since_open());
 }
@@ -247,7 +249,7 @@ TEST_CASE("a -wal with commits but no -shm where they cannot write: one line, fi
     // What a writer that crashed leaves: commits in the -wal, not yet in the file.
     Database writer(data + "/m.db");
     writer.exec("PRAGMA wal_autocheckpoint = 0");
-    CalibrationHistory(writer).append(record("SAT2", kT0 + 1000 * kSecond, 5.0));
+    SqliteCalibrationHistory(writer).append(record("SAT2", kT0 + 1000 * kSecond, 5.0));
     fs::copy_file(data + "/m.db", copy + "/m.db");
     fs::copy_file(data + "/m.db-wal", copy + "/m.db-wal");
   }
