@@ -31,7 +31,7 @@ int run_history(const HistoryArgs& args) {
   std::vector<storage::CalibrationRecord> rows;
   try {
     bool known = true;
-    rows = read_consistently(args.db, [&](storage::Database& db) {
+    rows = read_consistently(args.db, [&](storage::Connection& db) {
       auto found = read_history(db, *query);
       known = !found.empty() || spacecraft_known(db, args.sat);
       return found;
@@ -40,8 +40,8 @@ int run_history(const HistoryArgs& args) {
     // script must not take an empty answer for success. A known one with no rows in the asked
     // range is a valid, empty answer.
     if (!known) {
-      std::cerr << "magcal history: no data for spacecraft '" << args.sat << "' in " << args.db
-                << "\n";
+      std::cerr << "magcal history: no data for spacecraft '" << args.sat << "' in "
+                << storage::database_name(args.db) << "\n";
       return kExitData;
     }
   } catch (const storage::StorageError& e) {

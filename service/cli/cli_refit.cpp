@@ -1,10 +1,11 @@
-// `magcal refit --db FILE --sat ID [--config FILE.toml] [--json]`: the daemon's refit
+// `magcal refit --db FILE|URI --sat ID [--config FILE.toml] [--json]`: the daemon's refit
 // (refit_runner.hpp) run now, in this process, on the stored window ending at the spacecraft's
-// newest sample. Safe while magcald runs (own connection; SQLite WAL + busy timeout). Writes the
-// result to the history and a 'manual' job row, prints the result. The config supplies the
-// window length, min_samples, sigma and the gates (the daemon's defaults without one).
-// Exit: 0 a result was computed and stored (accepted or rejected), 2 missing database, no or
-// too few samples (refused: nothing written), failed fit, database error; 1 bad config.
+// newest sample. Safe while magcald runs (own connection; SQLite WAL + busy timeout, or
+// PostgreSQL). Writes the result to the history and a 'manual' job row, prints the result. The
+// config supplies the window length, min_samples, sigma and the gates (the daemon's defaults
+// without one). Exit: 0 a result was computed and stored (accepted or rejected), 2 missing
+// database, no or too few samples (refused: nothing written), failed fit, database error; 1 bad
+// config.
 #include <algorithm>
 #include <chrono>
 #include <filesystem>
@@ -27,14 +28,16 @@ int run_refit(const RefitArgs& args) {
     return kExitUsage;
   }
   const DaemonConfig& config = load.config;
-  if (!std::filesystem::exists(args.db)) {
-    std::cerr << "magcal refit: database " << args.db << " does not exist\n";
+  const std::string db_name = storage::database_name(args.db);
+  // An SQLite open would create a missing file (a PostgreSQL database must exist already).
+  if (!storage::is_postgres_uri(args.db) && !std::filesystem::exists(args.db)) {
+    std::cerr << "magcal refit: database " << db_name << " does not exist\n";
     return kExitData;
   }
   RefitOutcome out;
   try {
-    storage::Database db(args.db);
-    RefitRunner runner(config, db);
+    const auto db = storage::open_database(args.db);
+    RefitRunner runner(config, *db);
     // A refit that would only be skipped is refused here, before its job row is written.
     if (const std::string why = runner.skip_reason(args.sat, std::nullopt); !why.empty()) {
       // An unknown id (a typo?) is answered with the ones stored.
@@ -43,7 +46,7 @@ int run_refit(const RefitArgs& args) {
       for (size_t k = 0; k < all.size() && k < 10; ++k) stored += (k ? ", " : "") + all[k];
       if (all.size() > 10) stored += ", ... (" + std::to_string(all.size()) + " in all)";
       const bool known = std::find(all.begin(), all.end(), args.sat) != all.end();
-      std::cerr << "magcal refit: " << why << " in " << args.db
+      std::cerr << "magcal refit: " << why << " in " << db_name
                 << (known         ? ""
                     : all.empty() ? " (no spacecraft stored)"
                                   : " (spacecraft stored: " + stored + ")")
@@ -55,7 +58,7 @@ int run_refit(const RefitArgs& args) {
                          .count();
     out = runner.run(args.sat, std::nullopt, "manual", now);
   } catch (const storage::StorageError& e) {
-    std::cerr << "magcal refit: database " << args.db << ": " << e.what() << "\n";
+    std::cerr << "magcal refit: database " << db_name << ": " << e.what() << "\n";
     return kExitData;
   }
   if (out.kind != RefitOutcome::Kind::kComputed) {

@@ -30,7 +30,7 @@ int run_serve(const ServeArgs& args) {
   // The same window as `magcal status` (the daemon's default [storage] window_hours).
   hooks.status_window_utime = DaemonConfig{}.window_utime();
   hooks.metrics_text = [db_path = args.db] {
-    return read_consistently(db_path, [](storage::Database& db) {
+    return read_consistently(db_path, [](storage::Connection& db) {
       return http::database_metrics_text(db, MAGCAL_VERSION);
     });
   };
@@ -42,7 +42,7 @@ int run_serve(const ServeArgs& args) {
   }
   // The bound port (also when --listen asked for port 0), for scripts and tests.
   std::printf("magcal serve: %s (database %s, read-only; Ctrl-C stops)\n", server->url().c_str(),
-              args.db.c_str());
+              storage::database_name(args.db).c_str());
   std::fflush(stdout);
   int signal_number = 0;
   sigwait(&stop_signals, &signal_number);

@@ -16,7 +16,7 @@ int run_status(const StatusArgs& args) {
   std::vector<SpacecraftStatus> all;
   try {
     all = read_consistently(args.db,
-                            [&](storage::Database& db) { return read_status(db, window_utime); });
+                            [&](storage::Connection& db) { return read_status(db, window_utime); });
   } catch (const storage::StorageError& e) {
     std::cerr << "magcal status: " << e.what() << "\n";
     return kExitData;
@@ -24,7 +24,7 @@ int run_status(const StatusArgs& args) {
   if (args.json) {
     std::cout << status_json_text(all, window_utime);
   } else if (all.empty()) {
-    std::cerr << "magcal status: no spacecraft in " << args.db << "\n";
+    std::cerr << "magcal status: no spacecraft in " << storage::database_name(args.db) << "\n";
   } else {
     std::cout << status_text(all, window_utime);
   }

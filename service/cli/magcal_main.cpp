@@ -192,14 +192,14 @@ int main(int argc, char** argv) {
 
   RefitArgs refit;
   auto* refit_cmd = app.add_subcommand("refit", "run an offline refit of a stored window now");
-  refit_cmd->add_option("--db", refit.db, "database file")->required();
+  refit_cmd->add_option("--db", refit.db, "SQLite database file or postgresql:// URI")->required();
   refit_cmd->add_option("--sat", refit.sat, "spacecraft id")->required();
   refit_cmd->add_option("--config", refit.config, "magcald config (gates, sigma, window)");
   refit_cmd->add_flag("--json", refit.json, "print JSON");
 
   HistoryArgs history;
   auto* hist_cmd = app.add_subcommand("history", "query stored calibration results");
-  hist_cmd->add_option("--db", history.db, "database file")->required();
+  hist_cmd->add_option("--db", history.db, "SQLite database file or postgresql:// URI")->required();
   hist_cmd->add_option("--sat", history.sat, "spacecraft id")->required();
   hist_cmd->add_option("--method", history.method, "ukf|ekf|centered|twostep");
   hist_cmd->add_option("--since", history.since, "ISO 8601 UTC, inclusive");
@@ -213,13 +213,14 @@ int main(int argc, char** argv) {
 
   StatusArgs status;
   auto* status_cmd = app.add_subcommand("status", "per-spacecraft summary");
-  status_cmd->add_option("--db", status.db, "database file")->required();
+  status_cmd->add_option("--db", status.db, "SQLite database file or postgresql:// URI")
+      ->required();
   status_cmd->add_flag("--json", status.json, "print JSON");
 
   ServeArgs serve;
   auto* serve_cmd = app.add_subcommand(
       "serve", "HTTP operations server over a database (read-only): API, plots page");
-  serve_cmd->add_option("--db", serve.db, "database file")->required();
+  serve_cmd->add_option("--db", serve.db, "SQLite database file or postgresql:// URI")->required();
   serve_cmd->add_option("--listen", serve.listen,
                         "ADDR:PORT to listen on (default 127.0.0.1:9780; port 0: any free)");
 

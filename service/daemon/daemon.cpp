@@ -60,7 +60,7 @@ struct Daemon::Impl {
   std::unique_ptr<LcmPublisher> publisher;
   std::unique_ptr<IngestQueue> queue;
   std::unique_ptr<IngestWorker> worker;
-  std::unique_ptr<storage::Database> refit_db;
+  std::unique_ptr<storage::Connection> refit_db;
   std::unique_ptr<RefitRunner> refits;
   // Type=notify + WatchdogSec (deploy/magcald.service); a no-op outside systemd.
   SystemdNotifier systemd;
@@ -463,7 +463,7 @@ std::string Daemon::open() {
             [&d](const std::string& sat, int64_t t, const char* trigger) {
               d.on_refit_due(sat, t, trigger);
             }});
-    d.refit_db = std::make_unique<storage::Database>(
+    d.refit_db = storage::open_database(
         c.storage.db_path, storage::OpenOptions{.busy_timeout_ms = c.storage.busy_timeout_ms});
     d.refits = std::make_unique<RefitRunner>(d.config, *d.refit_db);
     if (const int n = d.refit_db->make_refit_job_log()->mark_running_interrupted(wall_utime())) {
@@ -471,7 +471,7 @@ std::string Daemon::open() {
     }
     d.worker->restore();
   } catch (const storage::StorageError& e) {
-    return "database " + c.storage.db_path + ": " + e.what();
+    return "database " + storage::database_name(c.storage.db_path) + ": " + e.what();
   }
   return d.start_server();
 }
@@ -480,8 +480,8 @@ int Daemon::run(const std::atomic<bool>& stop) {
   auto& d = *impl_;
   const auto& c = d.config;
   spdlog::info("magcald {} up: db {}, lcm {} ({}), refits {} clock at {} UTC{}", MAGCAL_VERSION,
-               c.storage.db_path, lcm_url_for_log(c.lcm.url), d.replay ? "replay" : "live",
-               c.refit.clock, c.refit.daily_at_utc,
+               storage::database_name(c.storage.db_path), lcm_url_for_log(c.lcm.url),
+               d.replay ? "replay" : "live", c.refit.clock, c.refit.daily_at_utc,
                c.refit.every_hours > 0 ? fmt::format(" + every {} h", c.refit.every_hours) : "");
   std::thread worker([&d] { d.worker_thread(); });
   std::thread refitter([&d] { d.refit_thread(); });

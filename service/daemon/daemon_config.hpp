@@ -26,13 +26,13 @@ struct DaemonConfig {
     std::string status_channel = "MAGCAL_STATUS";
   } lcm;
   struct Storage {
-    std::string db_path = "magcal.db";
+    std::string db_path = "magcal.db";  // an SQLite file, or a postgresql:// URI (a fleet's)
     double window_hours = 12.0;
     double retention_margin_hours = 1.0;
     int commit_every_samples = 4000;  // one transaction per this many samples...
     int commit_every_ms = 250;        // ...or this much wall time, whichever first
-    // How long one SQLite statement waits on another connection's lock before it fails (and
-    // the daemon retries it with backoff).
+    // How long one statement waits on another connection's lock before it fails (SQLite's busy
+    // timeout, PostgreSQL's lock_timeout; the daemon retries it with backoff).
     int busy_timeout_ms = 5000;
     // Storage failing continuously for this long (each failed commit retried with backoff)
     // stops the daemon with exit code 3 so systemd restarts it and an operator is alerted.

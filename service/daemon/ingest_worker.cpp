@@ -54,12 +54,13 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
       field_(std::move(field)),
       hooks_(std::move(hooks)),
       validator_(validator_options(config)),
-      db_(config.storage.db_path,
-          storage::OpenOptions{.busy_timeout_ms = config.storage.busy_timeout_ms}),
-      samples_(db_.make_sample_window_store()),
-      history_(db_),
-      filter_states_(db_.make_filter_state_store()),
-      jobs_(db_.make_refit_job_log()),
+      db_(storage::open_database(
+          config.storage.db_path,
+          storage::OpenOptions{.busy_timeout_ms = config.storage.busy_timeout_ms})),
+      samples_(db_->make_sample_window_store()),
+      history_(db_->make_calibration_history()),
+      filter_states_(db_->make_filter_state_store()),
+      jobs_(db_->make_refit_job_log()),
       fleet_(config.ukf.filter),
       commit_retry_("commit", config.storage.max_failure_s, counters),
       read_retry_("duplicate check", config.storage.max_failure_s, counters) {
@@ -81,7 +82,7 @@ void IngestWorker::restore() {
     if (!newest) continue;
     SpacecraftTracker& t = tracker(sat, nullptr);
     // The next early refit follows from the database: the latest refit's sample count.
-    const auto latest_refit = history_.latest_refit(sat);
+    const auto latest_refit = history_->latest_refit(sat);
     t.n_samples = samples_->count(sat);
     t.next_early_refit_samples =
         config_.early_refits().next_after(latest_refit ? latest_refit->n_samples : 0);
@@ -108,7 +109,7 @@ void IngestWorker::restore() {
   counters_.n_spacecraft.store(static_cast<int32_t>(fleet_.size()));
   if (fleet_.size() > 0) {
     spdlog::info("restored {} spacecraft from {} (UKF re-run over {} stored samples)",
-                 fleet_.size(), config_.storage.db_path, rerun);
+                 fleet_.size(), db_->name(), rerun);
   }
 }
 
@@ -136,7 +137,7 @@ int64_t IngestWorker::restore_filter(const std::string& sat, SpacecraftTracker& 
   // has: taken as the newest, it was saved at a clean stop, after the re-anchor.)
   t.anchor_calibration_id = anchor_id.value_or(reanchor_id.value_or(0));
   if (t.anchor_calibration_id > 0) {
-    if (const auto rec = history_.get(t.anchor_calibration_id))
+    if (const auto rec = history_->get(t.anchor_calibration_id))
       t.temperature.take_from(result_from_record(*rec), rec->id);
   }
   int64_t rerun = 0;
@@ -147,7 +148,7 @@ int64_t IngestWorker::restore_filter(const std::string& sat, SpacecraftTracker& 
     t.state_dirty = !rows.empty();
   }
   if (reanchor_id && *reanchor_id > t.anchor_calibration_id) {
-    if (const auto rec = history_.get(*reanchor_id)) {
+    if (const auto rec = history_->get(*reanchor_id)) {
       spdlog::info("{}: the stored UKF state predates the accepted refit of {}: re-anchoring now",
                    sat, format_iso8601_utc(rec->utime));
       reanchor(sat, t, result_from_record(*rec), rec->id);
@@ -526,13 +527,13 @@ void IngestWorker::commit_pending() {
                 std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
           }
         } observe{counters_.commit_seconds, t0};
-        storage::Transaction tx(db_);
+        storage::Transaction tx(*db_);
         stats = samples_->insert_batch(std::span(pending_).subspan(done, n), &duplicate_rows_);
         if (last) {
           for (const auto& p : pending_snapshots_) {
             storage::CalibrationRecord rec = record_from_result(p.sat_id, p.result);
             rec.temperature_model_refit_id = p.temperature_model_refit_id;
-            history_.append(rec);
+            history_->append(rec);
           }
           for (const auto& sat : states_due_) {
             if (const SpacecraftTracker* t = fleet_.find(sat)) {
@@ -661,7 +662,7 @@ void IngestWorker::save_filter_states() {
   if (!pending_.empty()) return;  // storage failing: saved once the commit goes through
   std::vector<SpacecraftTracker*> saved;
   try {
-    storage::Transaction tx(db_);
+    storage::Transaction tx(*db_);
     fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
       if (!t.state_dirty) return;
       filter_states_->save(stored_state(sat, t));

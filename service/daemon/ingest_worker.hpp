@@ -50,7 +50,7 @@
 #include "service/daemon/throttled_log.hpp"
 #include "service/io/reference_field.hpp"
 #include "storage/calibration_history.hpp"
-#include "storage/database.hpp"
+#include "storage/connection.hpp"
 #include "storage/filter_state_store.hpp"
 #include "storage/refit_job_log.hpp"
 #include "storage/sample_window_store.hpp"
@@ -178,9 +178,9 @@ class IngestWorker {
   std::unique_ptr<ReferenceField> field_;
   Hooks hooks_;
   ValidatorOptions validator_;
-  storage::Database db_;
+  std::unique_ptr<storage::Connection> db_;
   std::unique_ptr<storage::SampleWindowStore> samples_;
-  storage::CalibrationHistory history_;
+  std::unique_ptr<storage::CalibrationHistory> history_;
   std::unique_ptr<storage::FilterStateStore> filter_states_;
   std::unique_ptr<storage::RefitJobLog> jobs_;  // read by restore()
   SpacecraftFleet fleet_;

@@ -50,10 +50,11 @@ int main(int argc, char** argv) {
   // Installed first: a SIGTERM during start-up (systemd stop, a test) is a clean stop, never 143.
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);
-  CLI::App app{"magcald: magnetometer calibration daemon (LCM in, SQLite + LCM out)"};
+  CLI::App app{"magcald: magnetometer calibration daemon (LCM in, SQLite or PostgreSQL + LCM out)"};
   std::string config_path, db_path, lcm_url, log_level, http_listen;
   app.add_option("--config", config_path, "TOML config (deploy/magcald.example.toml lists keys)");
-  app.add_option("--db", db_path, "SQLite database (overrides [storage] db_path)");
+  app.add_option("--db", db_path,
+                 "SQLite database file or postgresql:// URI (overrides [storage] db_path)");
   app.add_option("--lcm-url", lcm_url,
                  "LCM URL (overrides [lcm] url); file://LOG?speed=0 replays a log and exits");
   app.add_option("--log-level", log_level, "trace|debug|info|warn|error|critical|off");

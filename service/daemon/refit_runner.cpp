@@ -34,12 +34,12 @@ BatchCalibrationOptions batch_options_from_config(const DaemonConfig& config) {
   return o;
 }
 
-RefitRunner::RefitRunner(const DaemonConfig& config, storage::Database& db)
+RefitRunner::RefitRunner(const DaemonConfig& config, storage::Connection& db)
     : config_(config),
       options_(batch_options_from_config(config)),
       db_(db),
       samples_(db.make_sample_window_store()),
-      history_(db),
+      history_(db.make_calibration_history()),
       jobs_(db.make_refit_job_log()) {}
 
 std::vector<std::string> RefitRunner::spacecraft() {
@@ -61,7 +61,7 @@ bool RefitRunner::accept_corroborated_change(const std::string& sat_id,
   };
   for (const auto& r : result.rejection_reasons)
     if (!is_change(r)) return false;
-  const auto last = history_.latest_refit(sat_id);
+  const auto last = history_->latest_refit(sat_id);
   if (!last || last->utime <= reference.utime || last->utime >= result.utime) return false;
   if (last->window_end_utime - last->window_start_utime <
           static_cast<int64_t>(kFullWindowFraction * config_.window_utime()) ||
@@ -151,7 +151,7 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
     // window_hours) has wider true errors and must not become the yardstick of later full
     // refits; with none yet, the refit is judged on its own evidence (change gate skipped).
     std::optional<CalibrationResult> previous;
-    if (const auto rec = history_.latest_accepted_refit(
+    if (const auto rec = history_->latest_accepted_refit(
             sat_id, static_cast<int64_t>(kFullWindowFraction * config_.window_utime()),
             config_.refit.min_samples)) {
       previous = at_temperature(result_from_record(*rec), mean_temperature_C(window_));
@@ -162,7 +162,7 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
     // The result and its job's outcome in one transaction: a restart after a crash finds a
     // refit either done (both) or interrupted (neither), and runs only the latter again.
     storage::Transaction tx(db_);
-    out.calibration_id = history_.append(record_from_result(sat_id, out.result));
+    out.calibration_id = history_->append(record_from_result(sat_id, out.result));
     if (out.result.accepted && out.result.status == CalibrationStatus::kOk) {
       out.job_outcome = storage::job_outcome::kOk;
     } else if (out.result.status == CalibrationStatus::kRejected) {

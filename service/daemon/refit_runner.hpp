@@ -5,8 +5,8 @@
 //      refit from the history) -> history row + job row finished, one transaction (ok |
 //      rejected | failed; skipped, job row only, when fewer than [refit] min_samples).
 // The same code runs in the daemon's refit thread and in `magcal refit` (its own process and
-// connection: SQLite WAL lets it run while the daemon writes). Publishing and re-anchoring the
-// UKF are the caller's business.
+// connection: SQLite WAL lets it run while the daemon writes, PostgreSQL is shared anyway).
+// Publishing and re-anchoring the UKF are the caller's business.
 #pragma once
 
 #include <cstdint>
@@ -18,7 +18,7 @@
 #include "pipeline/calibration_result.hpp"
 #include "service/daemon/daemon_config.hpp"
 #include "storage/calibration_history.hpp"
-#include "storage/database.hpp"
+#include "storage/connection.hpp"
 #include "storage/refit_job_log.hpp"
 #include "storage/sample_window_store.hpp"
 
@@ -50,7 +50,7 @@ BatchCalibrationOptions batch_options_from_config(const DaemonConfig& config);
 class RefitRunner {
  public:
   // Uses `db` (one thread's connection) for the window, the history and the job log.
-  RefitRunner(const DaemonConfig& config, storage::Database& db);
+  RefitRunner(const DaemonConfig& config, storage::Connection& db);
 
   // t_ref: end of the window (data clock: the scheduled time); nullopt = the newest stored
   // sample of the spacecraft. trigger: "scheduled" | "manual" | "first" | "early". An early
@@ -79,9 +79,9 @@ class RefitRunner {
 
   const DaemonConfig config_;  // a copy: callers may pass a temporary
   BatchCalibrationOptions options_;
-  storage::Database& db_;
+  storage::Connection& db_;
   std::unique_ptr<storage::SampleWindowStore> samples_;
-  storage::CalibrationHistory history_;
+  std::unique_ptr<storage::CalibrationHistory> history_;
   std::unique_ptr<storage::RefitJobLog> jobs_;
   std::vector<storage::StoredSample> rows_;  // reused between refits
   SampleSet window_;

@@ -15,7 +15,7 @@
 #include <type_traits>
 
 #include "service/daemon/health.hpp"
-#include "storage/database.hpp"
+#include "storage/storage_error.hpp"
 
 namespace magcal {
 

@@ -230,11 +230,11 @@ std::string DaemonMetrics::text() {
   return serialize(*registry_);
 }
 
-std::string database_metrics_text(storage::Database& db, const std::string& version) {
+std::string database_metrics_text(storage::Connection& db, const std::string& version) {
   prometheus::Registry registry;
   const Families f = register_families(registry, version);
   const auto samples = db.make_sample_window_store();
-  storage::CalibrationHistory history(db);
+  const auto history = db.make_calibration_history();
   // A database knows the samples it holds now, not how many were ever stored (retention
   // deletes): a gauge of its own, never magcal_samples_stored_total (a counter must not fall).
   auto& window = prometheus::BuildGauge()
@@ -244,8 +244,8 @@ std::string database_metrics_text(storage::Database& db, const std::string& vers
   for (const auto& sat : samples->spacecraft()) {
     window.Add({{"sat", sat}}).Set(static_cast<double>(samples->count(sat)));
   }
-  for (const auto& sat : history.spacecraft()) {
-    if (const auto ukf = history.latest(sat, "ukf")) {
+  for (const auto& sat : history->spacecraft()) {
+    if (const auto ukf = history->latest(sat, "ukf")) {
       for (size_t i = 0; i < 3; ++i) {
         f.ukf_bias->Add({{"sat", sat}, {"axis", kAxes[i]}}).Set(ukf->bias_nT[i]);
         f.ukf_sigma->Add({{"sat", sat}, {"axis", kAxes[i]}}).Set(ukf->bias_sigma_nT[i]);
@@ -256,11 +256,11 @@ std::string database_metrics_text(storage::Database& db, const std::string& vers
       storage::HistoryQuery q;
       q.sat_id = sat;
       q.method = method;
-      for (const auto& r : history.query(q)) {
+      for (const auto& r : history->query(q)) {
         f.refits->Add({{"sat", sat}, {"verdict", r.verdict}}).Increment();
       }
     }
-    if (const auto ok = history.latest_accepted_refit(sat)) {
+    if (const auto ok = history->latest_accepted_refit(sat)) {
       f.last_refit_success->Add({{"sat", sat}}).Set(static_cast<double>(ok->utime) * 1e-6);
     }
   }

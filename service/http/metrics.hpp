@@ -5,7 +5,7 @@
 //   magcal_samples_received_total{sat}      samples received (decoded frames; an undecodable
 //                                           frame counts 1 under sat="", as do samples with
 //                                           an empty spacecraft id)
-//   magcal_samples_stored_total{sat}        samples committed to SQLite
+//   magcal_samples_stored_total{sat}        samples committed to the database
 //   magcal_samples_rejected_total{reason}   rejected samples per reason (health.hpp's names)
 //   magcal_samples_missing_total{sat}       gaps in `seq` (dropped before the socket)
 //   magcal_queue_depth                      samples in the receive -> worker queue
@@ -44,7 +44,7 @@
 #include <prometheus/histogram.h>
 #include <prometheus/registry.h>
 
-#include "storage/database.hpp"
+#include "storage/connection.hpp"
 
 namespace magcal::http {
 
@@ -126,6 +126,6 @@ class DaemonMetrics {
 // build_info. Counters that only a running daemon knows (received, rejected, missing, queue,
 // commit latency) are absent. `db` is read-only or not: this never writes. Throws
 // storage::StorageError.
-std::string database_metrics_text(storage::Database& db, const std::string& version);
+std::string database_metrics_text(storage::Connection& db, const std::string& version);
 
 }  // namespace magcal::http

@@ -18,7 +18,7 @@
 #include "service/io/history_report.hpp"
 #include "service/io/read_only_database.hpp"
 #include "service/io/status_report.hpp"
-#include "storage/database.hpp"
+#include "storage/connection.hpp"
 
 namespace magcal::http {
 
@@ -100,8 +100,8 @@ std::string http_url(const std::string& host, int port) {
 
 struct OperationsServer::Impl {
   ServerHooks hooks;
-  std::mutex db_mutex;                  // the connection belongs to one request thread at a time
-  std::optional<storage::Database> db;  // opened by serve(), before any request is taken
+  std::mutex db_mutex;  // the connection belongs to one request thread at a time
+  std::unique_ptr<storage::Connection> db;  // opened by serve(), before any request is taken
   std::string db_path;
   httplib::Server server;
   std::thread thread;
@@ -182,7 +182,7 @@ void OperationsServer::Impl::routes() {
   get("/api/v1/spacecraft", [this](const httplib::Request& req, httplib::Response& res) {
     check_params(req, {});
     std::lock_guard lock(db_mutex);
-    const auto all = read_consistently(db, db_path, [this](storage::Database& d) {
+    const auto all = read_consistently(db, db_path, [this](storage::Connection& d) {
       return read_status(d, hooks.status_window_utime);
     });
     res.set_content(status_json_text(all, hooks.status_window_utime), kJson);
@@ -249,7 +249,7 @@ void OperationsServer::Impl::history(const httplib::Request& req, httplib::Respo
   {
     std::lock_guard lock(db_mutex);
     bool known = true;
-    rows = read_consistently(db, db_path, [&](storage::Database& d) {
+    rows = read_consistently(db, db_path, [&](storage::Connection& d) {
       auto found = read_history(d, *query);
       known = !found.empty() || spacecraft_known(d, request.sat);
       return found;
@@ -307,7 +307,7 @@ bool OperationsServer::serve(const std::string& db_path, std::string* error) {
   try {
     storage::OpenOptions options;
     options.read_only = true;
-    impl_->db.emplace(db_path, options);
+    impl_->db = storage::open_database(db_path, options);
     impl_->db_path = db_path;
   } catch (const storage::StorageError& e) {
     *error = std::string("cannot open the database read-only: ") + e.what();
@@ -319,7 +319,7 @@ bool OperationsServer::serve(const std::string& db_path, std::string* error) {
   for (int i = 0; i < 5000 && !impl_->server.is_running(); ++i) {
     std::this_thread::sleep_for(std::chrono::milliseconds(1));
   }
-  spdlog::info("operations server: {} (database {}, read-only)", url(), db_path);
+  spdlog::info("operations server: {} (database {}, read-only)", url(), impl_->db->name());
   return true;
 }
 

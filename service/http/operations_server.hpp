@@ -15,9 +15,10 @@
 // a database error 503 (transient: locked, I/O) or 500, always with a JSON error body.
 //
 // Threads: the server runs on its own thread (cpp-httplib's listener plus a small pool of
-// request threads) with its own read-only SQLite connection, opened once at start and shared by
-// the request threads under a mutex; every request reads in one short deferred transaction, so
-// with WAL a writer (the daemon's ingest) is never blocked by it.
+// request threads) with its own read-only database connection (an SQLite file or PostgreSQL),
+// opened once at start and shared by the request threads under a mutex; every request reads in
+// one short read transaction (one snapshot), so a writer (the daemon's ingest) is never blocked
+// by it (SQLite's WAL, PostgreSQL's MVCC).
 #pragma once
 
 #include <cstdint>
@@ -56,9 +57,10 @@ class OperationsServer {
   // database. Connections wait in the backlog until serve(). nullptr and *error when it cannot.
   static std::unique_ptr<OperationsServer> bind(const std::string& listen, ServerHooks hooks,
                                                 std::string* error);
-  // Opens db_path read-only with its own connection (never writes, never creates the file) and
-  // serves on its own thread (created here: it and its request threads inherit the calling
-  // thread's priority). False and *error set when the database cannot be opened.
+  // Opens db_path (a file or a PostgreSQL URI) read-only with its own connection (never writes,
+  // never creates the file) and serves on its own thread (created here: it and its request
+  // threads inherit the calling thread's priority). False and *error set when the database
+  // cannot be opened.
   bool serve(const std::string& db_path, std::string* error);
   int port() const;         // the bound port
   std::string url() const;  // http_url() of the bound address

@@ -85,20 +85,18 @@ std::optional<storage::HistoryQuery> parse_history_request(const HistoryRequest&
   return q;
 }
 
-std::vector<storage::CalibrationRecord> read_history(storage::Database& db,
+std::vector<storage::CalibrationRecord> read_history(storage::Connection& db,
                                                      const storage::HistoryQuery& query) {
   storage::Transaction snapshot(db, storage::Transaction::Mode::kReadSnapshot);
-  storage::CalibrationHistory history(db);
-  return history.query(query);
+  return db.make_calibration_history()->query(query);
 }
 
-bool spacecraft_known(storage::Database& db, const std::string& sat_id) {
+bool spacecraft_known(storage::Connection& db, const std::string& sat_id) {
   storage::Transaction snapshot(db, storage::Transaction::Mode::kReadSnapshot);
   storage::HistoryQuery any;
   any.sat_id = sat_id;
   any.limit = 1;
-  storage::CalibrationHistory history(db);
-  if (!history.query(any).empty()) return true;
+  if (!db.make_calibration_history()->query(any).empty()) return true;
   return db.make_sample_window_store()->newest_utime(sat_id).has_value();
 }
 

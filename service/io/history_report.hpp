@@ -19,7 +19,7 @@
 #include <nlohmann/json.hpp>
 
 #include "storage/calibration_history.hpp"
-#include "storage/database.hpp"
+#include "storage/connection.hpp"
 
 namespace magcal {
 
@@ -42,11 +42,11 @@ std::optional<storage::HistoryQuery> parse_history_request(const HistoryRequest&
 
 // The rows of `query`, read in one snapshot (a short deferred read transaction) on `db`, which
 // may be read-only. Throws storage::StorageError.
-std::vector<storage::CalibrationRecord> read_history(storage::Database& db,
+std::vector<storage::CalibrationRecord> read_history(storage::Connection& db,
                                                      const storage::HistoryQuery& query);
 
 // True when the database holds anything for this spacecraft (a result or a sample).
-bool spacecraft_known(storage::Database& db, const std::string& sat_id);
+bool spacecraft_known(storage::Connection& db, const std::string& sat_id);
 
 // The exact stdout of `magcal history --format json|csv|table` for these rows (JSON: the
 // array dumped with indent 2 and a final newline; table: header line plus one line per row).

@@ -80,15 +80,15 @@ void append_estimate(std::string* text, const char* label, const storage::Calibr
 
 }  // namespace
 
-std::vector<SpacecraftStatus> read_status(storage::Database& db, int64_t window_utime) {
+std::vector<SpacecraftStatus> read_status(storage::Connection& db, int64_t window_utime) {
   std::vector<SpacecraftStatus> all;
   storage::Transaction snapshot(db, storage::Transaction::Mode::kReadSnapshot);
   const auto samples = db.make_sample_window_store();
-  storage::CalibrationHistory history(db);
+  const auto history = db.make_calibration_history();
   const auto jobs = db.make_refit_job_log();
   std::set<std::string> sats;
   for (auto& id : samples->spacecraft()) sats.insert(std::move(id));
-  for (auto& id : history.spacecraft()) sats.insert(std::move(id));
+  for (auto& id : history->spacecraft()) sats.insert(std::move(id));
   for (const auto& id : sats) {
     SpacecraftStatus s;
     s.sat_id = id;
@@ -100,9 +100,9 @@ std::vector<SpacecraftStatus> read_status(storage::Database& db, int64_t window_
           samples->count_in_window(id, saturating_sub(*s.last_sample_utime, window_utime) + 1,
                                    saturating_add(*s.last_sample_utime, 1));
     }
-    s.last_ukf = history.latest(id, "ukf");
-    s.last_refit = history.latest_refit(id);
-    s.previous_refit = history.previous_refit(id);
+    s.last_ukf = history->latest(id, "ukf");
+    s.last_refit = history->latest_refit(id);
+    s.previous_refit = history->previous_refit(id);
     s.last_job = jobs->latest(id);
     all.push_back(std::move(s));
   }

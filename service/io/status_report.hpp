@@ -13,7 +13,7 @@
 #include <nlohmann/json.hpp>
 
 #include "storage/calibration_history.hpp"
-#include "storage/database.hpp"
+#include "storage/connection.hpp"
 #include "storage/refit_job_log.hpp"
 
 namespace magcal {
@@ -29,7 +29,7 @@ struct SpacecraftStatus {
 // Every spacecraft with samples or results (sorted by id), read in one snapshot (a short
 // deferred read transaction) on `db`, which may be read-only. window_utime: the refit window
 // the samples are counted in (the daemon's [storage] window_hours). Throws StorageError.
-std::vector<SpacecraftStatus> read_status(storage::Database& db, int64_t window_utime);
+std::vector<SpacecraftStatus> read_status(storage::Connection& db, int64_t window_utime);
 
 // `magcal status --json`: {"spacecraft": [{sat_id, last_sample_time, last_sample_utime,
 // samples_in_window, window_hours, last_ukf, last_refit (history objects or null),
