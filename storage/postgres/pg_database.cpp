@@ -12,9 +12,19 @@
 namespace magcal::storage {
 namespace {
 
-std::string trimmed(std::string text) {
+// libpq's message on one line (it continues lines with "\n\t" hints): a caller prints one line.
+std::string one_line(std::string text) {
   while (!text.empty() && (text.back() == '\n' || text.back() == ' ')) text.pop_back();
-  return text;
+  std::string out;
+  for (size_t i = 0; i < text.size(); ++i) {
+    if (text[i] != '\n') {
+      out += text[i];
+      continue;
+    }
+    while (i + 1 < text.size() && (text[i + 1] == '\t' || text[i + 1] == ' ')) ++i;
+    out += ' ';
+  }
+  return out;
 }
 
 int64_t now_utime() {
@@ -44,7 +54,7 @@ PgDatabase::PgDatabase(const std::string& uri, const OpenOptions& options)
   char* error = nullptr;
   PQconninfoOption* parsed = PQconninfoParse(uri.c_str(), &error);
   if (parsed == nullptr || !is_postgres_uri(uri)) {
-    const std::string why = error ? trimmed(error) : "not a postgresql:// or postgres:// URI";
+    const std::string why = error ? one_line(error) : "not a postgresql:// or postgres:// URI";
     PQfreemem(error);
     PQconninfoFree(parsed);
     throw StorageError(StorageError::Kind::kInvalidArgument,
@@ -108,7 +118,7 @@ void PgDatabase::connect() {
   // libpq gives no SQLSTATE for a refused connection: the server's reasons that a retry
   // cannot heal are told by their (English) text; anything else (no server, starting up, too
   // many clients, network) is transient.
-  const std::string why = trimmed(PQerrorMessage(conn_));
+  const std::string why = one_line(PQerrorMessage(conn_));
   PQfinish(conn_);
   conn_ = nullptr;
   const bool no_database = why.find("database \"") != std::string::npos &&
@@ -158,8 +168,8 @@ void PgDatabase::fail(std::string_view context, const pg_result* result) {
   std::string sqlstate = state ? state : "";
   std::string message = primary ? primary : "";
   if (message.empty()) {
-    message = trimmed(result ? PQresultErrorMessage(result) : "");
-    if (message.empty() && conn_ != nullptr) message = trimmed(PQerrorMessage(conn_));
+    message = one_line(result ? PQresultErrorMessage(result) : "");
+    if (message.empty() && conn_ != nullptr) message = one_line(PQerrorMessage(conn_));
   }
   if (sqlstate.empty()) {
     // Failed in libpq, not on the server: a lost connection is connection_failure.

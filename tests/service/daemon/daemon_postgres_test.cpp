@@ -6,6 +6,7 @@
 // Skipped without the PostgreSQL server programs (with CI=true it fails).
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdlib>
 #include <fstream>
@@ -180,4 +181,21 @@ TEST_CASE("magcald, magcal status, history, refit and serve on PostgreSQL answer
   const std::string serve_log = serve.log();
   CHECK(serve_log.find(kPassword) == std::string::npos);
   CHECK(serve_log.find("postgresql://magcal:***@") != std::string::npos);
+
+  // An unreachable server (nothing listens on port 1): one line naming the URI without its
+  // password, exit 2, from magcal and magcald alike.
+  const std::string unreachable = "postgresql://magcal:" + kPassword + "@127.0.0.1:1/magcal";
+  const std::string named = "cannot connect to postgresql://magcal:***@127.0.0.1:1/magcal: ";
+  const Run status = run_magcal("status --db '" + unreachable + "'", dir);
+  CHECK(status.exit_code == 2);
+  CHECK(status.out.empty());
+  CHECK(std::count(status.err.begin(), status.err.end(), '\n') == 1);
+  CHECK(status.err.find(named) != std::string::npos);
+  CHECK(status.err.find(kPassword) == std::string::npos);
+  CHECK(run({kBin + "/magcald", "--http-listen", "", "--db", unreachable, "--lcm-url",
+             "file://" + log + "?speed=0"},
+            dir.file("magcald_unreachable.log")) == 2);
+  const std::string refused = slurp(dir.file("magcald_unreachable.log"));
+  CHECK(refused.find(named) != std::string::npos);
+  CHECK(refused.find(kPassword) == std::string::npos);
 }
