@@ -14,9 +14,10 @@ constexpr int kReadOnlyAttempts = 3;
 
 // Runs read(*db) on `db_name` (a file or a PostgreSQL URI) opened read-only in `db` (opened on
 // first use, kept for the next call) and returns what it returns, read in one snapshot (a read
-// transaction). After a lock-free read of an SQLite file (Database::immutable()), when a writer
-// opened the file meanwhile, it reopens (now through the writer's -shm) and reads again: an
-// answer never mixes two states of the file. Throws storage::StorageError.
+// transaction). After a lock-free read of an SQLite file (see OpenOptions::read_only), when a
+// writer opened the file meanwhile (Connection::changed_since_open()), it reopens (now through
+// the writer's -shm) and reads again: an answer never mixes two states of the file. Throws
+// storage::StorageError.
 template <typename Read>
 auto read_consistently(std::unique_ptr<storage::Connection>& db, const std::string& db_name,
                        Read&& read) {
