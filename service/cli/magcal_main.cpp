@@ -5,6 +5,7 @@
 #include <cstdint>
 #include <iostream>
 #include <limits>
+#include <sstream>
 #include <string>
 
 #include <CLI/CLI.hpp>
@@ -66,6 +67,22 @@ CLI::Validator real_number() {
         double value = 0.0;
         if (parse_number_text(text, &value) != std::errc() || !std::isfinite(value))
           return "must be a finite number (got '" + text + "')";
+        return "";
+      },
+      "NUMBER");
+}
+
+// A finite decimal number in [min, max].
+CLI::Validator real_number_in(double min, double max) {
+  return CLI::Validator(
+      [min, max](std::string& text) -> std::string {
+        double value = 0.0;
+        if (parse_number_text(text, &value) != std::errc() || !std::isfinite(value))
+          return "must be a finite number (got '" + text + "')";
+        if (value < min || value > max)
+          return (std::ostringstream()
+                  << "must be from " << min << " to " << max << " (got " << text << ")")
+              .str();
         return "";
       },
       "NUMBER");
@@ -158,7 +175,7 @@ int main(int argc, char** argv) {
       ->add_option("--gimbal-lock-margin-deg", fit.gimbal_lock_margin_deg,
                    "roll/yaw reported as a canonical split (roll 0) within this of pitch +-90 deg "
                    "(default 2)")
-      ->check(CLI::Range(0.0, 45.0));
+      ->check(real_number_in(0.0, 45.0));
   fit_cmd->add_option("--field-unit", fit.field_unit, "recording CSV: field unit nT|uT|G|mG");
   fit_cmd->add_option("--alt-km", fit.alt_km, "recording CSV: assumed altitude (km) when absent")
       ->check(real_number());
@@ -240,7 +257,9 @@ int main(int argc, char** argv) {
     // "--limit: must be at least 1 (got 0)" from the checks above: said as one sentence.
     std::string text = e.what();
     if (const auto colon = text.find(": "); colon != std::string::npos) text.erase(colon, 1);
-    std::cerr << "magcal: " << text << "\n";
+    // Named after the subcommand, as every later error is ("magcal history: ...").
+    const std::string command = argc >= 2 && argv[1][0] != '-' ? std::string(" ") + argv[1] : "";
+    std::cerr << "magcal" << command << ": " << text << "\n";
     return kExitUsage;
   } catch (const CLI::ParseError& e) {
     std::cerr << "magcal: " << e.what() << " (see magcal --help)\n";

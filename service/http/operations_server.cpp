@@ -2,7 +2,12 @@
 #include "service/http/operations_server.hpp"
 
 #include <httplib.h>
+#include <netdb.h>
+#include <sys/socket.h>
 #include <unistd.h>
+
+#include <cerrno>
+#include <cstring>
 
 #include <charconv>
 #include <chrono>
@@ -91,6 +96,47 @@ bool parse_listen(const std::string& listen, std::string* host, int* port, std::
     return false;
   }
   return true;
+}
+
+// Why host:port cannot be bound, found after cpp-httplib's bind failed (it keeps the reason to
+// itself): the name does not resolve, or the kernel's errno of a plain bind of its first address.
+std::string bind_failure_reason(const std::string& host, int port) {
+  addrinfo hints{};
+  hints.ai_family = AF_UNSPEC;
+  hints.ai_socktype = SOCK_STREAM;
+  hints.ai_flags = AI_PASSIVE | AI_NUMERICSERV;
+  // An address literal (even a wrong one, 999.1.1.1) is not looked up in DNS.
+  if (host.find_first_not_of("0123456789.") == std::string::npos ||
+      host.find(':') != std::string::npos) {
+    hints.ai_flags |= AI_NUMERICHOST;
+  }
+  addrinfo* found = nullptr;
+  const std::string port_text = std::to_string(port);
+  if (const int rc = ::getaddrinfo(host.c_str(), port_text.c_str(), &hints, &found); rc != 0) {
+    return "'" + host + "' is not an IP address or a name this machine resolves (" +
+           ::gai_strerror(rc) + ")";
+  }
+  const int fd = ::socket(found->ai_family, found->ai_socktype, found->ai_protocol);
+  int err = fd < 0 ? errno : 0;
+  if (fd >= 0) {
+    const int yes = 1;
+    ::setsockopt(fd, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof yes);  // as cpp-httplib binds
+    if (::bind(fd, found->ai_addr, found->ai_addrlen) != 0) err = errno;
+    ::close(fd);
+  }
+  ::freeaddrinfo(found);
+  switch (err) {
+    case EADDRINUSE:
+      return "the port is in use";
+    case EADDRNOTAVAIL:
+      return "'" + host + "' is not an address of this machine";
+    case EACCES:
+      return "a port below 1024 needs privileges";
+    case 0:
+      return "the address is free now: try again";
+    default:
+      return std::strerror(err);
+  }
 }
 
 std::string http_url(const std::string& host, int port) {
@@ -291,11 +337,11 @@ std::unique_ptr<OperationsServer> OperationsServer::bind(const std::string& list
   if (port == 0) {
     port = impl->server.bind_to_any_port(host);
     if (port <= 0) {
-      *error = "cannot bind " + listen + " (address not available?)";
+      *error = "cannot bind " + listen + ": " + bind_failure_reason(host, 0);
       return nullptr;
     }
   } else if (!impl->server.bind_to_port(host, port)) {
-    *error = "cannot bind " + listen + " (address in use or not available?)";
+    *error = "cannot bind " + listen + ": " + bind_failure_reason(host, port);
     return nullptr;
   }
   impl->host = host;

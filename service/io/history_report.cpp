@@ -4,6 +4,7 @@
 #include <charconv>
 #include <cmath>
 #include <limits>
+#include <optional>
 #include <tuple>
 
 #include "pipeline/roll_pitch_yaw_report.hpp"
@@ -123,7 +124,8 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
       "reference_temperature_C,temperature_coefficient_x_nT_per_C,"
       "temperature_coefficient_y_nT_per_C,temperature_coefficient_z_nT_per_C,"
       "temperature_coefficient_sigma_x_nT_per_C,temperature_coefficient_sigma_y_nT_per_C,"
-      "temperature_coefficient_sigma_z_nT_per_C,temperature_model_refit_id\n";
+      "temperature_coefficient_sigma_z_nT_per_C,temperature_model_refit_id,"
+      "alignment_determined_name,alignment_determined_deg\n";
   for (const auto& r : rows) {
     std::string line = history_time(r.utime) + ',' + std::to_string(r.utime) + ',' +
                        csv_quoted(r.sat_id) + ',' + csv_quoted(r.method) + ',' +
@@ -154,12 +156,13 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
     // (empty when unknown: rows stored before schema 5; the combination's sigma only when
     // singular), the rotation-vector covariance in deg^2 (as D: 11 22 33 12 13 23). The same
     // numbers as the JSON keys (result_json.hpp).
+    std::optional<RollPitchYawReport> rpy_report;
     if (!r.has_alignment) {
       line += std::string(18, ',');
     } else {
       const AlignmentEstimate a = result_from_record(r).alignment;
-      const RollPitchYawReport rpy = roll_pitch_yaw_report(
-          a.R_sensor_from_body, a.angle_covariance_rad2, kDefaultGimbalLockMargin_deg * kDegToRad);
+      const RollPitchYawReport& rpy = rpy_report.emplace(roll_pitch_yaw_report(
+          a.R_sensor_from_body, a.angle_covariance_rad2, kDefaultGimbalLockMargin_deg * kDegToRad));
       line += rpy.singular ? ",1" : ",0";
       for (const double v : quaternion_from_dcm(a.R_sensor_from_body)) line += ',' + csv_number(v);
       for (const double v : {rpy.rpy.roll_rad, rpy.rpy.pitch_rad, rpy.rpy.yaw_rad})
@@ -181,6 +184,15 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
     for (int i = 0; i < 3; ++i) line += ',' + csv_number(sigma(i));
     line += ',' +
             (r.temperature_model_refit_id > 0 ? std::to_string(r.temperature_model_refit_id) : "");
+    // Appended: at gimbal lock the one roll/yaw combination the data determine, by name
+    // (yaw_minus_roll, yaw_plus_roll) and value, as the JSON's alignment_determined_deg; empty
+    // when not singular.
+    if (rpy_report && rpy_report->singular) {
+      line += ',' + std::string(rpy_report->combination_name) + ',' +
+              csv_number(rpy_report->combination_rad * kRadToDeg);
+    } else {
+      line += ",,";
+    }
     text += line + '\n';
   }
   return text;

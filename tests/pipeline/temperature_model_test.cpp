@@ -11,6 +11,8 @@
 
 #include <catch2/catch.hpp>
 
+#include "pipeline/crlb.hpp"
+
 #include "pipeline/batch_calibration.hpp"
 #include "pipeline/scenario.hpp"
 #include "pipeline/simulator.hpp"
@@ -82,6 +84,8 @@ TEST_CASE("thermal paper 12 h, k_T 0.5-2 nT/degC: k_T and b(T0) within their sig
                   worst_bias_sigma = Eigen::Vector3d::Zero();
   Eigen::Vector3d worst_cost = Eigen::Vector3d::Zero();
   double fit_ms = 0.0;
+  int bar_below_crlb = 0;  // axis checks where 1 nT is below the Cramer-Rao bound
+  double largest_crlb_over_bar = 0.0;
   for (int run = 0; run < runs; ++run) {
     Eigen::Vector3d k;
     for (int i = 0; i < 3; ++i) k(i) = (sign(rng) ? 1.0 : -1.0) * magnitude(rng);
@@ -107,11 +111,24 @@ TEST_CASE("thermal paper 12 h, k_T 0.5-2 nT/degC: k_T and b(T0) within their sig
     worst_bias_sigma = worst_bias_sigma.cwiseMax(b_sigma);
     const Eigen::Vector3d cost = b_sigma.cwiseQuotient(rc.bias_sigma_nT());
     worst_cost = worst_cost.cwiseMax(cost);
-    // x (along track) and z (radial) within 1 nT; y (orbit normal) is limited by the nadir
-    // geometry itself (1.4-1.7 nT at a constant temperature): what the temperature term may cost
-    // there is bounded instead.
-    CHECK(b_sigma(0) <= 1.0);
-    CHECK(b_sigma(2) <= 1.0);
+    // The bar is 1 nT per axis where the geometry allows it: where even the Cramer-Rao bound of
+    // the constant-temperature set, white noise alone and no k_T to estimate, is above 1 nT (y,
+    // the orbit normal of a nadir spacecraft), no estimator meets it, and what the temperature
+    // term costs there is bounded instead.
+    CalibrationParameters truth_p;
+    truth_p.bias_nT = constant.truth.bias_nT;
+    truth_p.D = constant.truth.D;
+    const CrlbResult bound = compute_crlb(constant.samples, truth_p, constant.truth.noise_sigma_nT);
+    REQUIRE(bound.ok);
+    for (int i = 0; i < 3; ++i) {
+      INFO("axis " << i << ": CRLB " << bound.sigma(i) << " nT, sigma " << b_sigma(i) << " nT");
+      if (bound.sigma(i) <= 1.0) {
+        CHECK(b_sigma(i) <= 1.0);
+      } else {
+        ++bar_below_crlb;
+        largest_crlb_over_bar = std::max(largest_crlb_over_bar, bound.sigma(i));
+      }
+    }
     CHECK(cost.maxCoeff() <= 1.6);
     if (!r.accepted) continue;
     bias.add(r.parameters.bias_nT - true_bias_at(set.truth, r.reference_temperature_C), b_sigma);
@@ -128,6 +145,10 @@ TEST_CASE("thermal paper 12 h, k_T 0.5-2 nT/degC: k_T and b(T0) within their sig
       worst_bias_sigma(1), worst_bias_sigma(2), worst_cost(0), worst_cost(1), worst_cost(2),
       bias.within, bias.total, bias.rms_z(), coefficient.within, coefficient.total,
       coefficient.rms_z(), fit_ms / runs);
+  std::printf(
+      "  1 nT bar below the constant-temperature Cramer-Rao bound in %d axis checks (largest "
+      "bound %.3f nT): there the ratio to the constant-temperature fit is the bar\n",
+      bar_below_crlb, largest_crlb_over_bar);
   CHECK(modelled == runs);
   CHECK(accepted >= runs - 1);
   // 99 % within 3 sigma: over 2 x 3 x 24 = 144 checks, at most one miss (a sigma that is right

@@ -400,6 +400,15 @@ TEST_CASE("history flags roll/yaw near gimbal lock in JSON and CSV (canonical sp
     const auto f = split_csv(lines[1]);
     REQUIRE(f.size() == header.size());
     CHECK(f[column_of(header, "alignment_singular")] == want);
+    const std::string name = f[column_of(header, "alignment_determined_name")];
+    const std::string value = f[column_of(header, "alignment_determined_deg")];
+    if (std::string(want) == "1") {
+      CHECK(name == "yaw_minus_roll");
+      CHECK(std::stod(value) == row["alignment_determined_deg"]["yaw_minus_roll"].get<double>());
+    } else {
+      CHECK(name.empty());
+      CHECK(value.empty());
+    }
   }
 }
 

@@ -24,7 +24,8 @@ TEST_CASE("numeric options of every subcommand: one clear sentence, usage exit c
   const std::string csv = dir.file("none.csv");
   const std::string field = "field --time 2020-01-01T00:00:00Z ";
   const std::vector<std::pair<std::string, std::string>> cases = {
-      {"history --db " + db + " --sat A --limit 0", "--limit must be at least 1 (got 0)"},
+      {"history --db " + db + " --sat A --limit 0",
+       "magcal history: --limit must be at least 1 (got 0)"},
       {"history --db " + db + " --sat A --limit -1", "--limit must be at least 1 (got -1)"},
       {"history --db " + db + " --sat A --limit abc", "--limit must be a whole number (got 'abc')"},
       {"history --db " + db + " --sat A --limit 99999999999",
@@ -40,6 +41,10 @@ TEST_CASE("numeric options of every subcommand: one clear sentence, usage exit c
       {"fit --input " + csv + " --skip-first -1", "--skip-first must be at least 0 (got -1)"},
       {"fit --input " + csv + " --time-offset-s 1s", "--time-offset-s must be a finite number"},
       {"fit --input " + csv + " --alt-km inf", "--alt-km must be a finite number"},
+      {"fit --input " + csv + " --gimbal-lock-margin-deg 50",
+       "magcal fit: --gimbal-lock-margin-deg must be from 0 to 45 (got 50)"},
+      {"fit --input " + csv + " --gimbal-lock-margin-deg -0.5",
+       "--gimbal-lock-margin-deg must be from 0 to 45 (got -0.5)"},
       {"fit --input " + csv + " --expected-residual-nT x",
        "--expected-residual-nT must be a finite number"},
       {"fit --input " + csv + " --expected-residual-nT -5",
