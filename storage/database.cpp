@@ -367,4 +367,8 @@ std::unique_ptr<MetaStore> Database::make_meta_store() {
   return std::make_unique<SqliteMetaStore>(*this);
 }
 
+std::unique_ptr<LeaseStore> Database::make_lease_store() {
+  return std::make_unique<SqliteLeaseStore>(*this);
+}
+
 }  // namespace magcal::storage

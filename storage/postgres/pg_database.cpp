@@ -421,4 +421,8 @@ std::unique_ptr<MetaStore> PgDatabase::make_meta_store() {
   return std::make_unique<PgMetaStore>(*this);
 }
 
+std::unique_ptr<LeaseStore> PgDatabase::make_lease_store() {
+  return std::make_unique<PgLeaseStore>(*this);
+}
+
 }  // namespace magcal::storage

@@ -85,6 +85,7 @@ class PgDatabase final : public Connection {
   std::unique_ptr<RefitJobLog> make_refit_job_log() override;
   std::unique_ptr<FilterStateStore> make_filter_state_store() override;
   std::unique_ptr<MetaStore> make_meta_store() override;
+  std::unique_ptr<LeaseStore> make_lease_store() override;
 
  private:
   friend class PgTransaction;

@@ -10,55 +10,71 @@
 namespace magcal::storage {
 namespace {
 
-constexpr int kParamsPerSample = 20;
+// One column of a batch as an array parameter: `value(sample)` of each row in `order`.
+template <typename Value>
+void add_column(PgParams& p, PgArrayOf type, std::span<const StoredSample> samples,
+                const std::vector<size_t>& order, Value value) {
+  p.begin_array(type);
+  for (const size_t row : order) value(p, samples[row]);
+  p.end_array();
+}
 
-// NaN is stored as NULL, as on SQLite (a NOT NULL column then refuses it).
-void add_value(PgParams& p, double value) {
-  if (std::isnan(value)) {
+// The batch as 20 column arrays ($1..$20, kSampleInsert's order) and the station ($21). A group
+// of columns stored together or not at all is NULL when the sample lacks it; NaN is NULL too,
+// as on SQLite (a NOT NULL column then refuses it).
+void add_batch(PgParams& p, std::span<const StoredSample> samples, const std::vector<size_t>& order,
+               std::string_view station) {
+  using S = StoredSample;
+  add_column(p, PgArrayOf::kText, samples, order,
+             [](PgParams& q, const S& s) { q.element(std::string_view(s.sat_id)); });
+  add_column(p, PgArrayOf::kBigint, samples, order,
+             [](PgParams& q, const S& s) { q.element(s.utime); });
+  add_column(p, PgArrayOf::kBigint, samples, order,
+             [](PgParams& q, const S& s) { q.element(s.seq); });
+  add_column(p, PgArrayOf::kBigint, samples, order,
+             [](PgParams& q, const S& s) { q.element(s.receive_utime); });
+  for (size_t i = 0; i < 3; ++i) {
+    add_column(p, PgArrayOf::kDouble, samples, order,
+               [i](PgParams& q, const S& s) { q.element(s.b_sensor_nT[i]); });
+  }
+  add_column(p, PgArrayOf::kBigint, samples, order,
+             [](PgParams& q, const S& s) { q.element(int64_t{s.has_direction ? 1 : 0}); });
+  for (size_t i = 0; i < 3; ++i) {
+    add_column(p, PgArrayOf::kDouble, samples, order, [i](PgParams& q, const S& s) {
+      s.has_direction ? q.element(s.h_body_nT[i]) : q.element_null();
+    });
+  }
+  add_column(p, PgArrayOf::kDouble, samples, order,
+             [](PgParams& q, const S& s) { q.element(s.h_norm_nT); });
+  for (size_t i = 0; i < 4; ++i) {
+    add_column(p, PgArrayOf::kDouble, samples, order, [i](PgParams& q, const S& s) {
+      s.has_attitude ? q.element(s.q_body_from_eci[i]) : q.element_null();
+    });
+  }
+  for (size_t i = 0; i < 3; ++i) {
+    add_column(p, PgArrayOf::kDouble, samples, order, [i](PgParams& q, const S& s) {
+      s.has_position ? q.element(s.r_ecef_m[i]) : q.element_null();
+    });
+  }
+  add_column(p, PgArrayOf::kDouble, samples, order,
+             [](PgParams& q, const S& s) { q.element(s.temperature_C); });
+  if (station.empty()) {
     p.add_null();
   } else {
-    p.add(value);
+    p.add(station);
   }
 }
 
-// A group of columns stored together or not at all (NULL when the sample lacks it).
-void add_group(PgParams& p, std::span<const double> values, bool present) {
-  for (const double v : values) {
-    if (present) {
-      add_value(p, v);
-    } else {
-      p.add_null();
-    }
-  }
-}
-
-void add_sample(PgParams& p, const StoredSample& s) {
-  p.add(s.sat_id).add(s.utime).add(s.seq).add(s.receive_utime);
-  add_group(p, s.b_sensor_nT, true);
-  p.add(int64_t{s.has_direction ? 1 : 0});
-  add_group(p, s.h_body_nT, s.has_direction);
-  add_value(p, s.h_norm_nT);
-  add_group(p, s.q_body_from_eci, s.has_attitude);
-  add_group(p, s.r_ecef_m, s.has_position);
-  add_value(p, s.temperature_C);
-}
-
-// INSERT of `rows` samples (parameters $1 .. $20*rows), returning the keys it stored.
-std::string insert_sql(size_t rows) {
-  std::string sql = std::string("INSERT INTO samples (") + columns::kSampleInsert + ") VALUES ";
-  int param = 1;
-  for (size_t row = 0; row < rows; ++row) {
-    sql += row == 0 ? "(" : ", (";
-    for (int c = 0; c < kParamsPerSample; ++c, ++param) {
-      if (c > 0) sql += ", ";
-      sql += '$';
-      sql += std::to_string(param);
-    }
-    sql += ")";
-  }
-  // Only a repeated key is ignored (and counted); a NOT NULL violation is an error.
-  sql += " ON CONFLICT (sat_id, utime) DO NOTHING RETURNING sat_id, utime";
-  return sql;
+// The INSERT of a batch of any size: the rows come from the column arrays in their order (the
+// batch's key order), and the keys it stored come back (a duplicate is not stored: counted).
+// Only a repeated key is ignored; a NOT NULL violation is an error.
+std::string insert_sql() {
+  return std::string("INSERT INTO samples (") + columns::kSampleInsert +
+         ") SELECT u.*, $21::text FROM unnest($1::text[], $2::bigint[], $3::bigint[], "
+         "$4::bigint[], $5::float8[], $6::float8[], $7::float8[], $8::bigint[], $9::float8[], "
+         "$10::float8[], $11::float8[], $12::float8[], $13::float8[], $14::float8[], "
+         "$15::float8[], $16::float8[], $17::float8[], $18::float8[], $19::float8[], "
+         "$20::float8[]) AS u ON CONFLICT (sat_id, utime) DO NOTHING RETURNING sat_id, utime";
 }
 
 std::optional<int64_t> optional_int(const PgResult& r, int row, int column) {
@@ -67,13 +83,12 @@ std::optional<int64_t> optional_int(const PgResult& r, int row, int column) {
 
 }  // namespace
 
-PgSampleWindowStore::PgSampleWindowStore(PgDatabase& db) : SampleWindowStore(db), pg_(db) {
-  for (size_t rows = 1; rows <= kMaxRowsPerInsert; rows *= 2)
-    insert_sql_.push_back(insert_sql(rows));
-}
+PgSampleWindowStore::PgSampleWindowStore(PgDatabase& db)
+    : SampleWindowStore(db), pg_(db), insert_sql_(insert_sql()) {}
 
 InsertStats PgSampleWindowStore::insert_batch(std::span<const StoredSample> samples,
-                                              std::vector<size_t>* duplicate_rows) {
+                                              std::vector<size_t>* duplicate_rows,
+                                              std::string_view station) {
   InsertStats stats;
   if (duplicate_rows) duplicate_rows->clear();
   if (samples.empty()) return stats;
@@ -86,20 +101,13 @@ InsertStats PgSampleWindowStore::insert_batch(std::span<const StoredSample> samp
     if (const int c = x.sat_id.compare(y.sat_id); c != 0) return c < 0;
     return x.utime < y.utime;
   });
-  Transaction tx(pg_);
+  params_.clear();
+  add_batch(params_, samples, order_, station);
   stored_keys_.clear();
-  for (size_t begin = 0; begin < order_.size();) {
-    // The largest power of two not above what is left (at most kMaxRowsPerInsert).
-    size_t k = insert_sql_.size() - 1;
-    while ((size_t{1} << k) > order_.size() - begin) --k;
-    const size_t n = size_t{1} << k;
-    params_.clear();
-    for (size_t row = begin; row < begin + n; ++row) add_sample(params_, samples[order_[row]]);
-    const PgResult r = pg_.execute_prepared(insert_sql_[k], params_, PgFormat::kBinary);
-    for (int row = 0; row < r.rows(); ++row) {
-      stored_keys_.emplace_back(r.get_text(row, 0), r.get_int64(row, 1));
-    }
-    begin += n;
+  Transaction tx(pg_);
+  const PgResult r = pg_.execute_prepared(insert_sql_, params_, PgFormat::kBinary);
+  for (int row = 0; row < r.rows(); ++row) {
+    stored_keys_.emplace_back(r.get_text(row, 0), r.get_int64(row, 1));
   }
   tx.commit();
   // The stored keys against the batch, both in key order: a row whose key was stored and not
@@ -163,6 +171,21 @@ int64_t PgSampleWindowStore::count_in_window(std::string_view sat_id, int64_t t0
           "SELECT count(*) FROM samples WHERE sat_id = $1 AND utime >= $2 AND utime < $3", p,
           PgFormat::kBinary)
       .get_int64(0, 0);
+}
+
+std::vector<StationCount> PgSampleWindowStore::count_by_station(std::string_view sat_id,
+                                                                int64_t t0_utime,
+                                                                int64_t t1_utime) {
+  PgParams p;
+  p.add(sat_id).add(t0_utime).add(t1_utime);
+  const PgResult r = pg_.execute_prepared(
+      // Sorted in byte order, as SQLite's.
+      "SELECT coalesce(station, '') COLLATE \"C\" AS s, count(*) FROM samples WHERE sat_id = $1 "
+      "AND utime >= $2 AND utime < $3 GROUP BY s ORDER BY s",
+      p, PgFormat::kBinary);
+  std::vector<StationCount> out;
+  for (int row = 0; row < r.rows(); ++row) out.push_back({r.get_text(row, 0), r.get_int64(row, 1)});
+  return out;
 }
 
 std::optional<int64_t> PgSampleWindowStore::single_utime(const char* sql, std::string_view sat_id) {
@@ -238,6 +261,7 @@ RefitJob job_from_row(const PgResult& r, int row) {
   j.outcome = r.get_text(row, 6);
   j.error = r.get_text(row, 7);
   j.calibration_id = r.get_optional_int64(row, 8);
+  if (!r.is_null(row, 9)) j.claimed_by = r.get_text(row, 9);
   return j;
 }
 
@@ -264,27 +288,62 @@ int64_t PgRefitJobLog::start(std::string_view sat_id, std::string_view trigger,
       .get_int64(0, 0);
 }
 
+std::optional<int64_t> PgRefitJobLog::claim(std::string_view sat_id, std::string_view trigger,
+                                            int64_t scheduled_utime, int64_t started_utime,
+                                            std::string_view station) {
+  check_claimant(station);
+  PgParams p;
+  p.add(sat_id).add(trigger).add(scheduled_utime).add(started_utime).add(station);
+  const PgResult r = db_.execute_prepared(
+      std::string("INSERT INTO refit_jobs (sat_id, trigger_kind, scheduled_utime, started_utime, "
+                  "outcome, claimed_by) VALUES ($1, $2, $3, $4, 'running', $5) ON CONFLICT "
+                  "(sat_id, trigger_kind, scheduled_utime) WHERE ") +
+          columns::kHoldsRefitClaim + " DO NOTHING RETURNING id",
+      p, PgFormat::kBinary);
+  if (r.rows() == 0) return std::nullopt;  // DO NOTHING: another job holds the claim
+  return r.get_int64(0, 0);
+}
+
+std::optional<RefitJob> PgRefitJobLog::claim_holder(std::string_view sat_id,
+                                                    std::string_view trigger,
+                                                    int64_t scheduled_utime) {
+  PgParams p;
+  p.add(sat_id).add(trigger).add(scheduled_utime);
+  const PgResult r = db_.execute_prepared(
+      kJobSelect + "WHERE sat_id = $1 AND trigger_kind = $2 AND scheduled_utime = $3 AND " +
+          columns::kHoldsRefitClaim,
+      p, PgFormat::kBinary);
+  if (r.rows() == 0) return std::nullopt;
+  return job_from_row(r, 0);
+}
+
 void PgRefitJobLog::finish(int64_t job_id, std::string_view outcome, int64_t finished_utime,
                            std::string_view error, std::optional<int64_t> calibration_id) {
   PgParams p;
   p.add(job_id).add(outcome).add(finished_utime).add(error).add(calibration_id);
   const PgResult r = db_.execute_prepared(
       "UPDATE refit_jobs SET outcome = $2, finished_utime = $3, error = $4, calibration_id = $5 "
-      "WHERE id = $1",
+      "WHERE id = $1 AND outcome = 'running'",
       p);
-  if (r.affected_rows() != 1) {
-    throw StorageError(StorageError::Kind::kInvalidArgument,
-                       "no refit job with id " + std::to_string(job_id));
-  }
+  if (r.affected_rows() != 1) throw_not_running(job_id, get(job_id));
 }
 
 int PgRefitJobLog::mark_running_interrupted(int64_t now_utime) {
   PgParams p;
-  p.add(now_utime);
+  p.add(now_utime).add(job_outcome::kProcessEnded);
   return static_cast<int>(
       db_.execute_prepared("UPDATE refit_jobs SET outcome = 'interrupted', finished_utime = $1, "
-                           "error = 'process ended while the refit was running' "
-                           "WHERE outcome = 'running'",
+                           "error = $2 WHERE outcome = 'running'",
+                           p)
+          .affected_rows());
+}
+
+int PgRefitJobLog::mark_running_interrupted(std::string_view sat_id, int64_t now_utime) {
+  PgParams p;
+  p.add(sat_id).add(now_utime).add(job_outcome::kTakenOver);
+  return static_cast<int>(
+      db_.execute_prepared("UPDATE refit_jobs SET outcome = 'interrupted', finished_utime = $2, "
+                           "error = $3 WHERE sat_id = $1 AND outcome = 'running'",
                            p)
           .affected_rows());
 }
@@ -386,6 +445,85 @@ std::vector<FilterState> PgFilterStateStore::load_all() {
       db_.execute_prepared(kFilterSelect + "ORDER BY sat_id, method", {}, PgFormat::kBinary);
   std::vector<FilterState> out;
   for (int row = 0; row < r.rows(); ++row) out.push_back(filter_state_from_row(r, row));
+  return out;
+}
+
+namespace {
+
+Lease lease_from_row(const PgResult& r, int row) {
+  return {r.get_text(row, 0), r.get_text(row, 1), r.get_int64(row, 2), r.get_int64(row, 3),
+          r.get_int64(row, 4)};
+}
+
+// SQL written for SQLite's ?N parameters in PostgreSQL's $N (no other '?' in it).
+std::string dollar_params(std::string sql) {
+  std::replace(sql.begin(), sql.end(), '?', '$');
+  return sql;
+}
+
+}  // namespace
+
+std::optional<Lease> PgLeaseStore::try_acquire(std::string_view sat_id, std::string_view owner,
+                                               int64_t now_utime, int64_t ttl_utime) {
+  check_request(owner, ttl_utime);
+  static const std::string sql = dollar_params(columns::kLeaseAcquire);
+  PgParams p;
+  p.add(sat_id).add(owner).add(now_utime).add(ttl_utime);
+  const PgResult r = db_.execute_prepared(sql, p, PgFormat::kBinary);
+  if (r.rows() == 0) return std::nullopt;  // another owner holds it
+  return lease_from_row(r, 0);
+}
+
+bool PgLeaseStore::renew(std::string_view sat_id, std::string_view owner, int64_t epoch,
+                         int64_t now_utime, int64_t ttl_utime) {
+  check_request(owner, ttl_utime);
+  PgParams p;
+  p.add(sat_id).add(owner).add(epoch).add(now_utime).add(ttl_utime);
+  return db_.execute_prepared(
+                "UPDATE leases SET expires_utime = $4 + $5 WHERE sat_id = $1 AND "
+                "owner = $2 AND epoch = $3",
+                p)
+             .affected_rows() == 1;
+}
+
+bool PgLeaseStore::release(std::string_view sat_id, std::string_view owner, int64_t epoch,
+                           int64_t now_utime) {
+  PgParams p;
+  p.add(sat_id).add(owner).add(epoch).add(now_utime);
+  return db_.execute_prepared(
+                "UPDATE leases SET expires_utime = least(expires_utime, $4) WHERE "
+                "sat_id = $1 AND owner = $2 AND epoch = $3",
+                p)
+             .affected_rows() == 1;
+}
+
+bool PgLeaseStore::holds(std::string_view sat_id, std::string_view owner, int64_t epoch) {
+  PgParams p;
+  p.add(sat_id).add(owner).add(epoch);
+  // FOR SHARE: a takeover's upsert waits until the caller's transaction ends.
+  return db_.execute_prepared(
+                "SELECT 1 FROM leases WHERE sat_id = $1 AND owner = $2 AND "
+                "epoch = $3 FOR SHARE",
+                p)
+             .rows() == 1;
+}
+
+std::optional<Lease> PgLeaseStore::get(std::string_view sat_id) {
+  PgParams p;
+  p.add(sat_id);
+  const PgResult r = db_.execute_prepared(
+      std::string("SELECT ") + columns::kLease + " FROM leases WHERE sat_id = $1", p,
+      PgFormat::kBinary);
+  if (r.rows() == 0) return std::nullopt;
+  return lease_from_row(r, 0);
+}
+
+std::vector<Lease> PgLeaseStore::list() {
+  const PgResult r = db_.execute_prepared(
+      std::string("SELECT ") + columns::kLease + " FROM leases ORDER BY sat_id COLLATE \"C\"", {},
+      PgFormat::kBinary);
+  std::vector<Lease> out;
+  for (int row = 0; row < r.rows(); ++row) out.push_back(lease_from_row(r, row));
   return out;
 }
 
