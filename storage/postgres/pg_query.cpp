@@ -4,7 +4,6 @@
 #include <libpq-fe.h>
 
 #include <charconv>
-#include <cmath>
 #include <cstdlib>
 #include <cstring>
 #include <utility>
@@ -17,11 +16,7 @@ namespace {
 // Type OIDs (server/catalog/pg_type_d.h, which libpq-dev does not ship; fixed since 7.x).
 constexpr unsigned kBoolOid = 16, kByteaOid = 17, kNameOid = 19, kInt8Oid = 20, kInt2Oid = 21,
                    kInt4Oid = 23, kTextOid = 25, kFloat4Oid = 700, kFloat8Oid = 701,
-                   kBpcharOid = 1042, kVarcharOid = 1043, kNumericOid = 1700, kTextArrayOid = 1009,
-                   kInt8ArrayOid = 1016, kFloat8ArrayOid = 1022;
-// Binary array layout (array_recv): ndim, has-null flag, element type, then per dimension its
-// length and lower bound; each element its byte length (-1: NULL) and bytes.
-constexpr std::size_t kArrayHasNullAt = 4, kArrayLengthAt = 12;
+                   kBpcharOid = 1042, kVarcharOid = 1043, kNumericOid = 1700;
 // An unspecified parameter type: the server infers it from the statement, as for a literal.
 constexpr unsigned kInferredOid = 0;
 
@@ -78,73 +73,6 @@ PgParams& PgParams::add_bytes(std::span<const std::byte> bytes) {
 
 PgParams& PgParams::add_null() {
   return push(kInferredOid, nullptr, 0, 0);
-}
-
-void PgParams::append_be32(int32_t value) {
-  const uint32_t wire = htobe32(static_cast<uint32_t>(value));
-  const char* begin = reinterpret_cast<const char*>(&wire);
-  bytes_.insert(bytes_.end(), begin, begin + sizeof wire);
-}
-
-void PgParams::patch_be32(std::size_t at, int32_t value) {
-  const uint32_t wire = htobe32(static_cast<uint32_t>(value));
-  std::memcpy(bytes_.data() + at, &wire, sizeof wire);
-}
-
-PgParams& PgParams::begin_array(PgArrayOf element_type) {
-  unsigned array_oid = kInt8ArrayOid, element_oid = kInt8Oid;
-  if (element_type == PgArrayOf::kDouble) array_oid = kFloat8ArrayOid, element_oid = kFloat8Oid;
-  if (element_type == PgArrayOf::kText) array_oid = kTextArrayOid, element_oid = kTextOid;
-  types_.push_back(array_oid);
-  lengths_.push_back(0);  // set by end_array()
-  formats_.push_back(1);
-  offsets_.push_back(static_cast<std::ptrdiff_t>(bytes_.size()));
-  append_be32(1);  // one dimension
-  append_be32(0);  // has NULLs: set by end_array()
-  append_be32(static_cast<int32_t>(element_oid));
-  append_be32(0);  // length: set by end_array()
-  append_be32(1);  // lower bound
-  array_elements_ = 0;
-  array_has_null_ = false;
-  return *this;
-}
-
-PgParams& PgParams::element(int64_t value) {
-  append_be32(8);
-  const uint64_t wire = htobe64(static_cast<uint64_t>(value));
-  const char* begin = reinterpret_cast<const char*>(&wire);
-  bytes_.insert(bytes_.end(), begin, begin + sizeof wire);
-  ++array_elements_;
-  return *this;
-}
-
-PgParams& PgParams::element(double value) {
-  if (std::isnan(value)) return element_null();
-  uint64_t bits = 0;
-  std::memcpy(&bits, &value, sizeof bits);
-  return element(static_cast<int64_t>(bits));  // float8 travels as its 8 bytes, big-endian
-}
-
-PgParams& PgParams::element(std::string_view text) {
-  append_be32(static_cast<int32_t>(text.size()));
-  bytes_.insert(bytes_.end(), text.begin(), text.end());
-  ++array_elements_;
-  return *this;
-}
-
-PgParams& PgParams::element_null() {
-  append_be32(-1);
-  array_has_null_ = true;
-  ++array_elements_;
-  return *this;
-}
-
-PgParams& PgParams::end_array() {
-  const auto start = static_cast<std::size_t>(offsets_.back());
-  patch_be32(start + kArrayHasNullAt, array_has_null_ ? 1 : 0);
-  patch_be32(start + kArrayLengthAt, array_elements_);
-  lengths_.back() = static_cast<int>(bytes_.size() - start);
-  return *this;
 }
 
 void PgParams::clear() {

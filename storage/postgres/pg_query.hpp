@@ -19,9 +19,6 @@ struct pg_result;  // libpq's PGresult; <libpq-fe.h> stays out of public headers
 
 namespace magcal::storage {
 
-// The element types of array parameters.
-enum class PgArrayOf { kBigint, kDouble, kText };
-
 // $1, $2, ... of one statement, in order.
 class PgParams {
  public:
@@ -36,14 +33,6 @@ class PgParams {
   PgParams& add(const std::optional<T>& value) {
     return value ? add(*value) : add_null();
   }
-  // A one-dimensional array parameter (binary), its elements appended in order until
-  // end_array(): one statement then takes a batch of any size (unnest($1::bigint[], ...)).
-  PgParams& begin_array(PgArrayOf element_type);
-  PgParams& element(int64_t value);
-  PgParams& element(double value);  // NaN is a NULL element, as a NaN value is NULL
-  PgParams& element(std::string_view text);
-  PgParams& element_null();
-  PgParams& end_array();
   void clear();
   int size() const { return static_cast<int>(types_.size()); }
 
@@ -55,17 +44,12 @@ class PgParams {
 
  private:
   PgParams& push(unsigned type, const void* data, std::size_t size, int format);
-  void append_be32(int32_t value);
-  void patch_be32(std::size_t at, int32_t value);
 
   std::vector<unsigned> types_;
   std::vector<int> lengths_, formats_;
   std::vector<std::ptrdiff_t> offsets_;  // into bytes_; -1 for NULL
   std::vector<char> bytes_;
   mutable std::vector<const char*> values_;
-  // The array being built: its elements so far, whether one is NULL.
-  int32_t array_elements_ = 0;
-  bool array_has_null_ = false;
 };
 
 enum class PgFormat { kText, kBinary };

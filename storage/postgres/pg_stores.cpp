@@ -10,71 +10,57 @@
 namespace magcal::storage {
 namespace {
 
-// One column of a batch as an array parameter: `value(sample)` of each row in `order`.
-template <typename Value>
-void add_column(PgParams& p, PgArrayOf type, std::span<const StoredSample> samples,
-                const std::vector<size_t>& order, Value value) {
-  p.begin_array(type);
-  for (const size_t row : order) value(p, samples[row]);
-  p.end_array();
-}
+constexpr int kParamsPerSample = 20;
 
-// The batch as 20 column arrays ($1..$20, kSampleInsert's order) and the station ($21). A group
-// of columns stored together or not at all is NULL when the sample lacks it; NaN is NULL too,
-// as on SQLite (a NOT NULL column then refuses it).
-void add_batch(PgParams& p, std::span<const StoredSample> samples, const std::vector<size_t>& order,
-               std::string_view station) {
-  using S = StoredSample;
-  add_column(p, PgArrayOf::kText, samples, order,
-             [](PgParams& q, const S& s) { q.element(std::string_view(s.sat_id)); });
-  add_column(p, PgArrayOf::kBigint, samples, order,
-             [](PgParams& q, const S& s) { q.element(s.utime); });
-  add_column(p, PgArrayOf::kBigint, samples, order,
-             [](PgParams& q, const S& s) { q.element(s.seq); });
-  add_column(p, PgArrayOf::kBigint, samples, order,
-             [](PgParams& q, const S& s) { q.element(s.receive_utime); });
-  for (size_t i = 0; i < 3; ++i) {
-    add_column(p, PgArrayOf::kDouble, samples, order,
-               [i](PgParams& q, const S& s) { q.element(s.b_sensor_nT[i]); });
-  }
-  add_column(p, PgArrayOf::kBigint, samples, order,
-             [](PgParams& q, const S& s) { q.element(int64_t{s.has_direction ? 1 : 0}); });
-  for (size_t i = 0; i < 3; ++i) {
-    add_column(p, PgArrayOf::kDouble, samples, order, [i](PgParams& q, const S& s) {
-      s.has_direction ? q.element(s.h_body_nT[i]) : q.element_null();
-    });
-  }
-  add_column(p, PgArrayOf::kDouble, samples, order,
-             [](PgParams& q, const S& s) { q.element(s.h_norm_nT); });
-  for (size_t i = 0; i < 4; ++i) {
-    add_column(p, PgArrayOf::kDouble, samples, order, [i](PgParams& q, const S& s) {
-      s.has_attitude ? q.element(s.q_body_from_eci[i]) : q.element_null();
-    });
-  }
-  for (size_t i = 0; i < 3; ++i) {
-    add_column(p, PgArrayOf::kDouble, samples, order, [i](PgParams& q, const S& s) {
-      s.has_position ? q.element(s.r_ecef_m[i]) : q.element_null();
-    });
-  }
-  add_column(p, PgArrayOf::kDouble, samples, order,
-             [](PgParams& q, const S& s) { q.element(s.temperature_C); });
-  if (station.empty()) {
+// NaN is stored as NULL, as on SQLite (a NOT NULL column then refuses it).
+void add_value(PgParams& p, double value) {
+  if (std::isnan(value)) {
     p.add_null();
   } else {
-    p.add(station);
+    p.add(value);
   }
 }
 
-// The INSERT of a batch of any size: the rows come from the column arrays in their order (the
-// batch's key order), and the keys it stored come back (a duplicate is not stored: counted).
-// Only a repeated key is ignored; a NOT NULL violation is an error.
-std::string insert_sql() {
-  return std::string("INSERT INTO samples (") + columns::kSampleInsert +
-         ") SELECT u.*, $21::text FROM unnest($1::text[], $2::bigint[], $3::bigint[], "
-         "$4::bigint[], $5::float8[], $6::float8[], $7::float8[], $8::bigint[], $9::float8[], "
-         "$10::float8[], $11::float8[], $12::float8[], $13::float8[], $14::float8[], "
-         "$15::float8[], $16::float8[], $17::float8[], $18::float8[], $19::float8[], "
-         "$20::float8[]) AS u ON CONFLICT (sat_id, utime) DO NOTHING RETURNING sat_id, utime";
+// A group of columns stored together or not at all (NULL when the sample lacks it).
+void add_group(PgParams& p, std::span<const double> values, bool present) {
+  for (const double v : values) {
+    if (present) {
+      add_value(p, v);
+    } else {
+      p.add_null();
+    }
+  }
+}
+
+void add_sample(PgParams& p, const StoredSample& s) {
+  p.add(s.sat_id).add(s.utime).add(s.seq).add(s.receive_utime);
+  add_group(p, s.b_sensor_nT, true);
+  p.add(int64_t{s.has_direction ? 1 : 0});
+  add_group(p, s.h_body_nT, s.has_direction);
+  add_value(p, s.h_norm_nT);
+  add_group(p, s.q_body_from_eci, s.has_attitude);
+  add_group(p, s.r_ecef_m, s.has_position);
+  add_value(p, s.temperature_C);
+}
+
+// INSERT of `rows` samples (parameters $1 .. $20*rows, then the station, the same for every
+// row), returning the keys it stored. Only a repeated key is ignored (and counted); a NOT NULL
+// violation is an error.
+std::string insert_sql(size_t rows) {
+  const std::string station = "$" + std::to_string(rows * kParamsPerSample + 1) + "::text";
+  std::string sql = std::string("INSERT INTO samples (") + columns::kSampleInsert + ") VALUES ";
+  int param = 1;
+  for (size_t row = 0; row < rows; ++row) {
+    sql += row == 0 ? "(" : ", (";
+    for (int c = 0; c < kParamsPerSample; ++c, ++param) {
+      sql += '$';
+      sql += std::to_string(param);
+      sql += ", ";
+    }
+    sql += station + ")";
+  }
+  sql += " ON CONFLICT (sat_id, utime) DO NOTHING RETURNING sat_id, utime";
+  return sql;
 }
 
 std::optional<int64_t> optional_int(const PgResult& r, int row, int column) {
@@ -83,8 +69,10 @@ std::optional<int64_t> optional_int(const PgResult& r, int row, int column) {
 
 }  // namespace
 
-PgSampleWindowStore::PgSampleWindowStore(PgDatabase& db)
-    : SampleWindowStore(db), pg_(db), insert_sql_(insert_sql()) {}
+PgSampleWindowStore::PgSampleWindowStore(PgDatabase& db) : SampleWindowStore(db), pg_(db) {
+  for (size_t rows = 1; rows <= kMaxRowsPerInsert; rows *= 2)
+    insert_sql_.push_back(insert_sql(rows));
+}
 
 InsertStats PgSampleWindowStore::insert_batch(std::span<const StoredSample> samples,
                                               std::vector<size_t>* duplicate_rows,
@@ -101,13 +89,25 @@ InsertStats PgSampleWindowStore::insert_batch(std::span<const StoredSample> samp
     if (const int c = x.sat_id.compare(y.sat_id); c != 0) return c < 0;
     return x.utime < y.utime;
   });
-  params_.clear();
-  add_batch(params_, samples, order_, station);
-  stored_keys_.clear();
   Transaction tx(pg_);
-  const PgResult r = pg_.execute_prepared(insert_sql_, params_, PgFormat::kBinary);
-  for (int row = 0; row < r.rows(); ++row) {
-    stored_keys_.emplace_back(r.get_text(row, 0), r.get_int64(row, 1));
+  stored_keys_.clear();
+  for (size_t begin = 0; begin < order_.size();) {
+    // The largest power of two not above what is left (at most kMaxRowsPerInsert).
+    size_t k = insert_sql_.size() - 1;
+    while ((size_t{1} << k) > order_.size() - begin) --k;
+    const size_t n = size_t{1} << k;
+    params_.clear();
+    for (size_t row = begin; row < begin + n; ++row) add_sample(params_, samples[order_[row]]);
+    if (station.empty()) {
+      params_.add_null();
+    } else {
+      params_.add(station);
+    }
+    const PgResult r = pg_.execute_prepared(insert_sql_[k], params_, PgFormat::kBinary);
+    for (int row = 0; row < r.rows(); ++row) {
+      stored_keys_.emplace_back(r.get_text(row, 0), r.get_int64(row, 1));
+    }
+    begin += n;
   }
   tx.commit();
   // The stored keys against the batch, both in key order: a row whose key was stored and not

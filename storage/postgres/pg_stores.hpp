@@ -5,10 +5,11 @@
 //
 // Samples are inserted sorted by the table's key (sat_id, utime), the one global order every
 // writer keeps: concurrent writers of overlapping batches then wait for each other instead of
-// deadlocking (toolchain.md "PostgreSQL"). Each batch is one statement, INSERT ... SELECT FROM
-// unnest(column arrays) ON CONFLICT DO NOTHING RETURNING the stored keys: the arrays travel in
-// binary, one prepared statement serves every batch size, and a duplicate (already stored, by
-// this daemon or another station, or twice in the batch) is counted, never an error.
+// deadlocking (toolchain.md "PostgreSQL"). Each batch is one transaction of multi-row
+// INSERT ... ON CONFLICT DO NOTHING RETURNING the stored keys, so a duplicate (already stored, by
+// this daemon or another station, or twice in the batch) is counted, never an error. (One
+// INSERT ... SELECT FROM unnest(binary column arrays) for any batch size was measured 15 %
+// slower: the server materialises each unnested array before inserting.)
 #pragma once
 
 #include <span>
@@ -26,6 +27,12 @@ namespace magcal::storage {
 
 class PgSampleWindowStore final : public SampleWindowStore {
  public:
+  // Rows per INSERT statement: 21 parameters each, well below PostgreSQL's 65 535. A batch goes
+  // in statements of 512 rows and the rest in statements of 256, 128, ..., 1 rows (its binary
+  // digits): a few prepared statements serve every batch size (parsing a statement of
+  // thousands of parameters costs more than running it).
+  static constexpr size_t kMaxRowsPerInsert = 512;
+
   explicit PgSampleWindowStore(PgDatabase& db);
 
   InsertStats insert_batch(std::span<const StoredSample> samples,
@@ -47,9 +54,9 @@ class PgSampleWindowStore final : public SampleWindowStore {
   std::optional<int64_t> single_utime(const char* sql, std::string_view sat_id);
 
   PgDatabase& pg_;
-  const std::string insert_sql_;
-  PgParams params_;            // reused: no allocation per batch once warmed up
-  std::vector<size_t> order_;  // batch rows in key order
+  std::vector<std::string> insert_sql_;  // [k]: the INSERT of 2^k rows
+  PgParams params_;                      // reused: no allocation per batch once warmed up
+  std::vector<size_t> order_;            // batch rows in key order
   std::vector<std::pair<std::string, int64_t>> stored_keys_;  // what RETURNING reported
 };
 

@@ -13,3 +13,8 @@ CREATE TABLE leases (
   acquired_utime bigint NOT NULL,
   expires_utime  bigint NOT NULL
 );
+
+-- Spacecraft ids of the samples in byte order, as SQLite compares them: the primary key then
+-- compares ids with memcmp instead of the database's locale (about 10 % of an insert's time,
+-- measured), and windows and lists sort the same on both backends.
+ALTER TABLE samples ALTER COLUMN sat_id TYPE text COLLATE "C";
