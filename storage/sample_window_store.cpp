@@ -63,7 +63,8 @@ InsertStats SqliteSampleWindowStore::insert_batch(std::span<const StoredSample> 
   for (size_t row = 0; row < samples.size(); ++row) {
     const StoredSample& s = samples[row];
     auto use = insert_.use();
-    insert_.bind(1, s.sat_id).bind(2, s.utime).bind(3, s.seq).bind(4, s.receive_utime);
+    // The batch and the station outlive this row's use of the statement: bound without a copy.
+    insert_.bind_unowned(1, s.sat_id).bind(2, s.utime).bind(3, s.seq).bind(4, s.receive_utime);
     insert_.bind(5, s.b_sensor_nT[0]).bind(6, s.b_sensor_nT[1]).bind(7, s.b_sensor_nT[2]);
     insert_.bind(8, s.has_direction ? 1 : 0);
     if (s.has_direction) {
@@ -77,7 +78,7 @@ InsertStats SqliteSampleWindowStore::insert_batch(std::span<const StoredSample> 
       for (int i = 0; i < 3; ++i) insert_.bind(17 + i, s.r_ecef_m[i]);
     }
     insert_.bind(20, s.temperature_C);  // NaN -> NULL
-    if (!station.empty()) insert_.bind(21, station);
+    if (!station.empty()) insert_.bind_unowned(21, station);
     if (insert_.execute() == 1) {
       ++stats.inserted;
     } else {
