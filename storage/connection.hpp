@@ -2,9 +2,9 @@
 // embedded default, storage/database.hpp) or a PostgreSQL database shared by a fleet
 // (storage/postgres/pg_database.hpp, design.md "Fleet"). open_database() chooses by the --db /
 // [storage] db_path value. A connection makes its stores (make_*: the sample window, the
-// calibration history, the refit job log, the filter states, the meta values), and groups their
-// calls into one commit with a Transaction. Nothing of the engine shows here: errors are
-// StorageError with a backend-neutral condition (storage/storage_error.hpp).
+// calibration history, the refit job log, the filter states, the meta values, the spacecraft
+// leases), and groups their calls into one commit with a Transaction. Nothing of the engine shows
+// here: errors are StorageError with a backend-neutral condition (storage/storage_error.hpp).
 //
 // Threads: a connection and the stores made on it belong to one thread at a time (prepared
 // statements are per connection). Give each thread (ingest worker, refit scheduler, CLI) its own.
@@ -24,6 +24,7 @@ class RefitJobLog;
 class FilterStateStore;
 class MetaStore;
 class CalibrationHistory;
+class LeaseStore;
 
 // 'MGCL': SQLite's `PRAGMA application_id` of a magcal file, and the application_id of
 // PostgreSQL's magcal_schema_version rows.
@@ -85,6 +86,7 @@ class Connection {
   virtual std::unique_ptr<FilterStateStore> make_filter_state_store() = 0;
   virtual std::unique_ptr<MetaStore> make_meta_store() = 0;
   virtual std::unique_ptr<CalibrationHistory> make_calibration_history() = 0;
+  virtual std::unique_ptr<LeaseStore> make_lease_store() = 0;
 
  protected:
   friend class Transaction;

@@ -371,4 +371,8 @@ std::unique_ptr<CalibrationHistory> Database::make_calibration_history() {
   return std::make_unique<SqliteCalibrationHistory>(*this);
 }
 
+std::unique_ptr<LeaseStore> Database::make_lease_store() {
+  return std::make_unique<SqliteLeaseStore>(*this);
+}
+
 }  // namespace magcal::storage

@@ -77,6 +77,7 @@ class Database final : public Connection {
   std::unique_ptr<FilterStateStore> make_filter_state_store() override;
   std::unique_ptr<MetaStore> make_meta_store() override;
   std::unique_ptr<CalibrationHistory> make_calibration_history() override;
+  std::unique_ptr<LeaseStore> make_lease_store() override;
 
  private:
   friend class Statement;  // the one user of the raw connection

@@ -22,6 +22,9 @@ constexpr const char* kRejected = "rejected";        // result stored but refuse
 constexpr const char* kFailed = "failed";            // estimator failed / error (see error)
 constexpr const char* kSkipped = "skipped";          // e.g. too few samples in the window
 constexpr const char* kInterrupted = "interrupted";  // process died while running
+// The error text of an interrupted job: why.
+constexpr const char* kProcessEnded = "process ended while the refit was running";
+constexpr const char* kTakenOver = "another daemon took the spacecraft over while it ran";
 }  // namespace job_outcome
 
 struct RefitJob {
@@ -34,22 +37,38 @@ struct RefitJob {
   std::string outcome;
   std::string error;
   std::optional<int64_t> calibration_id;
+  std::string claimed_by;  // station that claimed it (claim()); "" when not claimed
 };
 
 class RefitJobLog {
  public:
   virtual ~RefitJobLog() = default;
 
-  // Inserts a 'running' job; returns its id.
+  // Inserts a 'running' job, not claimed (a manual refit; a single daemon's); returns its id.
   virtual int64_t start(std::string_view sat_id, std::string_view trigger, int64_t scheduled_utime,
                         int64_t started_utime) = 0;
-  // Throws StorageError (kInvalidArgument) for an unknown job, (kConstraint) for a
+  // The fleet's start of a refit that must run once for all daemons (design.md "Fleet"): inserts
+  // a 'running' job claimed by `station` and returns its id, or nullopt when another job holds
+  // the claim of (sat_id, trigger, scheduled_utime): already claimed, running or ended. Of
+  // concurrent claims exactly one wins. An interrupted job gives its claim up (the refit may be
+  // claimed again); no other outcome does.
+  virtual std::optional<int64_t> claim(std::string_view sat_id, std::string_view trigger,
+                                       int64_t scheduled_utime, int64_t started_utime,
+                                       std::string_view station) = 0;
+  // The job holding that claim (who claimed it, how it ended), if any.
+  virtual std::optional<RefitJob> claim_holder(std::string_view sat_id, std::string_view trigger,
+                                               int64_t scheduled_utime) = 0;
+  // Ends a 'running' job. Throws StorageError (kInvalidArgument) for an unknown job or one no
+  // longer running (interrupted meanwhile: its spacecraft was taken over), (kConstraint) for a
   // calibration_id that is not in the history.
   virtual void finish(int64_t job_id, std::string_view outcome, int64_t finished_utime,
                       std::string_view error = {}, std::optional<int64_t> calibration_id = {}) = 0;
-  // Crash recovery, called once by the daemon at start: every 'running' job becomes
+  // Crash recovery, called once by a single daemon at start: every 'running' job becomes
   // 'interrupted' (finished at now_utime). Returns how many.
   virtual int mark_running_interrupted(int64_t now_utime) = 0;
+  // The same for one spacecraft: its new owner's first step after taking its lease over (the
+  // jobs of the previous owner will never finish, and their claims are given up).
+  virtual int mark_running_interrupted(std::string_view sat_id, int64_t now_utime) = 0;
 
   // What a restarting daemon resumes from, per spacecraft:
   //   the calibration of its newest refit that ended 'ok' (accepted) and was not 'manual' (the
@@ -63,6 +82,11 @@ class RefitJobLog {
   std::optional<RefitJob> latest(std::string_view sat_id);
   // The newest `limit` jobs of `sat_id`, newest first.
   virtual std::vector<RefitJob> recent(std::string_view sat_id, int limit) = 0;
+
+ protected:
+  // Both backends' argument check and error for claim() and finish().
+  static void check_claimant(std::string_view station);
+  [[noreturn]] static void throw_not_running(int64_t job_id, const std::optional<RefitJob>& job);
 };
 
 }  // namespace magcal::storage

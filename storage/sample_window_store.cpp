@@ -28,13 +28,16 @@ SqliteSampleWindowStore::SqliteSampleWindowStore(Database& db)
     : SampleWindowStore(db),
       insert_(db, std::string("INSERT INTO samples (") + columns::kSampleInsert +
                       ") VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, "
-                      "?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20) "
+                      "?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20, ?21) "
                       // Only a repeated key is ignored (and counted); OR IGNORE would also swallow
                       // NOT NULL violations (NaN is bound as NULL) and count them as duplicates.
                       "ON CONFLICT (sat_id, utime) DO NOTHING"),
       window_(db, select_window_sql()),
       count_window_(
           db, "SELECT count(*) FROM samples WHERE sat_id = ?1 AND utime >= ?2 AND utime < ?3"),
+      count_by_station_(db,
+                        "SELECT coalesce(station, '') AS s, count(*) FROM samples WHERE sat_id = "
+                        "?1 AND utime >= ?2 AND utime < ?3 GROUP BY s ORDER BY s"),
       newest_(db, "SELECT max(utime) FROM samples WHERE sat_id = ?1"),
       oldest_(db, "SELECT min(utime) FROM samples WHERE sat_id = ?1"),
       count_(db, "SELECT count(*) FROM samples WHERE sat_id = ?1"),
@@ -51,7 +54,8 @@ SqliteSampleWindowStore::SqliteSampleWindowStore(Database& db)
                     "samples WHERE sat_id = ?1 AND utime < ?2 ORDER BY utime LIMIT ?3)") {}
 
 InsertStats SqliteSampleWindowStore::insert_batch(std::span<const StoredSample> samples,
-                                                  std::vector<size_t>* duplicate_rows) {
+                                                  std::vector<size_t>* duplicate_rows,
+                                                  std::string_view station) {
   InsertStats stats;
   if (duplicate_rows) duplicate_rows->clear();
   if (samples.empty()) return stats;
@@ -59,7 +63,8 @@ InsertStats SqliteSampleWindowStore::insert_batch(std::span<const StoredSample> 
   for (size_t row = 0; row < samples.size(); ++row) {
     const StoredSample& s = samples[row];
     auto use = insert_.use();
-    insert_.bind(1, s.sat_id).bind(2, s.utime).bind(3, s.seq).bind(4, s.receive_utime);
+    // The batch and the station outlive this row's use of the statement: bound without a copy.
+    insert_.bind_unowned(1, s.sat_id).bind(2, s.utime).bind(3, s.seq).bind(4, s.receive_utime);
     insert_.bind(5, s.b_sensor_nT[0]).bind(6, s.b_sensor_nT[1]).bind(7, s.b_sensor_nT[2]);
     insert_.bind(8, s.has_direction ? 1 : 0);
     if (s.has_direction) {
@@ -73,6 +78,7 @@ InsertStats SqliteSampleWindowStore::insert_batch(std::span<const StoredSample> 
       for (int i = 0; i < 3; ++i) insert_.bind(17 + i, s.r_ecef_m[i]);
     }
     insert_.bind(20, s.temperature_C);  // NaN -> NULL
+    if (!station.empty()) insert_.bind_unowned(21, station);
     if (insert_.execute() == 1) {
       ++stats.inserted;
     } else {
@@ -129,6 +135,18 @@ int64_t SqliteSampleWindowStore::count_in_window(std::string_view sat_id, int64_
   auto use = count_window_.use();
   count_window_.bind(1, sat_id).bind(2, t0_utime).bind(3, t1_utime);
   return count_window_.step() ? count_window_.column_int64(0) : 0;
+}
+
+std::vector<StationCount> SqliteSampleWindowStore::count_by_station(std::string_view sat_id,
+                                                                    int64_t t0_utime,
+                                                                    int64_t t1_utime) {
+  std::vector<StationCount> out;
+  auto use = count_by_station_.use();
+  count_by_station_.bind(1, sat_id).bind(2, t0_utime).bind(3, t1_utime);
+  while (count_by_station_.step()) {
+    out.push_back({count_by_station_.column_text(0), count_by_station_.column_int64(1)});
+  }
+  return out;
 }
 
 std::optional<int64_t> SqliteSampleWindowStore::newest_utime(std::string_view sat_id) {

@@ -3,7 +3,8 @@
 // One row per (sat_id, utime), the primary key: a spacecraft's window is read by key range in
 // time order. Each row keeps its reference field
 // (h_body_nT in the body frame, or only |h| when there was no direction), so a refit never
-// recomputes IGRF. Duplicate (sat_id, utime) rows are refused and counted, never stored twice.
+// recomputes IGRF. Duplicate (sat_id, utime) rows are refused and counted, never stored twice:
+// the first station to deliver a sample stores it (and is recorded as its station).
 //
 // An interface: SqliteSampleWindowStore (storage/sqlite_stores.hpp) and PgSampleWindowStore
 // (storage/postgres/pg_stores.hpp), made by Connection::make_sample_window_store().
@@ -48,6 +49,12 @@ struct InsertStats {
   int64_t duplicates = 0;  // (sat_id, utime) already stored (or twice in the batch)
 };
 
+// Samples of one station in a window (SampleWindowStore::count_by_station).
+struct StationCount {
+  std::string station;  // "" for samples stored without one (before schema 7)
+  int64_t samples = 0;
+};
+
 struct RetentionStats {
   int64_t deleted = 0;
   int transactions = 0;
@@ -57,11 +64,14 @@ class SampleWindowStore {
  public:
   virtual ~SampleWindowStore() = default;
 
-  // All samples in one transaction (or inside the caller's). Throws StorageError (the
-  // transaction is rolled back: nothing of the batch is stored). `duplicate_rows` (optional,
-  // cleared first): the indices of the rows that were duplicates, for per-row accounting.
+  // All samples in one transaction (or inside the caller's), stored by `station` (the daemon's
+  // [station] id; "" = none). Throws StorageError (the transaction is rolled back: nothing of
+  // the batch is stored). `duplicate_rows` (optional, cleared first): the indices of the rows
+  // that were duplicates, for per-row accounting. A duplicate changes nothing of the stored row,
+  // whichever station sent it.
   virtual InsertStats insert_batch(std::span<const StoredSample> samples,
-                                   std::vector<size_t>* duplicate_rows = nullptr) = 0;
+                                   std::vector<size_t>* duplicate_rows = nullptr,
+                                   std::string_view station = {}) = 0;
 
   // Samples of `sat_id` with t0 <= utime < t1, ascending utime, into `out` (cleared first; its
   // capacity is reused). A refit window (t_ref - W, t_ref] is [t_ref - W + 1, t_ref + 1).
@@ -70,6 +80,10 @@ class SampleWindowStore {
   std::vector<StoredSample> window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime);
 
   virtual int64_t count_in_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime) = 0;
+  // The samples of `sat_id` with t0 <= utime < t1 per station that stored them, sorted by
+  // station (those without one first, as "").
+  virtual std::vector<StationCount> count_by_station(std::string_view sat_id, int64_t t0_utime,
+                                                     int64_t t1_utime) = 0;
   virtual std::optional<int64_t> newest_utime(std::string_view sat_id) = 0;
   virtual std::optional<int64_t> oldest_utime(std::string_view sat_id) = 0;
   virtual int64_t count(std::string_view sat_id) = 0;

@@ -1,7 +1,7 @@
 // The SQLite implementations of the stores (storage/sample_window_store.hpp, refit_job_log.hpp,
-// filter_state_store.hpp, meta_store.hpp, calibration_history.hpp) on one Database: statements
-// prepared once in the constructor, reset and re-bound for every use. Made by Database::make_*();
-// tests and tools that hold a Database may construct them directly.
+// filter_state_store.hpp, meta_store.hpp, calibration_history.hpp, lease_store.hpp) on one
+// Database: statements prepared once in the constructor, reset and re-bound for every use. Made by
+// Database::make_*(); tests and tools that hold a Database may construct them directly.
 #pragma once
 
 #include <span>
@@ -10,6 +10,7 @@
 #include "storage/calibration_history.hpp"
 #include "storage/database.hpp"
 #include "storage/filter_state_store.hpp"
+#include "storage/lease_store.hpp"
 #include "storage/meta_store.hpp"
 #include "storage/refit_job_log.hpp"
 #include "storage/sample_window_store.hpp"
@@ -22,10 +23,13 @@ class SqliteSampleWindowStore final : public SampleWindowStore {
   explicit SqliteSampleWindowStore(Database& db);  // prepares its statements; throws StorageError
 
   InsertStats insert_batch(std::span<const StoredSample> samples,
-                           std::vector<size_t>* duplicate_rows = nullptr) override;
+                           std::vector<size_t>* duplicate_rows = nullptr,
+                           std::string_view station = {}) override;
   void read_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime,
                    std::vector<StoredSample>& out) override;
   int64_t count_in_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime) override;
+  std::vector<StationCount> count_by_station(std::string_view sat_id, int64_t t0_utime,
+                                             int64_t t1_utime) override;
   std::optional<int64_t> newest_utime(std::string_view sat_id) override;
   std::optional<int64_t> oldest_utime(std::string_view sat_id) override;
   int64_t count(std::string_view sat_id) override;
@@ -38,6 +42,7 @@ class SqliteSampleWindowStore final : public SampleWindowStore {
   Statement insert_;
   Statement window_;
   Statement count_window_;
+  Statement count_by_station_;
   Statement newest_;
   Statement oldest_;
   Statement count_;
@@ -54,7 +59,13 @@ class SqliteRefitJobLog final : public RefitJobLog {
                 int64_t started_utime) override;
   void finish(int64_t job_id, std::string_view outcome, int64_t finished_utime,
               std::string_view error = {}, std::optional<int64_t> calibration_id = {}) override;
+  std::optional<int64_t> claim(std::string_view sat_id, std::string_view trigger,
+                               int64_t scheduled_utime, int64_t started_utime,
+                               std::string_view station) override;
+  std::optional<RefitJob> claim_holder(std::string_view sat_id, std::string_view trigger,
+                                       int64_t scheduled_utime) override;
   int mark_running_interrupted(int64_t now_utime) override;
+  int mark_running_interrupted(std::string_view sat_id, int64_t now_utime) override;
   std::optional<int64_t> newest_reanchor_calibration_id(std::string_view sat_id) override;
   std::optional<int64_t> newest_finished_scheduled_utime(std::string_view sat_id) override;
   std::optional<RefitJob> get(int64_t job_id) override;
@@ -63,8 +74,11 @@ class SqliteRefitJobLog final : public RefitJobLog {
  private:
   Database& db_;
   Statement insert_;
+  Statement claim_;
+  Statement claim_holder_;
   Statement finish_;
   Statement interrupt_;
+  Statement interrupt_sat_;
   Statement get_;
   Statement recent_;
   Statement newest_reanchor_;
@@ -118,6 +132,29 @@ class SqliteCalibrationHistory final : public CalibrationHistory {
   Statement accepted_refit_;
   Statement spacecraft_;
   Statement reasons_;
+};
+
+class SqliteLeaseStore final : public LeaseStore {
+ public:
+  explicit SqliteLeaseStore(Database& db);
+
+  std::optional<Lease> try_acquire(std::string_view sat_id, std::string_view owner,
+                                   int64_t now_utime, int64_t ttl_utime) override;
+  bool renew(std::string_view sat_id, std::string_view owner, int64_t epoch, int64_t now_utime,
+             int64_t ttl_utime) override;
+  bool release(std::string_view sat_id, std::string_view owner, int64_t epoch,
+               int64_t now_utime) override;
+  bool holds(std::string_view sat_id, std::string_view owner, int64_t epoch) override;
+  std::optional<Lease> get(std::string_view sat_id) override;
+  std::vector<Lease> list() override;
+
+ private:
+  Statement acquire_;
+  Statement renew_;
+  Statement release_;
+  Statement holds_;
+  Statement get_;
+  Statement list_;
 };
 
 class SqliteMetaStore final : public MetaStore {

@@ -19,6 +19,12 @@ namespace {
   throw StorageError::sqlite(kind, msg, rc);
 }
 
+int bind_text(sqlite3_stmt* stmt, int index, std::string_view text, sqlite3_destructor_type copy) {
+  // An empty string_view may have a null data(), which SQLite would bind as NULL.
+  const char* data = text.data() ? text.data() : "";
+  return sqlite3_bind_text(stmt, index, data, static_cast<int>(text.size()), copy);
+}
+
 }  // namespace
 
 Statement::Statement(Database& db, std::string_view sql) : db_(&db) {
@@ -54,10 +60,13 @@ Statement& Statement::bind(int index, double value) {
 }
 
 Statement& Statement::bind(int index, std::string_view text) {
-  // An empty string_view may have a null data(), which SQLite would bind as NULL.
-  const char* data = text.data() ? text.data() : "";
-  const int rc =
-      sqlite3_bind_text(stmt_, index, data, static_cast<int>(text.size()), SQLITE_TRANSIENT);
+  const int rc = bind_text(stmt_, index, text, SQLITE_TRANSIENT);
+  if (rc != SQLITE_OK) fail(db_->handle(), rc, "bind");
+  return *this;
+}
+
+Statement& Statement::bind_unowned(int index, std::string_view text) {
+  const int rc = bind_text(stmt_, index, text, SQLITE_STATIC);
   if (rc != SQLITE_OK) fail(db_->handle(), rc, "bind");
   return *this;
 }

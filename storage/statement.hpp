@@ -44,6 +44,9 @@ class Statement {
   Statement& bind(int index, int value) { return bind(index, static_cast<int64_t>(value)); }
   Statement& bind(int index, double value);  // NaN is stored as NULL
   Statement& bind(int index, std::string_view text);
+  // The same without SQLite's copy of the text, which must then stay valid and unchanged until
+  // the statement is reset (the end of its use): a hot loop's rows.
+  Statement& bind_unowned(int index, std::string_view text);
   Statement& bind_blob(int index, const void* data, size_t size);
   Statement& bind_null(int index);
   template <typename T>

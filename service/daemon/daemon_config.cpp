@@ -1,5 +1,9 @@
 #include "service/daemon/daemon_config.hpp"
 
+#include <unistd.h>
+
+#include <algorithm>
+#include <climits>
 #include <cmath>
 #include <fstream>
 #include <functional>
@@ -193,6 +197,7 @@ std::map<std::string, Section> key_table(DaemonConfig& c) {
         {"min_position_km", bind(c.service.min_position_km)},
         {"max_position_km", bind(c.service.max_position_km)}}},
       {"http", {{"listen", bind(c.http.listen)}}},
+      {"station", {{"id", bind(c.station.id)}}},
   };
 }
 
@@ -206,12 +211,34 @@ std::string check_listen(const std::string& listen) {
          listen + "\"";
 }
 
+// A station id is written into every stored sample and names lease owners in magcal status:
+// short, printable, no spaces (it is a label, and a word in logs).
+constexpr size_t kMaxStationIdLength = 64;
+
+std::string check_station_id(const std::string& id) {
+  const bool printable =
+      std::all_of(id.begin(), id.end(), [](char c) { return c > ' ' && c < 127; });
+  if (!id.empty() && id.size() <= kMaxStationIdLength && printable) return "";
+  std::string shown;
+  for (const char c : id.substr(0, kMaxStationIdLength)) shown += c >= ' ' && c < 127 ? c : '?';
+  return "[station] id: must be 1-" + std::to_string(kMaxStationIdLength) +
+         " printable ASCII characters without spaces (default: the host name), got \"" + shown +
+         (id.size() > kMaxStationIdLength ? "...\" (" + std::to_string(id.size()) + " characters)"
+                                          : "\"");
+}
+
 std::string check_channel(const std::string& key, const std::string& name) {
   if (name.empty() || name.size() > 63) return key + ": channel name must be 1-63 characters";
   return "";
 }
 
 }  // namespace
+
+std::string default_station_id() {
+  char name[HOST_NAME_MAX + 1] = {};
+  if (::gethostname(name, sizeof name - 1) != 0) return "";
+  return name;
+}
 
 std::string DaemonConfig::validate() const {
   for (const auto& [key, name] : {std::pair{"[lcm] samples_channel", lcm.samples_channel},
@@ -259,6 +286,7 @@ std::string DaemonConfig::validate() const {
   }
   if (!(log.status_every_s > 0.0)) return "[log] status_every_s: must be > 0";
   if (auto e = check_listen(http.listen); !e.empty()) return e;
+  if (auto e = check_station_id(station.id); !e.empty()) return e;
   // Bounded so that the microsecond conversions stay far from the int64 limits.
   if (!(ingest.max_time_jump_s >= 1.0 && ingest.max_time_jump_s <= 1e6)) {
     return "[ingest] max_time_jump_s: must be within [1, 1e6] s";

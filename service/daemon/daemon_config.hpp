@@ -14,6 +14,9 @@
 
 namespace magcal {
 
+// The host name, the default [station] id ("" when the system has none).
+std::string default_station_id();
+
 struct DaemonConfig {
   struct Lcm {
     std::string url;  // "" = LCM's default ($LCM_DEFAULT_URL, else udpm://239.255.76.67:7667)
@@ -95,6 +98,13 @@ struct DaemonConfig {
     double min_position_km = 6400.0;  // |r_ecef| outside [min, max] is an absurd position
     double max_position_km = 8000.0;
   } service;
+
+  // This daemon's ground station in a fleet (design.md "Fleet"): the station recorded with the
+  // samples it stores first, and the owner name of the spacecraft leases it holds. 1-64
+  // printable ASCII characters without spaces; unique per daemon sharing a database.
+  struct Station {
+    std::string id = default_station_id();  // the host name
+  } station;
 
   // The operations server (design.md "Operations surface"): /metrics, /-/healthy, /-/ready, the
   // history API and the page, read-only, on its own thread and database connection.

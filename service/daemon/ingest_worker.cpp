@@ -528,7 +528,8 @@ void IngestWorker::commit_pending() {
           }
         } observe{counters_.commit_seconds, t0};
         storage::Transaction tx(*db_);
-        stats = samples_->insert_batch(std::span(pending_).subspan(done, n), &duplicate_rows_);
+        stats = samples_->insert_batch(std::span(pending_).subspan(done, n), &duplicate_rows_,
+                                       config_.station.id);
         if (last) {
           for (const auto& p : pending_snapshots_) {
             storage::CalibrationRecord rec = record_from_result(p.sat_id, p.result);

@@ -1,7 +1,7 @@
 // magcald: the calibration daemon's composition root (design.md "The daemon's command line and
 // config"). Flags override the config file, which overrides the built-in defaults.
 //   magcald [--config FILE.toml] [--db FILE] [--lcm-url URL] [--log-level LEVEL]
-//           [--http-listen ADDR:PORT]
+//           [--http-listen ADDR:PORT] [--station ID]
 // Exit codes: 0 ok (stopped by SIGINT/SIGTERM or end of a replayed log), 1 usage or bad
 // config, 2 database / LCM / data error at start, 3 storage failed for [storage] max_failure_s
 // while running, 4 a worker or refit thread died (service/daemon/daemon.hpp).
@@ -51,7 +51,7 @@ int main(int argc, char** argv) {
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);
   CLI::App app{"magcald: magnetometer calibration daemon (LCM in, SQLite or PostgreSQL + LCM out)"};
-  std::string config_path, db_path, lcm_url, log_level, http_listen;
+  std::string config_path, db_path, lcm_url, log_level, http_listen, station;
   app.add_option("--config", config_path, "TOML config (deploy/magcald.example.toml lists keys)");
   app.add_option("--db", db_path,
                  "SQLite database file or postgresql:// URI (overrides [storage] db_path)");
@@ -62,6 +62,9 @@ int main(int argc, char** argv) {
       "--http-listen", http_listen,
       "operations server ADDR:PORT (overrides [http] listen; default 127.0.0.1:9780, port 0 = any "
       "free port, \"\" = off): /metrics, /-/healthy, /-/ready, /api/v1/, /");
+  app.add_option("--station", station,
+                 "this daemon's ground station id (overrides [station] id; default: the host "
+                 "name): recorded with the samples it stores first");
   app.set_version_flag("--version", MAGCAL_VERSION);
   try {
     app.parse(argc, argv);
@@ -80,14 +83,16 @@ int main(int argc, char** argv) {
   if (!db_path.empty()) config.storage.db_path = db_path;
   if (!lcm_url.empty()) config.lcm.url = lcm_url;
   if (!log_level.empty()) config.log.level = log_level;
-  if (app.get_option("--http-listen")->count() > 0)
-    config.http.listen = http_listen;  // "" is a value: off
+  // "" is a value for these: --http-listen "" is off, --station "" is refused by validate().
+  if (app.get_option("--http-listen")->count() > 0) config.http.listen = http_listen;
+  if (app.get_option("--station")->count() > 0) config.station.id = station;
   // The flags given, with the config key each overrides: an error about that key blames the
   // flag (the file's value was checked when it was loaded).
   std::vector<std::pair<std::string, std::string>> flags_given;
   for (const auto& [flag, key] :
        {std::pair{"--db", "[storage] db_path"}, std::pair{"--lcm-url", "[lcm] url"},
-        std::pair{"--log-level", "[log] level"}, std::pair{"--http-listen", "[http] listen"}}) {
+        std::pair{"--log-level", "[log] level"}, std::pair{"--http-listen", "[http] listen"},
+        std::pair{"--station", "[station] id"}}) {
     if (app.get_option(flag)->count() > 0) flags_given.emplace_back(flag, key);
   }
   if (const auto error = config.validate(); !error.empty()) {

@@ -78,6 +78,20 @@ void append_estimate(std::string* text, const char* label, const storage::Calibr
   }
 }
 
+// "gs-a 2000, gs-b 2320" (samples stored without a station: "no station N"); empty when no
+// sample names a station (a single daemon's database from before stations).
+std::string by_station_line(const std::vector<storage::StationCount>& counts) {
+  std::string line;
+  bool named = false;
+  for (const auto& c : counts) {
+    named = named || !c.station.empty();
+    if (!line.empty()) line += ", ";
+    line += (c.station.empty() ? std::string("no station") : c.station) + " " +
+            std::to_string(c.samples);
+  }
+  return named ? line : "";
+}
+
 }  // namespace
 
 std::vector<SpacecraftStatus> read_status(storage::Connection& db, int64_t window_utime) {
@@ -96,9 +110,10 @@ std::vector<SpacecraftStatus> read_status(storage::Connection& db, int64_t windo
     if (s.last_sample_utime) {
       // The refit window (newest - W, newest].
       // Saturating: a database written before the time bounds may hold any utime.
-      s.samples_in_window =
-          samples->count_in_window(id, saturating_sub(*s.last_sample_utime, window_utime) + 1,
-                                   saturating_add(*s.last_sample_utime, 1));
+      const int64_t t0 = saturating_sub(*s.last_sample_utime, window_utime) + 1;
+      const int64_t t1 = saturating_add(*s.last_sample_utime, 1);
+      s.samples_in_window = samples->count_in_window(id, t0, t1);
+      s.samples_by_station = samples->count_by_station(id, t0, t1);
     }
     s.last_ukf = history->latest(id, "ukf");
     s.last_refit = history->latest_refit(id);
@@ -119,6 +134,13 @@ nlohmann::json status_json(const std::vector<SpacecraftStatus>& all, int64_t win
     j["last_sample_utime"] =
         s.last_sample_utime ? nlohmann::json(*s.last_sample_utime) : nlohmann::json(nullptr);
     j["samples_in_window"] = s.samples_in_window;
+    nlohmann::json by_station = nlohmann::json::array();
+    for (const auto& c : s.samples_by_station) {
+      by_station.push_back(
+          {{"station", c.station.empty() ? nlohmann::json(nullptr) : nlohmann::json(c.station)},
+           {"samples", c.samples}});
+    }
+    j["samples_by_station"] = std::move(by_station);
     j["window_hours"] = static_cast<double>(window_utime) / 3.6e9;
     j["last_ukf"] = s.last_ukf ? history_record_json(*s.last_ukf) : nlohmann::json(nullptr);
     j["last_refit"] = s.last_refit ? history_record_json(*s.last_refit) : nlohmann::json(nullptr);
@@ -148,6 +170,9 @@ std::string status_text(const std::vector<SpacecraftStatus>& all, int64_t window
                     static_cast<double>(window_utime) / 3.6e9);
     } else {
       append_printf(&text, "  %-16s none stored\n", "last sample");
+    }
+    if (const std::string line = by_station_line(s.samples_by_station); !line.empty()) {
+      append_printf(&text, "  %-16s %s\n", "by station", line.c_str());
     }
     if (s.last_ukf) {
       append_estimate(&text, "last ukf", *s.last_ukf);

@@ -15,6 +15,7 @@
 #include "storage/calibration_history.hpp"
 #include "storage/connection.hpp"
 #include "storage/refit_job_log.hpp"
+#include "storage/sample_window_store.hpp"
 
 namespace magcal {
 
@@ -22,6 +23,9 @@ struct SpacecraftStatus {
   std::string sat_id;
   std::optional<int64_t> last_sample_utime;
   int64_t samples_in_window = 0;  // in (last sample - window, last sample]
+  // The same samples by the station that stored them (design.md "Fleet"), sorted by station;
+  // "" for samples stored without one.
+  std::vector<storage::StationCount> samples_by_station;
   std::optional<storage::CalibrationRecord> last_ukf, last_refit, previous_refit;
   std::optional<storage::RefitJob> last_job;
 };
@@ -32,8 +36,9 @@ struct SpacecraftStatus {
 std::vector<SpacecraftStatus> read_status(storage::Connection& db, int64_t window_utime);
 
 // `magcal status --json`: {"spacecraft": [{sat_id, last_sample_time, last_sample_utime,
-// samples_in_window, window_hours, last_ukf, last_refit (history objects or null),
-// last_refit_job, bias_change_since_previous_refit_nT}]}.
+// samples_in_window, samples_by_station ([{station (null: none), samples}]), window_hours,
+// last_ukf, last_refit (history objects or null), last_refit_job,
+// bias_change_since_previous_refit_nT}]}.
 nlohmann::json status_json(const std::vector<SpacecraftStatus>& all, int64_t window_utime);
 // The exact stdout of `magcal status --json` (dumped with indent 2 and a final newline).
 std::string status_json_text(const std::vector<SpacecraftStatus>& all, int64_t window_utime);

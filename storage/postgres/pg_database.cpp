@@ -418,4 +418,8 @@ std::unique_ptr<CalibrationHistory> PgDatabase::make_calibration_history() {
   return std::make_unique<PgCalibrationHistory>(*this);
 }
 
+std::unique_ptr<LeaseStore> PgDatabase::make_lease_store() {
+  return std::make_unique<PgLeaseStore>(*this);
+}
+
 }  // namespace magcal::storage

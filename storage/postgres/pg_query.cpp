@@ -237,6 +237,35 @@ std::vector<std::byte> PgResult::get_bytes(int row, int column) const {
   return out;
 }
 
+void PgResult::check_binary_column(int column, BinaryColumn type) const {
+  if (result_ == nullptr || column < 0 || column >= columns()) {
+    throw StorageError(StorageError::Kind::kInvalidArgument,
+                       "result has no column " + std::to_string(column));
+  }
+  const bool bigint = type == BinaryColumn::kBigint;
+  if (!binary(column) || PQfsize(result_, column) != 8 ||
+      this->type(column) != (bigint ? kInt8Oid : kFloat8Oid)) {
+    wrong_type(column, bigint ? "a binary bigint" : "a binary double");
+  }
+}
+
+int64_t PgResult::bigint_at(int row, int column) const {
+  // The one check left per value: 8 bytes (a NULL has none), so nothing is read out of bounds.
+  if (PQgetlength(result_, row, column) != 8) {
+    raw(row, column);  // throws for a NULL, or a row out of range
+    wrong_type(column, "8 bytes");
+  }
+  return static_cast<int64_t>(
+      big_endian<uint64_t>(std::string_view(PQgetvalue(result_, row, column), 8)));
+}
+
+double PgResult::double_at(int row, int column) const {
+  const int64_t bits = bigint_at(row, column);
+  double out = 0;
+  std::memcpy(&out, &bits, sizeof out);
+  return out;
+}
+
 std::optional<int64_t> PgResult::get_optional_int64(int row, int column) const {
   if (is_null(row, column)) return std::nullopt;
   return get_int64(row, column);

@@ -80,6 +80,14 @@ class PgResult {
   std::optional<int64_t> get_optional_int64(int row, int column) const;
   std::optional<double> get_optional_double(int row, int column) const;
 
+  // Hot loops (a window of thousands of rows): check_binary_column() checks a column's type and
+  // format once (throws as the getters do); then its values are read without per-value type
+  // checks. A NULL or a row out of range throws.
+  enum class BinaryColumn { kBigint, kDouble };
+  void check_binary_column(int column, BinaryColumn type) const;
+  int64_t bigint_at(int row, int column) const;
+  double double_at(int row, int column) const;
+
  private:
   // The value's bytes; throws on NULL or out of range.
   std::string_view raw(int row, int column) const;

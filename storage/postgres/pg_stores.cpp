@@ -44,20 +44,22 @@ void add_sample(PgParams& p, const StoredSample& s) {
   add_value(p, s.temperature_C);
 }
 
-// INSERT of `rows` samples (parameters $1 .. $20*rows), returning the keys it stored.
+// INSERT of `rows` samples (parameters $1 .. $20*rows, then the station, the same for every
+// row), returning the keys it stored. Only a repeated key is ignored (and counted); a NOT NULL
+// violation is an error.
 std::string insert_sql(size_t rows) {
+  const std::string station = "$" + std::to_string(rows * kParamsPerSample + 1) + "::text";
   std::string sql = std::string("INSERT INTO samples (") + columns::kSampleInsert + ") VALUES ";
   int param = 1;
   for (size_t row = 0; row < rows; ++row) {
     sql += row == 0 ? "(" : ", (";
     for (int c = 0; c < kParamsPerSample; ++c, ++param) {
-      if (c > 0) sql += ", ";
       sql += '$';
       sql += std::to_string(param);
+      sql += ", ";
     }
-    sql += ")";
+    sql += station + ")";
   }
-  // Only a repeated key is ignored (and counted); a NOT NULL violation is an error.
   sql += " ON CONFLICT (sat_id, utime) DO NOTHING RETURNING sat_id, utime";
   return sql;
 }
@@ -74,7 +76,8 @@ PgSampleWindowStore::PgSampleWindowStore(PgDatabase& db) : SampleWindowStore(db)
 }
 
 InsertStats PgSampleWindowStore::insert_batch(std::span<const StoredSample> samples,
-                                              std::vector<size_t>* duplicate_rows) {
+                                              std::vector<size_t>* duplicate_rows,
+                                              std::string_view station) {
   InsertStats stats;
   if (duplicate_rows) duplicate_rows->clear();
   if (samples.empty()) return stats;
@@ -96,6 +99,11 @@ InsertStats PgSampleWindowStore::insert_batch(std::span<const StoredSample> samp
     const size_t n = size_t{1} << k;
     params_.clear();
     for (size_t row = begin; row < begin + n; ++row) add_sample(params_, samples[order_[row]]);
+    if (station.empty()) {
+      params_.add_null();
+    } else {
+      params_.add(station);
+    }
     const PgResult r = pg_.execute_prepared(insert_sql_[k], params_, PgFormat::kBinary);
     for (int row = 0; row < r.rows(); ++row) {
       stored_keys_.emplace_back(r.get_text(row, 0), r.get_int64(row, 1));
@@ -132,26 +140,33 @@ void PgSampleWindowStore::read_window(std::string_view sat_id, int64_t t0_utime,
           " FROM samples WHERE sat_id = $1 AND utime >= $2 AND utime < $3 ORDER BY utime",
       p, PgFormat::kBinary);
   constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+  // The hot loop (a 12 h window is 4320 rows): column types checked once, NOT NULL columns read
+  // without a NULL test, nullable groups tested once per group.
+  using Column = PgResult::BinaryColumn;
+  for (int c = 0; c < 19; ++c) {
+    const bool bigint = c < 3 || c == 6;  // utime, seq, receive_utime, has_direction
+    r.check_binary_column(c, bigint ? Column::kBigint : Column::kDouble);
+  }
   out.reserve(static_cast<size_t>(r.rows()));
   for (int row = 0; row < r.rows(); ++row) {
     StoredSample& s = out.emplace_back();
     s.sat_id = sat_id;
-    s.utime = r.get_int64(row, 0);
-    s.seq = r.get_int64(row, 1);
-    s.receive_utime = r.get_int64(row, 2);
-    for (int i = 0; i < 3; ++i) s.b_sensor_nT[i] = r.get_double(row, 3 + i);
-    s.has_direction = r.get_int64(row, 6) != 0;
-    for (int i = 0; i < 3; ++i) s.h_body_nT[i] = s.has_direction ? r.get_double(row, 7 + i) : kNaN;
-    s.h_norm_nT = r.get_double(row, 10);
+    s.utime = r.bigint_at(row, 0);
+    s.seq = r.bigint_at(row, 1);
+    s.receive_utime = r.bigint_at(row, 2);
+    for (int i = 0; i < 3; ++i) s.b_sensor_nT[i] = r.double_at(row, 3 + i);
+    s.has_direction = r.bigint_at(row, 6) != 0;
+    for (int i = 0; i < 3; ++i) s.h_body_nT[i] = s.has_direction ? r.double_at(row, 7 + i) : kNaN;
+    s.h_norm_nT = r.double_at(row, 10);
     s.has_attitude = !r.is_null(row, 11);
     if (s.has_attitude) {
-      for (int i = 0; i < 4; ++i) s.q_body_from_eci[i] = r.get_double(row, 11 + i);
+      for (int i = 0; i < 4; ++i) s.q_body_from_eci[i] = r.double_at(row, 11 + i);
     }
     s.has_position = !r.is_null(row, 15);
     if (s.has_position) {
-      for (int i = 0; i < 3; ++i) s.r_ecef_m[i] = r.get_double(row, 15 + i);
+      for (int i = 0; i < 3; ++i) s.r_ecef_m[i] = r.double_at(row, 15 + i);
     }
-    s.temperature_C = r.get_optional_double(row, 18).value_or(kNaN);
+    s.temperature_C = r.is_null(row, 18) ? kNaN : r.double_at(row, 18);
   }
 }
 
@@ -164,6 +179,21 @@ int64_t PgSampleWindowStore::count_in_window(std::string_view sat_id, int64_t t0
           "SELECT count(*) FROM samples WHERE sat_id = $1 AND utime >= $2 AND utime < $3", p,
           PgFormat::kBinary)
       .get_int64(0, 0);
+}
+
+std::vector<StationCount> PgSampleWindowStore::count_by_station(std::string_view sat_id,
+                                                                int64_t t0_utime,
+                                                                int64_t t1_utime) {
+  PgParams p;
+  p.add(sat_id).add(t0_utime).add(t1_utime);
+  const PgResult r = pg_.execute_prepared(
+      // Sorted in byte order, as SQLite's.
+      "SELECT coalesce(station, '') COLLATE \"C\" AS s, count(*) FROM samples WHERE sat_id = $1 "
+      "AND utime >= $2 AND utime < $3 GROUP BY s ORDER BY s",
+      p, PgFormat::kBinary);
+  std::vector<StationCount> out;
+  for (int row = 0; row < r.rows(); ++row) out.push_back({r.get_text(row, 0), r.get_int64(row, 1)});
+  return out;
 }
 
 std::optional<int64_t> PgSampleWindowStore::single_utime(const char* sql, std::string_view sat_id) {
@@ -239,6 +269,7 @@ RefitJob job_from_row(const PgResult& r, int row) {
   j.outcome = r.get_text(row, 6);
   j.error = r.get_text(row, 7);
   j.calibration_id = r.get_optional_int64(row, 8);
+  if (!r.is_null(row, 9)) j.claimed_by = r.get_text(row, 9);
   return j;
 }
 
@@ -265,27 +296,62 @@ int64_t PgRefitJobLog::start(std::string_view sat_id, std::string_view trigger,
       .get_int64(0, 0);
 }
 
+std::optional<int64_t> PgRefitJobLog::claim(std::string_view sat_id, std::string_view trigger,
+                                            int64_t scheduled_utime, int64_t started_utime,
+                                            std::string_view station) {
+  check_claimant(station);
+  PgParams p;
+  p.add(sat_id).add(trigger).add(scheduled_utime).add(started_utime).add(station);
+  const PgResult r = db_.execute_prepared(
+      std::string("INSERT INTO refit_jobs (sat_id, trigger_kind, scheduled_utime, started_utime, "
+                  "outcome, claimed_by) VALUES ($1, $2, $3, $4, 'running', $5) ON CONFLICT "
+                  "(sat_id, trigger_kind, scheduled_utime) WHERE ") +
+          columns::kHoldsRefitClaim + " DO NOTHING RETURNING id",
+      p, PgFormat::kBinary);
+  if (r.rows() == 0) return std::nullopt;  // DO NOTHING: another job holds the claim
+  return r.get_int64(0, 0);
+}
+
+std::optional<RefitJob> PgRefitJobLog::claim_holder(std::string_view sat_id,
+                                                    std::string_view trigger,
+                                                    int64_t scheduled_utime) {
+  PgParams p;
+  p.add(sat_id).add(trigger).add(scheduled_utime);
+  const PgResult r = db_.execute_prepared(
+      kJobSelect + "WHERE sat_id = $1 AND trigger_kind = $2 AND scheduled_utime = $3 AND " +
+          columns::kHoldsRefitClaim,
+      p, PgFormat::kBinary);
+  if (r.rows() == 0) return std::nullopt;
+  return job_from_row(r, 0);
+}
+
 void PgRefitJobLog::finish(int64_t job_id, std::string_view outcome, int64_t finished_utime,
                            std::string_view error, std::optional<int64_t> calibration_id) {
   PgParams p;
   p.add(job_id).add(outcome).add(finished_utime).add(error).add(calibration_id);
   const PgResult r = db_.execute_prepared(
       "UPDATE refit_jobs SET outcome = $2, finished_utime = $3, error = $4, calibration_id = $5 "
-      "WHERE id = $1",
+      "WHERE id = $1 AND outcome = 'running'",
       p);
-  if (r.affected_rows() != 1) {
-    throw StorageError(StorageError::Kind::kInvalidArgument,
-                       "no refit job with id " + std::to_string(job_id));
-  }
+  if (r.affected_rows() != 1) throw_not_running(job_id, get(job_id));
 }
 
 int PgRefitJobLog::mark_running_interrupted(int64_t now_utime) {
   PgParams p;
-  p.add(now_utime);
+  p.add(now_utime).add(job_outcome::kProcessEnded);
   return static_cast<int>(
       db_.execute_prepared("UPDATE refit_jobs SET outcome = 'interrupted', finished_utime = $1, "
-                           "error = 'process ended while the refit was running' "
-                           "WHERE outcome = 'running'",
+                           "error = $2 WHERE outcome = 'running'",
+                           p)
+          .affected_rows());
+}
+
+int PgRefitJobLog::mark_running_interrupted(std::string_view sat_id, int64_t now_utime) {
+  PgParams p;
+  p.add(sat_id).add(now_utime).add(job_outcome::kTakenOver);
+  return static_cast<int>(
+      db_.execute_prepared("UPDATE refit_jobs SET outcome = 'interrupted', finished_utime = $2, "
+                           "error = $3 WHERE sat_id = $1 AND outcome = 'running'",
                            p)
           .affected_rows());
 }
@@ -387,6 +453,85 @@ std::vector<FilterState> PgFilterStateStore::load_all() {
       db_.execute_prepared(kFilterSelect + "ORDER BY sat_id, method", {}, PgFormat::kBinary);
   std::vector<FilterState> out;
   for (int row = 0; row < r.rows(); ++row) out.push_back(filter_state_from_row(r, row));
+  return out;
+}
+
+namespace {
+
+Lease lease_from_row(const PgResult& r, int row) {
+  return {r.get_text(row, 0), r.get_text(row, 1), r.get_int64(row, 2), r.get_int64(row, 3),
+          r.get_int64(row, 4)};
+}
+
+// SQL written for SQLite's ?N parameters in PostgreSQL's $N (no other '?' in it).
+std::string dollar_params(std::string sql) {
+  std::replace(sql.begin(), sql.end(), '?', '$');
+  return sql;
+}
+
+}  // namespace
+
+std::optional<Lease> PgLeaseStore::try_acquire(std::string_view sat_id, std::string_view owner,
+                                               int64_t now_utime, int64_t ttl_utime) {
+  check_request(owner, ttl_utime);
+  static const std::string sql = dollar_params(columns::kLeaseAcquire);
+  PgParams p;
+  p.add(sat_id).add(owner).add(now_utime).add(ttl_utime);
+  const PgResult r = db_.execute_prepared(sql, p, PgFormat::kBinary);
+  if (r.rows() == 0) return std::nullopt;  // another owner holds it
+  return lease_from_row(r, 0);
+}
+
+bool PgLeaseStore::renew(std::string_view sat_id, std::string_view owner, int64_t epoch,
+                         int64_t now_utime, int64_t ttl_utime) {
+  check_request(owner, ttl_utime);
+  PgParams p;
+  p.add(sat_id).add(owner).add(epoch).add(now_utime).add(ttl_utime);
+  return db_.execute_prepared(
+                "UPDATE leases SET expires_utime = $4 + $5 WHERE sat_id = $1 AND "
+                "owner = $2 AND epoch = $3",
+                p)
+             .affected_rows() == 1;
+}
+
+bool PgLeaseStore::release(std::string_view sat_id, std::string_view owner, int64_t epoch,
+                           int64_t now_utime) {
+  PgParams p;
+  p.add(sat_id).add(owner).add(epoch).add(now_utime);
+  return db_.execute_prepared(
+                "UPDATE leases SET expires_utime = least(expires_utime, $4) WHERE "
+                "sat_id = $1 AND owner = $2 AND epoch = $3",
+                p)
+             .affected_rows() == 1;
+}
+
+bool PgLeaseStore::holds(std::string_view sat_id, std::string_view owner, int64_t epoch) {
+  PgParams p;
+  p.add(sat_id).add(owner).add(epoch);
+  // FOR SHARE: a takeover's upsert waits until the caller's transaction ends.
+  return db_.execute_prepared(
+                "SELECT 1 FROM leases WHERE sat_id = $1 AND owner = $2 AND "
+                "epoch = $3 FOR SHARE",
+                p)
+             .rows() == 1;
+}
+
+std::optional<Lease> PgLeaseStore::get(std::string_view sat_id) {
+  PgParams p;
+  p.add(sat_id);
+  const PgResult r = db_.execute_prepared(
+      std::string("SELECT ") + columns::kLease + " FROM leases WHERE sat_id = $1", p,
+      PgFormat::kBinary);
+  if (r.rows() == 0) return std::nullopt;
+  return lease_from_row(r, 0);
+}
+
+std::vector<Lease> PgLeaseStore::list() {
+  const PgResult r = db_.execute_prepared(
+      std::string("SELECT ") + columns::kLease + " FROM leases ORDER BY sat_id COLLATE \"C\"", {},
+      PgFormat::kBinary);
+  std::vector<Lease> out;
+  for (int row = 0; row < r.rows(); ++row) out.push_back(lease_from_row(r, row));
   return out;
 }
 

@@ -86,7 +86,7 @@ void insert_batches(benchmark::State& state, SampleWindowStore& store) {
       ++seq;
     }
     state.ResumeTiming();
-    const InsertStats stats = store.insert_batch(batch);
+    const InsertStats stats = store.insert_batch(batch, nullptr, "station-A");
     benchmark::DoNotOptimize(stats);
   }
   state.SetItemsProcessed(state.iterations() * batch_size);  // items_per_second = samples/s

@@ -1,10 +1,13 @@
 // refit_jobs table, on SQLite and on PostgreSQL (tests/storage/storage_backends.hpp): lifecycle,
-// crash recovery, foreign key to calibrations.
+// crash recovery, foreign key to calibrations, the fleet's claims (alone and raced).
 #include "storage/refit_job_log.hpp"
 
+#include <algorithm>
 #include <catch2/catch.hpp>
+#include <numeric>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include "storage/calibration_history.hpp"
 #include "tests/storage/storage_backends.hpp"
@@ -111,4 +114,83 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest, "jobs running when the process died becom
   CHECK(jobs->get(b)->finished_utime == 99);
   CHECK(jobs->get(done)->outcome == job_outcome::kOk);
   CHECK(jobs->mark_running_interrupted(100) == 0);
+}
+
+TEMPLATE_TEST_CASE_METHOD(BackendTest,
+                          "a claimed refit runs once: a second claim is refused until the first "
+                          "is interrupted",
+                          "[jobs]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto jobs = this->db->make_refit_job_log();
+  const auto first = jobs->claim("SAT1", "scheduled", 1000, 1001, "station-A");
+  REQUIRE(first.has_value());
+  CHECK(jobs->get(*first)->claimed_by == "station-A");
+  CHECK(jobs->get(*first)->outcome == job_outcome::kRunning);
+  // Already claimed, running: refused, whoever asks; the holder says who has it.
+  CHECK_FALSE(jobs->claim("SAT1", "scheduled", 1000, 1002, "station-B").has_value());
+  CHECK_FALSE(jobs->claim("SAT1", "scheduled", 1000, 1002, "station-A").has_value());
+  CHECK(jobs->claim_holder("SAT1", "scheduled", 1000)->id == *first);
+  // Another key (spacecraft, trigger or time) is another claim; unclaimed jobs never collide.
+  CHECK(jobs->claim("SAT2", "scheduled", 1000, 1002, "station-B").has_value());
+  CHECK(jobs->claim("SAT1", "early", 1000, 1002, "station-B").has_value());
+  CHECK(jobs->claim("SAT1", "scheduled", 2000, 1002, "station-B").has_value());
+  jobs->start("SAT1", "scheduled", 1000, 1003);
+  CHECK(jobs->get(jobs->start("SAT1", "manual", 1000, 1003))->claimed_by.empty());
+  // Ended, with any outcome: still claimed (each refit runs once).
+  jobs->finish(*first, job_outcome::kSkipped, 1010, "too few samples");
+  CHECK_FALSE(jobs->claim("SAT1", "scheduled", 1000, 1020, "station-B").has_value());
+  CHECK(jobs->claim_holder("SAT1", "scheduled", 1000)->outcome == job_outcome::kSkipped);
+  CHECK_THROWS_AS(jobs->claim("SAT1", "scheduled", 3000, 1020, ""), StorageError);
+
+  // The owner died while its refit ran: the next owner interrupts the spacecraft's running
+  // jobs, which gives their claims up, and claims the refit again; the old job cannot finish.
+  const auto lost = jobs->claim("SAT3", "scheduled", 1000, 1001, "station-A");
+  REQUIRE(lost.has_value());
+  const auto other = jobs->claim("SAT4", "scheduled", 1000, 1001, "station-A");
+  CHECK(jobs->mark_running_interrupted("SAT3", 1100) == 1);
+  CHECK(jobs->get(*lost)->outcome == job_outcome::kInterrupted);
+  CHECK(jobs->get(*lost)->error == job_outcome::kTakenOver);
+  CHECK(jobs->get(*other)->outcome == job_outcome::kRunning);  // another spacecraft
+  const auto again = jobs->claim("SAT3", "scheduled", 1000, 1101, "station-B");
+  REQUIRE(again.has_value());
+  CHECK(*again != *lost);
+  CHECK(jobs->claim_holder("SAT3", "scheduled", 1000)->claimed_by == "station-B");
+  CHECK_THROWS_AS(jobs->finish(*lost, job_outcome::kOk, 1200), StorageError);
+  CHECK(jobs->get(*lost)->outcome == job_outcome::kInterrupted);
+  jobs->finish(*again, job_outcome::kOk, 1200);
+  CHECK(jobs->get(*again)->outcome == job_outcome::kOk);
+}
+
+TEMPLATE_TEST_CASE("daemons claiming the same refits at once: exactly one wins each", "[jobs]",
+                   SqliteBackend, PostgresBackend) {
+  TestType backend;
+  const auto setup = backend.open();
+  if (!setup) return;
+  constexpr int kDaemons = 4;
+  constexpr int kRefits = 30;
+  std::vector<std::unique_ptr<Connection>> connections;
+  std::vector<std::unique_ptr<RefitJobLog>> logs;
+  std::vector<std::string> stations;
+  for (int d = 0; d < kDaemons; ++d) {
+    connections.push_back(backend.open_again());
+    logs.push_back(connections.back()->make_refit_job_log());
+    stations.push_back("station-" + std::to_string(d));
+  }
+  std::vector<std::vector<int64_t>> won(kDaemons);
+  const auto errors = magcal::test::run_at_once(kDaemons, [&](int d) {
+    const auto k = static_cast<size_t>(d);
+    for (int r = 0; r < kRefits; ++r) {
+      if (logs[k]->claim("SAT1", "scheduled", r, 0, stations[k])) won[k].push_back(r);
+    }
+  });
+  std::vector<int64_t> all;
+  for (int d = 0; d < kDaemons; ++d) {
+    CHECK(errors[static_cast<size_t>(d)] == "");
+    all.insert(all.end(), won[static_cast<size_t>(d)].begin(), won[static_cast<size_t>(d)].end());
+  }
+  std::sort(all.begin(), all.end());
+  std::vector<int64_t> each(kRefits);
+  std::iota(each.begin(), each.end(), 0);
+  CHECK(all == each);  // every refit claimed, none twice
+  CHECK(setup->make_refit_job_log()->recent("SAT1", 2 * kRefits).size() == kRefits);
 }

@@ -13,7 +13,6 @@
 #include <filesystem>
 #include <optional>
 #include <random>
-#include <thread>
 
 #include "storage/calibration_history.hpp"
 #include "storage/sqlite_stores.hpp"
@@ -140,6 +139,43 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest,
   REQUIRE(back.size() == 1);
   CHECK(back[0].b_sensor_nT == first[3].b_sensor_nT);
   CHECK(store->spacecraft() == std::vector<std::string>{"SAT1", "SAT2"});
+}
+
+TEMPLATE_TEST_CASE_METHOD(BackendTest,
+                          "a sample is stored by the first station to deliver it, a copy from "
+                          "another station is a duplicate that changes nothing",
+                          "[samples]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto store = this->db->make_sample_window_store();
+  const auto a = make_series("SAT1", 40, kSecond);                     // station A: seq 0..39
+  std::vector<StoredSample> b = make_series("SAT1", 40, kSecond, 30);  // station B: seq 30..69
+  for (auto& s : b) s.b_sensor_nT[0] += 100.0;  // B's copies differ: must not overwrite A's
+  REQUIRE(store->insert_batch(a, nullptr, "station-A").inserted == 40);
+  std::vector<size_t> duplicate_rows;
+  const InsertStats from_b = store->insert_batch(b, &duplicate_rows, "station-B");
+  CHECK(from_b.inserted == 30);
+  CHECK(from_b.duplicates == 10);
+  CHECK(duplicate_rows == std::vector<size_t>{0, 1, 2, 3, 4, 5, 6, 7, 8, 9});
+  store->insert_batch(make_series("SAT1", 5, kSecond, 70));  // no station named
+  store->insert_batch(make_series("SAT2", 7, kSecond), nullptr, "station-B");
+
+  const auto back = store->window("SAT1", a[30].utime, a[40 - 1].utime + 1);
+  REQUIRE(back.size() == 10);
+  for (size_t k = 0; k < back.size(); ++k) check_equal(back[k], a[30 + k]);  // A's copies
+  using Counts = std::vector<StationCount>;
+  auto counts = [&](std::string_view sat, int64_t t0, int64_t t1) {
+    Counts out = store->count_by_station(sat, t0, t1);
+    std::vector<std::pair<std::string, int64_t>> pairs;
+    for (const auto& c : out) pairs.emplace_back(c.station, c.samples);
+    return pairs;
+  };
+  using Pairs = std::vector<std::pair<std::string, int64_t>>;
+  CHECK(counts("SAT1", kT0, kT0 + 1000 * kSecond) ==
+        Pairs{{"", 5}, {"station-A", 40}, {"station-B", 30}});
+  // Only the window [t0, t1): A's last 5 and B's first 5.
+  CHECK(counts("SAT1", a[35].utime, b[15].utime) == Pairs{{"station-A", 5}, {"station-B", 5}});
+  CHECK(counts("SAT2", kT0, kT0 + 1000 * kSecond) == Pairs{{"station-B", 7}});
+  CHECK(counts("NOPE", kT0, kT0 + 1000 * kSecond).empty());
 }
 
 TEMPLATE_TEST_CASE_METHOD(BackendTest,
@@ -300,28 +336,20 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest,
   const auto all = make_series("SAT1", 3000, kSecond);
   constexpr int kWriters = 3;
   std::vector<InsertStats> stats(kWriters);
-  std::vector<std::string> errors(kWriters);
   std::vector<std::unique_ptr<Connection>> connections;
   for (int w = 0; w < kWriters; ++w) connections.push_back(this->backend.open_again());
-  std::vector<std::thread> writers;
-  for (int w = 0; w < kWriters; ++w) {
-    writers.emplace_back([&, w] {
-      try {
-        const auto store = connections[static_cast<size_t>(w)]->make_sample_window_store();
-        std::vector<StoredSample> mine = all;
-        std::mt19937 rng(static_cast<unsigned>(100 + w));
-        std::shuffle(mine.begin(), mine.end(), rng);
-        for (size_t k = 0; k < mine.size(); k += 200) {
-          const InsertStats s = store->insert_batch(std::span(mine).subspan(k, 200));
-          stats[static_cast<size_t>(w)].inserted += s.inserted;
-          stats[static_cast<size_t>(w)].duplicates += s.duplicates;
-        }
-      } catch (const StorageError& e) {
-        errors[static_cast<size_t>(w)] = e.what();
-      }
-    });
-  }
-  for (auto& t : writers) t.join();
+  const auto errors = magcal::test::run_at_once(kWriters, [&](int w) {
+    const auto store = connections[static_cast<size_t>(w)]->make_sample_window_store();
+    const std::string station = "station-" + std::to_string(w);
+    std::vector<StoredSample> mine = all;
+    std::mt19937 rng(static_cast<unsigned>(100 + w));
+    std::shuffle(mine.begin(), mine.end(), rng);
+    for (size_t k = 0; k < mine.size(); k += 200) {
+      const InsertStats s = store->insert_batch(std::span(mine).subspan(k, 200), nullptr, station);
+      stats[static_cast<size_t>(w)].inserted += s.inserted;
+      stats[static_cast<size_t>(w)].duplicates += s.duplicates;
+    }
+  });
   int64_t inserted = 0, duplicates = 0;
   for (int w = 0; w < kWriters; ++w) {
     CHECK(errors[static_cast<size_t>(w)] == "");
@@ -330,7 +358,16 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest,
   }
   CHECK(inserted == 3000);
   CHECK(duplicates == (kWriters - 1) * 3000);
-  CHECK(this->db->make_sample_window_store()->count("SAT1") == 3000);
+  const auto store = this->db->make_sample_window_store();
+  CHECK(store->count("SAT1") == 3000);
+  // Each sample is recorded under the station whose insert stored it.
+  const auto by_station = store->count_by_station("SAT1", kT0, kT0 + 3000 * kSecond);
+  REQUIRE(by_station.size() <= static_cast<size_t>(kWriters));
+  for (const auto& c : by_station) {
+    const int w = c.station.back() - '0';
+    REQUIRE((w >= 0 && w < kWriters));
+    CHECK(c.samples == stats[static_cast<size_t>(w)].inserted);
+  }
 }
 
 // SQLite only: a file's crash safety (PostgreSQL's is the server's own).

@@ -13,9 +13,13 @@
 
 #include <unistd.h>
 
+#include <atomic>
 #include <filesystem>
+#include <functional>
 #include <memory>
 #include <string>
+#include <thread>
+#include <vector>
 
 #include "storage/connection.hpp"
 #include "storage/database.hpp"
@@ -81,6 +85,28 @@ inline int64_t query_int(storage::Connection& db, const std::string& sql) {
     return st.column_int64(0);
   }
   return dynamic_cast<storage::PgDatabase&>(db).execute(sql).get_int64(0, 0);
+}
+
+// Runs body(i) for i = 0 .. n-1 on n threads, released together so that they collide (several
+// daemons at once, each on its own connection). Returns each thread's StorageError message
+// ("" when it threw none).
+inline std::vector<std::string> run_at_once(int n, const std::function<void(int)>& body) {
+  std::vector<std::string> errors(static_cast<size_t>(n));
+  std::atomic<int> ready{0};
+  std::vector<std::thread> threads;
+  for (int i = 0; i < n; ++i) {
+    threads.emplace_back([&, i] {
+      ready.fetch_add(1);
+      while (ready.load() < n) std::this_thread::yield();
+      try {
+        body(i);
+      } catch (const storage::StorageError& e) {
+        errors[static_cast<size_t>(i)] = e.what();
+      }
+    });
+  }
+  for (auto& t : threads) t.join();
+  return errors;
 }
 
 template <typename Backend>

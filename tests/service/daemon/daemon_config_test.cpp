@@ -2,7 +2,10 @@
 // values (design.md "The daemon's command line and config").
 #include <catch2/catch.hpp>
 
+#include <unistd.h>
+
 #include <cmath>
+#include <string>
 
 #include "service/daemon/daemon_config.hpp"
 
@@ -36,6 +39,9 @@ TEST_CASE("defaults are valid and match design.md", "[daemon_config]") {
   CHECK(c.storage.max_pending_samples == 200000);
   CHECK(c.storage.busy_timeout_ms == 5000);
   CHECK(c.http.listen == "127.0.0.1:9780");  // design.md: loopback by default
+  char host[256] = {};
+  REQUIRE(::gethostname(host, sizeof host - 1) == 0);
+  CHECK(c.station.id == host);  // design.md "Fleet": the host name by default
 }
 
 TEST_CASE("the example config lists every key with exactly the defaults", "[daemon_config]") {
@@ -160,6 +166,11 @@ TEST_CASE("unknown keys, bad types and bad values name the key", "[daemon_config
       {"[http]\nlisten = \"127.0.0.1:65536\"\n", "[http] listen"},
       {"[http]\nlisten = \"127.0.0.1:-1\"\n", "[http] listen"},
       {"[http]\nlisten = 9780\n", "[http] listen: expected a string"},
+      {"[station]\nid = \"\"\n", "[station] id: must be 1-64 printable ASCII characters"},
+      {"[station]\nid = \"ground station 2\"\n", "got \"ground station 2\""},
+      {"[station]\nid = \"gs\\u0007\"\n", "got \"gs?\""},
+      {"[station]\nid = \"gs-\\u00e9\"\n", "[station] id"},  // not ASCII
+      {"[station]\nid = 2\n", "[station] id: expected a string"},
       {"lcm = 3\n", "[lcm] must be a table"},
       {"[storage\n", "t.toml:1"},
   };
@@ -169,6 +180,16 @@ TEST_CASE("unknown keys, bad types and bad values name the key", "[daemon_config
     CHECK_FALSE(load.ok());
     CHECK_THAT(load.error, Catch::Contains(c.expect));
   }
+}
+
+TEST_CASE("a station id is read from [station] id, up to 64 characters", "[daemon_config]") {
+  auto load = parse_daemon_config("[station]\nid = \"Svalbard-2\"\n", "t.toml");
+  REQUIRE(load.ok());
+  CHECK(load.config.station.id == "Svalbard-2");
+  load = parse_daemon_config("[station]\nid = \"" + std::string(64, 's') + "\"\n", "t.toml");
+  CHECK(load.ok());
+  load = parse_daemon_config("[station]\nid = \"" + std::string(65, 's') + "\"\n", "t.toml");
+  CHECK_THAT(load.error, Catch::Contains("[station] id") && Catch::Contains("(65 characters)"));
 }
 
 TEST_CASE("a missing config file is an error", "[daemon_config]") {

@@ -69,6 +69,11 @@ TEST_CASE("a bad flag value is blamed on that flag alone") {
   check_one_line(r, dir);
   CHECK_THAT(r.text, Catch::Contains("--http-listen: expected \"ADDR:PORT\""));
   CHECK_THAT(r.text, !Catch::Contains("--log-level"));
+  // A station id that is no label: refused before anything is opened, blamed on --station.
+  r = start(dir, {"--station", "ground station"});
+  CHECK(r.exit_code == 1);
+  check_one_line(r, dir);
+  CHECK_THAT(r.text, Catch::Contains("--station: must be 1-64 printable ASCII characters"));
 }
 
 TEST_CASE("an LCM URL that cannot be opened: one line of ours with LCM's reason, nothing else") {

@@ -425,6 +425,22 @@ TEST_CASE("PostgreSQL values: bigint, double precision, bytea and text exactly, 
       for (int c = 1; c <= 3; ++c) CHECK(r.get_int64(row, c) == integers[k % integers.size()]);
       for (int c = 4; c <= 6; ++c) CHECK(same(r.get_double(row, c), doubles[k % doubles.size()]));
     }
+    // The hot-loop readers: the same values, the column checked once; text refused.
+    using Column = PgResult::BinaryColumn;
+    if (format == PgFormat::kText) {
+      CHECK_THROWS_AS(r.check_binary_column(1, Column::kBigint), StorageError);
+      continue;
+    }
+    r.check_binary_column(1, Column::kBigint);
+    r.check_binary_column(4, Column::kDouble);
+    CHECK_THROWS_AS(r.check_binary_column(4, Column::kBigint), StorageError);
+    CHECK_THROWS_AS(r.check_binary_column(7, Column::kDouble), StorageError);
+    for (int row = 0; row < r.rows(); ++row) {
+      const auto k = static_cast<std::size_t>(r.get_int64(row, 0));
+      CHECK(r.bigint_at(row, 1) == integers[k % integers.size()]);
+      CHECK(same(r.double_at(row, 4), doubles[k % doubles.size()]));
+    }
+    CHECK_THROWS_AS(r.bigint_at(r.rows(), 1), StorageError);
   }
 
   std::vector<std::byte> all_bytes(256);
@@ -451,5 +467,6 @@ TEST_CASE("PostgreSQL values: bigint, double precision, bytea and text exactly, 
     CHECK_FALSE(empty.is_null(0, 0));
     CHECK(empty.is_null(0, 1));
     CHECK_FALSE(empty.get_optional_double(0, 1).has_value());
+    if (format == PgFormat::kBinary) CHECK_THROWS_AS(empty.double_at(0, 1), StorageError);
   }
 }

@@ -1,0 +1,91 @@
+#include "storage/lease_store.hpp"
+
+#include "storage/sqlite_stores.hpp"
+#include "storage/store_columns.hpp"
+
+namespace magcal::storage {
+namespace {
+
+using columns::kLease;
+
+Lease read_lease(const Statement& st) {
+  return {st.column_text(0), st.column_text(1), st.column_int64(2), st.column_int64(3),
+          st.column_int64(4)};
+}
+
+}  // namespace
+
+void LeaseStore::check_request(std::string_view owner, int64_t ttl_utime) {
+  if (owner.empty()) {
+    throw StorageError(StorageError::Kind::kInvalidArgument, "a lease needs an owner");
+  }
+  if (ttl_utime <= 0) {
+    throw StorageError(
+        StorageError::Kind::kInvalidArgument,
+        "a lease's time to live must be positive, not " + std::to_string(ttl_utime) + " us");
+  }
+}
+
+std::optional<std::string> LeaseStore::owner_of(std::string_view sat_id, int64_t now_utime) {
+  auto lease = get(sat_id);
+  if (!lease || !lease->held_at(now_utime)) return std::nullopt;
+  return std::move(lease->owner);
+}
+
+SqliteLeaseStore::SqliteLeaseStore(Database& db)
+    : acquire_(db, columns::kLeaseAcquire),
+      renew_(db,
+             "UPDATE leases SET expires_utime = ?4 + ?5 WHERE sat_id = ?1 AND owner = ?2 AND "
+             "epoch = ?3"),
+      release_(db,
+               "UPDATE leases SET expires_utime = min(expires_utime, ?4) WHERE sat_id = ?1 AND "
+               "owner = ?2 AND epoch = ?3"),
+      holds_(db, "SELECT 1 FROM leases WHERE sat_id = ?1 AND owner = ?2 AND epoch = ?3"),
+      get_(db, std::string("SELECT ") + kLease + " FROM leases WHERE sat_id = ?1"),
+      list_(db, std::string("SELECT ") + kLease + " FROM leases ORDER BY sat_id") {}
+
+std::optional<Lease> SqliteLeaseStore::try_acquire(std::string_view sat_id, std::string_view owner,
+                                                   int64_t now_utime, int64_t ttl_utime) {
+  check_request(owner, ttl_utime);
+  auto use = acquire_.use();
+  acquire_.bind(1, sat_id).bind(2, owner).bind(3, now_utime).bind(4, ttl_utime);
+  if (!acquire_.step()) return std::nullopt;  // another owner holds it
+  return read_lease(acquire_);
+}
+
+bool SqliteLeaseStore::renew(std::string_view sat_id, std::string_view owner, int64_t epoch,
+                             int64_t now_utime, int64_t ttl_utime) {
+  check_request(owner, ttl_utime);
+  auto use = renew_.use();
+  renew_.bind(1, sat_id).bind(2, owner).bind(3, epoch).bind(4, now_utime).bind(5, ttl_utime);
+  return renew_.execute() == 1;
+}
+
+bool SqliteLeaseStore::release(std::string_view sat_id, std::string_view owner, int64_t epoch,
+                               int64_t now_utime) {
+  auto use = release_.use();
+  release_.bind(1, sat_id).bind(2, owner).bind(3, epoch).bind(4, now_utime);
+  return release_.execute() == 1;
+}
+
+bool SqliteLeaseStore::holds(std::string_view sat_id, std::string_view owner, int64_t epoch) {
+  auto use = holds_.use();
+  holds_.bind(1, sat_id).bind(2, owner).bind(3, epoch);
+  return holds_.step();
+}
+
+std::optional<Lease> SqliteLeaseStore::get(std::string_view sat_id) {
+  auto use = get_.use();
+  get_.bind(1, sat_id);
+  if (!get_.step()) return std::nullopt;
+  return read_lease(get_);
+}
+
+std::vector<Lease> SqliteLeaseStore::list() {
+  std::vector<Lease> out;
+  auto use = list_.use();
+  while (list_.step()) out.push_back(read_lease(list_));
+  return out;
+}
+
+}  // namespace magcal::storage

@@ -1,0 +1,70 @@
+// Table `leases`: one owner per spacecraft in a fleet (design.md "Fleet"). The daemon holding a
+// spacecraft's lease runs its online filter and its refits; it renews the lease well within its
+// time to live, and when it dies another daemon takes the lease over once it has expired.
+//
+// Fencing: a lease's epoch counts its changes of owner. A holder remembers the epoch it was
+// granted; renew() and holds() fail once another daemon has taken the lease, even if that one
+// released it again, so a daemon that stalled past its lease finds out before it writes.
+//
+// Times are wall-clock utime given by the caller: daemons sharing a database keep their clocks
+// in step (NTP) to well within a lease's time to live.
+//
+// An interface: SqliteLeaseStore (storage/sqlite_stores.hpp) and PgLeaseStore
+// (storage/postgres/pg_stores.hpp), made by Connection::make_lease_store(). Each call is one
+// statement, atomic on its own: of daemons racing for one lease exactly one gets it.
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "storage/connection.hpp"
+
+namespace magcal::storage {
+
+struct Lease {
+  std::string sat_id;
+  std::string owner;  // the holder's station id (or the last holder's, once expired)
+  int64_t epoch = 0;  // 1 for the first owner, +1 at every change of owner
+  int64_t acquired_utime = 0;
+  int64_t expires_utime = 0;
+  bool held_at(int64_t now_utime) const { return now_utime < expires_utime; }
+};
+
+class LeaseStore {
+ public:
+  virtual ~LeaseStore() = default;
+
+  // Takes the lease of `sat_id` for `owner` until now + ttl when it is free, expired or already
+  // owner's (then a renewal, same epoch); a new owner gets the next epoch. nullopt when another
+  // owner holds it. Throws StorageError (kInvalidArgument) for ttl_utime <= 0 or an empty owner.
+  virtual std::optional<Lease> try_acquire(std::string_view sat_id, std::string_view owner,
+                                           int64_t now_utime, int64_t ttl_utime) = 0;
+  // Extends owner's lease of that epoch to now + ttl. False when the lease has changed owner
+  // since (the caller lost it and must stop acting for the spacecraft).
+  virtual bool renew(std::string_view sat_id, std::string_view owner, int64_t epoch,
+                     int64_t now_utime, int64_t ttl_utime) = 0;
+  // Ends owner's lease of that epoch at now (another daemon may take it at once). False when it
+  // was no longer owner's.
+  virtual bool release(std::string_view sat_id, std::string_view owner, int64_t epoch,
+                       int64_t now_utime) = 0;
+  // True while the lease is still owner's of that epoch. Inside a write transaction it fences
+  // the writes that follow: on PostgreSQL the lease row stays locked (FOR SHARE) until the
+  // commit, so a takeover waits for it; SQLite serialises writers anyway.
+  virtual bool holds(std::string_view sat_id, std::string_view owner, int64_t epoch) = 0;
+
+  // The lease row of `sat_id` (held or expired), nullopt when it never had one.
+  virtual std::optional<Lease> get(std::string_view sat_id) = 0;
+  // The daemon holding `sat_id` at now_utime, nullopt when none does.
+  std::optional<std::string> owner_of(std::string_view sat_id, int64_t now_utime);
+  // Every lease row, sorted by sat_id (for magcal status).
+  virtual std::vector<Lease> list() = 0;
+
+ protected:
+  // Both backends' argument check: a non-empty owner, a positive time to live.
+  static void check_request(std::string_view owner, int64_t ttl_utime);
+};
+
+}  // namespace magcal::storage
