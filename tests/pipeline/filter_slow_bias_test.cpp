@@ -4,6 +4,7 @@
 // bias b(t, T) = b0 + k_T (T - T0) + k_drift t (sensor_model.hpp), not of b0 or the window mean.
 #include <algorithm>
 #include <cmath>
+#include <random>
 #include <string>
 #include <vector>
 
@@ -25,16 +26,18 @@ struct TruthSample {
   Eigen::Vector3d bias_nT;  // b(t, T) at this sample
 };
 
-// moving = false: the same paper sensor with a constant bias (the control).
-std::vector<TruthSample> simulate_slow_bias(uint64_t seed, double hours, bool moving) {
+// The paper sensor with a linear bias drift (nT/h per axis) and, if swing, a +-10 nT
+// orbit-synchronous thermal swing.
+std::vector<TruthSample> simulate_drift(uint64_t seed, double hours,
+                                        const Eigen::Vector3d& drift_nT_per_h, bool swing) {
   Scenario sc = *scenario_preset("paper");
   sc.seed = seed;
   sc.duration_s = hours * 3600.0;
-  if (moving) {
+  if (swing) {
     sc.sensor.temperature_amplitude_C = 10.0;
     sc.sensor.temperature_coefficient_nT_per_C = Eigen::Vector3d(1.0, 1.0, 1.0);  // +-10 nT
-    sc.sensor.drift_nT_per_day = Eigen::Vector3d(36.0, -36.0, 36.0);              // 1.5 nT/h
   }
+  sc.sensor.drift_nT_per_day = 24.0 * drift_nT_per_h;
   Simulator sim(sc);
   SensorModelParameters p = sc.sensor;
   p.temperature_period_s = sim.truth().temperature_period_s;
@@ -48,8 +51,15 @@ std::vector<TruthSample> simulate_slow_bias(uint64_t seed, double hours, bool mo
   return out;
 }
 
+// moving = false: the same paper sensor with a constant bias (the control).
+std::vector<TruthSample> simulate_slow_bias(uint64_t seed, double hours, bool moving) {
+  return simulate_drift(seed, hours,
+                        moving ? Eigen::Vector3d(1.5, -1.5, 1.5) : Eigen::Vector3d::Zero(), moving);
+}
+
 struct Outcome {
   int snapshots = 0, ok = 0, accepted = 0, beyond_3_sigma = 0;
+  Eigen::Vector3i beyond_3_sigma_per_axis = Eigen::Vector3i::Zero();
   Eigen::Vector3d sum_z2 = Eigen::Vector3d::Zero();
   double worst = 0.0;
   double first_ok_h = -1.0;
@@ -88,6 +98,7 @@ void replay(Filter& f, const std::vector<TruthSample>& data, Outcome& o) {
     o.sum_z2 += z.cwiseAbs2();
     const double worst = z.cwiseAbs().maxCoeff();
     o.beyond_3_sigma += worst > 3.0;
+    o.beyond_3_sigma_per_axis += (z.cwiseAbs().array() > 3.0).cast<int>().matrix();
     o.worst = std::max(o.worst, worst);
     if (o.first_ok_h < 0) o.first_ok_h = (c.utime - data.front().sample.utime) * 1e-6 / 3600.0;
   }
@@ -143,4 +154,68 @@ TEST_CASE("Constant bias (control): no bias motion measured, ok snapshots as bef
     CHECK(o.ok > o.snapshots / 4);
     CHECK(o.beyond_3_sigma <= o.ok / 50);
   }
+}
+
+namespace {
+
+std::string per_axis(const Outcome& o) {
+  const Eigen::Vector3i& b = o.beyond_3_sigma_per_axis;
+  return std::to_string(o.snapshots) + " snapshots, " + std::to_string(o.ok) +
+         " ok, beyond 3 sigma per axis " + std::to_string(b(0)) + " " + std::to_string(b(1)) + " " +
+         std::to_string(b(2)) + ", worst " + std::to_string(o.worst) +
+         " sigma, measured random walk up to " + std::to_string(o.max_random_walk) +
+         " nT/sqrt(h), " + std::to_string(o.moving_messages) + " messages name the motion";
+}
+
+// Both filters over 5 seeds x 24 h, kDrawsPerSeed drifts per seed: rate drawn by rate_nT_per_h
+// (per axis), random per-axis signs.
+template <class Draw>
+std::pair<Outcome, Outcome> replay_drifts(std::mt19937_64& rng, Draw rate_nT_per_h) {
+  constexpr int kDrawsPerSeed = 3;
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  Outcome ekf, ukf;
+  for (uint64_t seed : {1, 2, 3, 4, 5}) {
+    for (int draw = 0; draw < kDrawsPerSeed; ++draw) {
+      Eigen::Vector3d r;
+      for (int i = 0; i < 3; ++i) r(i) = (unit(rng) < 0.5 ? -1.0 : 1.0) * rate_nT_per_h(rng);
+      const auto data = simulate_drift(seed, 24.0, r, false);
+      MagnetometerEkf e;
+      MagnetometerUkf u;
+      replay(e, data, ekf);
+      replay(u, data, ukf);
+    }
+  }
+  return {ekf, ukf};
+}
+
+}  // namespace
+
+// Drift alone (no swing), 5 seeds x 3 draws x 24 h, snapshots every 15 min: a rate of
+// 0.3-3 nT/h per axis (log-uniform, random signs), and 0.1 nT/h (near-invisible). Bar: per axis,
+// >= 99 % of the ok snapshots within 3 sigma of the current bias; a bias that moves faster than
+// the data observe it is not_converged.
+//
+// Not met for 0.3-3 nT/h (issue 20 item 3 open; CHECK_NOFAIL reports it): the motion detector
+// often does not fire, so the filter stays static and lags the drift by up to 12 sigma while ok.
+// Measured cause: the first block biases are solved with D held at the just-started filter's
+// estimate, which is still off (paper sensor, constant bias: D12 0.0126 at 3 h against 0.0093
+// later, 11 sigma; those blocks put b_x 25-30 nT high). That gives the constant-bias control a
+// spurious trend of the block biases (x -1.4 to -3 nT/h, z +0.4 nT/h, the same in every seed:
+// geometry, not noise) with chi2 up to 15.4 against the 16.27 threshold, and a real drift of the
+// opposite sign is cancelled by it (0.77 / -0.48 nT/h on x / z measured as -0.45 / -0.01).
+TEST_CASE("Linear bias drift alone: ok snapshots within 3 sigma of the current bias, per axis") {
+  std::mt19937_64 rng(20);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  const auto [ekf, ukf] =
+      replay_drifts(rng, [&](std::mt19937_64& g) { return 0.3 * std::pow(10.0, unit(g)); });
+  const auto [ekf_slow, ukf_slow] = replay_drifts(rng, [](std::mt19937_64&) { return 0.1; });
+  WARN("drift 0.3-3 nT/h: EKF " << per_axis(ekf) << "; UKF " << per_axis(ukf));
+  WARN("drift 0.1 nT/h: EKF " << per_axis(ekf_slow) << "; UKF " << per_axis(ukf_slow));
+  for (const Outcome* o : {&ekf, &ukf})
+    for (int i = 0; i < 3; ++i) CHECK_NOFAIL(o->beyond_3_sigma_per_axis(i) <= o->ok / 100);
+  for (const Outcome* o : {&ekf_slow, &ukf_slow})
+    for (int i = 0; i < 3; ++i) CHECK(o->beyond_3_sigma_per_axis(i) <= o->ok / 100);
+  // 0.1 nT/h moves the bias 2.4 nT in a day: the filters still reach ok.
+  CHECK(ekf_slow.ok > ekf_slow.snapshots / 4);
+  CHECK(ukf_slow.ok > ukf_slow.snapshots / 4);
 }
