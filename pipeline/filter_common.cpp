@@ -30,6 +30,7 @@ constexpr int64_t kUnconditionalAttemptMultiple = 16;
 constexpr int kBlockBiasIterations = 4;
 // Blocks before the bias trend is tested (its standard error has n - 2 degrees of freedom).
 constexpr int kBiasMotionMinBlocks = 6;
+constexpr int kBiasMotionFloorMinBlocks = 4;  // two degrees of freedom for the trend's scatter
 
 bool is_finite(const Eigen::Vector3d& v) {
   return v.allFinite();
@@ -65,6 +66,11 @@ std::string FilterOptions::validate() const {
   if (fisher_every < 1) return "fisher_every must be >= 1";
   if (std::isnan(bias_motion_block_hours)) return "bias_motion_block_hours must not be NaN";
   if (!(bias_motion_chi2 >= 0.0)) return "bias_motion_chi2 must be >= 0";
+  if (!(bias_floor_rate_sigmas >= 0.0) || !std::isfinite(bias_floor_rate_sigmas))
+    return "bias_floor_rate_sigmas must be finite and >= 0";
+  if (!(bias_random_walk_floor_cap_nT_per_sqrt_hour >= 0.0) ||
+      !std::isfinite(bias_random_walk_floor_cap_nT_per_sqrt_hour))
+    return "bias_random_walk_floor_cap_nT_per_sqrt_hour must be finite and >= 0";
   return {};
 }
 
@@ -429,7 +435,9 @@ bool ScalarFilterBase::begin_update(FilterUpdate& u, const Eigen::Vector3d& b_se
       const double dt_s =
           static_cast<double>(saturating_sub(utime, state_.last_utime)) / kMicrosecondsPerSecond;
       Vector9d q = process_noise_diagonal(options_.process_noise_per_sqrt_hour, dt_s);
-      q.head<3>().array() += state_.bias_random_walk_nT2_per_hour * (dt_s / kSecondsPerHour);
+      q.head<3>().array() +=
+          std::max(state_.bias_random_walk_nT2_per_hour, bias_random_walk_floor_nT2_per_hour()) *
+          (dt_s / kSecondsPerHour);
       if ((q.array() > 0.0).any()) {
         // P + Q re-factorised (one 9x9 LLT is cheaper than nine serial rank-1 updates).
         Matrix9d P = state_.S * state_.S.transpose();
@@ -612,6 +620,36 @@ bool ScalarFilterBase::block_bias_given_scale(const ScalarMoments& block,
   return bias_nT.allFinite();
 }
 
+bool ScalarFilterBase::bias_trend(Eigen::Array3d& rate_nT_per_h,
+                                  Eigen::Array3d& se2_nT2_per_h2) const {
+  // Per axis: the least-squares trend of the block biases and its standard error from their own
+  // scatter about it (block noise, stationary model error and aliased fast motion alike).
+  const int n = state_.bias_motion_n;
+  if (n < 3) return false;
+  const double Stt =
+      state_.bias_motion_sum_t2_h2 - state_.bias_motion_sum_t_h * state_.bias_motion_sum_t_h / n;
+  if (!(Stt > 0.0)) return false;
+  const Eigen::Array3d Stm = state_.bias_motion_sum_tm_nT_h.array() -
+                             state_.bias_motion_sum_t_h * state_.bias_motion_sum_nT.array() / n;
+  const Eigen::Array3d Smm =
+      state_.bias_motion_sum_m2_nT2.array() - state_.bias_motion_sum_nT.array().square() / n;
+  rate_nT_per_h = Stm / Stt;
+  se2_nT2_per_h2 = ((Smm - rate_nT_per_h * Stm) / (n - 2)).max(1e-300) / Stt;
+  return true;
+}
+
+double ScalarFilterBase::bias_random_walk_floor_nT2_per_hour() const {
+  if (!(options_.bias_floor_rate_sigmas > 0.0) || state_.bias_motion_n < kBiasMotionFloorMinBlocks)
+    return 0.0;
+  Eigen::Array3d rate, se2;
+  if (!bias_trend(rate, se2)) return 0.0;
+  // The pooled standard error (the same physics moves all three axes), as a random walk (q^2 =
+  // 3 r^2 L, file comment).
+  const double k = options_.bias_floor_rate_sigmas;
+  const double cap = options_.bias_random_walk_floor_cap_nT_per_sqrt_hour;
+  return std::min(cap * cap, 3.0 * k * k / se2.inverse().sum() * options_.bias_motion_block_hours);
+}
+
 void ScalarFilterBase::track_bias_motion() {
   if (!(options_.bias_motion_block_hours > 0.0)) return;
   if (state_.bias_block_start_utime < 0) {
@@ -642,19 +680,9 @@ void ScalarFilterBase::track_bias_motion() {
   state_.bias_motion_sum_nT += m;
   state_.bias_motion_sum_tm_nT_h += t_h * m;
   state_.bias_motion_sum_m2_nT2 += m.cwiseAbs2();
-  const int n = state_.bias_motion_n;
-  if (n < kBiasMotionMinBlocks) return;
-  // Per axis: the least-squares trend of the block biases and its standard error from their own
-  // scatter about it (block noise, stationary model error and aliased fast motion alike).
-  const double Stt =
-      state_.bias_motion_sum_t2_h2 - state_.bias_motion_sum_t_h * state_.bias_motion_sum_t_h / n;
-  if (!(Stt > 0.0)) return;
-  const Eigen::Array3d Stm = state_.bias_motion_sum_tm_nT_h.array() -
-                             state_.bias_motion_sum_t_h * state_.bias_motion_sum_nT.array() / n;
-  const Eigen::Array3d Smm =
-      state_.bias_motion_sum_m2_nT2.array() - state_.bias_motion_sum_nT.array().square() / n;
-  const Eigen::Array3d rate = Stm / Stt;
-  const Eigen::Array3d se2 = ((Smm - rate * Stm) / (n - 2)).max(1e-300) / Stt;
+  if (state_.bias_motion_n < kBiasMotionMinBlocks) return;
+  Eigen::Array3d rate, se2;
+  if (!bias_trend(rate, se2)) return;
   const double chi2 = (rate.square() / se2).sum();
   if (!(chi2 > options_.bias_motion_chi2)) {
     state_.bias_random_walk_nT2_per_hour = 0.0;

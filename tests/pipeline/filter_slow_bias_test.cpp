@@ -158,6 +158,15 @@ TEST_CASE("Constant bias (control): no bias motion measured, ok snapshots as bef
 
 namespace {
 
+void add(Outcome& total, const Outcome& o) {
+  total.snapshots += o.snapshots;
+  total.ok += o.ok;
+  total.beyond_3_sigma_per_axis += o.beyond_3_sigma_per_axis;
+  total.worst = std::max(total.worst, o.worst);
+  total.max_random_walk = std::max(total.max_random_walk, o.max_random_walk);
+  total.moving_messages += o.moving_messages;
+}
+
 std::string per_axis(const Outcome& o) {
   const Eigen::Vector3i& b = o.beyond_3_sigma_per_axis;
   return std::to_string(o.snapshots) + " snapshots, " + std::to_string(o.ok) +
@@ -190,31 +199,44 @@ std::pair<Outcome, Outcome> replay_drifts(std::mt19937_64& rng, Draw rate_nT_per
 
 }  // namespace
 
-// Drift alone (no swing), 5 seeds x 3 draws x 24 h, snapshots every 15 min: a rate of
-// 0.3-3 nT/h per axis (log-uniform, random signs), and 0.1 nT/h (near-invisible). Bar: per axis,
-// >= 99 % of the ok snapshots within 3 sigma of the current bias; a bias that moves faster than
-// the data observe it is not_converged.
+// Drift alone (no swing), 5 seeds x 3 draws x 24 h for each of three random streams, snapshots
+// every 15 min: a rate of 0.3-3 nT/h per axis (log-uniform, random signs), and 0.1 nT/h
+// (near-invisible). Bar: per axis, >= 99 % of the ok snapshots within 3 sigma of the current bias;
+// a bias that moves faster than the data observe it is not_converged.
 //
-// Not met for 0.3-3 nT/h (issue 20 item 3 open; CHECK_NOFAIL reports it): the motion detector
-// often does not fire, so the filter stays static and lags the drift by up to 12 sigma while ok.
-// Measured cause: the first block biases are solved with D held at the just-started filter's
-// estimate, which is still off (paper sensor, constant bias: D12 0.0126 at 3 h against 0.0093
-// later, 11 sigma; those blocks put b_x 25-30 nT high). That gives the constant-bias control a
-// spurious trend of the block biases (x -1.4 to -3 nT/h, z +0.4 nT/h, the same in every seed:
-// geometry, not noise) with chi2 up to 15.4 against the 16.27 threshold, and a real drift of the
-// opposite sign is cancelled by it (0.77 / -0.48 nT/h on x / z measured as -0.45 / -0.01).
+// The trend test alone does not hold this: drifts it cannot see (or sees cancelled by the first
+// blocks' systematic, filter_common.hpp) leave a static filter lagging by up to 12 sigma while ok;
+// the floor of the bias random walk (FilterOptions) keeps x and z within their sigmas.
+// Not met on y (issue 20 item 3 still open there; CHECK_NOFAIL reports it): a drift of ~2-3 nT/h
+// on the orbit normal alone (x, z drifting slowly) is below what the block biases resolve on that
+// axis (their trend's standard error there is ~2 nT/h), and the isotropic floor (0.5 nT/sqrt(h))
+// is far too small for an axis whose sigma is ~9 nT: ok snapshots up to ~3.9 sigma off on y.
 TEST_CASE("Linear bias drift alone: ok snapshots within 3 sigma of the current bias, per axis") {
-  std::mt19937_64 rng(20);
-  std::uniform_real_distribution<double> unit(0.0, 1.0);
-  const auto [ekf, ukf] =
-      replay_drifts(rng, [&](std::mt19937_64& g) { return 0.3 * std::pow(10.0, unit(g)); });
-  const auto [ekf_slow, ukf_slow] = replay_drifts(rng, [](std::mt19937_64&) { return 0.1; });
+  Outcome ekf, ukf, ekf_slow, ukf_slow;
+  for (uint64_t stream : {20, 21, 22}) {
+    std::mt19937_64 rng(stream);
+    std::uniform_real_distribution<double> unit(0.0, 1.0);
+    const auto [e, u] =
+        replay_drifts(rng, [&](std::mt19937_64& g) { return 0.3 * std::pow(10.0, unit(g)); });
+    const auto [e_slow, u_slow] = replay_drifts(rng, [](std::mt19937_64&) { return 0.1; });
+    WARN("stream " << stream << ", drift 0.3-3 nT/h: UKF " << per_axis(u));
+    add(ekf, e);
+    add(ukf, u);
+    add(ekf_slow, e_slow);
+    add(ukf_slow, u_slow);
+  }
   WARN("drift 0.3-3 nT/h: EKF " << per_axis(ekf) << "; UKF " << per_axis(ukf));
   WARN("drift 0.1 nT/h: EKF " << per_axis(ekf_slow) << "; UKF " << per_axis(ukf_slow));
-  for (const Outcome* o : {&ekf, &ukf})
-    for (int i = 0; i < 3; ++i) CHECK_NOFAIL(o->beyond_3_sigma_per_axis(i) <= o->ok / 100);
+  for (const Outcome* o : {&ekf, &ukf, &ekf_slow, &ukf_slow}) {
+    CHECK(o->beyond_3_sigma_per_axis(0) <= o->ok / 100);
+    CHECK(o->beyond_3_sigma_per_axis(2) <= o->ok / 100);
+  }
+  for (const Outcome* o : {&ekf, &ukf}) CHECK_NOFAIL(o->beyond_3_sigma_per_axis(1) <= o->ok / 100);
   for (const Outcome* o : {&ekf_slow, &ukf_slow})
-    for (int i = 0; i < 3; ++i) CHECK(o->beyond_3_sigma_per_axis(i) <= o->ok / 100);
+    CHECK(o->beyond_3_sigma_per_axis(1) <= o->ok / 100);
+  // Not all of the 0.3-3 nT/h draws are too fast to follow: some reach ok.
+  CHECK(ekf.ok > 0);
+  CHECK(ukf.ok > 0);
   // 0.1 nT/h moves the bias 2.4 nT in a day: the filters still reach ok.
   CHECK(ekf_slow.ok > ekf_slow.snapshots / 4);
   CHECK(ukf_slow.ok > ukf_slow.snapshots / 4);
