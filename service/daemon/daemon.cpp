@@ -466,7 +466,9 @@ std::string Daemon::open() {
     d.refit_db = storage::open_database(
         c.storage.db_path, storage::OpenOptions{.busy_timeout_ms = c.storage.busy_timeout_ms});
     d.refits = std::make_unique<RefitRunner>(d.config, *d.refit_db);
-    if (const int n = d.refit_db->make_refit_job_log()->mark_running_interrupted(wall_utime())) {
+    // Only this station's (and unclaimed) jobs: other daemons sharing the database run theirs.
+    if (const int n = d.refit_db->make_refit_job_log()->mark_station_running_interrupted(
+            c.station.id, wall_utime())) {
       spdlog::warn("{} refit job(s) were running when the daemon last stopped: interrupted", n);
     }
     d.worker->restore();
