@@ -12,6 +12,7 @@
 #include "service/io/calibration_record.hpp"
 #include "storage/sqlite_stores.hpp"
 #include "tests/service/cli_test_support.hpp"
+#include "tests/storage/storage_backends.hpp"
 
 using namespace magcal;
 
@@ -19,8 +20,8 @@ namespace {
 
 // Simulates `sc` and stores every sample as the daemon would (reference direction and |h|);
 // returns the simulator's truth. `seq` continues across calls.
-TruthParameters store_simulation(storage::Database& db, const Scenario& sc, const std::string& sat,
-                                 int64_t* seq) {
+TruthParameters store_simulation(storage::Connection& db, const Scenario& sc,
+                                 const std::string& sat, int64_t* seq) {
   Simulator sim(sc);
   std::vector<storage::StoredSample> rows;
   SimulatedSample s;
@@ -38,7 +39,7 @@ TruthParameters store_simulation(storage::Database& db, const Scenario& sc, cons
     r.temperature_C = s.temperature_C;
     rows.push_back(r);
   }
-  storage::SqliteSampleWindowStore(db).insert_batch(rows);
+  db.make_sample_window_store()->insert_batch(rows);
   return sim.truth();
 }
 
@@ -312,3 +313,47 @@ TEST_CASE("a daemon's refit runs once for the fleet: claimed under its station, 
   CHECK(refit_rows() == 4);
 }
 
+TEST_CASE("a transient storage error ends a claimed refit's job interrupted: the retry claims it") {
+  test::PostgresBackend backend;  // its errors carry a SQLSTATE a trigger can raise
+  const auto db = backend.open();
+  if (!db) return;
+  DaemonConfig config;
+  config.station.id = "station-A";
+  int64_t seq = 0;
+  store_simulation(*db, paper_scenario(7, 4.0), "PAPER-1", &seq);
+  const int64_t t_ref = *db->make_sample_window_store()->newest_utime("PAPER-1");
+  // The next result insert fails as a serialization failure does (SQLSTATE 40001: transient).
+  // A sequence counts the inserts: unlike a row, its nextval survives the rollback.
+  db->exec(
+      "CREATE SEQUENCE inserts_seen; "
+      "CREATE FUNCTION fail_first_insert() RETURNS trigger AS $$ BEGIN "
+      "IF nextval('inserts_seen') = 1 THEN "
+      "RAISE EXCEPTION 'injected conflict' USING ERRCODE = '40001'; END IF; "
+      "RETURN NEW; END $$ LANGUAGE plpgsql; "
+      "CREATE TRIGGER fail_first BEFORE INSERT ON calibrations "
+      "FOR EACH ROW EXECUTE FUNCTION fail_first_insert();");
+  RefitRunner runner(config, *db);
+  const auto jobs = db->make_refit_job_log();
+
+  const RefitOutcome failed = runner.run("PAPER-1", t_ref, "scheduled", t_ref);
+  REQUIRE(failed.kind == RefitOutcome::Kind::kError);
+  REQUIRE(failed.storage_error.has_value());
+  CHECK(failed.storage_error->transient());
+  CHECK(failed.job_outcome == storage::job_outcome::kInterrupted);
+  CHECK(jobs->get(failed.job_id)->outcome == storage::job_outcome::kInterrupted);
+  CHECK_FALSE(jobs->get(failed.job_id)->calibration_id.has_value());
+  CHECK_FALSE(jobs->claim_holder("PAPER-1", "scheduled", t_ref).has_value());  // given up
+
+  // The daemon's retry (StorageRetry) runs it again: claimed anew, computed once.
+  const RefitOutcome retried = runner.run("PAPER-1", t_ref, "scheduled", t_ref);
+  REQUIRE(retried.kind == RefitOutcome::Kind::kComputed);
+  CHECK(retried.job_id != failed.job_id);
+  CHECK(jobs->claim_holder("PAPER-1", "scheduled", t_ref)->id == retried.job_id);
+  CHECK(jobs->get(retried.job_id)->calibration_id == retried.calibration_id);
+
+  // `magcal refit` holds no claim to give up: its failure stays 'failed', as before.
+  db->exec("ALTER SEQUENCE inserts_seen RESTART WITH 1");
+  const RefitOutcome manual = runner.run("PAPER-1", t_ref, "manual", t_ref);
+  REQUIRE(manual.kind == RefitOutcome::Kind::kError);
+  CHECK(jobs->get(manual.job_id)->outcome == storage::job_outcome::kFailed);
+}
