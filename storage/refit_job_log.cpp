@@ -55,9 +55,10 @@ SqliteRefitJobLog::SqliteRefitJobLog(Database& db)
               "UPDATE refit_jobs SET outcome = ?2, finished_utime = ?3, error = ?4, "
               "calibration_id = ?5 WHERE id = ?1 AND outcome = 'running'"),
       interrupt_(db,
-                 std::string("UPDATE refit_jobs SET outcome = 'interrupted', finished_utime = ?1, "
+                 std::string("UPDATE refit_jobs SET outcome = 'interrupted', finished_utime = ?2, "
                              "error = '") +
-                     job_outcome::kProcessEnded + "' WHERE outcome = 'running'"),
+                     job_outcome::kProcessEnded +
+                     "' WHERE outcome = 'running' AND (claimed_by = ?1 OR claimed_by IS NULL)"),
       interrupt_sat_(db,
                      std::string("UPDATE refit_jobs SET outcome = 'interrupted', finished_utime = "
                                  "?2, error = '") +
@@ -112,9 +113,10 @@ void SqliteRefitJobLog::finish(int64_t job_id, std::string_view outcome, int64_t
   if (changed != 1) throw_not_running(job_id, get(job_id));
 }
 
-int SqliteRefitJobLog::mark_running_interrupted(int64_t now_utime) {
+int SqliteRefitJobLog::mark_station_running_interrupted(std::string_view station,
+                                                        int64_t now_utime) {
   auto use = interrupt_.use();
-  interrupt_.bind(1, now_utime);
+  interrupt_.bind(1, station).bind(2, now_utime);
   return interrupt_.execute();
 }
 

@@ -63,9 +63,11 @@ class RefitJobLog {
   // calibration_id that is not in the history.
   virtual void finish(int64_t job_id, std::string_view outcome, int64_t finished_utime,
                       std::string_view error = {}, std::optional<int64_t> calibration_id = {}) = 0;
-  // Crash recovery, called once by a single daemon at start: every 'running' job becomes
-  // 'interrupted' (finished at now_utime). Returns how many.
-  virtual int mark_running_interrupted(int64_t now_utime) = 0;
+  // Crash recovery, called once by a daemon at start: the 'running' jobs it may have left,
+  // those claimed by `station` and the unclaimed ones (a single daemon's of schema < 7, or an
+  // aborted `magcal refit`), become 'interrupted' (finished at now_utime), which gives their
+  // claims up. Other stations' running jobs are theirs: untouched. Returns how many.
+  virtual int mark_station_running_interrupted(std::string_view station, int64_t now_utime) = 0;
   // The same for one spacecraft: its new owner's first step after taking its lease over (the
   // jobs of the previous owner will never finish, and their claims are given up).
   virtual int mark_running_interrupted(std::string_view sat_id, int64_t now_utime) = 0;

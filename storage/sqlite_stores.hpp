@@ -64,7 +64,7 @@ class SqliteRefitJobLog final : public RefitJobLog {
                                std::string_view station) override;
   std::optional<RefitJob> claim_holder(std::string_view sat_id, std::string_view trigger,
                                        int64_t scheduled_utime) override;
-  int mark_running_interrupted(int64_t now_utime) override;
+  int mark_station_running_interrupted(std::string_view station, int64_t now_utime) override;
   int mark_running_interrupted(std::string_view sat_id, int64_t now_utime) override;
   std::optional<int64_t> newest_reanchor_calibration_id(std::string_view sat_id) override;
   std::optional<int64_t> newest_finished_scheduled_utime(std::string_view sat_id) override;

@@ -198,6 +198,7 @@ struct Daemon::Impl {
       s.refits_accepted = c.refits_accepted.load(std::memory_order_relaxed);
       s.refits_rejected = c.refits_rejected.load(std::memory_order_relaxed);
       s.refits_error = c.refits_error.load(std::memory_order_relaxed);
+      s.refits_claimed_elsewhere = c.refits_claimed_elsewhere.load(std::memory_order_relaxed);
       s.last_refit_success_utime = c.last_refit_success_utime.load(std::memory_order_relaxed);
       const SpacecraftCounters::UkfSnapshot ukf = c.ukf_snapshot();
       s.has_ukf_snapshot = ukf.present;
@@ -267,6 +268,15 @@ struct Daemon::Impl {
                                          : std::vector<std::string>{req.sat_id};
     for (const auto& sat : sats) {
       const auto out = run_refit(retry, sat, req);
+      if (out.kind == RefitOutcome::Kind::kClaimedElsewhere) {
+        // Another daemon runs it (and stores, publishes its result); this one's filter is not
+        // re-anchored on it.
+        counters.spacecraft.spacecraft(sat).refits_claimed_elsewhere.fetch_add(
+            1, std::memory_order_relaxed);
+        spdlog::info("refit {} at {}: not run here ({})", sat,
+                     format_iso8601_utc(req.scheduled_utime), out.message);
+        continue;
+      }
       if (out.kind == RefitOutcome::Kind::kSkipped) {
         spdlog::info("refit {} at {}: skipped ({})", sat, format_iso8601_utc(req.scheduled_utime),
                      out.message);
@@ -466,7 +476,9 @@ std::string Daemon::open() {
     d.refit_db = storage::open_database(
         c.storage.db_path, storage::OpenOptions{.busy_timeout_ms = c.storage.busy_timeout_ms});
     d.refits = std::make_unique<RefitRunner>(d.config, *d.refit_db);
-    if (const int n = d.refit_db->make_refit_job_log()->mark_running_interrupted(wall_utime())) {
+    // Only this station's (and unclaimed) jobs: other daemons sharing the database run theirs.
+    if (const int n = d.refit_db->make_refit_job_log()->mark_station_running_interrupted(
+            c.station.id, wall_utime())) {
       spdlog::warn("{} refit job(s) were running when the daemon last stopped: interrupted", n);
     }
     d.worker->restore();

@@ -59,6 +59,8 @@ struct SpacecraftCounters {
   std::atomic<int64_t> refits_accepted{0};
   std::atomic<int64_t> refits_rejected{0};
   std::atomic<int64_t> refits_error{0};  // a refit that produced no result
+  // Refits due here that another station had claimed (design.md "Fleet"): run there.
+  std::atomic<int64_t> refits_claimed_elsewhere{0};
   // Data time of the newest accepted refit (its t_ref), 0 = none.
   std::atomic<int64_t> last_refit_success_utime{0};
 

@@ -22,6 +22,22 @@ int64_t wall_utime() {
       .count();
 }
 
+// Why a refit does not run here: `done`, its job, ran it already (here, or unclaimed) or another
+// station holds its claim.
+void not_run_here(const storage::RefitJob& done, const std::string& station, RefitOutcome& out) {
+  out.job_id = done.id;
+  const std::string what =
+      "the " + done.trigger + " refit ending at " + format_iso8601_utc(done.scheduled_utime);
+  const std::string job = " (job " + std::to_string(done.id) + ", " + done.outcome + ")";
+  if (done.claimed_by.empty() || done.claimed_by == station) {
+    out.kind = RefitOutcome::Kind::kSkipped;
+    out.message = what + " already ran" + job;
+  } else {
+    out.kind = RefitOutcome::Kind::kClaimedElsewhere;
+    out.message = what + " is claimed by station " + done.claimed_by + job;
+  }
+}
+
 }  // namespace
 
 BatchCalibrationOptions batch_options_from_config(const DaemonConfig& config) {
@@ -102,6 +118,36 @@ std::optional<storage::RefitJob> RefitRunner::finished_early_refit(const std::st
   return std::nullopt;
 }
 
+bool RefitRunner::claim_job(const std::string& sat_id, const std::string& trigger,
+                            int64_t scheduled_utime, RefitOutcome& out) {
+  const std::string& station = config_.station.id;
+  std::optional<storage::RefitJob> holder;
+  // No holder after a refused claim: it was interrupted in between (its station restarted),
+  // and the claim is free again.
+  for (int attempt = 0; attempt < 2 && !holder; ++attempt) {
+    if (const auto id = jobs_->claim(sat_id, trigger, scheduled_utime, wall_utime(), station)) {
+      out.job_id = *id;
+      return true;
+    }
+    holder = jobs_->claim_holder(sat_id, trigger, scheduled_utime);
+  }
+  if (holder && holder->claimed_by == station &&
+      holder->outcome == storage::job_outcome::kRunning) {
+    // This station's job still running is an earlier attempt of this refit thread, whose end a
+    // storage failure kept from being written: this attempt carries it on.
+    out.job_id = holder->id;
+    return true;
+  }
+  if (holder) {
+    not_run_here(*holder, station, out);
+  } else {
+    out.kind = RefitOutcome::Kind::kClaimedElsewhere;
+    out.message = "the " + trigger + " refit ending at " + format_iso8601_utc(scheduled_utime) +
+                  " was claimed by another station";
+  }
+  return false;
+}
+
 std::string RefitRunner::skip_reason(const std::string& sat_id,
                                      std::optional<int64_t> t_ref_utime) {
   if (!t_ref_utime) t_ref_utime = samples_->newest_utime(sat_id);
@@ -116,15 +162,18 @@ std::string RefitRunner::skip_reason(const std::string& sat_id,
 RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> t_ref_utime,
                               const std::string& trigger, int64_t scheduled_utime) {
   RefitOutcome out;
+  // `magcal refit` runs whenever asked; the daemons' refits run once for all of them.
+  const bool claimed = trigger != "manual";
   try {
     if (const auto done = finished_early_refit(sat_id, trigger, scheduled_utime)) {
-      out.kind = RefitOutcome::Kind::kSkipped;
-      out.job_id = done->id;
-      out.message = "the " + trigger + " refit ending at " + format_iso8601_utc(scheduled_utime) +
-                    " already ran (job " + std::to_string(done->id) + ")";
+      not_run_here(*done, config_.station.id, out);
       return out;
     }
-    out.job_id = jobs_->start(sat_id, trigger, scheduled_utime, wall_utime());
+    if (!claimed) {
+      out.job_id = jobs_->start(sat_id, trigger, scheduled_utime, wall_utime());
+    } else if (!claim_job(sat_id, trigger, scheduled_utime, out)) {
+      return out;
+    }
   } catch (const storage::StorageError& e) {
     out.message = std::string("cannot write the job row: ") + e.what();
     out.storage_error = e;
@@ -177,7 +226,10 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
   } catch (const storage::StorageError& e) {
     out.kind = RefitOutcome::Kind::kError;
     out.calibration_id = 0;  // rolled back
-    out.job_outcome = storage::job_outcome::kFailed;
+    // A transient failure of a claimed refit is retried (the daemon's refit thread): its job
+    // gives the claim up, or the retry would find the refit taken.
+    out.job_outcome = claimed && e.transient() ? storage::job_outcome::kInterrupted
+                                               : storage::job_outcome::kFailed;
     out.message = e.what();
     out.storage_error = e;
     try {

@@ -29,6 +29,9 @@ struct RefitOutcome {
     kComputed,  // a result was computed and stored (accepted or rejected, or a failed fit)
     kSkipped,   // too few samples in the window: job row only
     kError,     // database error: job row marked failed if it could be written
+    // A daemon's refit another station claimed (design.md "Fleet"): it runs there, nothing
+    // here; job_id is its job (0 when unknown).
+    kClaimedElsewhere,
   };
   Kind kind = Kind::kError;
   CalibrationResult result;  // valid for kComputed
@@ -55,7 +58,11 @@ class RefitRunner {
   // t_ref: end of the window (data clock: the scheduled time); nullopt = the newest stored
   // sample of the spacecraft. trigger: "scheduled" | "manual" | "first" | "early". An early
   // refit ("first" | "early", keyed by its window end: IngestWorker::Hooks::on_refit_due) whose
-  // job already produced a result is skipped without a job row: each runs once. Never throws.
+  // job already produced a result is skipped without a job row: each runs once. A daemon's
+  // refit (any trigger but "manual") is claimed under [station] id, so that daemons sharing a
+  // database run it once: kClaimedElsewhere when another station holds the claim, kSkipped when
+  // this station's job already ended; a transient storage error ends the job 'interrupted',
+  // which gives the claim up for the retry. Never throws.
   RefitOutcome run(const std::string& sat_id, std::optional<int64_t> t_ref_utime,
                    const std::string& trigger, int64_t scheduled_utime);
 
@@ -76,6 +83,10 @@ class RefitRunner {
   std::optional<storage::RefitJob> finished_early_refit(const std::string& sat_id,
                                                         const std::string& trigger,
                                                         int64_t scheduled_utime);
+  // Claims the refit's job for this station into out.job_id; false, with out.kind and
+  // out.message saying why, when it must not run here.
+  bool claim_job(const std::string& sat_id, const std::string& trigger, int64_t scheduled_utime,
+                 RefitOutcome& out);
 
   const DaemonConfig config_;  // a copy: callers may pass a temporary
   BatchCalibrationOptions options_;

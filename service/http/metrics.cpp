@@ -30,6 +30,7 @@ struct Families {
   prometheus::Family<prometheus::Gauge>* ukf_sigma;
   prometheus::Family<prometheus::Gauge>* ukf_accepted;
   prometheus::Family<prometheus::Counter>* refits;
+  prometheus::Family<prometheus::Counter>* refits_claimed_elsewhere;
   prometheus::Family<prometheus::Gauge>* last_refit_success;
   prometheus::Family<prometheus::Gauge>* storage_healthy;
 };
@@ -85,6 +86,12 @@ Families register_families(prometheus::Registry& r, const std::string& version) 
                   .Name("magcal_refits_total")
                   .Help("Refits run, per spacecraft and verdict (accepted, rejected, error)")
                   .Register(r);
+  f.refits_claimed_elsewhere = &BuildCounter()
+                                    .Name("magcal_refits_claimed_elsewhere_total")
+                                    .Help(
+                                        "Refits due here that another station had claimed and "
+                                        "runs (daemons sharing a database), per spacecraft")
+                                    .Register(r);
   f.last_refit_success = &BuildGauge()
                               .Name("magcal_last_refit_success_timestamp_seconds")
                               .Help("Time (s since 1970, data time) of the newest accepted refit")
@@ -119,6 +126,7 @@ struct DaemonMetrics::SpacecraftSeries {
   prometheus::Counter* refits_accepted = nullptr;
   prometheus::Counter* refits_rejected = nullptr;
   prometheus::Counter* refits_error = nullptr;
+  prometheus::Counter* refits_claimed_elsewhere = nullptr;
   std::array<prometheus::Gauge*, 3> ukf_bias_nT{};
   std::array<prometheus::Gauge*, 3> ukf_bias_sigma_nT{};
   prometheus::Gauge* ukf_snapshot_accepted = nullptr;
@@ -140,6 +148,7 @@ DaemonMetrics::DaemonMetrics(const std::string& version, std::vector<double> com
   ukf_sigma_ = f.ukf_sigma;
   ukf_accepted_ = f.ukf_accepted;
   refits_ = f.refits;
+  refits_claimed_elsewhere_ = f.refits_claimed_elsewhere;
   last_refit_success_ = f.last_refit_success;
   storage_healthy_ = &f.storage_healthy->Add({});
   storage_healthy_->Set(1.0);
@@ -156,6 +165,7 @@ DaemonMetrics::SpacecraftSeries& DaemonMetrics::series(const std::string& label)
   m->refits_accepted = &refits_->Add({{"sat", label}, {"verdict", "accepted"}});
   m->refits_rejected = &refits_->Add({{"sat", label}, {"verdict", "rejected"}});
   m->refits_error = &refits_->Add({{"sat", label}, {"verdict", "error"}});
+  m->refits_claimed_elsewhere = &refits_claimed_elsewhere_->Add({{"sat", label}});
   return *series_.emplace(label, std::move(m)).first->second;
 }
 
@@ -184,6 +194,7 @@ void DaemonMetrics::apply_totals(const Totals& t) {
     raise_to(*m.refits_accepted, sc.refits_accepted);
     raise_to(*m.refits_rejected, sc.refits_rejected);
     raise_to(*m.refits_error, sc.refits_error);
+    raise_to(*m.refits_claimed_elsewhere, sc.refits_claimed_elsewhere);
     if (sc.has_ukf_snapshot) {
       if (!m.ukf_snapshot_accepted) {
         for (size_t i = 0; i < 3; ++i) {

@@ -62,6 +62,7 @@ class DaemonMetrics {
     int64_t refits_accepted = 0;
     int64_t refits_rejected = 0;
     int64_t refits_error = 0;
+    int64_t refits_claimed_elsewhere = 0;
     int64_t last_refit_success_utime = 0;  // 0 = none yet (no series: never a made-up time)
     bool has_ukf_snapshot = false;         // no series before the first snapshot
     std::array<double, 3> ukf_bias_nT{};
@@ -110,6 +111,7 @@ class DaemonMetrics {
   prometheus::Family<prometheus::Gauge>* ukf_sigma_;
   prometheus::Family<prometheus::Gauge>* ukf_accepted_;
   prometheus::Family<prometheus::Counter>* refits_;
+  prometheus::Family<prometheus::Counter>* refits_claimed_elsewhere_;
   prometheus::Family<prometheus::Gauge>* last_refit_success_;
   prometheus::Gauge* storage_healthy_;
 

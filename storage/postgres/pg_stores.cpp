@@ -336,12 +336,13 @@ void PgRefitJobLog::finish(int64_t job_id, std::string_view outcome, int64_t fin
   if (r.affected_rows() != 1) throw_not_running(job_id, get(job_id));
 }
 
-int PgRefitJobLog::mark_running_interrupted(int64_t now_utime) {
+int PgRefitJobLog::mark_station_running_interrupted(std::string_view station, int64_t now_utime) {
   PgParams p;
-  p.add(now_utime).add(job_outcome::kProcessEnded);
+  p.add(station).add(now_utime).add(job_outcome::kProcessEnded);
   return static_cast<int>(
-      db_.execute_prepared("UPDATE refit_jobs SET outcome = 'interrupted', finished_utime = $1, "
-                           "error = $2 WHERE outcome = 'running'",
+      db_.execute_prepared("UPDATE refit_jobs SET outcome = 'interrupted', finished_utime = $2, "
+                           "error = $3 WHERE outcome = 'running' AND (claimed_by = $1 OR "
+                           "claimed_by IS NULL)",
                            p)
           .affected_rows());
 }

@@ -95,12 +95,14 @@ TEMPLATE_TEST_CASE_METHOD(
   job("scheduled", 500, job_outcome::kRunning);
   CHECK(jobs->newest_reanchor_calibration_id("SAT1") == scheduled);
   CHECK(jobs->newest_finished_scheduled_utime("SAT1") == 400);
-  jobs->mark_running_interrupted(600);
+  jobs->mark_station_running_interrupted("station-A", 600);
   CHECK(jobs->newest_finished_scheduled_utime("SAT1") == 400);  // 500 runs again
   CHECK_FALSE(jobs->newest_reanchor_calibration_id("SAT2").has_value());
 }
 
-TEMPLATE_TEST_CASE_METHOD(BackendTest, "jobs running when the process died become interrupted",
+TEMPLATE_TEST_CASE_METHOD(BackendTest,
+                          "a restarting daemon interrupts the jobs it left running, not another "
+                          "station's",
                           "[jobs]", SqliteBackend, PostgresBackend) {
   if (!this->db) return;
   const auto jobs = this->db->make_refit_job_log();
@@ -108,12 +110,26 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest, "jobs running when the process died becom
   jobs->finish(done, job_outcome::kOk, 3);
   const int64_t a = jobs->start("SAT1", "scheduled", 10, 11);
   const int64_t b = jobs->start("SAT2", "manual", 10, 12);
-  CHECK(jobs->mark_running_interrupted(99) == 2);
+  const auto own = jobs->claim("SAT1", "scheduled", 20, 13, "station-A");
+  const auto others = jobs->claim("SAT2", "scheduled", 20, 14, "station-B");
+  REQUIRE(own.has_value());
+  REQUIRE(others.has_value());
+  // Its own claimed job and the unclaimed ones (a single daemon's): 3.
+  CHECK(jobs->mark_station_running_interrupted("station-A", 99) == 3);
   CHECK(jobs->get(a)->outcome == job_outcome::kInterrupted);
   CHECK(jobs->get(b)->outcome == job_outcome::kInterrupted);
   CHECK(jobs->get(b)->finished_utime == 99);
+  CHECK(jobs->get(b)->error == job_outcome::kProcessEnded);
+  CHECK(jobs->get(*own)->outcome == job_outcome::kInterrupted);
   CHECK(jobs->get(done)->outcome == job_outcome::kOk);
-  CHECK(jobs->mark_running_interrupted(100) == 0);
+  // Station B's refit runs on: still running, still claimed, it can finish.
+  CHECK(jobs->get(*others)->outcome == job_outcome::kRunning);
+  CHECK_FALSE(jobs->claim("SAT2", "scheduled", 20, 100, "station-A").has_value());
+  // Station A's claim is given up: the refit can be claimed again.
+  CHECK(jobs->claim("SAT1", "scheduled", 20, 100, "station-A").has_value());
+  jobs->finish(*others, job_outcome::kOk, 101);
+  CHECK(jobs->mark_station_running_interrupted("station-B", 102) == 0);
+  CHECK(jobs->mark_station_running_interrupted("station-A", 103) == 1);  // its new claim
 }
 
 TEMPLATE_TEST_CASE_METHOD(BackendTest,

@@ -12,6 +12,7 @@
 #include "service/io/calibration_record.hpp"
 #include "storage/sqlite_stores.hpp"
 #include "tests/service/cli_test_support.hpp"
+#include "tests/storage/storage_backends.hpp"
 
 using namespace magcal;
 
@@ -19,8 +20,8 @@ namespace {
 
 // Simulates `sc` and stores every sample as the daemon would (reference direction and |h|);
 // returns the simulator's truth. `seq` continues across calls.
-TruthParameters store_simulation(storage::Database& db, const Scenario& sc, const std::string& sat,
-                                 int64_t* seq) {
+TruthParameters store_simulation(storage::Connection& db, const Scenario& sc,
+                                 const std::string& sat, int64_t* seq) {
   Simulator sim(sc);
   std::vector<storage::StoredSample> rows;
   SimulatedSample s;
@@ -38,7 +39,7 @@ TruthParameters store_simulation(storage::Database& db, const Scenario& sc, cons
     r.temperature_C = s.temperature_C;
     rows.push_back(r);
   }
-  storage::SqliteSampleWindowStore(db).insert_batch(rows);
+  db.make_sample_window_store()->insert_batch(rows);
   return sim.truth();
 }
 
@@ -245,4 +246,114 @@ TEST_CASE("an early refit runs once: the same key again is skipped without a job
   CHECK(jobs.recent("PAPER-1", 10).size() == 1);
   // A scheduled refit of the same end is not an early one: it runs.
   CHECK(runner.run("PAPER-1", t_ref, "scheduled", t_ref).kind == RefitOutcome::Kind::kComputed);
+}
+
+TEST_CASE("a daemon's refit runs once for the fleet: claimed under its station, never twice") {
+  test::TempDir dir("magcal_refit_runner_claims");
+  DaemonConfig config;
+  config.storage.db_path = dir.file("claims.db");
+  config.station.id = "station-A";
+  storage::Database db(config.storage.db_path);
+  int64_t seq = 0;
+  store_simulation(db, paper_scenario(5, 4.0), "PAPER-1", &seq);
+  const int64_t t_ref = *storage::SqliteSampleWindowStore(db).newest_utime("PAPER-1");
+  storage::SqliteRefitJobLog jobs(db);
+  storage::SqliteCalibrationHistory history(db);
+  const auto refit_rows = [&] {
+    storage::HistoryQuery q;
+    q.sat_id = "PAPER-1";
+    q.method = "twostep";
+    return history.query(q).size();
+  };
+  RefitRunner runner(config, db);
+
+  // Station B holds the claim (running, then ended): nothing runs here, whatever it became.
+  const auto b_job = jobs.claim("PAPER-1", "scheduled", t_ref, 1, "station-B");
+  REQUIRE(b_job.has_value());
+  RefitOutcome out = runner.run("PAPER-1", t_ref, "scheduled", t_ref);
+  CHECK(out.kind == RefitOutcome::Kind::kClaimedElsewhere);
+  CHECK(out.job_id == *b_job);
+  CHECK_THAT(out.message, Catch::Contains("station-B") && Catch::Contains("running"));
+  jobs.finish(*b_job, storage::job_outcome::kFailed, 2, "whatever it was");
+  CHECK(runner.run("PAPER-1", t_ref, "scheduled", t_ref).kind ==
+        RefitOutcome::Kind::kClaimedElsewhere);
+  CHECK(refit_rows() == 0);
+  CHECK(jobs.recent("PAPER-1", 10).size() == 1);
+
+  // Station B's job interrupted (its spacecraft taken over): the claim is free, this one runs.
+  const int64_t t_early = t_ref - 600'000'000;
+  const auto lost = jobs.claim("PAPER-1", "early", t_early, 1, "station-B");
+  REQUIRE(lost.has_value());
+  jobs.mark_running_interrupted("PAPER-1", 3);
+  out = runner.run("PAPER-1", t_early, "early", t_early);
+  REQUIRE(out.kind == RefitOutcome::Kind::kComputed);
+  CHECK(jobs.get(out.job_id)->claimed_by == "station-A");
+  CHECK(refit_rows() == 1);
+
+  // This station's own job left running (an attempt whose end a storage failure kept from
+  // being written) is carried on by the next attempt; once ended, the refit does not run again.
+  const int64_t t_sched = t_ref - 300'000'000;
+  const auto own = jobs.claim("PAPER-1", "scheduled", t_sched, 1, "station-A");
+  REQUIRE(own.has_value());
+  out = runner.run("PAPER-1", t_sched, "scheduled", t_sched);
+  REQUIRE(out.kind == RefitOutcome::Kind::kComputed);
+  CHECK(out.job_id == *own);
+  CHECK(jobs.get(*own)->calibration_id == out.calibration_id);
+  out = runner.run("PAPER-1", t_sched, "scheduled", t_sched);
+  CHECK(out.kind == RefitOutcome::Kind::kSkipped);
+  CHECK_THAT(out.message, Catch::Contains("already ran"));
+  CHECK(refit_rows() == 2);
+
+  // `magcal refit` is not claimed: it runs whenever asked.
+  for (int i = 0; i < 2; ++i) {
+    out = runner.run("PAPER-1", t_ref, "manual", t_ref);
+    REQUIRE(out.kind == RefitOutcome::Kind::kComputed);
+    CHECK(jobs.get(out.job_id)->claimed_by.empty());
+  }
+  CHECK(refit_rows() == 4);
+}
+
+TEST_CASE("a transient storage error ends a claimed refit's job interrupted: the retry claims it") {
+  test::PostgresBackend backend;  // its errors carry a SQLSTATE a trigger can raise
+  const auto db = backend.open();
+  if (!db) return;
+  DaemonConfig config;
+  config.station.id = "station-A";
+  int64_t seq = 0;
+  store_simulation(*db, paper_scenario(7, 4.0), "PAPER-1", &seq);
+  const int64_t t_ref = *db->make_sample_window_store()->newest_utime("PAPER-1");
+  // The next result insert fails as a serialization failure does (SQLSTATE 40001: transient).
+  // A sequence counts the inserts: unlike a row, its nextval survives the rollback.
+  db->exec(
+      "CREATE SEQUENCE inserts_seen; "
+      "CREATE FUNCTION fail_first_insert() RETURNS trigger AS $$ BEGIN "
+      "IF nextval('inserts_seen') = 1 THEN "
+      "RAISE EXCEPTION 'injected conflict' USING ERRCODE = '40001'; END IF; "
+      "RETURN NEW; END $$ LANGUAGE plpgsql; "
+      "CREATE TRIGGER fail_first BEFORE INSERT ON calibrations "
+      "FOR EACH ROW EXECUTE FUNCTION fail_first_insert();");
+  RefitRunner runner(config, *db);
+  const auto jobs = db->make_refit_job_log();
+
+  const RefitOutcome failed = runner.run("PAPER-1", t_ref, "scheduled", t_ref);
+  REQUIRE(failed.kind == RefitOutcome::Kind::kError);
+  REQUIRE(failed.storage_error.has_value());
+  CHECK(failed.storage_error->transient());
+  CHECK(failed.job_outcome == storage::job_outcome::kInterrupted);
+  CHECK(jobs->get(failed.job_id)->outcome == storage::job_outcome::kInterrupted);
+  CHECK_FALSE(jobs->get(failed.job_id)->calibration_id.has_value());
+  CHECK_FALSE(jobs->claim_holder("PAPER-1", "scheduled", t_ref).has_value());  // given up
+
+  // The daemon's retry (StorageRetry) runs it again: claimed anew, computed once.
+  const RefitOutcome retried = runner.run("PAPER-1", t_ref, "scheduled", t_ref);
+  REQUIRE(retried.kind == RefitOutcome::Kind::kComputed);
+  CHECK(retried.job_id != failed.job_id);
+  CHECK(jobs->claim_holder("PAPER-1", "scheduled", t_ref)->id == retried.job_id);
+  CHECK(jobs->get(retried.job_id)->calibration_id == retried.calibration_id);
+
+  // `magcal refit` holds no claim to give up: its failure stays 'failed', as before.
+  db->exec("ALTER SEQUENCE inserts_seen RESTART WITH 1");
+  const RefitOutcome manual = runner.run("PAPER-1", t_ref, "manual", t_ref);
+  REQUIRE(manual.kind == RefitOutcome::Kind::kError);
+  CHECK(jobs->get(manual.job_id)->outcome == storage::job_outcome::kFailed);
 }

@@ -54,6 +54,7 @@ TEST_CASE("daemon metrics: the contract's names, the counted values, valid text"
   b.received = 7;
   b.missing = 2;
   b.refits_error = 1;
+  b.refits_claimed_elsewhere = 3;
   // Commit latencies, put in buckets here (le semantics) from the observations.
   const std::vector<double> commits_s{0.0002, 0.003, 0.003, 7.0};
   std::vector<int64_t> buckets(bounds_s.size() + 1, 0);
@@ -88,6 +89,7 @@ TEST_CASE("daemon metrics: the contract's names, the counted values, valid text"
       {"magcal_ukf_bias_sigma_nT", "gauge"},
       {"magcal_ukf_snapshot_accepted", "gauge"},
       {"magcal_refits_total", "counter"},
+      {"magcal_refits_claimed_elsewhere_total", "counter"},
       {"magcal_last_refit_success_timestamp_seconds", "gauge"},
       {"magcal_storage_healthy", "gauge"},
       {"magcal_build_info", "gauge"}};
@@ -112,6 +114,8 @@ TEST_CASE("daemon metrics: the contract's names, the counted values, valid text"
   CHECK(p.value("magcal_refits_total", {{"sat", "SAT-A"}, {"verdict", "accepted"}}) == 1.0);
   CHECK(p.value("magcal_refits_total", {{"sat", "SAT-A"}, {"verdict", "rejected"}}) == 1.0);
   CHECK(p.value("magcal_refits_total", {{"sat", "SAT-B"}, {"verdict", "error"}}) == 1.0);
+  CHECK(p.value("magcal_refits_claimed_elsewhere_total", {{"sat", "SAT-B"}}) == 3.0);
+  CHECK(p.value("magcal_refits_claimed_elsewhere_total", {{"sat", "SAT-A"}}) == 0.0);
   CHECK(p.value("magcal_last_refit_success_timestamp_seconds", {{"sat", "SAT-A"}}) ==
         1'577'923'200.0);
   CHECK(!p.value("magcal_last_refit_success_timestamp_seconds", {{"sat", "SAT-B"}}));
