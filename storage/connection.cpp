@@ -1,32 +1,109 @@
 #include "storage/connection.hpp"
 
+#include <algorithm>
+#include <array>
+#include <cctype>
+#include <string_view>
+#include <vector>
+
 #include "storage/database.hpp"
 #include "storage/postgres/pg_database.hpp"
 
 namespace magcal::storage {
 
-std::unique_ptr<Connection> open_database(const std::string& db, const OpenOptions& options) {
-  if (is_postgres_uri(db)) return std::make_unique<PgDatabase>(db, options);
-  return std::make_unique<Database>(db, options);
+namespace {
+
+// The secrets a --db value carries: the password of a URI's user:password@ and every
+// password=VALUE (URI query, or a libpq keyword string), each as written and percent-decoded.
+std::vector<std::string> database_secrets(const std::string& db) {
+  std::vector<std::string> secrets;
+  auto add = [&](std::string value) {
+    if (value.empty()) return;
+    secrets.push_back(value);
+    std::string decoded;
+    for (std::size_t i = 0; i < value.size(); ++i) {
+      if (value[i] == '%' && i + 2 < value.size() && std::isxdigit(value[i + 1]) &&
+          std::isxdigit(value[i + 2])) {
+        decoded += static_cast<char>(std::stoi(value.substr(i + 1, 2), nullptr, 16));
+        i += 2;
+      } else {
+        decoded += value[i];
+      }
+    }
+    if (decoded != value) secrets.push_back(decoded);
+  };
+  const std::size_t scheme = db.find("://");
+  if (scheme != std::string::npos) {
+    const std::size_t authority = scheme + 3;
+    const std::size_t authority_end = db.find_first_of("/?", authority);
+    const std::size_t at = db.rfind('@', authority_end);
+    if (at != std::string::npos && at >= authority) {
+      const std::size_t colon = db.find(':', authority);
+      if (colon < at) add(db.substr(colon + 1, at - colon - 1));
+    }
+  }
+  for (std::size_t key = db.find("password="); key != std::string::npos;
+       key = db.find("password=", key + 1)) {
+    const char before = key == 0 ? ' ' : db[key - 1];
+    if (before != '?' && before != '&' && !std::isspace(static_cast<unsigned char>(before))) {
+      continue;
+    }
+    const std::size_t value = key + 9;
+    add(db.substr(value, db.find_first_of("& \t\n", value) - value));
+  }
+  // Longest first: a secret that contains another is replaced whole.
+  std::sort(secrets.begin(), secrets.end(),
+            [](const std::string& a, const std::string& b) { return a.size() > b.size(); });
+  return secrets;
+}
+
+// "host=... dbname=...": libpq's keyword form, which magcal does not take (a --db value is a
+// URI or a file path), recognised by a first word that is one of libpq's common keywords.
+bool is_libpq_keyword_string(const std::string& db) {
+  static constexpr std::array<std::string_view, 9> kKeywords = {
+      "host", "hostaddr", "port", "dbname", "user", "password", "service", "sslmode", "passfile"};
+  const std::size_t start = db.find_first_not_of(" \t");
+  if (start == std::string::npos) return false;
+  const std::size_t equals = db.find('=', start);
+  if (equals == std::string::npos) return false;
+  std::string_view word(db.data() + start, equals - start);
+  while (!word.empty() && word.back() == ' ') word.remove_suffix(1);
+  return std::find(kKeywords.begin(), kKeywords.end(), word) != kKeywords.end();
+}
+
+}  // namespace
+
+std::string without_database_secrets(const std::string& db, std::string text) {
+  for (const std::string& secret : database_secrets(db)) {
+    for (std::size_t at = text.find(secret); at != std::string::npos;
+         at = text.find(secret, at + 3)) {
+      text.replace(at, secret.size(), "***");
+    }
+  }
+  return text;
 }
 
 std::string database_name(const std::string& db) {
-  if (!is_postgres_uri(db)) return db;
-  std::string uri = db;
-  const std::size_t authority = uri.find("://") + 3;
-  const std::size_t authority_end = uri.find_first_of("/?", authority);
-  const std::size_t at = uri.rfind('@', authority_end);
-  if (at != std::string::npos && at >= authority) {
-    const std::size_t colon = uri.find(':', authority);
-    if (colon < at) uri.replace(colon + 1, at - colon - 1, "***");
+  return without_database_secrets(db, db);
+}
+
+std::unique_ptr<Connection> open_database(const std::string& db, const OpenOptions& options) {
+  if (is_postgres_uri(db)) return std::make_unique<PgDatabase>(db, options);
+  std::string scheme = db.substr(0, db.find("://") == std::string::npos ? 0 : db.find("://") + 3);
+  std::transform(scheme.begin(), scheme.end(), scheme.begin(),
+                 [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+  if (is_postgres_uri(scheme)) {
+    throw StorageError(StorageError::Kind::kInvalidArgument,
+                       "'" + database_name(db) +
+                           "': write the URI scheme in lower case (postgresql:// or postgres://)");
   }
-  for (std::size_t key = uri.find("password=", authority); key != std::string::npos;
-       key = uri.find("password=", key + 1)) {
-    if (uri[key - 1] != '?' && uri[key - 1] != '&') continue;
-    const std::size_t value = key + 9;
-    uri.replace(value, uri.find('&', value) - value, "***");
+  if (is_libpq_keyword_string(db)) {
+    throw StorageError(StorageError::Kind::kInvalidArgument,
+                       "'" + database_name(db) +
+                           "' is a libpq key=value connection string: --db takes an SQLite file "
+                           "or a URI (postgresql://USER@HOST:PORT/DBNAME)");
   }
-  return uri;
+  return std::make_unique<Database>(db, options);
 }
 
 int migration_target(const OpenOptions& options, int latest) {

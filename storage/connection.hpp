@@ -61,6 +61,10 @@ inline bool is_postgres_uri(std::string_view db) {
 // (user:***@host, password=***), a file path as it is. Connection::name() of an open connection.
 std::string database_name(const std::string& db);
 
+// `text` (a message of the engine, which may quote the --db value: libpq's URI parse errors do)
+// with every secret of `db` (its password, as written or percent-decoded) replaced by ***.
+std::string without_database_secrets(const std::string& db, std::string text);
+
 enum class TransactionMode {
   kWrite,         // a writer: SQLite takes its write lock up front, so it waits at the start
                   // (busy timeout) instead of failing half-way
@@ -98,7 +102,8 @@ class Connection {
 };
 
 // Opens `db`: a postgresql:// or postgres:// URI is a PostgreSQL database, anything else an
-// SQLite file path (or ":memory:"). Throws StorageError.
+// SQLite file path (or ":memory:"); a scheme in upper case and libpq's key=value form are refused
+// rather than created as files of that name. Throws StorageError.
 std::unique_ptr<Connection> open_database(const std::string& db, const OpenOptions& options = {});
 
 // RAII transaction, rolled back on destruction unless commit() was called. Inside an already

@@ -54,7 +54,8 @@ PgDatabase::PgDatabase(const std::string& uri, const OpenOptions& options)
   char* error = nullptr;
   PQconninfoOption* parsed = PQconninfoParse(uri.c_str(), &error);
   if (parsed == nullptr || !is_postgres_uri(uri)) {
-    const std::string why = error ? one_line(error) : "not a postgresql:// or postgres:// URI";
+    const std::string why = error ? without_database_secrets(uri, one_line(error))
+                                  : "not a postgresql:// or postgres:// URI";
     PQfreemem(error);
     PQconninfoFree(parsed);
     throw StorageError(StorageError::Kind::kInvalidArgument,
@@ -118,7 +119,7 @@ void PgDatabase::connect() {
   // libpq gives no SQLSTATE for a refused connection: the server's reasons that a retry
   // cannot heal are told by their (English) text; anything else (no server, starting up, too
   // many clients, network) is transient.
-  const std::string why = one_line(PQerrorMessage(conn_));
+  const std::string why = without_database_secrets(uri_, one_line(PQerrorMessage(conn_)));
   PQfinish(conn_);
   conn_ = nullptr;
   const bool no_database = why.find("database \"") != std::string::npos &&
