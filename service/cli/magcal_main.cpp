@@ -245,6 +245,8 @@ int main(int argc, char** argv) {
     std::cerr << "magcal: " << error << "\n";
     return kExitUsage;
   }
+  // Named after the subcommand, as every later error is ("magcal history: ...").
+  const std::string command = argc >= 2 && argv[1][0] != '-' ? std::string(" ") + argv[1] : "";
   try {
     app.parse(argc, argv);
   } catch (const CLI::CallForHelp& e) {
@@ -257,12 +259,11 @@ int main(int argc, char** argv) {
     // "--limit: must be at least 1 (got 0)" from the checks above: said as one sentence.
     std::string text = e.what();
     if (const auto colon = text.find(": "); colon != std::string::npos) text.erase(colon, 1);
-    // Named after the subcommand, as every later error is ("magcal history: ...").
-    const std::string command = argc >= 2 && argv[1][0] != '-' ? std::string(" ") + argv[1] : "";
     std::cerr << "magcal" << command << ": " << text << "\n";
     return kExitUsage;
   } catch (const CLI::ParseError& e) {
-    std::cerr << "magcal: " << e.what() << " (see magcal --help)\n";
+    std::cerr << "magcal" << command << ": " << e.what() << " (see magcal" << command
+              << " --help)\n";
     return kExitUsage;
   }
 

@@ -27,6 +27,8 @@ TEST_CASE("numeric options of every subcommand: one clear sentence, usage exit c
       {"history --db " + db + " --sat A --limit 0",
        "magcal history: --limit must be at least 1 (got 0)"},
       {"history --db " + db + " --sat A --limit -1", "--limit must be at least 1 (got -1)"},
+      {"history --db " + db + " --limit 2",
+       "magcal history: --sat is required (see magcal history --help)"},
       {"history --db " + db + " --sat A --limit abc", "--limit must be a whole number (got 'abc')"},
       {"history --db " + db + " --sat A --limit 99999999999",
        "--limit must be at most 2147483647 (got 99999999999)"},
