@@ -22,8 +22,9 @@ std::vector<std::string> database_secrets(const std::string& db) {
     secrets.push_back(value);
     std::string decoded;
     for (std::size_t i = 0; i < value.size(); ++i) {
-      if (value[i] == '%' && i + 2 < value.size() && std::isxdigit(value[i + 1]) &&
-          std::isxdigit(value[i + 2])) {
+      if (value[i] == '%' && i + 2 < value.size() &&
+          std::isxdigit(static_cast<unsigned char>(value[i + 1])) &&
+          std::isxdigit(static_cast<unsigned char>(value[i + 2]))) {
         decoded += static_cast<char>(std::stoi(value.substr(i + 1, 2), nullptr, 16));
         i += 2;
       } else {
