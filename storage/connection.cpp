@@ -90,7 +90,8 @@ std::string database_name(const std::string& db) {
 
 std::unique_ptr<Connection> open_database(const std::string& db, const OpenOptions& options) {
   if (is_postgres_uri(db)) return std::make_unique<PgDatabase>(db, options);
-  std::string scheme = db.substr(0, db.find("://") == std::string::npos ? 0 : db.find("://") + 3);
+  const std::size_t scheme_end = db.find("://");
+  std::string scheme = db.substr(0, scheme_end == std::string::npos ? 0 : scheme_end + 3);
   std::transform(scheme.begin(), scheme.end(), scheme.begin(),
                  [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
   if (is_postgres_uri(scheme)) {

@@ -112,8 +112,10 @@ std::vector<SpacecraftStatus> read_status(storage::Connection& db, int64_t windo
       // Saturating: a database written before the time bounds may hold any utime.
       const int64_t t0 = saturating_sub(*s.last_sample_utime, window_utime) + 1;
       const int64_t t1 = saturating_add(*s.last_sample_utime, 1);
-      s.samples_in_window = samples->count_in_window(id, t0, t1);
+      // One query: the window's count is the sum over its stations (a NULL station included).
       s.samples_by_station = samples->count_by_station(id, t0, t1);
+      s.samples_in_window = 0;
+      for (const auto& c : s.samples_by_station) s.samples_in_window += c.samples;
     }
     s.last_ukf = history->latest(id, "ukf");
     s.last_refit = history->latest_refit(id);
