@@ -42,7 +42,12 @@ SqliteLeaseStore::SqliteLeaseStore(Database& db)
                "owner = ?2 AND epoch = ?3"),
       holds_(db, "SELECT 1 FROM leases WHERE sat_id = ?1 AND owner = ?2 AND epoch = ?3"),
       get_(db, std::string("SELECT ") + kLease + " FROM leases WHERE sat_id = ?1"),
-      list_(db, std::string("SELECT ") + kLease + " FROM leases ORDER BY sat_id") {}
+      list_(db, std::string("SELECT ") + kLease + " FROM leases ORDER BY sat_id"),
+      ensure_(db, columns::kLeaseEnsure),
+      renew_all_(db, columns::kLeaseRenewAll),
+      heartbeat_(db, columns::kStationHeartbeat),
+      leave_(db, "UPDATE stations SET expires_utime = min(expires_utime, ?2) WHERE station = ?1"),
+      live_(db, "SELECT station FROM stations WHERE expires_utime > ?1 ORDER BY station") {}
 
 std::optional<Lease> SqliteLeaseStore::try_acquire(std::string_view sat_id, std::string_view owner,
                                                    int64_t now_utime, int64_t ttl_utime) {
@@ -85,6 +90,40 @@ std::vector<Lease> SqliteLeaseStore::list() {
   std::vector<Lease> out;
   auto use = list_.use();
   while (list_.step()) out.push_back(read_lease(list_));
+  return out;
+}
+
+void SqliteLeaseStore::ensure(std::string_view sat_id) {
+  auto use = ensure_.use();
+  ensure_.bind(1, sat_id).execute();
+}
+
+std::vector<Lease> SqliteLeaseStore::renew_all(std::string_view owner, int64_t now_utime,
+                                               int64_t ttl_utime) {
+  check_request(owner, ttl_utime);
+  std::vector<Lease> out;
+  auto use = renew_all_.use();
+  renew_all_.bind(1, owner).bind(2, now_utime).bind(3, ttl_utime);
+  while (renew_all_.step()) out.push_back(read_lease(renew_all_));
+  return out;
+}
+
+void SqliteLeaseStore::heartbeat(std::string_view station, int64_t now_utime, int64_t ttl_utime) {
+  check_request(station, ttl_utime);
+  auto use = heartbeat_.use();
+  heartbeat_.bind(1, station).bind(2, now_utime).bind(3, ttl_utime).execute();
+}
+
+void SqliteLeaseStore::leave(std::string_view station, int64_t now_utime) {
+  auto use = leave_.use();
+  leave_.bind(1, station).bind(2, now_utime).execute();
+}
+
+std::vector<std::string> SqliteLeaseStore::live_stations(int64_t now_utime) {
+  std::vector<std::string> out;
+  auto use = live_.use();
+  live_.bind(1, now_utime);
+  while (live_.step()) out.push_back(live_.column_text(0));
   return out;
 }
 

@@ -62,6 +62,22 @@ class LeaseStore {
   // Every lease row, sorted by sat_id (for magcal status).
   virtual std::vector<Lease> list() = 0;
 
+  // A lease row for `sat_id` without an owner (epoch 0, expired), unless it has one: every
+  // daemon registers the spacecraft it receives, so that any live daemon may own them.
+  virtual void ensure(std::string_view sat_id) = 0;
+  // Extends every lease `owner` holds at now (not expired) to now + ttl, in one statement;
+  // returns them (sat_id, epoch). A lease the caller thinks it holds and that is not among them
+  // (expired, or taken over: another epoch) is lost.
+  virtual std::vector<Lease> renew_all(std::string_view owner, int64_t now_utime,
+                                       int64_t ttl_utime) = 0;
+
+  // The daemons sharing the database (table `stations`): `station` is live until now + ttl.
+  virtual void heartbeat(std::string_view station, int64_t now_utime, int64_t ttl_utime) = 0;
+  // Ends `station`'s heartbeat at now (a clean stop: the others rebalance at once).
+  virtual void leave(std::string_view station, int64_t now_utime) = 0;
+  // The stations live at now, sorted.
+  virtual std::vector<std::string> live_stations(int64_t now_utime) = 0;
+
  protected:
   // Both backends' argument check: a non-empty owner, a positive time to live.
   static void check_request(std::string_view owner, int64_t ttl_utime);

@@ -147,6 +147,12 @@ class SqliteLeaseStore final : public LeaseStore {
   bool holds(std::string_view sat_id, std::string_view owner, int64_t epoch) override;
   std::optional<Lease> get(std::string_view sat_id) override;
   std::vector<Lease> list() override;
+  void ensure(std::string_view sat_id) override;
+  std::vector<Lease> renew_all(std::string_view owner, int64_t now_utime,
+                               int64_t ttl_utime) override;
+  void heartbeat(std::string_view station, int64_t now_utime, int64_t ttl_utime) override;
+  void leave(std::string_view station, int64_t now_utime) override;
+  std::vector<std::string> live_stations(int64_t now_utime) override;
 
  private:
   Statement acquire_;
@@ -155,6 +161,11 @@ class SqliteLeaseStore final : public LeaseStore {
   Statement holds_;
   Statement get_;
   Statement list_;
+  Statement ensure_;
+  Statement renew_all_;
+  Statement heartbeat_;
+  Statement leave_;
+  Statement live_;
 };
 
 class SqliteMetaStore final : public MetaStore {

@@ -46,4 +46,20 @@ inline constexpr const char* kLeaseAcquire =
     "WHERE leases.owner = excluded.owner OR leases.expires_utime <= excluded.acquired_utime "
     "RETURNING sat_id, owner, epoch, acquired_utime, expires_utime";
 
+// A lease row without an owner: expired (0), epoch 0, so its first owner gets epoch 1.
+inline constexpr const char* kLeaseEnsure =
+    "INSERT INTO leases (sat_id, owner, epoch, acquired_utime, expires_utime) "
+    "VALUES (?1, '', 0, 0, 0) ON CONFLICT (sat_id) DO NOTHING";
+
+// Only leases still held: a released or expired one is not brought back (another daemon may be
+// taking it at this moment).
+inline constexpr const char* kLeaseRenewAll =
+    "UPDATE leases SET expires_utime = ?2 + ?3 WHERE owner = ?1 AND expires_utime > ?2 "
+    "RETURNING sat_id, owner, epoch, acquired_utime, expires_utime";
+
+inline constexpr const char* kStationHeartbeat =
+    "INSERT INTO stations (station, heartbeat_utime, expires_utime) VALUES (?1, ?2, ?2 + ?3) "
+    "ON CONFLICT (station) DO UPDATE SET heartbeat_utime = excluded.heartbeat_utime, "
+    "expires_utime = excluded.expires_utime";
+
 }  // namespace magcal::storage::columns

@@ -264,8 +264,14 @@ struct Daemon::Impl {
 
   void refit_all(const RefitRequest& req) {
     StorageRetry retry("refit", config.storage.max_failure_s, counters);
-    const auto sats = req.sat_id.empty() ? retry.run_blocking([&] { return refits->spacecraft(); })
-                                         : std::vector<std::string>{req.sat_id};
+    // The wall-clock schedule refits the spacecraft this daemon owns (design.md "Fleet"); the
+    // others' owners refit theirs.
+    std::vector<std::string> sats = req.sat_id.empty()
+                                        ? retry.run_blocking([&] { return refits->spacecraft(); })
+                                        : std::vector<std::string>{req.sat_id};
+    if (req.sat_id.empty()) {
+      std::erase_if(sats, [this](const std::string& sat) { return !worker->owns(sat); });
+    }
     for (const auto& sat : sats) {
       const auto out = run_refit(retry, sat, req);
       if (out.kind == RefitOutcome::Kind::kClaimedElsewhere) {
@@ -412,7 +418,11 @@ struct Daemon::Impl {
       }
     }
     if (fatal.load()) return;
-    // Drained (end of log or stop): store everything, retrying until max_failure_s.
+    // Drained (end of log or stop): store everything, retrying until max_failure_s; the owned
+    // filters take every stored sample (their refits still run: this thread is the refit
+    // thread's client).
+    worker->flush();
+    worker->track_all_now();
     worker->flush();
   }
 };
@@ -529,6 +539,7 @@ int Daemon::run(const std::atomic<bool>& stop) {
       d.worker->settle_held();    // first samples stored, unconfirmed jumps counted
       d.worker->flush();
       d.worker->save_filter_states();
+      d.worker->leave_fleet();  // the other daemons take its spacecraft over at once
     });
   }
   if (d.fatal.load()) {

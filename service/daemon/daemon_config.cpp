@@ -198,6 +198,8 @@ std::map<std::string, Section> key_table(DaemonConfig& c) {
         {"max_position_km", bind(c.service.max_position_km)}}},
       {"http", {{"listen", bind(c.http.listen)}}},
       {"station", {{"id", bind(c.station.id)}}},
+      {"fleet",
+       {{"lease_s", bind(c.fleet.lease_s)}, {"reorder_delay_s", bind(c.fleet.reorder_delay_s)}}},
   };
 }
 
@@ -287,6 +289,12 @@ std::string DaemonConfig::validate() const {
   if (!(log.status_every_s > 0.0)) return "[log] status_every_s: must be > 0";
   if (auto e = check_listen(http.listen); !e.empty()) return e;
   if (auto e = check_station_id(station.id); !e.empty()) return e;
+  if (!(fleet.lease_s >= 1.0 && fleet.lease_s <= 3600.0)) {
+    return "[fleet] lease_s: must be within [1, 3600] s";
+  }
+  if (!(fleet.reorder_delay_s >= 0.0 && fleet.reorder_delay_s <= 86400.0)) {
+    return "[fleet] reorder_delay_s: must be within [0, 86400] s";
+  }
   // Bounded so that the microsecond conversions stay far from the int64 limits.
   if (!(ingest.max_time_jump_s >= 1.0 && ingest.max_time_jump_s <= 1e6)) {
     return "[ingest] max_time_jump_s: must be within [1, 1e6] s";

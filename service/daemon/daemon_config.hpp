@@ -106,6 +106,23 @@ struct DaemonConfig {
     std::string id = default_station_id();  // the host name
   } station;
 
+  // Ownership of spacecraft among the daemons sharing a database (design.md "Fleet"). One
+  // daemon alone owns every spacecraft; several share them evenly.
+  struct Fleet {
+    // A spacecraft's owner renews its lease every lease_s / 3; when the owner dies another
+    // daemon takes the spacecraft over within about lease_s * 4/3 (the lease runs out, then
+    // the next renewal round of a live daemon takes it). 30 s: a takeover within the issue's
+    // 60 s, and a database hiccup of up to 20 s costs no handover.
+    double lease_s = 30.0;
+    // The owner's UKF takes the union of all stations' stored samples in time order, up to
+    // this much data time behind the newest stored one (or all of them once no new sample
+    // came for this long in wall time): a sample another station stores later than that, with
+    // an older time, is stored and used by refits, not by the online filter. 60 s covers the
+    // delivery delays of live stations; a replay of several stations' logs needs the skew of
+    // their replays.
+    double reorder_delay_s = 60.0;
+  } fleet;
+
   // The operations server (design.md "Operations surface"): /metrics, /-/healthy, /-/ready, the
   // history API and the page, read-only, on its own thread and database connection.
   struct Http {
@@ -123,6 +140,8 @@ struct DaemonConfig {
   int64_t window_utime() const { return static_cast<int64_t>(storage.window_hours * 3.6e9); }
   int64_t max_time_jump_utime() const { return static_cast<int64_t>(ingest.max_time_jump_s * 1e6); }
   int64_t max_future_utime() const { return static_cast<int64_t>(ingest.max_future_s * 1e6); }
+  int64_t lease_utime() const { return static_cast<int64_t>(fleet.lease_s * 1e6); }
+  int64_t reorder_delay_utime() const { return static_cast<int64_t>(fleet.reorder_delay_s * 1e6); }
 };
 
 struct ConfigLoad {

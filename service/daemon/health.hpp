@@ -63,6 +63,8 @@ struct SpacecraftCounters {
   std::atomic<int64_t> refits_claimed_elsewhere{0};
   // Data time of the newest accepted refit (its t_ref), 0 = none.
   std::atomic<int64_t> last_refit_success_utime{0};
+  // This daemon holds its lease: runs its UKF and refits (design.md "Fleet").
+  std::atomic<bool> owned{false};
 
   // The newest stored UKF snapshot: bias and its 1-sigma (nT, sensor frame), and its verdict.
   struct UkfSnapshot {
@@ -149,6 +151,9 @@ struct DaemonCounters {
   std::atomic<int64_t> storage_failures{0};
   std::atomic<int64_t> storage_retries{0};
   std::atomic<int64_t> storage_pending{0};
+  // Spacecraft leases lost to another daemon (this one stalled past the lease, or the database
+  // was unreachable for that long): their filters stopped here and went on there.
+  std::atomic<int64_t> leases_lost{0};
   SpacecraftCounterTable spacecraft;
   CommitLatencyHistogram commit_seconds;
 

@@ -19,6 +19,15 @@ constexpr int64_t kNoTime = SpacecraftTracker::kNoTime;
 constexpr double kRetentionEvery_s = 2.0;                   // wall time...
 constexpr int64_t kRetentionEveryData_utime = 600'000'000;  // ...or data time
 constexpr int kRetentionChunkRows = 2000;
+// While other stations are live, the owner looks for their samples this often (wall time).
+constexpr double kUnionPoll_s = 1.0;
+
+// How much `station` prefers to own `sat_id` (rendezvous hashing): the daemons of a fleet try
+// different spacecraft first, and a handover gives back those it prefers least.
+uint64_t ownership_preference(const std::string& sat_id, const std::string& station) {
+  const uint64_t h = std::hash<std::string>{}(sat_id)*0x9E3779B97F4A7C15ULL;
+  return h ^ (std::hash<std::string>{}(station) + 0x7F4A7C15ULL + (h << 6) + (h >> 2));
+}
 
 int64_t wall_utime() {
   return std::chrono::duration_cast<std::chrono::microseconds>(
@@ -61,6 +70,7 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
       history_(db_->make_calibration_history()),
       filter_states_(db_->make_filter_state_store()),
       jobs_(db_->make_refit_job_log()),
+      leases_(db_->make_lease_store()),
       fleet_(config.ukf.filter),
       commit_retry_("commit", config.storage.max_failure_s, counters),
       read_retry_("duplicate check", config.storage.max_failure_s, counters) {
@@ -74,58 +84,242 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
 IngestWorker::~IngestWorker() = default;
 
 void IngestWorker::restore() {
-  const int64_t period = snapshot_period_utime(config_);
-  std::vector<storage::StoredSample> rows;
-  int64_t rerun = 0;
   for (const auto& sat : samples_->spacecraft()) {
     const auto newest = samples_->newest_utime(sat);
     if (!newest) continue;
-    SpacecraftTracker& t = tracker(sat, nullptr);
-    // The next early refit follows from the database: the latest refit's sample count.
-    const auto latest_refit = history_->latest_refit(sat);
-    t.n_samples = samples_->count(sat);
-    t.next_early_refit_samples =
-        config_.early_refits().next_after(latest_refit ? latest_refit->n_samples : 0);
-    t.newest_utime = *newest;
-    t.stored_bound_utime = *newest;
-    samples_->read_window(sat, *newest, saturating_add(*newest, 1), rows);
-    if (!rows.empty()) t.last_seq = rows.back().seq;
-    rerun += restore_filter(sat, t, *newest, rows);
-    // The snapshot times of an uninterrupted run: every period from its first sample, the next
-    // one after its newest (snapshots are committed with their samples).
-    const FilterState& st = t.ukf.state();
-    const int64_t grid = st.has_time && st.first_utime <= *newest ? st.first_utime : *newest;
-    t.next_snapshot_utime = grid + ((*newest - grid) / period + 1) * period;
-    data_clock_utime_ = std::max(data_clock_utime_, *newest);
-    if (t.data_refits) {
-      // Its clock resumes after the last scheduled refit that ran to its end (or at its oldest
-      // stored sample before any): a later due time had its samples committed, but its refit
-      // was interrupted or never started, so the first frame runs it (file comment).
+    restore_received(sat, tracker(sat, nullptr), *newest);
+  }
+  counters_.n_spacecraft.store(static_cast<int32_t>(fleet_.size()));
+  // A daemon alone takes every spacecraft now; after a restart its own leases at once.
+  maintain_leases();
+  if (fleet_.size() > 0) {
+    size_t owned = 0;
+    fleet_.for_each([&](const std::string&, SpacecraftTracker& t) { owned += t.owned ? 1 : 0; });
+    spdlog::info("restored {} spacecraft from {} ({} owned here, of {} live station(s))",
+                 fleet_.size(), db_->name(), owned, live_stations_);
+  }
+}
+
+void IngestWorker::restore_received(const std::string& sat, SpacecraftTracker& t,
+                                    int64_t newest_utime) {
+  t.newest_utime = newest_utime;
+  t.stored_bound_utime = newest_utime;
+  samples_->read_window(sat, newest_utime, saturating_add(newest_utime, 1), union_rows_);
+  if (!union_rows_.empty()) t.last_seq = union_rows_.back().seq;
+  data_clock_utime_ = std::max(data_clock_utime_, newest_utime);
+}
+
+void IngestWorker::take_over(const std::string& sat, SpacecraftTracker& t, int64_t epoch) {
+  t.ukf = MagnetometerUkf(config_.ukf.filter);
+  t.temperature = TemperatureCorrection{};
+  t.anchor_calibration_id = 0;
+  t.deferred_reanchor_id = 0;
+  t.deferred_reanchor_utime = kNoTime;
+  t.state_dirty = t.state_due = false;
+  restore_filter(sat, t);
+  const FilterState& st = t.ukf.state();
+  // The filter goes on after its state's last sample (track_union()); with no state, from the
+  // oldest stored one.
+  t.filtered_utime = st.has_time ? st.last_utime : kNoTime;
+  const auto newest = samples_->newest_utime(sat);
+  t.union_newest_utime = newest.value_or(kNoTime);
+  t.union_grew_wall_utime = wall_utime();
+  t.union_due = true;
+  // The next early refit follows from the database: the latest refit's sample count; the
+  // samples counted are those the state has taken.
+  const auto latest_refit = history_->latest_refit(sat);
+  t.n_samples = t.filtered_utime == kNoTime
+                    ? 0
+                    : samples_->count_in_window(sat, std::numeric_limits<int64_t>::min() / 2,
+                                                saturating_add(t.filtered_utime, 1));
+  t.next_early_refit_samples =
+      config_.early_refits().next_after(latest_refit ? latest_refit->n_samples : 0);
+  // The snapshot times of an uninterrupted run: every period from its first sample, the next
+  // one after its state's last (snapshots are committed with the state).
+  const int64_t period = snapshot_period_utime(config_);
+  if (t.filtered_utime != kNoTime) {
+    const int64_t grid = st.first_utime <= t.filtered_utime ? st.first_utime : t.filtered_utime;
+    t.next_snapshot_utime = grid + ((t.filtered_utime - grid) / period + 1) * period;
+  } else {
+    t.next_snapshot_utime = kNoTime;
+  }
+  t.data_refits.reset();
+  if (data_schedule_) {
+    t.data_refits.emplace(*data_schedule_);
+    // Its clock resumes after the last scheduled refit that ran to its end (or at its oldest
+    // stored sample before any): a later due time had its samples committed, but its refit
+    // was interrupted or never started, so the filter's next sample runs it (file comment).
+    if (newest) {
       const int64_t resume = jobs_->newest_finished_scheduled_utime(sat).value_or(
           samples_->oldest_utime(sat).value_or(*newest));
       t.data_refits->advance(std::min(resume, *newest));
     }
   }
-  counters_.n_spacecraft.store(static_cast<int32_t>(fleet_.size()));
-  if (fleet_.size() > 0) {
-    spdlog::info("restored {} spacecraft from {} (UKF re-run over {} stored samples)",
-                 fleet_.size(), db_->name(), rerun);
+  t.owned = true;
+  t.lease_epoch = epoch;
+  {
+    std::lock_guard lock(owned_mutex_);
+    owned_names_.insert(sat);
+  }
+  counters_.spacecraft.spacecraft(sat).owned.store(true, std::memory_order_relaxed);
+  spdlog::info("{}: owned here (lease epoch {}); its UKF goes on from {}", sat, epoch,
+               t.filtered_utime == kNoTime ? std::string("its first stored sample")
+                                           : format_iso8601_utc(t.filtered_utime));
+}
+
+void IngestWorker::give_up(const std::string& sat, SpacecraftTracker& t) {
+  t.owned = false;
+  t.lease_epoch = 0;
+  t.state_due = t.state_dirty = false;
+  t.data_refits.reset();
+  t.next_early_refit_samples = 0;
+  t.ukf = MagnetometerUkf(config_.ukf.filter);  // nothing of the old filter is used again
+  std::erase(states_due_, sat);
+  std::erase_if(pending_snapshots_, [&](const PendingSnapshot& p) { return p.sat_id == sat; });
+  {
+    std::lock_guard lock(owned_mutex_);
+    owned_names_.erase(sat);
+  }
+  counters_.spacecraft.spacecraft(sat).owned.store(false, std::memory_order_relaxed);
+}
+
+bool IngestWorker::owns(const std::string& sat_id) const {
+  std::lock_guard lock(owned_mutex_);
+  return owned_names_.count(sat_id) > 0;
+}
+
+void IngestWorker::maintain_leases() {
+  const auto now_steady = std::chrono::steady_clock::now();
+  next_lease_round_ =
+      now_steady + std::chrono::microseconds(std::max<int64_t>(1, config_.lease_utime() / 3));
+  const int64_t now = wall_utime();
+  const int64_t ttl = config_.lease_utime();
+  const std::string& me = config_.station.id;
+  std::vector<std::pair<std::string, int64_t>> acquired;  // (sat, epoch), taken over below
+  try {
+    leases_->heartbeat(me, now, ttl);
+    for (const auto& sat : unregistered_) leases_->ensure(sat);
+    unregistered_.clear();
+    std::unordered_map<std::string, int64_t> renewed;
+    for (const auto& l : leases_->renew_all(me, now, ttl)) renewed.emplace(l.sat_id, l.epoch);
+    size_t held = 0;
+    fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
+      if (!t.owned) return;
+      const auto it = renewed.find(sat);
+      if (it == renewed.end() || it->second != t.lease_epoch) {
+        spdlog::warn("{}: lease lost (expired or taken over): its UKF stops here", sat);
+        counters_.leases_lost.fetch_add(1, std::memory_order_relaxed);
+        give_up(sat, t);
+        return;
+      }
+      ++held;
+    });
+    // Leases still this station's that this process does not know it holds (it restarted
+    // within their time to live): taken over at once.
+    for (const auto& [sat, epoch] : renewed) {
+      const SpacecraftTracker* t = fleet_.find(sat);
+      if (t == nullptr || !t->owned) {
+        acquired.emplace_back(sat, epoch);
+        ++held;
+      }
+    }
+    const std::vector<storage::Lease> all = leases_->list();
+    live_stations_ = std::max<size_t>(1, leases_->live_stations(now).size());
+    const size_t share = (all.size() + live_stations_ - 1) / live_stations_;
+    if (held > share) {
+      // Hand over the ones this station prefers least (the others take them at their next
+      // round); their states are committed first.
+      std::vector<std::pair<uint64_t, std::string>> mine;
+      fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
+        if (t.owned) mine.emplace_back(ownership_preference(sat, me), sat);
+      });
+      std::sort(mine.begin(), mine.end());
+      flush();
+      for (size_t i = 0; i < mine.size() && held > share; ++i) {
+        SpacecraftTracker& t = *fleet_.find(mine[i].second);
+        if (t.state_dirty) {
+          storage::Transaction tx(*db_);
+          if (leases_->holds(mine[i].second, me, t.lease_epoch)) {
+            filter_states_->save(stored_state(mine[i].second, t));
+          }
+          tx.commit();
+        }
+        leases_->release(mine[i].second, me, t.lease_epoch, wall_utime());
+        spdlog::info("{}: handed over ({} live stations share {} spacecraft)", mine[i].second,
+                     live_stations_, all.size());
+        give_up(mine[i].second, t);
+        --held;
+      }
+    } else if (held < share) {
+      std::vector<std::pair<uint64_t, std::string>> free;
+      for (const auto& l : all) {
+        if (l.held_at(now)) continue;
+        free.emplace_back(ownership_preference(l.sat_id, me), l.sat_id);
+      }
+      std::sort(free.rbegin(), free.rend());
+      for (size_t i = 0; i < free.size() && held < share; ++i) {
+        if (const auto lease = leases_->try_acquire(free[i].second, me, now, ttl)) {
+          acquired.emplace_back(free[i].second, lease->epoch);
+          ++held;
+        }
+      }
+    }
+  } catch (const storage::StorageError& e) {
+    // Retried at the next round; a lease that runs out meanwhile is given up there.
+    counters_.storage_failures.fetch_add(1, std::memory_order_relaxed);
+    warnings_.warn("leases", fmt::format("database: lease round failed, retried in {:.0f} s: {}",
+                                         config_.fleet.lease_s / 3, e.what()));
+  }
+  for (const auto& [sat, epoch] : acquired) {
+    bool created = false;
+    SpacecraftTracker& t = tracker(sat, &created);
+    try {
+      if (created) {
+        // Not received here (yet): its time base from the stored window.
+        counters_.n_spacecraft.store(static_cast<int32_t>(fleet_.size()));
+        if (const auto newest = samples_->newest_utime(sat)) restore_received(sat, t, *newest);
+      }
+      take_over(sat, t, epoch);
+    } catch (const storage::StorageError& e) {
+      counters_.storage_failures.fetch_add(1, std::memory_order_relaxed);
+      spdlog::error("{}: takeover failed, lease given back: {}", sat, e.what());
+      give_up(sat, t);
+      try {
+        leases_->release(sat, me, epoch, wall_utime());
+      } catch (const storage::StorageError&) {
+        // It runs out by itself.
+      }
+    }
   }
 }
 
-int64_t IngestWorker::restore_filter(const std::string& sat, SpacecraftTracker& t,
-                                     int64_t newest_utime,
-                                     std::vector<storage::StoredSample>& rows) {
+void IngestWorker::leave_fleet() {
+  flush();
+  save_filter_states();
+  const std::string& me = config_.station.id;
+  try {
+    fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
+      if (!t.owned) return;
+      if (!t.state_dirty) leases_->release(sat, me, t.lease_epoch, wall_utime());
+      give_up(sat, t);
+    });
+    leases_->leave(me, wall_utime());
+  } catch (const storage::StorageError& e) {
+    // The leases and the heartbeat run out by themselves.
+    spdlog::warn("database: leases not handed back at stop ({}); they expire within {} s", e.what(),
+                 config_.fleet.lease_s);
+  }
+}
+
+void IngestWorker::restore_filter(const std::string& sat, SpacecraftTracker& t) {
   const auto reanchor_id = jobs_->newest_reanchor_calibration_id(sat);
-  int64_t from = saturating_sub(newest_utime, config_.window_utime()) + 1;
   std::optional<int64_t> anchor_id = 0;  // none (the filter starts afresh)
   if (const auto stored = filter_states_->load(sat, "ukf")) {
     FilterState st;
     if (const std::string why = filter_state_from_stored(*stored, st); why.empty()) {
-      t.ukf.restore(st);
       // Started or still collecting: the state holds every sample up to last_utime (in x
-      // and P, or in the start's moments); re-running them would count them twice.
-      if (st.has_time) from = std::max(from, st.last_utime + 1);
+      // and P, or in the start's moments); the filter goes on after it.
+      t.ukf.restore(st);
       anchor_id = stored->anchor_calibration_id;
     } else {
       spdlog::warn("{}: stored filter state unreadable ({}); re-running the UKF over the window",
@@ -133,45 +327,131 @@ int64_t IngestWorker::restore_filter(const std::string& sat, SpacecraftTracker& 
     }
   }
   // The samples after the state were filtered with the temperature model of the refit it is
-  // anchored on: so is their re-run. (A state saved before schema 4 does not say which refit it
+  // anchored on: so are they now. (A state saved before schema 4 does not say which refit it
   // has: taken as the newest, it was saved at a clean stop, after the re-anchor.)
   t.anchor_calibration_id = anchor_id.value_or(reanchor_id.value_or(0));
   if (t.anchor_calibration_id > 0) {
     if (const auto rec = history_->get(t.anchor_calibration_id))
       t.temperature.take_from(result_from_record(*rec), rec->id);
   }
-  int64_t rerun = 0;
-  if (from <= newest_utime) {
-    samples_->read_window(sat, from, saturating_add(newest_utime, 1), rows);
-    for (const auto& r : rows) t.update_filter(calibration_sample_from_stored(r));
-    rerun = static_cast<int64_t>(rows.size());
-    t.state_dirty = !rows.empty();
-  }
   if (reanchor_id && *reanchor_id > t.anchor_calibration_id) {
+    // An accepted refit the state was not re-anchored on (its owner died before it stored the
+    // re-anchored state): applied after the samples up to the refit's time, where the
+    // uninterrupted filter took it (the refit's estimate includes them: re-anchoring before
+    // them would count them twice).
+    t.deferred_reanchor_id = *reanchor_id;
     if (const auto rec = history_->get(*reanchor_id)) {
-      spdlog::info("{}: the stored UKF state predates the accepted refit of {}: re-anchoring now",
-                   sat, format_iso8601_utc(rec->utime));
-      reanchor(sat, t, result_from_record(*rec), rec->id);
+      spdlog::info(
+          "{}: the stored UKF state predates the accepted refit of {}: re-anchored on "
+          "it from there",
+          sat, format_iso8601_utc(rec->utime));
+      t.deferred_reanchor_utime = rec->utime;
+      const FilterState& st = t.ukf.state();
+      if (st.has_time && st.last_utime >= rec->utime) apply_deferred_reanchor(sat, t);
     }
   }
-  return rerun;
+}
+
+void IngestWorker::apply_deferred_reanchor(const std::string& sat, SpacecraftTracker& t) {
+  const int64_t id = t.deferred_reanchor_id;
+  t.deferred_reanchor_id = 0;
+  t.deferred_reanchor_utime = kNoTime;
+  if (const auto rec = history_->get(id)) reanchor(sat, t, result_from_record(*rec), rec->id);
+}
+
+void IngestWorker::track_union(const std::string& sat, SpacecraftTracker& t, bool drain) {
+  t.union_due = false;
+  // An accepted refit posted meanwhile applies before the samples committed since.
+  if (have_reanchors_.load(std::memory_order_acquire)) apply_reanchors();
+  if (!t.owned) return;
+  const int64_t from =
+      t.filtered_utime == kNoTime ? std::numeric_limits<int64_t>::min() / 2 : t.filtered_utime + 1;
+  samples_->read_window(sat, from, std::numeric_limits<int64_t>::max(), union_rows_);
+  if (union_rows_.empty()) return;
+  const int64_t now = wall_utime();
+  const int64_t newest = union_rows_.back().utime;
+  if (newest > t.union_newest_utime) {
+    t.union_newest_utime = newest;
+    t.union_grew_wall_utime = now;
+  }
+  // Samples of another station may still come for the last reorder_delay of data time; once
+  // none came for that long in wall time, the pass is over.
+  const bool quiet = now - t.union_grew_wall_utime >= config_.reorder_delay_utime();
+  const int64_t horizon =
+      drain || quiet ? newest : saturating_sub(newest, config_.reorder_delay_utime());
+  bool state_was_due = t.state_due;
+  for (const auto& row : union_rows_) {
+    if (row.utime > horizon) break;
+    if (!t.owned) return;  // lost during a flush below
+    if (t.deferred_reanchor_utime != kNoTime && row.utime > t.deferred_reanchor_utime) {
+      apply_deferred_reanchor(sat, t);
+    }
+    const CalibrationSample sample = calibration_sample_from_stored(row);
+    if (!t.update_filter(sample)) {
+      warnings_.warn("no_temperature",
+                     fmt::format("{}: sample at {} without a temperature (none within {} s): "
+                                 "stored, not used by the UKF, whose anchor refit models the "
+                                 "temperature",
+                                 sat, format_iso8601_utc(row.utime),
+                                 TemperatureCorrection::kTemperatureHoldMax_utime / 1000000));
+    }
+    t.state_dirty = true;
+    counters_.ukf_updates.fetch_add(1, std::memory_order_relaxed);
+    t.filtered_utime = row.utime;
+    ++t.n_samples;
+    maybe_snapshot(sat, t, row.utime);
+    check_early_refit(sat, t);
+    if (data_schedule_) check_data_clock(sat, t);
+    // A replay waits for the refits it triggers: their re-anchor applies from the next sample.
+    if (have_reanchors_.load(std::memory_order_acquire)) apply_reanchors();
+    state_was_due = state_was_due || t.state_due;
+  }
+  // A state due here (a snapshot, a re-anchor) but stored by a flush above goes in again with
+  // every sample read now: a restart then re-runs none of them.
+  if (state_was_due && t.owned) mark_state_due(sat, t);
+  // Its retention follows the filter (run_retention()).
+  retention_clock_utime_ = std::max(retention_clock_utime_, t.filtered_utime);
+  if (!t.retention_due) {
+    t.retention_due = true;
+    retention_dirty_.push_back(sat);
+  }
+}
+
+void IngestWorker::track_due() {
+  if (tracking_) return;
+  tracking_ = true;
+  struct Done {
+    bool& flag;
+    ~Done() { flag = false; }
+  } done{tracking_};
+  const auto now = std::chrono::steady_clock::now();
+  // Alone, this station stores every sample: its own commits say when to read.
+  const bool poll = live_stations_ > 1 && now >= next_union_poll_;
+  if (poll) {
+    next_union_poll_ = now + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                                 std::chrono::duration<double>(kUnionPoll_s));
+  }
+  fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
+    if (t.owned && (t.union_due || poll)) track_union(sat, t, false);
+  });
+}
+
+void IngestWorker::track_all_now() {
+  if (tracking_) return;
+  tracking_ = true;
+  struct Done {
+    bool& flag;
+    ~Done() { flag = false; }
+  } done{tracking_};
+  fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
+    if (t.owned) track_union(sat, t, true);
+  });
+  last_retention_data_utime_ = std::numeric_limits<int64_t>::min() / 2;  // at the next commit
 }
 
 void IngestWorker::process(const IngestItem& item) {
-  if (have_reanchors_.load(std::memory_order_acquire)) apply_reanchors();
   ++frame_counter_;
   for (const auto& s : item.samples) ingest_sample(s, item.batch_sat_id, item.receive_utime);
-  // A frame holds one spacecraft (a batch) or one sample: one check per run of ids.
-  const std::string* checked = nullptr;
-  for (const auto& s : item.samples) {
-    const std::string& sat = sample_sat_id(s, item.batch_sat_id);
-    if (checked && *checked == sat) continue;
-    checked = &sat;
-    SpacecraftTracker* t = fleet_.find(sat);
-    if (!t) continue;  // every sample of the run rejected before it had a tracker
-    check_early_refit(sat, *t);
-    if (data_schedule_) check_data_clock(sat, *t);
-  }
 }
 
 SpacecraftTracker& IngestWorker::tracker(const std::string& sat_id, bool* created) {
@@ -179,8 +459,10 @@ SpacecraftTracker& IngestWorker::tracker(const std::string& sat_id, bool* create
   SpacecraftTracker& t = fleet_.get(sat_id, &is_new);
   // Its counters are looked up once, here; the per-sample path uses the cached pointer.
   if (is_new) t.counters = &counters_.spacecraft.spacecraft(sat_id);
-  if (is_new && data_schedule_) t.data_refits.emplace(*data_schedule_);
-  if (is_new) t.next_early_refit_samples = config_.early_refits().next_after(0);
+  if (is_new) {
+    unregistered_.push_back(sat_id);  // its lease row, at once
+    next_lease_round_ = {};
+  }
   if (created) *created = is_new;
   return t;
 }
@@ -302,19 +584,9 @@ void IngestWorker::accept_sample(const std::string& sat, SpacecraftTracker& t,
     reject_sample(RejectReason::kReferenceFailed, sat, s);
     return;
   }
-  if (!t.update_filter(*sample)) {
-    warnings_.warn("no_temperature",
-                   fmt::format("{}: sample at {} without a temperature (none within {} s): stored, "
-                               "not used by the UKF, whose anchor refit models the temperature",
-                               sat, format_iso8601_utc(s.utime),
-                               TemperatureCorrection::kTemperatureHoldMax_utime / 1000000));
-  }
-  t.state_dirty = true;
-  counters_.ukf_updates.fetch_add(1, std::memory_order_relaxed);
-
+  // Its spacecraft's owner (this daemon or another) filters it once it is stored.
   if (pending_.empty()) first_pending_time_ = std::chrono::steady_clock::now();
   fill_stored_sample(s, sat, *sample, receive_utime, pending_.emplace_back());
-  ++t.n_samples;
   t.stored_bound_utime = std::max(t.stored_bound_utime, s.utime);
   const bool advanced = s.utime > t.newest_utime;
   if (advanced) {
@@ -326,7 +598,7 @@ void IngestWorker::accept_sample(const std::string& sat, SpacecraftTracker& t,
     retention_dirty_.push_back(sat);
   }
   data_clock_utime_ = std::max(data_clock_utime_, s.utime);
-  maybe_snapshot(sat, t, s.utime);
+  if (!t.owned) retention_clock_utime_ = std::max(retention_clock_utime_, s.utime);
   if (static_cast<int>(pending_.size()) >= config_.storage.commit_every_samples) commit();
   if (advanced && !t.held.empty()) resolve_held(sat, t);
 }
@@ -471,11 +743,13 @@ void IngestWorker::commit_if_due() {
   if (have_reanchors_.load(std::memory_order_acquire)) apply_reanchors();
   const auto now = std::chrono::steady_clock::now();
   release_first_holds(now);
+  if (now >= next_lease_round_) maintain_leases();
   if (!pending_.empty() || !pending_snapshots_.empty() || !states_due_.empty()) {
     const double age_ms =
         std::chrono::duration<double, std::milli>(now - first_pending_time_).count();
     if (age_ms >= config_.storage.commit_every_ms || pending_.empty()) commit();
   }
+  if (!commit_retry_.failing()) track_due();
   if (!retention_dirty_.empty() && !commit_retry_.failing() &&
       std::chrono::duration<double>(now - last_retention_time_).count() >= kRetentionEvery_s) {
     run_retention();
@@ -483,21 +757,31 @@ void IngestWorker::commit_if_due() {
 }
 
 void IngestWorker::commit() {
-  if ((!pending_.empty() || !pending_snapshots_.empty() || !states_due_.empty()) &&
-      commit_retry_.due()) {
+  // Two rounds: the samples, then what the owned filters made of them (snapshots, states), so
+  // that after commit() everything they produced from committed samples is stored too.
+  for (int round = 0; round < 2; ++round) {
+    if (!(!pending_.empty() || !pending_snapshots_.empty() || !states_due_.empty()) ||
+        !commit_retry_.due()) {
+      break;
+    }
     commit_retry_.attempting();
     try {
       commit_pending();
       commit_retry_.succeeded();
     } catch (const storage::StorageError& e) {
-      // Samples and snapshots stay pending (the UKF has used them: they must be stored).
+      // Samples and snapshots stay pending.
       commit_retry_.failed(e);  // throws StorageOutage when storage stays broken
       return;
     }
+    if (tracking_) break;  // a flush inside track_union(): it goes on by itself
+    // A new spacecraft gets its lease row and, when this daemon's share allows, its owner here
+    // before its first samples are read back.
+    if (std::chrono::steady_clock::now() >= next_lease_round_) maintain_leases();
+    track_due();
   }
   // Retention by data time too, so a fast replay keeps its windows as a live feed would.
   if (!retention_dirty_.empty() && !commit_retry_.failing() &&
-      (data_clock_utime_ - last_retention_data_utime_ >= kRetentionEveryData_utime ||
+      (retention_clock_utime_ - last_retention_data_utime_ >= kRetentionEveryData_utime ||
        std::chrono::duration<double>(std::chrono::steady_clock::now() - last_retention_time_)
                .count() >= kRetentionEvery_s)) {
     run_retention();
@@ -531,6 +815,7 @@ void IngestWorker::commit_pending() {
         stats = samples_->insert_batch(std::span(pending_).subspan(done, n), &duplicate_rows_,
                                        config_.station.id);
         if (last) {
+          fence_owned_writes();
           for (const auto& p : pending_snapshots_) {
             storage::CalibrationRecord rec = record_from_result(p.sat_id, p.result);
             rec.temperature_model_refit_id = p.temperature_model_refit_id;
@@ -544,6 +829,7 @@ void IngestWorker::commit_pending() {
         }
         tx.commit();
       }
+      mark_union_due(done, done + n);
       count_stored(done, done + n);
       done += n;
       counters_.stored.fetch_add(stats.inserted, std::memory_order_relaxed);
@@ -573,6 +859,41 @@ void IngestWorker::commit_pending() {
   reset_pending_index();
 }
 
+void IngestWorker::fence_owned_writes() {
+  // Only while the lease is still this daemon's (on PostgreSQL its row stays locked until the
+  // commit, so a takeover waits for it): a daemon that stalled past its lease writes nothing.
+  const std::string& me = config_.station.id;
+  std::vector<std::string> lost;
+  auto check = [&](const std::string& sat) {
+    if (std::find(lost.begin(), lost.end(), sat) != lost.end()) return;
+    const SpacecraftTracker* t = fleet_.find(sat);
+    if (t == nullptr || !t->owned || !leases_->holds(sat, me, t->lease_epoch)) lost.push_back(sat);
+  };
+  std::string last_checked;
+  for (const auto& p : pending_snapshots_) {
+    if (p.sat_id != last_checked) check(p.sat_id);
+    last_checked = p.sat_id;
+  }
+  for (const auto& sat : states_due_) check(sat);
+  for (const auto& sat : lost) {
+    spdlog::warn(
+        "{}: lease lost before its snapshots were stored: dropped (the new owner makes "
+        "them)",
+        sat);
+    counters_.leases_lost.fetch_add(1, std::memory_order_relaxed);
+    if (SpacecraftTracker* t = fleet_.find(sat)) give_up(sat, *t);
+  }
+}
+
+void IngestWorker::mark_union_due(size_t begin, size_t end) {
+  const std::string* last = nullptr;
+  for (size_t i = begin; i < end; ++i) {
+    if (last != nullptr && *last == pending_[i].sat_id) continue;
+    last = &pending_[i].sat_id;
+    if (SpacecraftTracker* t = fleet_.find(*last); t != nullptr && t->owned) t->union_due = true;
+  }
+}
+
 void IngestWorker::flush() {
   while (!pending_.empty() || !pending_snapshots_.empty() || !states_due_.empty()) {
     if (!commit_retry_.due()) std::this_thread::sleep_until(commit_retry_.next_attempt());
@@ -582,7 +903,7 @@ void IngestWorker::flush() {
 
 void IngestWorker::run_retention() {
   last_retention_time_ = std::chrono::steady_clock::now();
-  last_retention_data_utime_ = data_clock_utime_;
+  last_retention_data_utime_ = retention_clock_utime_;
   const int64_t window = config_.window_utime();
   const auto margin = static_cast<int64_t>(config_.storage.retention_margin_hours * 3.6e9);
   const int64_t floor = retention_floor_.load();
@@ -590,7 +911,14 @@ void IngestWorker::run_retention() {
   for (const auto& sat : retention_dirty_) {
     SpacecraftTracker* t = fleet_.find(sat);
     if (!t || t->newest_utime == kNoTime) continue;
-    const int64_t cutoff = std::min(saturating_sub(t->newest_utime, window + margin), floor);
+    // The owner's filter triggers refits at its own data time, which may lag the stored samples
+    // (the reorder delay; a replay commits ahead of it): their windows stay.
+    const int64_t edge = t->owned ? std::min(t->newest_utime, t->filtered_utime) : t->newest_utime;
+    if (edge == kNoTime) {
+      t->retention_due = false;  // due again once its filter has taken samples
+      continue;
+    }
+    const int64_t cutoff = std::min(saturating_sub(edge, window + margin), floor);
     try {
       samples_->delete_before(sat, cutoff, kRetentionChunkRows);
       t->retention_due = false;
@@ -605,14 +933,14 @@ void IngestWorker::run_retention() {
 }
 
 void IngestWorker::check_data_clock(const std::string& sat_id, SpacecraftTracker& t) {
-  if (!t.data_refits || t.newest_utime == kNoTime) return;
+  if (!t.data_refits || t.filtered_utime == kNoTime) return;
   const int64_t skipped_before = t.data_refits->skipped();
-  const auto due = t.data_refits->advance(t.newest_utime);
+  const auto due = t.data_refits->advance(t.filtered_utime);
   if (t.data_refits->skipped() != skipped_before) {
     warnings_.warn("refits_skipped",
                    fmt::format("{}: data clock jumped to {}: {} scheduled refits skipped, only the "
                                "latest runs",
-                               sat_id, format_iso8601_utc(t.newest_utime),
+                               sat_id, format_iso8601_utc(t.filtered_utime),
                                t.data_refits->skipped() - skipped_before));
   }
   if (due.empty()) return;
@@ -624,7 +952,7 @@ void IngestWorker::check_data_clock(const std::string& sat_id, SpacecraftTracker
 
 void IngestWorker::check_early_refit(const std::string& sat_id, SpacecraftTracker& t) {
   if (t.next_early_refit_samples <= 0 || t.n_samples < t.next_early_refit_samples ||
-      !t.ukf.initialized() || t.newest_utime == kNoTime) {
+      !t.ukf.initialized() || t.filtered_utime == kNoTime) {
     return;
   }
   flush();  // the refit reads what is committed; so does its key below
@@ -665,7 +993,10 @@ void IngestWorker::save_filter_states() {
   try {
     storage::Transaction tx(*db_);
     fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
-      if (!t.state_dirty) return;
+      if (!t.owned || !t.state_dirty) return;
+      if (!leases_->holds(sat, config_.station.id, t.lease_epoch))
+        return;  // lost: the next
+                 // round gives it up
       filter_states_->save(stored_state(sat, t));
       saved.push_back(&t);
     });
@@ -695,8 +1026,9 @@ void IngestWorker::apply_reanchors() {
     have_reanchors_.store(false, std::memory_order_release);
   }
   for (const auto& r : due_reanchors) {
-    if (SpacecraftTracker* t = fleet_.find(r.sat_id))
-      reanchor(r.sat_id, *t, r.refit, r.calibration_id);
+    // (A spacecraft handed over meanwhile: its new owner re-anchors from the database.)
+    SpacecraftTracker* t = fleet_.find(r.sat_id);
+    if (t != nullptr && t->owned) reanchor(r.sat_id, *t, r.refit, r.calibration_id);
   }
 }
 

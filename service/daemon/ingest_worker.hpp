@@ -1,12 +1,22 @@
-// The daemon's worker (design.md "Daemon data flow"): for every decoded sample
-//   validate (sample_validator.hpp, then older_than_window / duplicate against the spacecraft's
-//   tracker and store) -> reference field -> that spacecraft's UKF update -> pending row;
-// UKF snapshots every `snapshot_every_s` of DATA time (history row + calibration_t);
-// pending rows and snapshot rows are committed together, one transaction per batch
-// (commit_every_samples or commit_every_ms, whichever first), with the filter state of every
-// spacecraft that had a snapshot or a re-anchor since the last commit; retention runs in small
-// transactions after commits. With the data clock it also decides when refits are due, for each
-// spacecraft on its own data time.
+// The daemon's worker (design.md "Daemon data flow" and "Fleet"). Two parts with one job each,
+// on one thread and one database connection:
+//
+// Receive and store (every station): for every decoded sample
+//   validate (sample_validator.hpp, then the spacecraft's time base, older_than_window /
+//   duplicate against the pending batch and the store) -> reference field -> pending row;
+// pending rows are committed in one transaction per batch (commit_every_samples or
+// commit_every_ms, whichever first) with the station id; retention runs in small transactions
+// after commits.
+//
+// Track (the spacecraft's owner only): the daemon holding a spacecraft's lease (LeaseStore,
+// maintain_leases() every [fleet] lease_s / 3; the live daemons share the spacecraft evenly)
+// reads back the union of all stations' stored samples in time order, [fleet] reorder_delay_s
+// of data time behind the newest (track_union()), and runs them through the UKF: snapshots
+// every `snapshot_every_s` of DATA time (history row + calibration_t), and the refit triggers
+// (with the data clock, each spacecraft on its own data time; early refits). Snapshot rows and
+// the filter states of the spacecraft that had a snapshot or a re-anchor are committed
+// together, fenced by the lease (a daemon that lost it writes nothing). The filter only ever
+// takes committed samples, so a stored state never includes a sample that could come again.
 //
 // Storage faults (service/daemon/storage_retry.hpp): a failed commit keeps its samples and
 // snapshots pending and is retried with backoff (snapshots are published only once stored); the
@@ -15,17 +25,16 @@
 // error) throws StorageOutage out of process() / commit_if_due() / commit() / flush().
 //
 // Owns its own database connection and everything it touches, so it runs on one thread; the
-// only cross-thread entry points are post_reanchor() and the retention floor.
+// only cross-thread entry points are post_reanchor(), owns() and the retention floor.
 //
-// Restart (restore()), after a SIGTERM or a crash, or another process taking over from the
-// database: trackers come back from the stored windows; each UKF from its stored state; if that
-// state is older than the newest stored sample, the filter is re-run over the newer stored
-// samples (from their stored reference field, no IGRF: no snapshot or re-anchor falls among
-// them, as each of those stores the state). An accepted refit the stored state was not
-// re-anchored on (the process died before its next commit) is applied then, at the newest
-// stored sample, where the worker had applied it (a replay waits for its refits). Each data-clock
+// Restart (restore()), after a SIGTERM or a crash: the receive side comes back from the stored
+// windows. Taking a spacecraft over (take_over(): at a restart, or from a daemon that died or
+// handed it over): the UKF from its stored state, then the normal reading of the union goes on
+// after the state's last sample, with its snapshots and refit triggers, as the previous owner
+// would have (snapshots and states are committed together, so none is lost or repeated). An
+// accepted refit the stored state was not re-anchored on is applied then. Each data-clock
 // schedule resumes after the last scheduled refit that ran to its end, so a refit that was due
-// when the process died runs again (its samples are committed before it is due).
+// when the owner died runs again (its job claim was given up: RefitJobLog).
 #pragma once
 
 #include <atomic>
@@ -35,6 +44,7 @@
 #include <memory>
 #include <mutex>
 #include <optional>
+#include <set>
 #include <string>
 #include <unordered_map>
 #include <vector>
@@ -52,6 +62,7 @@
 #include "storage/calibration_history.hpp"
 #include "storage/connection.hpp"
 #include "storage/filter_state_store.hpp"
+#include "storage/lease_store.hpp"
 #include "storage/refit_job_log.hpp"
 #include "storage/sample_window_store.hpp"
 
@@ -79,8 +90,22 @@ class IngestWorker {
                std::unique_ptr<ReferenceField> field, Hooks hooks);
   ~IngestWorker();
 
-  // Rebuilds trackers from the database (see file comment). Call once before process().
+  // Rebuilds the receive side from the database, then takes the leases this daemon may own
+  // (see file comment). Call once before process().
   void restore();
+
+  // Heartbeat, lease renewal, takeovers and handovers (see file comment). commit_if_due() runs
+  // it every [fleet] lease_s / 3; public for tests. A storage error is logged and counted; the
+  // next round retries (leases not renewed in time are lost, and given up here).
+  void maintain_leases();
+  // At a clean stop: hands every owned spacecraft back (its state committed first) and ends
+  // the heartbeat, so the other daemons take over at once instead of after the lease time.
+  void leave_fleet();
+  // From any thread: this daemon holds sat_id's lease.
+  bool owns(const std::string& sat_id) const;
+  // The owner's filters take every stored sample, without the reorder delay (end of a replay,
+  // shutdown); their snapshots and refit triggers as usual.
+  void track_all_now();
 
   // Validates and ingests every sample of a decoded frame.
   void process(const IngestItem& item);
@@ -159,8 +184,23 @@ class IngestWorker {
   storage::FilterState stored_state(const std::string& sat_id, const SpacecraftTracker& t) const;
   // restore(), for one spacecraft: its stored filter state, the re-run over newer samples and a
   // re-anchor the state does not have yet; returns the samples re-run.
-  int64_t restore_filter(const std::string& sat_id, SpacecraftTracker& t, int64_t newest_utime,
-                         std::vector<storage::StoredSample>& rows);
+  void restore_filter(const std::string& sat_id, SpacecraftTracker& t);
+  // The re-anchor restore_filter() deferred to the refit's time (storage read errors throw).
+  void apply_deferred_reanchor(const std::string& sat_id, SpacecraftTracker& t);
+  // The receive side of a spacecraft from its stored window (its newest stored sample).
+  void restore_received(const std::string& sat_id, SpacecraftTracker& t, int64_t newest_utime);
+  // This daemon got sat_id's lease of `epoch`: the filter, its counts and schedule from the
+  // database (see file comment).
+  void take_over(const std::string& sat_id, SpacecraftTracker& t, int64_t epoch);
+  // This daemon no longer owns sat_id (lost or handed over): its filter stops, nothing of it is
+  // written any more.
+  void give_up(const std::string& sat_id, SpacecraftTracker& t);
+  // The owner's filter takes the union's stored samples after filtered_utime, up to the reorder
+  // horizon (all of them with `drain`).
+  void track_union(const std::string& sat_id, SpacecraftTracker& t, bool drain);
+  // track_union() for every owned spacecraft whose union grew here (union_due), and for all
+  // owned ones when another station may have stored samples (every kUnionPoll_s).
+  void track_due();
   void run_retention();
   // Data clock: advances sat_id's refit schedule to its newest sample; due refits are
   // committed up to their time, then handed to on_refit_due.
@@ -168,6 +208,11 @@ class IngestWorker {
   // Requests sat_id's first or next early refit once it is due (Hooks::on_refit_due).
   void check_early_refit(const std::string& sat_id, SpacecraftTracker& t);
   void commit_pending();
+  // In the commit of snapshots and states: gives up (and drops the writes of) every spacecraft
+  // whose lease is no longer this daemon's.
+  void fence_owned_writes();
+  // The owned spacecraft among the committed rows [begin, end) of pending_ read the union next.
+  void mark_union_due(size_t begin, size_t end);
   // Counts the committed rows [begin, end) of pending_ per spacecraft (minus duplicate_rows_).
   void count_stored(size_t begin, size_t end);
   SpacecraftTracker& tracker(const std::string& sat_id, bool* created);
@@ -183,6 +228,7 @@ class IngestWorker {
   std::unique_ptr<storage::CalibrationHistory> history_;
   std::unique_ptr<storage::FilterStateStore> filter_states_;
   std::unique_ptr<storage::RefitJobLog> jobs_;  // read by restore()
+  std::unique_ptr<storage::LeaseStore> leases_;
   SpacecraftFleet fleet_;
   ThrottledLog warnings_;
   std::optional<RefitSchedule> data_schedule_;  // [refit] clock = "data": each tracker's schedule
@@ -210,9 +256,22 @@ class IngestWorker {
   std::vector<std::pair<std::string, std::chrono::steady_clock::time_point>> first_holds_;
   int64_t last_retention_data_utime_ = std::numeric_limits<int64_t>::min() / 2;
   int64_t data_clock_utime_ = std::numeric_limits<int64_t>::min();
+  // Newest retention edge of any spacecraft (run_retention()): received samples of the ones
+  // owned elsewhere, the filter's time of the owned ones. Retention runs as it advances.
+  int64_t retention_clock_utime_ = std::numeric_limits<int64_t>::min() / 2;
   int64_t frame_counter_ = 0;    // frames processed (a hold needs more than one to resolve)
   bool resolving_held_ = false;  // resolve_held() is running (no re-entry)
   std::atomic<int64_t> retention_floor_{std::numeric_limits<int64_t>::max()};
+
+  // Ownership (maintain_leases()).
+  std::vector<std::string> unregistered_;  // spacecraft new here: lease rows to ensure
+  std::chrono::steady_clock::time_point next_lease_round_{};
+  std::chrono::steady_clock::time_point next_union_poll_{};
+  size_t live_stations_ = 1;  // at the last lease round (1: alone, no other station writes)
+  bool tracking_ = false;     // track_union() is running (a flush inside it must not re-enter)
+  std::vector<storage::StoredSample> union_rows_;  // reused by track_union()
+  mutable std::mutex owned_mutex_;
+  std::set<std::string> owned_names_;  // owns(), from any thread
 
   struct Reanchor {
     std::string sat_id;

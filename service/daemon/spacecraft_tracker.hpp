@@ -125,11 +125,30 @@ struct SpacecraftTracker {
   // [refit] clock = "data": this spacecraft's scheduled refits, on its own data time (its
   // newest_utime): a spacecraft backfilled behind the others gets the refits of its own days.
   std::optional<RefitScheduler> data_refits;
-  // Early refits (EarlyRefitPlan, IngestWorker::check_early_refit): samples accepted for
-  // storage (restored: the stored count), and the count at which the next one is due (0 = none:
-  // its data span window_hours, the schedule's business from then on).
+  // Early refits (EarlyRefitPlan, IngestWorker::check_early_refit): stored samples of all
+  // stations the owner's filter has taken (at a takeover: the stored count up to its state),
+  // and the count at which the next one is due (0 = none: its data span window_hours, the
+  // schedule's business from then on).
   int64_t n_samples = 0;
   int64_t next_early_refit_samples = 0;
+
+  // Ownership (IngestWorker::maintain_leases). Every daemon receives, checks and stores a
+  // spacecraft's samples (the fields above `ukf` that describe its time base); only the holder
+  // of its lease runs the UKF over the union of all stations' stored samples, its snapshots and
+  // its refit triggers (the fields from `ukf` on).
+  bool owned = false;
+  int64_t lease_epoch = 0;
+  // The owner's filter has taken every stored sample up to this time (kNoTime: none yet); a
+  // sample stored later with an older time is late for it (refits still use it).
+  int64_t filtered_utime = kNoTime;
+  // The newest stored time of any station seen by the owner, and when (wall) it last grew: the
+  // union's reorder horizon.
+  int64_t union_newest_utime = kNoTime;
+  int64_t union_grew_wall_utime = 0;
+  bool union_due = false;  // this station stored new samples: the owner reads the union now
+  // An accepted refit the taken-over state lacks, applied once the filter passes its time.
+  int64_t deferred_reanchor_id = 0;
+  int64_t deferred_reanchor_utime = kNoTime;
 
   // The UKF update of one stored (or to be stored) sample, temperature-corrected; false when
   // the filter may not use it (TemperatureCorrection).

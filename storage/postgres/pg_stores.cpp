@@ -536,6 +536,50 @@ std::vector<Lease> PgLeaseStore::list() {
   return out;
 }
 
+void PgLeaseStore::ensure(std::string_view sat_id) {
+  static const std::string sql = dollar_params(columns::kLeaseEnsure);
+  PgParams p;
+  p.add(sat_id);
+  db_.execute_prepared(sql, p);
+}
+
+std::vector<Lease> PgLeaseStore::renew_all(std::string_view owner, int64_t now_utime,
+                                           int64_t ttl_utime) {
+  check_request(owner, ttl_utime);
+  static const std::string sql = dollar_params(columns::kLeaseRenewAll);
+  PgParams p;
+  p.add(owner).add(now_utime).add(ttl_utime);
+  const PgResult r = db_.execute_prepared(sql, p, PgFormat::kBinary);
+  std::vector<Lease> out;
+  for (int row = 0; row < r.rows(); ++row) out.push_back(lease_from_row(r, row));
+  return out;
+}
+
+void PgLeaseStore::heartbeat(std::string_view station, int64_t now_utime, int64_t ttl_utime) {
+  check_request(station, ttl_utime);
+  static const std::string sql = dollar_params(columns::kStationHeartbeat);
+  PgParams p;
+  p.add(station).add(now_utime).add(ttl_utime);
+  db_.execute_prepared(sql, p);
+}
+
+void PgLeaseStore::leave(std::string_view station, int64_t now_utime) {
+  PgParams p;
+  p.add(station).add(now_utime);
+  db_.execute_prepared(
+      "UPDATE stations SET expires_utime = least(expires_utime, $2) WHERE station = $1", p);
+}
+
+std::vector<std::string> PgLeaseStore::live_stations(int64_t now_utime) {
+  PgParams p;
+  p.add(now_utime);
+  const PgResult r = db_.execute_prepared(
+      "SELECT station FROM stations WHERE expires_utime > $1 ORDER BY station COLLATE \"C\"", p);
+  std::vector<std::string> out;
+  for (int row = 0; row < r.rows(); ++row) out.push_back(r.get_text(row, 0));
+  return out;
+}
+
 void PgMetaStore::set(std::string_view key, std::string_view value) {
   PgParams p;
   p.add(key).add(value);

@@ -138,3 +138,55 @@ TEMPLATE_TEST_CASE(
     CHECK(leases->owner_of(sat, kT0 + kTtl) == l.owner);
   }
 }
+
+TEMPLATE_TEST_CASE_METHOD(BackendTest,
+                          "registered spacecraft, renewing all of an owner's leases at once, and "
+                          "the live stations",
+                          "[leases]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto leases = this->db->make_lease_store();
+  // A registered spacecraft has a row without an owner: free, and its first owner gets epoch 1.
+  leases->ensure("SAT1");
+  leases->ensure("SAT2");
+  leases->ensure("SAT3");
+  REQUIRE(leases->list().size() == 3);
+  CHECK(leases->get("SAT1")->owner.empty());
+  CHECK_FALSE(leases->owner_of("SAT1", kT0).has_value());
+  const auto a1 = leases->try_acquire("SAT1", "A", kT0, kTtl);
+  REQUIRE(a1.has_value());
+  CHECK(a1->epoch == 1);
+  leases->ensure("SAT1");  // registering again changes nothing
+  CHECK(leases->get("SAT1")->owner == "A");
+  REQUIRE(leases->try_acquire("SAT2", "A", kT0, kTtl).has_value());
+  REQUIRE(leases->try_acquire("SAT3", "B", kT0, kTtl).has_value());
+
+  // renew_all: every lease A holds, and only those; returned with their epochs.
+  auto renewed = leases->renew_all("A", kT0 + 10 * kSecond, kTtl);
+  REQUIRE(renewed.size() == 2);
+  for (const auto& l : renewed) {
+    CHECK(l.owner == "A");
+    CHECK(l.epoch == 1);
+    CHECK(l.expires_utime == kT0 + 10 * kSecond + kTtl);
+  }
+  CHECK(leases->get("SAT3")->expires_utime == kT0 + kTtl);  // B's untouched
+  // A released SAT2: not brought back by A's next renewal (another daemon may be taking it).
+  REQUIRE(leases->release("SAT2", "A", 1, kT0 + 11 * kSecond));
+  renewed = leases->renew_all("A", kT0 + 12 * kSecond, kTtl);
+  REQUIRE(renewed.size() == 1);
+  CHECK(renewed[0].sat_id == "SAT1");
+  // Expired (A stalled past its lease): not renewed either, so A learns it lost it.
+  CHECK(leases->renew_all("A", kT0 + 12 * kSecond + kTtl, kTtl).empty());
+  CHECK_THROWS_AS(leases->renew_all("", kT0, kTtl), StorageError);
+
+  // Stations: live until their heartbeat's time to live runs out, or they leave.
+  CHECK(leases->live_stations(kT0).empty());
+  leases->heartbeat("A", kT0, kTtl);
+  leases->heartbeat("B", kT0 + 5 * kSecond, kTtl);
+  CHECK(leases->live_stations(kT0 + 6 * kSecond) == std::vector<std::string>{"A", "B"});
+  CHECK(leases->live_stations(kT0 + kTtl) == std::vector<std::string>{"B"});
+  leases->heartbeat("A", kT0 + kTtl, kTtl);  // beats again: live again
+  CHECK(leases->live_stations(kT0 + kTtl + 1) == std::vector<std::string>{"A", "B"});
+  leases->leave("B", kT0 + kTtl + 2);
+  CHECK(leases->live_stations(kT0 + kTtl + 2) == std::vector<std::string>{"A"});
+  CHECK_THROWS_AS(leases->heartbeat("C", kT0, 0), StorageError);
+}

@@ -86,6 +86,9 @@ DaemonConfig test_config(const std::string& db) {
   DaemonConfig c;
   c.storage.db_path = db;
   c.ukf.filter.sigma_nT = kNoise_nT;
+  // One station: its filter takes each committed sample at once (the reorder delay has its
+  // own test).
+  c.fleet.reorder_delay_s = 0.0;
   return c;
 }
 
@@ -416,6 +419,7 @@ TEST_CASE("the anchor refit's temperature model: snapshots carry it, a restart r
     }
     auto w = make_worker(c, counters);
     w->restore();
+    w->commit_if_due();  // the owner's filter reads the stored samples after its state
     const SpacecraftTracker& t = *w->fleet().find("SAT-1");
     CHECK(t.temperature.active);
     CHECK(t.temperature.refit_id == id);
