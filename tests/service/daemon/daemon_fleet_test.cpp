@@ -1,13 +1,12 @@
 // Several magcald sharing one database (design.md "Fleet"), as real processes: two daemons with
 // different --station replay the same paper-scenario log at once into one PostgreSQL database
 // (a throwaway server: tests/storage/postgres/pg_test_server.hpp) and into one SQLite file.
-// Each refit a daemon schedules (first, early, data-clock scheduled) is claimed in the job log,
-// so it runs once for the fleet: one finished job and one twostep row per due time, the same due
-// times and results as one daemon replaying the log alone. Without the PostgreSQL server
-// programs the PostgreSQL case is skipped (with CI=true it fails).
-//
-// Not checked: the UKF rows. Until a spacecraft has one owner, each daemon runs its own filter
-// and stores its snapshots, so they are there twice.
+// One of them owns the spacecraft (its lease): its UKF reads the samples both stored, in time
+// order, and it schedules the refits (first, early, data-clock scheduled), each claimed in the
+// job log, so each runs once for the fleet: one finished job and one twostep row per due time,
+// the same due times and results as one daemon replaying the log alone, and one series of UKF
+// snapshots equal to the lone daemon's. Without the PostgreSQL server programs the PostgreSQL
+// case is skipped (with CI=true it fails).
 #include <catch2/catch.hpp>
 
 #include <cmath>
@@ -15,6 +14,7 @@
 #include <map>
 #include <memory>
 #include <optional>
+#include <set>
 #include <string>
 #include <tuple>
 #include <vector>
@@ -41,6 +41,22 @@ constexpr double kDaemonTimeout_s = 120;
 
 // A refit as the fleet must run it once: (trigger, scheduled time).
 using RefitKey = std::pair<std::string, int64_t>;
+
+// The UKF snapshots of kSat in `db`, by time (fails the test when a time has two rows).
+std::map<int64_t, storage::CalibrationRecord> ukf_series(const std::string& db) {
+  const auto connection = storage::open_database(db);
+  storage::HistoryQuery q;
+  q.sat_id = kSat;
+  q.method = "ukf";
+  q.limit = 1'000'000;
+  std::map<int64_t, storage::CalibrationRecord> out;
+  for (const auto& r : connection->make_calibration_history()->query(q)) {
+    INFO("ukf row at " << r.utime);
+    CHECK(out.count(r.utime) == 0);
+    out[r.utime] = r;
+  }
+  return out;
+}
 
 struct RefitRun {
   storage::RefitJob job;
@@ -102,10 +118,10 @@ size_t count_lines_with(const std::string& text, const std::string& what) {
 
 // Two daemons (stations A and B) replaying `log` at once into `db`: each refit of `alone` (one
 // daemon, the same log) ran once, by one of them, with the same result.
-void check_fleet_runs_each_refit_once(const std::string& log, const std::string& db,
-                                      const std::map<RefitKey, RefitRun>& alone,
-                                      const std::string& config, const TempDir& dir,
-                                      const std::string& name) {
+void check_fleet_runs_each_refit_once(
+    const std::string& log, const std::string& db, const std::map<RefitKey, RefitRun>& alone,
+    const std::map<int64_t, storage::CalibrationRecord>& alone_ukf, const std::string& config,
+    const TempDir& dir, const std::string& name) {
   const std::string log_a = dir.file(name + "_a.log"), log_b = dir.file(name + "_b.log");
   const pid_t a = start_daemon(log, db, "station-A", config, log_a);
   const pid_t b = start_daemon(log, db, "station-B", config, log_b);
@@ -140,12 +156,28 @@ void check_fleet_runs_each_refit_once(const std::string& log, const std::string&
             1e-9 * std::max(1.0, std::abs(want.bias_nT[i])));
     }
   }
-  // The daemon that found a refit claimed said so, and ran nothing for it. (A daemon that
-  // started after the other had finished a scheduled refit does not even schedule it: at most
-  // one such line per refit.)
-  const size_t not_run = count_lines_with(text_a + text_b, ": not run here (the ");
-  CHECK(not_run >= 1);
-  CHECK(not_run <= fleet.size());
+  // One owner scheduled them all; the other daemon only stored samples.
+  std::set<std::string> by;
+  for (const auto& [key, ran] : fleet) by.insert(ran.job.claimed_by);
+  CHECK(by.size() == 1);
+  CHECK(count_lines_with(text_a, "PAPER-1: owned here") +
+            count_lines_with(text_b, "PAPER-1: owned here") ==
+        1);
+  CHECK(count_lines_with(text_a + text_b, ": not run here (the ") == 0);
+  // One series of UKF snapshots, the lone daemon's: the owner's filter read every sample in time
+  // order, whichever station stored it.
+  const auto ukf = ukf_series(db);
+  REQUIRE(ukf.size() == alone_ukf.size());
+  for (const auto& [utime, want] : alone_ukf) {
+    const auto it = ukf.find(utime);
+    REQUIRE(it != ukf.end());
+    INFO("ukf row at " << utime);
+    CHECK(it->second.verdict == want.verdict);
+    for (size_t i = 0; i < 3; ++i) {
+      CHECK(std::abs(it->second.bias_nT[i] - want.bias_nT[i]) <=
+            1e-9 * std::max(1.0, std::abs(want.bias_nT[i])));
+    }
+  }
 }
 
 // The log, the config and what one daemon alone makes of the log: built once per process
@@ -155,6 +187,7 @@ struct Baseline {
   std::string log = dir.file("six_hours.lcm");
   std::string config = dir.file("d.toml");
   std::map<RefitKey, RefitRun> alone;
+  std::map<int64_t, storage::CalibrationRecord> alone_ukf;
 };
 
 const Baseline& baseline() {
@@ -176,6 +209,7 @@ const Baseline& baseline() {
     INFO(slurp(daemon_log));
     REQUIRE(rc == 0);
     b->alone = finished_refits(db);
+    b->alone_ukf = ukf_series(db);
     return b;
   }();
   return *built;
@@ -194,11 +228,11 @@ TEST_CASE("two magcald sharing one database run each refit once", "[daemon][flee
   SECTION("PostgreSQL") {
     magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
     if (server == nullptr) return;
-    check_fleet_runs_each_refit_once(b.log, server->create_database(), b.alone, b.config, dir,
-                                     "pg");
+    check_fleet_runs_each_refit_once(b.log, server->create_database(), b.alone, b.alone_ukf,
+                                     b.config, dir, "pg");
   }
   SECTION("one SQLite file") {
-    check_fleet_runs_each_refit_once(b.log, dir.file("shared.db"), b.alone, b.config, dir,
-                                     "sqlite");
+    check_fleet_runs_each_refit_once(b.log, dir.file("shared.db"), b.alone, b.alone_ukf, b.config,
+                                     dir, "sqlite");
   }
 }
