@@ -54,6 +54,15 @@ int64_t snapshot_period_utime(const DaemonConfig& c) {
   return std::max<int64_t>(1, static_cast<int64_t>(c.ukf.snapshot_every_s * 1e6));
 }
 
+// Snapshots fall on multiples of the period in data time (UTC-aligned: every minute on the
+// minute by default), so that every owner of a spacecraft, after a restart or a takeover, keeps
+// one series: the first boundary after `utime`.
+int64_t next_snapshot_boundary(int64_t utime, const DaemonConfig& c) {
+  const int64_t period = snapshot_period_utime(c);
+  const int64_t floor = utime >= 0 ? utime / period : (utime - period + 1) / period;
+  return saturating_add(floor * period, period);
+}
+
 }  // namespace
 
 IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
@@ -134,15 +143,10 @@ void IngestWorker::take_over(const std::string& sat, SpacecraftTracker& t, int64
                                                 saturating_add(t.filtered_utime, 1));
   t.next_early_refit_samples =
       config_.early_refits().next_after(latest_refit ? latest_refit->n_samples : 0);
-  // The snapshot times of an uninterrupted run: every period from its first sample, the next
-  // one after its state's last (snapshots are committed with the state).
-  const int64_t period = snapshot_period_utime(config_);
-  if (t.filtered_utime != kNoTime) {
-    const int64_t grid = st.first_utime <= t.filtered_utime ? st.first_utime : t.filtered_utime;
-    t.next_snapshot_utime = grid + ((t.filtered_utime - grid) / period + 1) * period;
-  } else {
-    t.next_snapshot_utime = kNoTime;
-  }
+  // The snapshot after the state's last sample (snapshots are committed with the state), on
+  // the grid every owner uses.
+  t.next_snapshot_utime =
+      t.filtered_utime == kNoTime ? kNoTime : next_snapshot_boundary(t.filtered_utime, config_);
   t.data_refits.reset();
   if (data_schedule_) {
     t.data_refits.emplace(*data_schedule_);
@@ -702,7 +706,7 @@ int64_t IngestWorker::held_samples() {
 void IngestWorker::maybe_snapshot(const std::string& sat_id, SpacecraftTracker& t, int64_t utime) {
   const int64_t period = snapshot_period_utime(config_);
   if (t.next_snapshot_utime == kNoTime) {
-    t.next_snapshot_utime = saturating_add(utime, period);
+    t.next_snapshot_utime = next_snapshot_boundary(utime, config_);
     return;
   }
   // Every period once the filter has started; each snapshot carries the evidence of its own

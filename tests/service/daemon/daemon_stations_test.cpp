@@ -1,0 +1,360 @@
+// Three ground stations, one PostgreSQL database (issue 19, design.md "Fleet"), as real
+// processes: a day of the paper scenario split into three stations' passes (30 min each in
+// turn, neighbours overlapping by 400 s, so each station receives about 41 % of the samples
+// and every sample reaches at least one), each station's log replayed by its own magcald at the
+// same speed from the same start. The owner of the spacecraft is killed with SIGKILL mid-day;
+// once another daemon has taken it over, the killed station restarts, re-sending its last half
+// hour (its uncommitted samples) before going on with its passes.
+//
+// Afterwards, against one daemon replaying the whole log alone:
+//   - the window holds every sample of the union exactly once (contiguous up to the last one);
+//   - another station took the spacecraft over within the lease time, and its UKF went on from
+//     the stored state;
+//   - the UKF snapshots form one series (one row per time, on one 60 s grid);
+//   - every scheduled refit ran once and used the union window; its bias and the last UKF
+//     snapshot's are within 1 sigma of the lone daemon's.
+// Without the PostgreSQL server programs the test is skipped (with CI=true it fails).
+#include <signal.h>
+#include <catch2/catch.hpp>
+#include <lcm/lcm-cpp.hpp>
+
+#include <chrono>
+#include <cmath>
+#include <fstream>
+#include <map>
+#include <set>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "schemas/magcal_messages.hpp"
+#include "storage/calibration_history.hpp"
+#include "storage/connection.hpp"
+#include "storage/lease_store.hpp"
+#include "storage/refit_job_log.hpp"
+#include "storage/sample_window_store.hpp"
+#include "tests/service/cli_test_support.hpp"
+#include "tests/service/daemon_test_support.hpp"
+#include "tests/storage/postgres/pg_test_server.hpp"
+
+namespace {
+
+using magcal::test::run;
+using magcal::test::slurp;
+using magcal::test::spawn;
+using magcal::test::TempDir;
+using magcal::test::wait_exit;
+using magcal::test::wait_until;
+namespace storage = magcal::storage;
+
+const std::string kBin = MAGCAL_BIN_DIR;
+const std::string kSat = "PAPER-1";
+constexpr int kStations = 3;
+constexpr int64_t kSecond = 1'000'000;
+constexpr int64_t kPass_utime = 1800 * kSecond;    // each station's pass, in turn
+constexpr int64_t kOverlap_utime = 200 * kSecond;  // each side: neighbours share 400 s
+constexpr int kFrameSamples = 30;                  // samples per downlink packet
+constexpr double kSpeed = 2000.0;                  // replay speed (24 h in 43 s)
+constexpr double kLease_s = 3.0;
+// Data time a replay may run ahead of another (process start, scheduling): 0.9 s of wall time.
+constexpr double kReorderDelay_s = 1800.0;
+constexpr int64_t kResend_utime = 1800 * kSecond;  // the restarted station re-sends this much
+
+std::vector<magcal::mag_sample_t> read_samples(const std::string& log_path) {
+  lcm::LogFile log(log_path, "r");
+  REQUIRE(log.good());
+  std::vector<magcal::mag_sample_t> out;
+  while (const lcm::LogEvent* e = log.readNextEvent()) {
+    if (e->channel != "MAGCAL_BATCH") continue;
+    magcal::mag_batch_t b;
+    REQUIRE(b.decode(e->data, 0, e->datalen) == e->datalen);
+    for (const auto& s : b.samples) out.push_back(s);
+  }
+  return out;
+}
+
+// Stations that receive a sample at `utime` (pass schedule from t0).
+std::vector<int> stations_of(int64_t utime, int64_t t0) {
+  const int64_t since = utime - t0;
+  const int k = static_cast<int>((since / kPass_utime) % kStations);
+  const int64_t into = since % kPass_utime;
+  std::vector<int> out{k};
+  if (into < kOverlap_utime && since >= kPass_utime) out.push_back((k + kStations - 1) % kStations);
+  if (into >= kPass_utime - kOverlap_utime) out.push_back((k + 1) % kStations);
+  return out;
+}
+
+// Writes `samples` as mag_batch_t frames (a new frame at every gap in the pass), after a SYNC
+// event at sync_utime: every station's replay starts at the same data time. Frames are stamped
+// with their last sample's time, or sync_utime for older samples (a re-send, played at once).
+void write_station_log(const std::string& path, const std::vector<magcal::mag_sample_t>& samples,
+                       int64_t sync_utime) {
+  lcm::LogFile out(path, "w");
+  REQUIRE(out.good());
+  int64_t event = 0;
+  auto write = [&](const std::string& channel, const std::vector<uint8_t>& bytes, int64_t t) {
+    lcm::LogEvent e;
+    e.eventnum = event++;
+    e.timestamp = t;
+    e.channel = channel;
+    e.datalen = static_cast<int32_t>(bytes.size());
+    e.data = const_cast<uint8_t*>(bytes.data());
+    out.writeEvent(&e);
+  };
+  write("SYNC", {0}, sync_utime);
+  magcal::mag_batch_t batch;
+  batch.sat_id = kSat;
+  auto flush = [&] {
+    if (batch.samples.empty()) return;
+    batch.n = static_cast<int32_t>(batch.samples.size());
+    std::vector<uint8_t> bytes(static_cast<size_t>(batch.getEncodedSize()));
+    batch.encode(bytes.data(), 0, static_cast<int>(bytes.size()));
+    write("MAGCAL_BATCH", bytes, std::max(sync_utime, batch.samples.back().utime));
+    batch.samples.clear();
+  };
+  for (size_t i = 0; i < samples.size(); ++i) {
+    if (!batch.samples.empty() && (samples[i].utime - batch.samples.back().utime > 10 * kSecond ||
+                                   static_cast<int>(batch.samples.size()) == kFrameSamples)) {
+      flush();
+    }
+    batch.samples.push_back(samples[i]);
+  }
+  flush();
+}
+
+std::map<int64_t, storage::CalibrationRecord> history_by_time(storage::Connection& db,
+                                                              const std::string& method) {
+  storage::HistoryQuery q;
+  q.sat_id = kSat;
+  q.method = method;
+  q.limit = 1'000'000;
+  std::map<int64_t, storage::CalibrationRecord> out;
+  for (const auto& r : db.make_calibration_history()->query(q)) {
+    INFO(method << " row at " << r.utime);
+    CHECK(out.count(r.utime) == 0);  // one row per time
+    out[r.utime] = r;
+  }
+  return out;
+}
+
+// Finished scheduled refits by due time; each due time once.
+std::map<int64_t, storage::RefitJob> scheduled_refits(storage::Connection& db) {
+  std::map<int64_t, storage::RefitJob> out;
+  for (const auto& job : db.make_refit_job_log()->recent(kSat, 10'000)) {
+    if (job.trigger != "scheduled" || job.outcome == storage::job_outcome::kInterrupted) continue;
+    INFO("scheduled refit at " << job.scheduled_utime << " by " << job.claimed_by << ": "
+                               << job.outcome);
+    CHECK(job.outcome != storage::job_outcome::kRunning);
+    CHECK(out.count(job.scheduled_utime) == 0);
+    out[job.scheduled_utime] = job;
+  }
+  return out;
+}
+
+double wall_s() {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count();
+}
+
+}  // namespace
+
+TEST_CASE("three stations, one database: one window, one series, each refit once, failover",
+          "[daemon][fleet][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_stations");
+  const std::string day = dir.file("day.lcm");
+  REQUIRE(run({kBin + "/magcal", "sim", "--scenario", "paper", "--hours", "24", "--seed", "3",
+               "--out", day, "--batch", "200"},
+              dir.file("sim.log")) == 0);
+  const auto all = read_samples(day);
+  REQUIRE(all.size() == 8640);
+  const int64_t t0 = all.front().utime;
+  std::vector<std::vector<magcal::mag_sample_t>> by_station(kStations);
+  for (const auto& s : all) {
+    for (const int k : stations_of(s.utime, t0)) by_station[static_cast<size_t>(k)].push_back(s);
+  }
+  for (const auto& samples : by_station) {
+    // Each sees well under half of the day (the issue's 38-43 %).
+    CHECK(samples.size() > all.size() * 35 / 100);
+    CHECK(samples.size() < all.size() * 45 / 100);
+  }
+  const std::string names[kStations] = {"gs-a", "gs-b", "gs-c"};
+  std::string logs[kStations];
+  for (int k = 0; k < kStations; ++k) {
+    logs[k] = dir.file(names[k] + ".lcm");
+    write_station_log(logs[k], by_station[static_cast<size_t>(k)], t0);
+  }
+  const std::string config = dir.file("d.toml");
+  {
+    std::ofstream out(config);
+    out << "[refit]\nclock = \"data\"\nevery_hours = 6\n"
+        << "[fleet]\nlease_s = " << kLease_s << "\nreorder_delay_s = " << kReorderDelay_s << "\n";
+  }
+
+  // One daemon, the whole log: what the fleet must match.
+  const std::string alone_db = dir.file("alone.db");
+  {
+    const std::string log = dir.file("alone.log");
+    const int rc = run({kBin + "/magcald", "--config", config, "--db", alone_db, "--station",
+                        "solo", "--http-listen", "", "--lcm-url", "file://" + day + "?speed=0"},
+                       log, 120);
+    INFO(slurp(log));
+    REQUIRE(rc == 0);
+  }
+
+  const std::string db = server->create_database();
+  const std::string url_suffix = "?speed=" + std::to_string(static_cast<int>(kSpeed));
+  std::string daemon_logs[kStations];
+  pid_t pids[kStations];
+  const double start = wall_s();
+  for (int k = 0; k < kStations; ++k) {
+    daemon_logs[k] = dir.file(names[k] + ".daemon.log");
+    pids[k] = spawn({kBin + "/magcald", "--config", config, "--db", db, "--station", names[k],
+                     "--http-listen", "", "--lcm-url", "file://" + logs[k] + url_suffix},
+                    daemon_logs[k]);
+    REQUIRE(pids[k] > 0);
+  }
+  const auto connection = storage::open_database(db);
+  const auto leases = connection->make_lease_store();
+  auto wall_utime = [] {
+    return std::chrono::duration_cast<std::chrono::microseconds>(
+               std::chrono::system_clock::now().time_since_epoch())
+        .count();
+  };
+
+  // Mid-day (about 10 h of data): kill the owner.
+  std::this_thread::sleep_until(std::chrono::steady_clock::now() +
+                                std::chrono::duration<double>(10 * 3600 / kSpeed));
+  const auto owner = leases->owner_of(kSat, wall_utime());
+  REQUIRE(owner.has_value());
+  int killed = -1;
+  for (int k = 0; k < kStations; ++k) killed = names[k] == *owner ? k : killed;
+  REQUIRE(killed >= 0);
+  REQUIRE(::kill(pids[killed], SIGKILL) == 0);
+  const double killed_at = wall_s();
+  wait_exit(pids[killed], 10);
+  INFO("killed " << *owner << " at " << killed_at - start << " s");
+
+  // Another station takes the spacecraft over within the lease time (plus its renewal period).
+  std::string new_owner;
+  REQUIRE(wait_until(
+      [&] {
+        const auto o = leases->owner_of(kSat, wall_utime());
+        if (o && *o != *owner) new_owner = *o;
+        return !new_owner.empty();
+      },
+      kLease_s * 4 / 3 + 5));
+  const double takeover_s = wall_s() - killed_at;
+  INFO("taken over by " << new_owner << " after " << takeover_s << " s");
+  CHECK(takeover_s <= kLease_s * 4 / 3 + 1.0);
+
+  // The killed station comes back: it re-sends its last half hour, then goes on with its passes
+  // at the data time the others have reached. What only it received in between comes late for
+  // the owner's filter (the refits still use it, once stored).
+  int64_t down_only = 0;
+  {
+    const int64_t now_data = t0 + static_cast<int64_t>((wall_s() - start) * kSpeed * 1e6);
+    const int64_t killed_data = t0 + static_cast<int64_t>((killed_at - start) * kSpeed * 1e6);
+    for (const auto& s : all) {
+      const auto st = stations_of(s.utime, t0);
+      if (s.utime >= killed_data - kResend_utime && s.utime <= now_data && st.size() == 1 &&
+          st[0] == killed) {
+        ++down_only;
+      }
+    }
+    std::vector<magcal::mag_sample_t> rest;
+    for (const auto& s : by_station[static_cast<size_t>(killed)]) {
+      if (s.utime >= killed_data - kResend_utime) rest.push_back(s);
+    }
+    const std::string restart_log = dir.file(names[killed] + ".restart.lcm");
+    write_station_log(restart_log, rest, now_data);
+    daemon_logs[killed] = dir.file(names[killed] + ".restart.daemon.log");
+    pids[killed] =
+        spawn({kBin + "/magcald", "--config", config, "--db", db, "--station", names[killed],
+               "--http-listen", "", "--lcm-url", "file://" + restart_log + url_suffix},
+              daemon_logs[killed]);
+    REQUIRE(pids[killed] > 0);
+  }
+  std::string texts;
+  for (int k = 0; k < kStations; ++k) {
+    const int rc = wait_exit(pids[k], 120);
+    texts += names[k] + ":\n" + slurp(daemon_logs[k]) + "\n";
+    INFO(names[k] << " exit " << rc);
+    CHECK(rc == 0);
+  }
+  INFO(texts);
+  // The new owner's UKF went on from the stored state (not from the first sample).
+  CHECK(texts.find("PAPER-1: owned here (lease epoch 2); its UKF goes on from 2") !=
+        std::string::npos);
+
+  // The window: every sample of the union once, contiguous up to the last one of the day.
+  std::vector<storage::StoredSample> rows;
+  connection->make_sample_window_store()->read_window(kSat, 0, INT64_MAX, rows);
+  REQUIRE(!rows.empty());
+  CHECK(rows.back().utime == all.back().utime);
+  size_t first = 0;
+  while (first < all.size() && all[first].utime < rows.front().utime) ++first;
+  REQUIRE(rows.size() == all.size() - first);
+  for (size_t i = 0; i < rows.size(); ++i) {
+    INFO("row " << i);
+    REQUIRE(rows[i].utime == all[first + i].utime);
+    CHECK(rows[i].seq == all[first + i].seq);
+  }
+  CHECK(rows.size() >= 12 * 360);  // the window (12 h at 10 s), retention kept it
+  // Each station stored the samples it delivered first.
+  const auto by = connection->make_sample_window_store()->count_by_station(kSat, 0, INT64_MAX);
+  CHECK(by.size() == kStations);
+
+  // One UKF series, on one grid, ending where the lone daemon's ends, within 1 sigma of it.
+  const auto alone = storage::open_database(alone_db);
+  const auto ukf = history_by_time(*connection, "ukf");
+  const auto ukf_alone = history_by_time(*alone, "ukf");
+  REQUIRE(!ukf.empty());
+  REQUIRE(!ukf_alone.empty());
+  // (A snapshot is taken at the first sample at or after each minute: after a gap in what the
+  // filter read, past the minute, but never two in one minute.)
+  std::set<int64_t> minutes;
+  for (const auto& [utime, r] : ukf) {
+    INFO("UKF row at " << (utime - t0) / kSecond << " s");
+    CHECK(minutes.insert((utime - t0) / (60 * kSecond)).second);
+  }
+  size_t off_minute = 0;
+  for (const auto& [utime, r] : ukf) off_minute += (utime - t0) % (60 * kSecond) != 0 ? 1 : 0;
+  CHECK(off_minute <= ukf.size() / 20);
+  CHECK(ukf.rbegin()->first == ukf_alone.rbegin()->first);
+  const auto& last = ukf.rbegin()->second;
+  const auto& last_alone = ukf_alone.rbegin()->second;
+  for (size_t i = 0; i < 3; ++i) {
+    INFO("UKF bias axis " << i << ": fleet " << last.bias_nT[i] << ", alone "
+                          << last_alone.bias_nT[i] << " +- " << last_alone.bias_sigma_nT[i]);
+    CHECK(std::abs(last.bias_nT[i] - last_alone.bias_nT[i]) <= last_alone.bias_sigma_nT[i]);
+  }
+
+  // Every scheduled refit once, on the union window, as the lone daemon's.
+  const auto refits = scheduled_refits(*connection);
+  const auto refits_alone = scheduled_refits(*alone);
+  const auto twostep = history_by_time(*connection, "twostep");
+  const auto twostep_alone = history_by_time(*alone, "twostep");
+  REQUIRE(refits.size() == refits_alone.size());
+  REQUIRE(refits.size() >= 3);
+  for (const auto& [due, want_job] : refits_alone) {
+    INFO("scheduled refit at " << due);
+    const auto it = refits.find(due);
+    REQUIRE(it != refits.end());
+    CHECK(it->second.outcome == want_job.outcome);
+    if (!want_job.calibration_id) continue;
+    REQUIRE(it->second.calibration_id.has_value());
+    const auto got = twostep.find(due);
+    const auto want = twostep_alone.find(due);
+    REQUIRE(got != twostep.end());
+    REQUIRE(want != twostep_alone.end());
+    // The union window: all of it, but for what only the killed station had while it was down
+    // when the refit ran before the re-send came.
+    CHECK(got->second.n_samples <= want->second.n_samples);
+    CHECK(got->second.n_samples >= want->second.n_samples - down_only);
+    for (size_t i = 0; i < 3; ++i) {
+      CHECK(std::abs(got->second.bias_nT[i] - want->second.bias_nT[i]) <=
+            want->second.bias_sigma_nT[i]);
+    }
+  }
+}
