@@ -1,12 +1,14 @@
 #include "service/daemon/refit_runner.hpp"
 
-#include "pipeline/temperature_model.hpp"
-#include "pipeline/time_utc.hpp"
-
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <limits>
 
+#include <spdlog/spdlog.h>
+
+#include "pipeline/temperature_model.hpp"
+#include "pipeline/time_utc.hpp"
 #include "service/io/calibration_record.hpp"
 
 namespace magcal {
@@ -56,7 +58,8 @@ RefitRunner::RefitRunner(const DaemonConfig& config, storage::Connection& db)
       db_(db),
       samples_(db.make_sample_window_store()),
       history_(db.make_calibration_history()),
-      jobs_(db.make_refit_job_log()) {}
+      jobs_(db.make_refit_job_log()),
+      leases_(db.make_lease_store()) {}
 
 std::vector<std::string> RefitRunner::spacecraft() {
   return samples_->spacecraft();
@@ -124,12 +127,25 @@ bool RefitRunner::claim_job(const std::string& sat_id, const std::string& trigge
   std::optional<storage::RefitJob> holder;
   // No holder after a refused claim: it was interrupted in between (its station restarted),
   // and the claim is free again.
-  for (int attempt = 0; attempt < 2 && !holder; ++attempt) {
+  for (int attempt = 0; attempt < 3 && !holder; ++attempt) {
     if (const auto id = jobs_->claim(sat_id, trigger, scheduled_utime, wall_utime(), station)) {
       out.job_id = *id;
       return true;
     }
     holder = jobs_->claim_holder(sat_id, trigger, scheduled_utime);
+    if (holder && holder->claimed_by != station &&
+        holder->outcome == storage::job_outcome::kRunning) {
+      // Claimed by a station that died while running it (its heartbeat ran out: this daemon
+      // took its spacecraft over): its jobs will never finish, so their claims are given up
+      // and the refit runs here.
+      const auto live = leases_->live_stations(wall_utime());
+      if (std::find(live.begin(), live.end(), holder->claimed_by) == live.end()) {
+        const int n = jobs_->mark_station_running_interrupted(holder->claimed_by, wall_utime());
+        spdlog::warn("{} refit job(s) of station {}, no longer live, were running: interrupted",
+                     n, holder->claimed_by);
+        holder.reset();
+      }
+    }
   }
   if (holder && holder->claimed_by == station &&
       holder->outcome == storage::job_outcome::kRunning) {

@@ -19,6 +19,7 @@
 #include "service/daemon/daemon_config.hpp"
 #include "storage/calibration_history.hpp"
 #include "storage/connection.hpp"
+#include "storage/lease_store.hpp"
 #include "storage/refit_job_log.hpp"
 #include "storage/sample_window_store.hpp"
 
@@ -94,6 +95,7 @@ class RefitRunner {
   std::unique_ptr<storage::SampleWindowStore> samples_;
   std::unique_ptr<storage::CalibrationHistory> history_;
   std::unique_ptr<storage::RefitJobLog> jobs_;
+  std::unique_ptr<storage::LeaseStore> leases_;  // which stations are live
   std::vector<storage::StoredSample> rows_;  // reused between refits
   SampleSet window_;
 };

@@ -6,6 +6,8 @@
 
 #include <catch2/catch.hpp>
 
+#include <chrono>
+
 #include "pipeline/scenario.hpp"
 #include "pipeline/simulator.hpp"
 #include "service/daemon/refit_runner.hpp"
@@ -267,7 +269,12 @@ TEST_CASE("a daemon's refit runs once for the fleet: claimed under its station, 
   };
   RefitRunner runner(config, db);
 
-  // Station B holds the claim (running, then ended): nothing runs here, whatever it became.
+  // Station B (live: its heartbeat runs) holds the claim (running, then ended): nothing runs
+  // here, whatever it became.
+  const int64_t now = std::chrono::duration_cast<std::chrono::microseconds>(
+                          std::chrono::system_clock::now().time_since_epoch())
+                          .count();
+  storage::SqliteLeaseStore(db).heartbeat("station-B", now, 3'600'000'000LL);
   const auto b_job = jobs.claim("PAPER-1", "scheduled", t_ref, 1, "station-B");
   REQUIRE(b_job.has_value());
   RefitOutcome out = runner.run("PAPER-1", t_ref, "scheduled", t_ref);
@@ -290,6 +297,17 @@ TEST_CASE("a daemon's refit runs once for the fleet: claimed under its station, 
   CHECK(jobs.get(out.job_id)->claimed_by == "station-A");
   CHECK(refit_rows() == 1);
 
+  // A claim still running by a station that is no longer live (it died mid-refit; this daemon
+  // took its spacecraft over): given up, and the refit runs here.
+  const int64_t t_dead = t_ref - 900'000'000;
+  const auto dead = jobs.claim("PAPER-1", "scheduled", t_dead, 1, "station-C");
+  REQUIRE(dead.has_value());
+  out = runner.run("PAPER-1", t_dead, "scheduled", t_dead);
+  REQUIRE(out.kind == RefitOutcome::Kind::kComputed);
+  CHECK(jobs.get(*dead)->outcome == storage::job_outcome::kInterrupted);
+  CHECK(jobs.get(out.job_id)->claimed_by == "station-A");
+  CHECK(refit_rows() == 2);
+
   // This station's own job left running (an attempt whose end a storage failure kept from
   // being written) is carried on by the next attempt; once ended, the refit does not run again.
   const int64_t t_sched = t_ref - 300'000'000;
@@ -302,7 +320,7 @@ TEST_CASE("a daemon's refit runs once for the fleet: claimed under its station, 
   out = runner.run("PAPER-1", t_sched, "scheduled", t_sched);
   CHECK(out.kind == RefitOutcome::Kind::kSkipped);
   CHECK_THAT(out.message, Catch::Contains("already ran"));
-  CHECK(refit_rows() == 2);
+  CHECK(refit_rows() == 3);
 
   // `magcal refit` is not claimed: it runs whenever asked.
   for (int i = 0; i < 2; ++i) {
@@ -310,7 +328,7 @@ TEST_CASE("a daemon's refit runs once for the fleet: claimed under its station, 
     REQUIRE(out.kind == RefitOutcome::Kind::kComputed);
     CHECK(jobs.get(out.job_id)->claimed_by.empty());
   }
-  CHECK(refit_rows() == 4);
+  CHECK(refit_rows() == 5);
 }
 
 TEST_CASE("a transient storage error ends a claimed refit's job interrupted: the retry claims it") {
