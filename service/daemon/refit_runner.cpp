@@ -141,8 +141,8 @@ bool RefitRunner::claim_job(const std::string& sat_id, const std::string& trigge
       const auto live = leases_->live_stations(wall_utime());
       if (std::find(live.begin(), live.end(), holder->claimed_by) == live.end()) {
         const int n = jobs_->mark_station_running_interrupted(holder->claimed_by, wall_utime());
-        spdlog::warn("{} refit job(s) of station {}, no longer live, were running: interrupted",
-                     n, holder->claimed_by);
+        spdlog::warn("{} refit job(s) of station {}, no longer live, were running: interrupted", n,
+                     holder->claimed_by);
         holder.reset();
       }
     }

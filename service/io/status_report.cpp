@@ -1,5 +1,6 @@
 #include "service/io/status_report.hpp"
 
+#include <chrono>
 #include <cmath>
 #include <set>
 
@@ -100,6 +101,10 @@ std::vector<SpacecraftStatus> read_status(storage::Connection& db, int64_t windo
   const auto samples = db.make_sample_window_store();
   const auto history = db.make_calibration_history();
   const auto jobs = db.make_refit_job_log();
+  const auto leases = db.make_lease_store();
+  const int64_t now_utime = std::chrono::duration_cast<std::chrono::microseconds>(
+                                std::chrono::system_clock::now().time_since_epoch())
+                                .count();
   std::set<std::string> sats;
   for (auto& id : samples->spacecraft()) sats.insert(std::move(id));
   for (auto& id : history->spacecraft()) sats.insert(std::move(id));
@@ -121,6 +126,9 @@ std::vector<SpacecraftStatus> read_status(storage::Connection& db, int64_t windo
     s.last_refit = history->latest_refit(id);
     s.previous_refit = history->previous_refit(id);
     s.last_job = jobs->latest(id);
+    s.lease = leases->get(id);
+    if (s.lease && s.lease->owner.empty()) s.lease.reset();  // registered, never owned
+    s.owner_now = s.lease && s.lease->held_at(now_utime);
     all.push_back(std::move(s));
   }
   return all;
@@ -143,6 +151,14 @@ nlohmann::json status_json(const std::vector<SpacecraftStatus>& all, int64_t win
            {"samples", c.samples}});
     }
     j["samples_by_station"] = std::move(by_station);
+    const auto lease_json = [](const storage::Lease& l) {
+      return nlohmann::json{{"station", l.owner},
+                            {"lease_epoch", l.epoch},
+                            {"lease_expires_time", format_iso8601_utc(l.expires_utime)},
+                            {"lease_expires_utime", l.expires_utime}};
+    };
+    j["owner"] = s.owner_now ? lease_json(*s.lease) : nlohmann::json(nullptr);
+    j["last_owner"] = s.lease ? lease_json(*s.lease) : nlohmann::json(nullptr);
     j["window_hours"] = static_cast<double>(window_utime) / 3.6e9;
     j["last_ukf"] = s.last_ukf ? history_record_json(*s.last_ukf) : nlohmann::json(nullptr);
     j["last_refit"] = s.last_refit ? history_record_json(*s.last_refit) : nlohmann::json(nullptr);
@@ -175,6 +191,13 @@ std::string status_text(const std::vector<SpacecraftStatus>& all, int64_t window
     }
     if (const std::string line = by_station_line(s.samples_by_station); !line.empty()) {
       append_printf(&text, "  %-16s %s\n", "by station", line.c_str());
+    }
+    if (s.lease) {
+      // Who runs its UKF and refits now (a fleet sharing the database; one daemon alone too).
+      append_printf(&text, "  %-16s %s%s (lease epoch %lld, %s %s (wall clock))\n", "owner",
+                    s.owner_now ? "" : "none; last ", s.lease->owner.c_str(),
+                    static_cast<long long>(s.lease->epoch), s.owner_now ? "until" : "ended",
+                    format_iso8601_utc(s.lease->expires_utime).c_str());
     }
     if (s.last_ukf) {
       append_estimate(&text, "last ukf", *s.last_ukf);

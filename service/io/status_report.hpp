@@ -14,6 +14,7 @@
 
 #include "storage/calibration_history.hpp"
 #include "storage/connection.hpp"
+#include "storage/lease_store.hpp"
 #include "storage/refit_job_log.hpp"
 #include "storage/sample_window_store.hpp"
 
@@ -26,6 +27,10 @@ struct SpacecraftStatus {
   // The same samples by the station that stored them (design.md "Fleet"), sorted by station;
   // "" for samples stored without one.
   std::vector<storage::StationCount> samples_by_station;
+  // Its lease (design.md "Fleet": the daemon that runs its UKF and refits), none before any
+  // daemon registered it; owner_now: held at the time of the read.
+  std::optional<storage::Lease> lease;
+  bool owner_now = false;
   std::optional<storage::CalibrationRecord> last_ukf, last_refit, previous_refit;
   std::optional<storage::RefitJob> last_job;
 };
@@ -36,7 +41,9 @@ struct SpacecraftStatus {
 std::vector<SpacecraftStatus> read_status(storage::Connection& db, int64_t window_utime);
 
 // `magcal status --json`: {"spacecraft": [{sat_id, last_sample_time, last_sample_utime,
-// samples_in_window, samples_by_station ([{station (null: none), samples}]), window_hours,
+// samples_in_window, samples_by_station ([{station (null: none), samples}]), owner ({station,
+// lease_epoch, lease_expires_time, lease_expires_utime}; null: no daemon holds its lease now),
+// last_owner (the same for the lease row held or not; null: none), window_hours,
 // last_ukf, last_refit (history objects or null), last_refit_job,
 // bias_change_since_previous_refit_nT}]}.
 nlohmann::json status_json(const std::vector<SpacecraftStatus>& all, int64_t window_utime);

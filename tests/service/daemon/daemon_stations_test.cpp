@@ -17,6 +17,7 @@
 #include <signal.h>
 #include <catch2/catch.hpp>
 #include <lcm/lcm-cpp.hpp>
+#include <nlohmann/json.hpp>
 
 #include <chrono>
 #include <cmath>
@@ -247,6 +248,15 @@ TEST_CASE("three stations, one database: one window, one series, each refit once
   const double takeover_s = wall_s() - killed_at;
   INFO("taken over by " << new_owner << " after " << takeover_s << " s");
   CHECK(takeover_s <= kLease_s * 4 / 3 + 1.0);
+  {
+    // magcal status names the owner.
+    const std::string status = dir.file("status.json");
+    REQUIRE(run({kBin + "/magcal", "status", "--db", db, "--json"}, status) == 0);
+    const auto j = nlohmann::json::parse(slurp(status));
+    REQUIRE(j["spacecraft"].size() == 1);
+    CHECK(j["spacecraft"][0]["owner"]["station"] == new_owner);
+    CHECK(j["spacecraft"][0]["owner"]["lease_epoch"] == 2);
+  }
 
   // The killed station comes back: it re-sends its last half hour, then goes on with its passes
   // at the data time the others have reached. What only it received in between comes late for
