@@ -26,9 +26,10 @@
 // samples per CPU second of daemons + server, which says what a case costs whether or not the
 // cores were saturated.
 //
-// The PostgreSQL server is a throwaway one (tests/storage/postgres/pg_test_server.hpp: fsync
-// off, synchronous_commit off; SQLite runs WAL + synchronous=NORMAL, the like-for-like
-// durability), on the same machine as the daemons: they share its cores.
+// The PostgreSQL server is a throwaway one (tests/storage/postgres/pg_test_server.hpp:
+// synchronous_commit off, the like-for-like setting to SQLite's WAL + synchronous=NORMAL, and
+// fsync off, which spares PostgreSQL the checkpoints' fsyncs that SQLite still pays), on the
+// same machine as the daemons: they share its cores.
 //   build/bin/fleet_ingest_bench --benchmark_format=json
 //   BM_FleetIngest/<spacecraft>/<samples per spacecraft>/<rounds>; medians over the rounds.
 // Needs the PostgreSQL server programs (postgresql-15); without them the benchmark reports an
