@@ -90,9 +90,9 @@ std::string sat_name(int s) {
 
 // Sample k of spacecraft s: the field in the body frame turning through all directions (the
 // orbit and a slow tumble: a turn in ~20 min about one axis, ~50 min about another), each
-// spacecraft at its own phase, seen with a constant bias and 3 nT noise. The UKFs start within
-// the first pass or two, so the run is the steady state: every sample updates a running filter,
-// and snapshots are stored.
+// spacecraft at its own phase, seen with a constant bias and 3 nT noise. The UKFs start after
+// about half an hour of data (measured: ~170 samples), so most of a 2 h run is the steady
+// state: every sample updates a running filter, and snapshots are stored.
 magcal::mag_sample_t make_sample(int s, int k, std::mt19937& rng) {
   std::normal_distribution<double> noise(0.0, 3.0);
   magcal::mag_sample_t out{};
