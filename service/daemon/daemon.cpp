@@ -470,8 +470,9 @@ std::string Daemon::open() {
   d.queue = std::make_unique<IngestQueue>(c.service.queue_capacity_samples, d.replay);
   if (!c.http.listen.empty()) {
     d.metrics = std::make_unique<http::DaemonMetrics>(
-        MAGCAL_VERSION, std::vector<double>(CommitLatencyHistogram::kUpperBounds_s.begin(),
-                                            CommitLatencyHistogram::kUpperBounds_s.end()));
+        MAGCAL_VERSION, c.station.id,
+        std::vector<double>(CommitLatencyHistogram::kUpperBounds_s.begin(),
+                            CommitLatencyHistogram::kUpperBounds_s.end()));
   }
   // The listen socket before the database, for the same reason as LCM.
   if (std::string e = d.bind_server(); !e.empty()) return e;

@@ -112,7 +112,7 @@ class SpacecraftCounterTable {
 
 // Duration of each sample-batch transaction (failed ones too: a lock wait shows as a long
 // commit), in fixed buckets so that the daemon counts it lock-free and /metrics exposes it as
-// the histogram magcal_sqlite_commit_seconds.
+// the histogram magcal_storage_commit_seconds.
 class CommitLatencyHistogram {
  public:
   // Upper bounds, s: 100 µs (a small batch in WAL mode) to 10 s (past SQLite's default busy

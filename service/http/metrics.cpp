@@ -1,5 +1,6 @@
 #include "service/http/metrics.hpp"
 
+#include <limits>
 #include <sstream>
 
 #include <prometheus/text_serializer.h>
@@ -25,7 +26,8 @@ struct Families {
   prometheus::Family<prometheus::Counter>* missing;
   prometheus::Family<prometheus::Gauge>* queue_depth;
   prometheus::Family<prometheus::Counter>* queue_overflow;
-  prometheus::Family<prometheus::Histogram>* commit_seconds;
+  // magcal_storage_commit_seconds, magcal_sqlite_commit_seconds (deprecated): one histogram.
+  std::array<prometheus::Family<prometheus::Histogram>*, 2> commit_seconds;
   prometheus::Family<prometheus::Gauge>* ukf_bias;
   prometheus::Family<prometheus::Gauge>* ukf_sigma;
   prometheus::Family<prometheus::Gauge>* ukf_accepted;
@@ -66,10 +68,15 @@ Families register_families(prometheus::Registry& r, const std::string& version) 
                           .Name("magcal_queue_overflow_total")
                           .Help("Samples dropped because the receive queue was full")
                           .Register(r);
-  f.commit_seconds = &prometheus::BuildHistogram()
-                          .Name("magcal_sqlite_commit_seconds")
-                          .Help("Duration of each sample-batch SQLite transaction (failed too)")
-                          .Register(r);
+  f.commit_seconds = {&prometheus::BuildHistogram()
+                           .Name("magcal_storage_commit_seconds")
+                           .Help("Duration of each sample-batch transaction (failed too)")
+                           .Register(r),
+                      &prometheus::BuildHistogram()
+                           .Name("magcal_sqlite_commit_seconds")
+                           .Help("Deprecated: magcal_storage_commit_seconds under its first "
+                                 "name (emitted on PostgreSQL too)")
+                           .Register(r)};
   f.ukf_bias = &BuildGauge()
                     .Name("magcal_ukf_bias_nT")
                     .Help("Bias of the newest stored UKF snapshot, nT")
@@ -133,9 +140,16 @@ struct DaemonMetrics::SpacecraftSeries {
   prometheus::Gauge* last_refit_success_s = nullptr;
 };
 
-DaemonMetrics::DaemonMetrics(const std::string& version, std::vector<double> commit_bucket_bounds_s)
+DaemonMetrics::DaemonMetrics(const std::string& version, const std::string& station,
+                             std::vector<double> commit_bucket_bounds_s)
     : registry_(std::make_shared<prometheus::Registry>()) {
   const Families f = register_families(*registry_, version);
+  prometheus::BuildGauge()
+      .Name("magcal_station_info")
+      .Help("The daemon's ground station, its [station] id (value 1)")
+      .Register(*registry_)
+      .Add({{"station", station}})
+      .Set(1.0);
   received_ = f.received;
   stored_ = f.stored;
   rejected_ = f.rejected;
@@ -143,7 +157,9 @@ DaemonMetrics::DaemonMetrics(const std::string& version, std::vector<double> com
   queue_depth_ = &f.queue_depth->Add({});
   queue_overflow_ = &f.queue_overflow->Add({});
   commit_counts_seen_.assign(commit_bucket_bounds_s.size() + 1, 0);
-  commit_seconds_ = &f.commit_seconds->Add({}, std::move(commit_bucket_bounds_s));
+  for (size_t i = 0; i < commit_seconds_.size(); ++i) {
+    commit_seconds_[i] = &f.commit_seconds[i]->Add({}, commit_bucket_bounds_s);
+  }
   ukf_bias_ = f.ukf_bias;
   ukf_sigma_ = f.ukf_sigma;
   ukf_accepted_ = f.ukf_accepted;
@@ -229,7 +245,9 @@ void DaemonMetrics::apply_totals(const Totals& t) {
       any = true;
     }
     if (any) {
-      commit_seconds_->ObserveMultiple(increments, t.commit_sum_s - commit_sum_seen_s_);
+      for (prometheus::Histogram* h : commit_seconds_) {
+        h->ObserveMultiple(increments, t.commit_sum_s - commit_sum_seen_s_);
+      }
       commit_sum_seen_s_ = t.commit_sum_s;
     }
   }
@@ -252,8 +270,20 @@ std::string database_metrics_text(storage::Connection& db, const std::string& ve
                      .Name("magcal_window_samples")
                      .Help("Samples held in the database now, per spacecraft (magcal serve)")
                      .Register(registry);
+  auto& by_station = prometheus::BuildGauge()
+                         .Name("magcal_window_samples_by_station")
+                         .Help(
+                             "Samples held in the database now, per spacecraft and the station "
+                             "that stored them (magcal serve)")
+                         .Register(registry);
   for (const auto& sat : samples->spacecraft()) {
-    window.Add({{"sat", sat}}).Set(static_cast<double>(samples->count(sat)));
+    int64_t held = 0;
+    for (const auto& c : samples->count_by_station(sat, std::numeric_limits<int64_t>::min(),
+                                                   std::numeric_limits<int64_t>::max())) {
+      by_station.Add({{"sat", sat}, {"station", c.station}}).Set(static_cast<double>(c.samples));
+      held += c.samples;
+    }
+    window.Add({{"sat", sat}}).Set(static_cast<double>(held));
   }
   for (const auto& sat : history->spacecraft()) {
     if (const auto ukf = history->latest(sat, "ukf")) {

@@ -10,8 +10,12 @@
 //   magcal_samples_missing_total{sat}       gaps in `seq` (dropped before the socket)
 //   magcal_queue_depth                      samples in the receive -> worker queue
 //   magcal_queue_overflow_total             samples dropped because the queue was full
-//   magcal_sqlite_commit_seconds            histogram: each sample-batch transaction, including
-//                                           failed ones (a lock wait shows as a long commit)
+//   magcal_storage_commit_seconds           histogram: each sample-batch transaction, including
+//                                           failed ones (a lock wait shows as a long commit),
+//                                           whichever database (SQLite or PostgreSQL)
+//   magcal_sqlite_commit_seconds            the same histogram under design.md's first name,
+//                                           kept for dashboards and the shipped alert rule
+//                                           (deprecated: it is emitted on PostgreSQL too)
 //   magcal_ukf_bias_nT{sat,axis}            bias of the newest stored UKF snapshot (axis x|y|z)
 //   magcal_ukf_bias_sigma_nT{sat,axis}      its 1-sigma (2000 nT while the filter collects for
 //                                           its start: condition alerts on it, or on the next)
@@ -23,6 +27,14 @@
 //   magcal_storage_healthy                  1, or 0 while a storage operation is failing and
 //                                           being retried (then /-/healthy answers 503)
 //   magcal_build_info{version}              1
+//   magcal_station_info{station}            1, the daemon's [station] id (design.md "Fleet"):
+//                                           an info metric, joined in queries
+//                                           (`* on(instance) group_left(station)`) rather than
+//                                           a label on every series, which would rename every
+//                                           series when a station is renamed
+//
+// `magcal serve` adds magcal_window_samples{sat} and magcal_window_samples_by_station{sat,
+// station} (database_metrics_text below).
 //
 // Spacecraft series are as many as the daemon's counter table holds (capped there: corrupt or
 // hostile ids must not grow it without bound; later ids share sat="(other)").
@@ -81,8 +93,10 @@ class DaemonMetrics {
     double commit_sum_s = 0.0;
   };
 
-  // commit_bucket_bounds_s: the upper bounds of magcal_sqlite_commit_seconds (ascending).
-  DaemonMetrics(const std::string& version, std::vector<double> commit_bucket_bounds_s);
+  // station: the daemon's [station] id. commit_bucket_bounds_s: the upper bounds of the commit
+  // latency histogram (ascending).
+  DaemonMetrics(const std::string& version, const std::string& station,
+                std::vector<double> commit_bucket_bounds_s);
   ~DaemonMetrics();
   DaemonMetrics(const DaemonMetrics&) = delete;
   DaemonMetrics& operator=(const DaemonMetrics&) = delete;
@@ -104,7 +118,7 @@ class DaemonMetrics {
   prometheus::Family<prometheus::Counter>* missing_;
   prometheus::Gauge* queue_depth_;
   prometheus::Counter* queue_overflow_;
-  prometheus::Histogram* commit_seconds_;
+  std::array<prometheus::Histogram*, 2> commit_seconds_{};  // storage_, sqlite_ (deprecated)
   std::vector<int64_t> commit_counts_seen_;
   double commit_sum_seen_s_ = 0.0;
   prometheus::Family<prometheus::Gauge>* ukf_bias_;
@@ -122,9 +136,11 @@ class DaemonMetrics {
 };
 
 // What a database alone knows, for `magcal serve` (same names and types as the daemon's):
-// samples_stored_total{sat} = samples stored now (the window: retention deletes older ones),
-// the newest UKF snapshot's bias, sigma and verdict, refits_total{sat,verdict} from the history
-// (accepted | rejected; errors leave no history row), the newest accepted refit's time, and
+// magcal_window_samples{sat} = samples stored now (the window: retention deletes older ones),
+// magcal_window_samples_by_station{sat,station} = the same by the station that stored them
+// (station="" for samples stored without one, before schema 7; one query per spacecraft for
+// both), the newest UKF snapshot's bias, sigma and verdict, refits_total{sat,verdict} from the
+// history (accepted | rejected; errors leave no history row), the newest accepted refit's time, and
 // build_info. Counters that only a running daemon knows (received, rejected, missing, queue,
 // commit latency) are absent. `db` is read-only or not: this never writes. Throws
 // storage::StorageError.

@@ -64,6 +64,21 @@ inline int wait_http_port(const std::string& log_path, double timeout_s) {
   return port;
 }
 
+// Appends `message` (an LCM type), encoded, to a log as event `eventnum` at `timestamp_utime`.
+template <class Message>
+void write_log_event(lcm::LogFile& out, int64_t eventnum, int64_t timestamp_utime,
+                     const std::string& channel, const Message& message) {
+  std::vector<uint8_t> bytes(static_cast<size_t>(message.getEncodedSize()));
+  message.encode(bytes.data(), 0, static_cast<int>(bytes.size()));
+  lcm::LogEvent e;
+  e.eventnum = eventnum;
+  e.timestamp = timestamp_utime;
+  e.channel = channel;
+  e.datalen = static_cast<int32_t>(bytes.size());
+  e.data = bytes.data();
+  out.writeEvent(&e);
+}
+
 constexpr int kLogBatch = 50;                   // samples per mag_batch_t frame of write_batch_log
 constexpr int64_t kLogStep_utime = 10'000'000;  // 10 s between its samples
 
@@ -96,15 +111,7 @@ inline void write_batch_log(const std::string& path, const std::string& sat, int
       batch.samples.push_back(s);
     }
     batch.n = static_cast<int32_t>(batch.samples.size());
-    std::vector<uint8_t> bytes(static_cast<size_t>(batch.getEncodedSize()));
-    batch.encode(bytes.data(), 0, static_cast<int>(bytes.size()));
-    lcm::LogEvent e;
-    e.eventnum = event;
-    e.timestamp = t0_utime + event * frame_spacing_us;
-    e.channel = "MAGCAL_BATCH";
-    e.datalen = static_cast<int32_t>(bytes.size());
-    e.data = bytes.data();
-    out.writeEvent(&e);
+    write_log_event(out, event, t0_utime + event * frame_spacing_us, "MAGCAL_BATCH", batch);
     ++event;
   }
 }

@@ -5,9 +5,11 @@
 #include <unistd.h>
 
 #include <cmath>
+#include <set>
 #include <string>
 
 #include "service/daemon/daemon_config.hpp"
+#include "storage/connection.hpp"
 
 using magcal::parse_daemon_config;
 
@@ -196,4 +198,35 @@ TEST_CASE("a missing config file is an error", "[daemon_config]") {
   const auto load = magcal::load_daemon_config("/nonexistent/magcald.toml");
   CHECK_FALSE(load.ok());
   CHECK_THAT(load.error, Catch::Contains("/nonexistent/magcald.toml"));
+}
+
+// deploy/fleet (docs/fleet.md): three stations' configs for one PostgreSQL database. They must
+// keep parsing, and agree on what makes a fleet: one database, distinct stations, one refit
+// schedule (a scheduled refit is claimed once, at whichever station's schedule reaches it).
+TEST_CASE("the fleet example configs parse, share one database and differ in the station",
+          "[daemon_config]") {
+  std::vector<magcal::DaemonConfig> stations;
+  for (const char* file : {"station-a.toml", "station-b.toml", "station-c.toml"}) {
+    const auto load =
+        magcal::load_daemon_config(MAGCAL_SOURCE_DIR "/deploy/fleet/" + std::string(file));
+    INFO(file);
+    REQUIRE(load.error == "");
+    CHECK(magcal::storage::is_postgres_uri(load.config.storage.db_path));
+    stations.push_back(load.config);
+  }
+  std::set<std::string> ids;
+  for (const auto& c : stations) {
+    ids.insert(c.station.id);
+    const auto& a = stations.front();
+    CHECK(c.storage.db_path == a.storage.db_path);
+    CHECK(c.storage.window_hours == a.storage.window_hours);
+    CHECK(c.storage.retention_margin_hours == a.storage.retention_margin_hours);
+    CHECK(c.refit.daily_at_utc == a.refit.daily_at_utc);
+    CHECK(c.refit.every_hours == a.refit.every_hours);
+    CHECK(c.refit.clock == a.refit.clock);
+    CHECK(c.refit.min_samples == a.refit.min_samples);
+    CHECK(c.refit.early_growth == a.refit.early_growth);
+    CHECK(c.refit.robust == a.refit.robust);
+  }
+  CHECK(ids.size() == stations.size());
 }

@@ -119,7 +119,7 @@ TEST_CASE("live magcald --http-listen fed by lcm-logplayer: /metrics, healthy, r
   constexpr int kSamples = 6000;  // 120 frames of 50, two spacecraft
   write_batch_log(log, "HTTP-A", kT0_utime, kSamples / 2, 1000);
   write_batch_log(tmp.file("b.lcm"), "HTTP-B", kT0_utime, kSamples / 2, 1000);
-  const auto [d, port] = start_live(tmp, url);
+  const auto [d, port] = start_live(tmp, url, {"--station", "gs-http"});
   CHECK(http_get(port, "/-/healthy").status == 200);
 
   REQUIRE(run({"lcm-logplayer", "-l", url, "-s", "0", log}, tmp.file("player.log")) == 0);
@@ -147,7 +147,10 @@ TEST_CASE("live magcald --http-listen fed by lcm-logplayer: /metrics, healthy, r
   CHECK(p.value("magcal_queue_overflow_total") == 0);
   CHECK(p.value("magcal_storage_healthy") == 1);
   CHECK(p.value("magcal_build_info", {{"version", MAGCAL_VERSION}}) == 1);
-  CHECK(p.value("magcal_sqlite_commit_seconds_count") >= 1);
+  CHECK(p.value("magcal_station_info", {{"station", "gs-http"}}) == 1);
+  CHECK(p.value("magcal_storage_commit_seconds_count") >= 1);
+  CHECK(p.value("magcal_sqlite_commit_seconds_count") ==
+        p.value("magcal_storage_commit_seconds_count"));
   // Every sample was in a UKF snapshot's period: the newest one per spacecraft is exposed.
   CHECK(p.value("magcal_ukf_bias_sigma_nT", {{"sat", "HTTP-A"}, {"axis", "z"}}).has_value());
   CHECK(http_get(port, "/-/healthy").status == 200);

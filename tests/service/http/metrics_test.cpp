@@ -8,6 +8,7 @@
 
 #include <algorithm>
 #include <filesystem>
+#include <set>
 
 #include <catch2/catch.hpp>
 
@@ -37,7 +38,7 @@ struct TempDb {
 
 TEST_CASE("daemon metrics: the contract's names, the counted values, valid text", "[metrics]") {
   const std::vector<double> bounds_s{0.001, 0.01, 1.0};
-  DaemonMetrics m("9.9.9-test", bounds_s);
+  DaemonMetrics m("9.9.9-test", "gs-north", bounds_s);
   DaemonMetrics::SpacecraftTotals a;
   a.sat_label = "SAT-A";
   a.received = 300;
@@ -84,6 +85,7 @@ TEST_CASE("daemon metrics: the contract's names, the counted values, valid text"
       {"magcal_samples_missing_total", "counter"},
       {"magcal_queue_depth", "gauge"},
       {"magcal_queue_overflow_total", "counter"},
+      {"magcal_storage_commit_seconds", "histogram"},
       {"magcal_sqlite_commit_seconds", "histogram"},
       {"magcal_ukf_bias_nT", "gauge"},
       {"magcal_ukf_bias_sigma_nT", "gauge"},
@@ -92,7 +94,8 @@ TEST_CASE("daemon metrics: the contract's names, the counted values, valid text"
       {"magcal_refits_claimed_elsewhere_total", "counter"},
       {"magcal_last_refit_success_timestamp_seconds", "gauge"},
       {"magcal_storage_healthy", "gauge"},
-      {"magcal_build_info", "gauge"}};
+      {"magcal_build_info", "gauge"},
+      {"magcal_station_info", "gauge"}};
   CHECK(p.types == expected_types);
 
   CHECK(p.value("magcal_samples_received_total", {{"sat", "SAT-A"}}) == 300.0);
@@ -105,6 +108,8 @@ TEST_CASE("daemon metrics: the contract's names, the counted values, valid text"
   CHECK(p.value("magcal_queue_overflow_total") == 5.0);
   CHECK(p.value("magcal_storage_healthy") == 0.0);
   CHECK(p.value("magcal_build_info", {{"version", "9.9.9-test"}}) == 1.0);
+  CHECK(p.value("magcal_station_info", {{"station", "gs-north"}}) == 1.0);
+  CHECK(p.sum("magcal_station_info") == 1.0);  // one station: this daemon's
   CHECK(p.value("magcal_ukf_bias_nT", {{"sat", "SAT-A"}, {"axis", "y"}}) == 800.25);
   CHECK(p.value("magcal_ukf_bias_sigma_nT", {{"sat", "SAT-A"}, {"axis", "x"}}) == 0.3);
   CHECK(p.value("magcal_ukf_snapshot_accepted", {{"sat", "SAT-A"}}) == 1.0);
@@ -120,19 +125,24 @@ TEST_CASE("daemon metrics: the contract's names, the counted values, valid text"
         1'577'923'200.0);
   CHECK(!p.value("magcal_last_refit_success_timestamp_seconds", {{"sat", "SAT-B"}}));
 
-  // Histogram: cumulative buckets counted here from the observations, +Inf = count.
-  CHECK(p.value("magcal_sqlite_commit_seconds_count") == 4.0);
-  CHECK(p.value("magcal_sqlite_commit_seconds_sum") == Approx(7.0062));
-  for (const double le : bounds_s) {
-    double n = 0;
-    for (const double c : commits_s) n += c <= le ? 1 : 0;
-    const auto it = std::find_if(p.samples.begin(), p.samples.end(), [&](const auto& x) {
-      return x.name == "magcal_sqlite_commit_seconds_bucket" && std::stod(x.labels.at("le")) == le;
-    });
-    REQUIRE(it != p.samples.end());
-    CHECK(it->value == n);
+  // Histogram: cumulative buckets counted here from the observations, +Inf = count; the same
+  // under the backend-neutral name and the deprecated one.
+  for (const std::string histogram :
+       {"magcal_storage_commit_seconds", "magcal_sqlite_commit_seconds"}) {
+    INFO(histogram);
+    CHECK(p.value(histogram + "_count") == 4.0);
+    CHECK(p.value(histogram + "_sum") == Approx(7.0062));
+    for (const double le : bounds_s) {
+      double n = 0;
+      for (const double c : commits_s) n += c <= le ? 1 : 0;
+      const auto it = std::find_if(p.samples.begin(), p.samples.end(), [&](const auto& x) {
+        return x.name == histogram + "_bucket" && std::stod(x.labels.at("le")) == le;
+      });
+      REQUIRE(it != p.samples.end());
+      CHECK(it->value == n);
+    }
+    CHECK(p.value(histogram + "_bucket", {{"le", "+Inf"}}) == 4.0);
   }
-  CHECK(p.value("magcal_sqlite_commit_seconds_bucket", {{"le", "+Inf"}}) == 4.0);
 
   // Totals kept by the daemon only move the counters forward; a scrape with nothing new adds
   // nothing to the histogram.
@@ -142,15 +152,19 @@ TEST_CASE("daemon metrics: the contract's names, the counted values, valid text"
   const auto p2 = parse_prometheus_text(m.text());
   CHECK(p2.value("magcal_samples_rejected_total", {{"reason", "duplicate"}}) == 9.0);
   CHECK(p2.value("magcal_samples_received_total", {{"sat", "SAT-A"}}) == 310.0);
-  CHECK(p2.value("magcal_sqlite_commit_seconds_count") == 5.0);
   const auto p3 = parse_prometheus_text(m.text());
-  CHECK(p3.value("magcal_sqlite_commit_seconds_count") == 5.0);
-  CHECK(p3.value("magcal_sqlite_commit_seconds_sum") == Approx(7.0062));
+  for (const std::string histogram :
+       {"magcal_storage_commit_seconds", "magcal_sqlite_commit_seconds"}) {
+    INFO(histogram);
+    CHECK(p2.value(histogram + "_count") == 5.0);
+    CHECK(p3.value(histogram + "_count") == 5.0);
+    CHECK(p3.value(histogram + "_sum") == Approx(7.0062));
+  }
 }
 
 TEST_CASE("daemon metrics: label values are escaped", "[metrics]") {
-  DaemonMetrics m("1", {0.1});
   const std::string odd = "SAT \"quoted\" \\ back\nslash";
+  DaemonMetrics m("1", odd, {0.1});
   m.set_totals_source([&] {
     DaemonMetrics::Totals t;
     DaemonMetrics::SpacecraftTotals s;
@@ -166,25 +180,36 @@ TEST_CASE("daemon metrics: label values are escaped", "[metrics]") {
   REQUIRE(p.error.empty());
   CHECK(p.value("magcal_samples_received_total", {{"sat", odd}}) == 3.0);
   CHECK(p.sum("magcal_samples_received_total") == 4.0);
+  CHECK(p.value("magcal_station_info", {{"station", odd}}) == 1.0);
 }
 
 TEST_CASE("database metrics (magcal serve): what the database holds", "[metrics]") {
   namespace st = magcal::storage;
   TempDb tmp;
   std::map<std::string, int> stored;
+  std::map<std::pair<std::string, std::string>, int> stored_by_station;  // (sat, station)
   {
     st::Database db(tmp.path());
     st::SqliteSampleWindowStore samples(db);
-    std::vector<st::StoredSample> rows;
-    for (int i = 0; i < 250; ++i) {
-      st::StoredSample s;
-      s.sat_id = i % 5 == 0 ? "SAT-B" : "SAT-A";
-      s.utime = 1'577'836'800'000'000 + int64_t{i} * 10'000'000;
-      s.h_norm_nT = 40000.0;
-      ++stored[s.sat_id];
-      rows.push_back(s);
+    // Three batches: stations gs-a and gs-b, and one without a station (before schema 7); the
+    // second repeats half of the first's samples, which stay gs-a's.
+    std::set<int64_t> held;
+    for (const auto& [station, first] : {std::pair{"gs-a", 0}, {"gs-b", 50}, {"", 150}}) {
+      std::vector<st::StoredSample> rows;
+      int new_rows = 0;
+      for (int i = first; i < first + 100; ++i) {
+        st::StoredSample s;
+        s.sat_id = i % 5 == 0 ? "SAT-B" : "SAT-A";
+        s.utime = 1'577'836'800'000'000 + int64_t{i} * 10'000'000;
+        s.h_norm_nT = 40000.0;
+        rows.push_back(s);
+        if (!held.insert(s.utime).second) continue;  // an earlier station's
+        ++stored[s.sat_id];
+        ++stored_by_station[{s.sat_id, station}];
+        ++new_rows;
+      }
+      REQUIRE(samples.insert_batch(rows, nullptr, station).inserted == new_rows);
     }
-    samples.insert_batch(rows);
     st::SqliteCalibrationHistory history(db);
     auto record = [](const std::string& method, int64_t utime, bool accepted, double bx) {
       st::CalibrationRecord r;
@@ -210,6 +235,12 @@ TEST_CASE("database metrics (magcal serve): what the database holds", "[metrics]
   REQUIRE(p.error.empty());
   CHECK(p.value("magcal_window_samples", {{"sat", "SAT-A"}}) == stored["SAT-A"]);
   CHECK(p.value("magcal_window_samples", {{"sat", "SAT-B"}}) == stored["SAT-B"]);
+  for (const auto& [key, n] : stored_by_station) {
+    INFO(key.first << " by '" << key.second << "'");
+    CHECK(p.value("magcal_window_samples_by_station",
+                  {{"sat", key.first}, {"station", key.second}}) == n);
+  }
+  CHECK(p.sum("magcal_window_samples_by_station") == p.sum("magcal_window_samples"));
   CHECK(!p.has("magcal_samples_stored_total"));  // retention makes the held count fall
   CHECK(p.value("magcal_refits_total", {{"sat", "SAT-A"}, {"verdict", "accepted"}}) == 2.0);
   CHECK(p.value("magcal_refits_total", {{"sat", "SAT-A"}, {"verdict", "rejected"}}) == 1.0);
@@ -222,4 +253,6 @@ TEST_CASE("database metrics (magcal serve): what the database holds", "[metrics]
   CHECK(p.value("magcal_build_info", {{"version", "2.0"}}) == 1.0);
   CHECK(!p.has("magcal_samples_received_total"));  // only a running daemon knows
   CHECK(!p.has("magcal_sqlite_commit_seconds_count"));
+  CHECK(!p.has("magcal_storage_commit_seconds_count"));
+  CHECK(!p.has("magcal_station_info"));  // a database has many stations: by_station above
 }
