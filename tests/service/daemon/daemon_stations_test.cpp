@@ -93,32 +93,22 @@ void write_station_log(const std::string& path, const std::vector<magcal::mag_sa
   lcm::LogFile out(path, "w");
   REQUIRE(out.good());
   int64_t event = 0;
-  auto write = [&](const std::string& channel, const std::vector<uint8_t>& bytes, int64_t t) {
-    lcm::LogEvent e;
-    e.eventnum = event++;
-    e.timestamp = t;
-    e.channel = channel;
-    e.datalen = static_cast<int32_t>(bytes.size());
-    e.data = const_cast<uint8_t*>(bytes.data());
-    out.writeEvent(&e);
-  };
-  write("SYNC", {0}, sync_utime);
+  magcal::test::write_log_event(out, event++, sync_utime, "SYNC", magcal::daemon_status_t{});
   magcal::mag_batch_t batch;
   batch.sat_id = kSat;
   auto flush = [&] {
     if (batch.samples.empty()) return;
     batch.n = static_cast<int32_t>(batch.samples.size());
-    std::vector<uint8_t> bytes(static_cast<size_t>(batch.getEncodedSize()));
-    batch.encode(bytes.data(), 0, static_cast<int>(bytes.size()));
-    write("MAGCAL_BATCH", bytes, std::max(sync_utime, batch.samples.back().utime));
+    magcal::test::write_log_event(out, event++, std::max(sync_utime, batch.samples.back().utime),
+                                  "MAGCAL_BATCH", batch);
     batch.samples.clear();
   };
-  for (size_t i = 0; i < samples.size(); ++i) {
-    if (!batch.samples.empty() && (samples[i].utime - batch.samples.back().utime > 10 * kSecond ||
+  for (const auto& s : samples) {
+    if (!batch.samples.empty() && (s.utime - batch.samples.back().utime > 10 * kSecond ||
                                    static_cast<int>(batch.samples.size()) == kFrameSamples)) {
       flush();
     }
-    batch.samples.push_back(samples[i]);
+    batch.samples.push_back(s);
   }
   flush();
 }
@@ -365,6 +355,115 @@ TEST_CASE("three stations, one database: one window, one series, each refit once
     for (size_t i = 0; i < 3; ++i) {
       CHECK(std::abs(got->second.bias_nT[i] - want->second.bias_nT[i]) <=
             want->second.bias_sigma_nT[i]);
+    }
+  }
+}
+
+TEST_CASE("the live daemons share the spacecraft evenly, and take over those of one that stops",
+          "[daemon][fleet][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_share");
+  // 30 spacecraft, each with a frame every 0.5 s of log time for 20 s (speed 1).
+  constexpr int kSats = 30;
+  constexpr int kFrames = 40;
+  const std::string log = dir.file("fleet.lcm");
+  {
+    lcm::LogFile out(log, "w");
+    REQUIRE(out.good());
+    const int64_t t0 = 1'767'225'600LL * kSecond;
+    int64_t event = 0;
+    for (int f = 0; f < kFrames; ++f) {
+      for (int k = 0; k < kSats; ++k) {
+        magcal::mag_batch_t batch;
+        batch.sat_id = "SAT-" + std::to_string(k);
+        for (int i = 0; i < 5; ++i) {
+          magcal::mag_sample_t s{};
+          const int n = f * 5 + i;
+          s.utime = t0 + n * 10 * kSecond;
+          s.sat_id = batch.sat_id;
+          s.seq = n;
+          const double a = 0.01 * n, b = 0.0037 * n;
+          const double h[3] = {30000.0 * std::cos(a) * std::cos(b),
+                               30000.0 * std::sin(a) * std::cos(b), 30000.0 * std::sin(b)};
+          for (int j = 0; j < 3; ++j) {
+            s.h_body_nT[j] = h[j];
+            s.b_sensor_nT[j] = h[j] + 100.0 * (j + 1);
+          }
+          s.has_reference = true;
+          s.temperature_C = std::nanf("");
+          batch.samples.push_back(s);
+        }
+        batch.n = static_cast<int32_t>(batch.samples.size());
+        magcal::test::write_log_event(out, event++, t0 + f * 500'000, "MAGCAL_BATCH", batch);
+      }
+    }
+  }
+  const std::string config = dir.file("d.toml");
+  {
+    std::ofstream out(config);
+    out << "[fleet]\nlease_s = " << kLease_s << "\n";
+  }
+  const std::string db = server->create_database();
+  const std::string names[kStations] = {"gs-a", "gs-b", "gs-c"};
+  pid_t pids[kStations];
+  for (int k = 0; k < kStations; ++k) {
+    pids[k] = spawn({kBin + "/magcald", "--config", config, "--db", db, "--station", names[k],
+                     "--http-listen", "", "--lcm-url", "file://" + log + "?speed=1"},
+                    dir.file(names[k] + ".log"));
+    REQUIRE(pids[k] > 0);
+  }
+  const auto connection = storage::open_database(db);
+  const auto leases = connection->make_lease_store();
+  auto owned_by = [&] {
+    const int64_t now = std::chrono::duration_cast<std::chrono::microseconds>(
+                            std::chrono::system_clock::now().time_since_epoch())
+                            .count();
+    std::map<std::string, int> out;
+    for (const auto& l : leases->list()) {
+      if (l.held_at(now)) ++out[l.owner];
+    }
+    return out;
+  };
+  auto logs = [&] {
+    std::string text;
+    for (int k = 0; k < kStations; ++k) {
+      text += names[k] + ":\n" + slurp(dir.file(names[k] + ".log")) + "\n";
+    }
+    return text;
+  };
+  // Three live daemons: 10 each (the first to start takes all, then hands over the excess).
+  const bool shared = wait_until(
+      [&] {
+        const auto by = owned_by();
+        return by.size() == 3 && by.count("gs-a") && by.at("gs-a") == 10 && by.at("gs-b") == 10;
+      },
+      10);
+  INFO(logs());
+  REQUIRE(shared);
+  // gs-a stops (SIGTERM: it hands its spacecraft back at once): the other two share all 30.
+  REQUIRE(::kill(pids[0], SIGTERM) == 0);
+  CHECK(wait_exit(pids[0], 10) == 0);
+  const bool taken = wait_until(
+      [&] {
+        const auto by = owned_by();
+        return by.size() == 2 && by.count("gs-b") && by.at("gs-b") == 15 && by.count("gs-c") &&
+               by.at("gs-c") == 15;
+      },
+      kLease_s + 2);
+  INFO(logs());
+  CHECK(taken);
+  for (int k = 1; k < kStations; ++k) CHECK(wait_exit(pids[k], 60) == 0);
+  // Every spacecraft's snapshots form one series, whoever owned it when.
+  for (int k = 0; k < kSats; ++k) {
+    storage::HistoryQuery q;
+    q.sat_id = "SAT-" + std::to_string(k);
+    q.method = "ukf";
+    q.limit = 100'000;
+    std::set<int64_t> times;
+    for (const auto& r : connection->make_calibration_history()->query(q)) {
+      INFO(q.sat_id << " ukf row at " << r.utime);
+      CHECK(times.insert(r.utime).second);
     }
   }
 }
