@@ -114,7 +114,7 @@ void IngestWorker::restore_received(const std::string& sat, SpacecraftTracker& t
   t.newest_utime = newest_utime;
   t.stored_bound_utime = newest_utime;
   samples_->read_window(sat, newest_utime, saturating_add(newest_utime, 1), union_rows_);
-  if (!union_rows_.empty()) t.last_seq = union_rows_.back().seq;
+  if (!union_rows_.empty()) t.received_seq.last_seq = union_rows_.back().seq;
   data_clock_utime_ = std::max(data_clock_utime_, newest_utime);
 }
 
@@ -134,6 +134,7 @@ void IngestWorker::take_over(const std::string& sat, SpacecraftTracker& t, int64
   t.union_newest_utime = newest.value_or(kNoTime);
   t.union_grew_wall_utime = wall_utime();
   t.union_due = true;
+  t.union_seq = SeqGapCounter{};
   // The next early refit follows from the database: the latest refit's sample count; the
   // samples counted are those the state has taken.
   const auto latest_refit = history_->latest_refit(sat);
@@ -403,6 +404,11 @@ void IngestWorker::track_union(const std::string& sat, SpacecraftTracker& t, boo
     counters_.ukf_updates.fetch_add(1, std::memory_order_relaxed);
     t.filtered_utime = row.utime;
     ++t.n_samples;
+    if (const int64_t missing = t.union_seq.observe(row.seq); missing > 0 && live_stations_ > 1) {
+      // No station delivered them (or one did too late for the filter).
+      counters_.missing_by_seq.fetch_add(missing, std::memory_order_relaxed);
+      t.counters->missing.fetch_add(missing, std::memory_order_relaxed);
+    }
     maybe_snapshot(sat, t, row.utime);
     check_early_refit(sat, t);
     if (data_schedule_) check_data_clock(sat, t);
@@ -472,8 +478,9 @@ SpacecraftTracker& IngestWorker::tracker(const std::string& sat_id, bool* create
 }
 
 void IngestWorker::count_missing(SpacecraftTracker& t, int64_t seq) {
-  const int64_t missing = t.observe_seq(seq);
-  if (missing == 0) return;
+  const int64_t missing = t.received_seq.observe(seq);
+  // In a fleet another station may have delivered it: the owner counts the union's gaps.
+  if (missing == 0 || live_stations_ > 1) return;
   counters_.missing_by_seq.fetch_add(missing, std::memory_order_relaxed);
   t.counters->missing.fetch_add(missing, std::memory_order_relaxed);
 }

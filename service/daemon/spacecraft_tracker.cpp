@@ -55,8 +55,7 @@ void TemperatureCorrection::describe(CalibrationResult& result) const {
   result.temperature_coefficient_covariance = coefficient_covariance;
 }
 
-int64_t SpacecraftTracker::observe_seq(int64_t seq) {
-  constexpr int64_t kNone = std::numeric_limits<int64_t>::min();
+int64_t SeqGapCounter::observe(int64_t seq) {
   if (last_seq == kNone) {
     last_seq = seq;
     return 0;

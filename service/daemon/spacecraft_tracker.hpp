@@ -95,6 +95,19 @@ struct TemperatureCorrection {
   void describe(CalibrationResult& result) const;
 };
 
+// Missing samples implied by a stream's seq numbers: a forward gap counts once the following
+// number confirms it (continues after the gap), so one corrupt seq implies nothing;
+// out-of-order or repeated numbers, and jumps larger than kMaxSeqGap (a counter reset), imply
+// none. A gap at the very end of a stream (never confirmed) is not counted.
+struct SeqGapCounter {
+  static constexpr int64_t kNone = std::numeric_limits<int64_t>::min();
+  static constexpr int64_t kMaxSeqGap = 1'000'000;
+  int64_t last_seq = kNone;  // none yet
+  int64_t gap_seq = kNone;   // after an unconfirmed gap; none
+  // The missing samples `seq` confirms; advances last_seq.
+  int64_t observe(int64_t seq);
+};
+
 struct SpacecraftTracker {
   explicit SpacecraftTracker(const MagnetometerUkf::Options& options) : ukf(options) {}
 
@@ -111,7 +124,11 @@ struct SpacecraftTracker {
   int64_t newest_utime = kNoTime;     // newest accepted sample (the time base); none yet
   // Newest time stored (restored) or pending for it: a sample after it is no duplicate.
   int64_t stored_bound_utime = kNoTime;
-  int64_t last_seq = std::numeric_limits<int64_t>::min();  // none yet
+  // Seq gaps of the samples this station received (counted missing while it is the only live
+  // station), and of the union the owner reads (counted missing in a fleet: a gap is missing
+  // only when no station delivered the sample).
+  SeqGapCounter received_seq;
+  SeqGapCounter union_seq;
   int64_t next_snapshot_utime = kNoTime;
   int64_t advances = 0;      // accepted samples that moved newest_utime forward
   bool state_dirty = false;  // filter changed since its state was last written
@@ -158,14 +175,6 @@ struct SpacecraftTracker {
     ukf.update(b_sensor_nT, reference_norm_nT(s), s.utime);
     return true;
   }
-
-  // Missing samples implied by `seq`: a forward gap counts once the following number confirms
-  // it (continues after the gap), so one corrupt seq implies nothing; out-of-order or repeated
-  // numbers, and jumps larger than kMaxSeqGap (a counter reset), imply none. A gap at the very
-  // end of a stream (never confirmed) is not counted. Advances last_seq.
-  int64_t observe_seq(int64_t seq);
-  int64_t gap_seq = std::numeric_limits<int64_t>::min();  // after an unconfirmed gap; none
-  static constexpr int64_t kMaxSeqGap = 1'000'000;
 
   // True when a sample at `utime` is on the time base (see the file comment), false when it
   // must be held. `utime` is plausible (pipeline/time_utc.hpp).

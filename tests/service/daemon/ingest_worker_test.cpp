@@ -781,14 +781,14 @@ TEST_CASE("sequence numbers at the int64 limits do not overflow", "[ingest_worke
   SpacecraftTracker t(MagnetometerUkf::Options{});
   constexpr int64_t kMax = std::numeric_limits<int64_t>::max();
   constexpr int64_t kMin = std::numeric_limits<int64_t>::min();
-  CHECK(t.observe_seq(kMin + 1) == 0);
-  CHECK(t.observe_seq(kMax) == 0);  // a reset, not 2^64 missing
-  CHECK(t.last_seq == kMax);
-  CHECK(t.observe_seq(kMin + 1) == 0);
-  CHECK(t.observe_seq(kMin + 4) == 0);  // a gap of 2, not yet confirmed
-  CHECK(t.observe_seq(kMin + 5) == 2);  // confirmed
-  CHECK(t.observe_seq(kMin) == 0);      // older: the edge stays
-  CHECK(t.last_seq == kMin + 5);
+  CHECK(t.received_seq.observe(kMin + 1) == 0);
+  CHECK(t.received_seq.observe(kMax) == 0);  // a reset, not 2^64 missing
+  CHECK(t.received_seq.last_seq == kMax);
+  CHECK(t.received_seq.observe(kMin + 1) == 0);
+  CHECK(t.received_seq.observe(kMin + 4) == 0);  // a gap of 2, not yet confirmed
+  CHECK(t.received_seq.observe(kMin + 5) == 2);  // confirmed
+  CHECK(t.received_seq.observe(kMin) == 0);      // older: the edge stays
+  CHECK(t.received_seq.last_seq == kMin + 5);
 }
 
 TEST_CASE("one corrupt sequence number implies no missing samples", "[ingest_worker]") {
@@ -804,7 +804,7 @@ TEST_CASE("one corrupt sequence number implies no missing samples", "[ingest_wor
         const int64_t corrupt[] = {seq + 1'000'000, seq ^ (int64_t{1} << (rng() % 62)),
                                    static_cast<int64_t>(rng()),
                                    seq + 2 + static_cast<int64_t>(rng() % 50)};
-        missing += t.observe_seq(corrupt[draw % 4]);
+        missing += t.received_seq.observe(corrupt[draw % 4]);
         continue;  // the corrupt frame replaced this sample; the stream goes on
       }
       if (k % 17 == 5) {  // a real gap of 1..5 samples
@@ -812,7 +812,7 @@ TEST_CASE("one corrupt sequence number implies no missing samples", "[ingest_wor
         seq += gap;
         real_gaps += gap;
       }
-      missing += t.observe_seq(++seq);
+      missing += t.received_seq.observe(++seq);
     }
     INFO("draw " << draw);
     CHECK(missing == real_gaps);
