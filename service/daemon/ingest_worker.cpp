@@ -62,9 +62,22 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
       filter_states_(db_->make_filter_state_store()),
       jobs_(db_->make_refit_job_log()),
       fleet_(config.ukf.filter),
-      commit_retry_("commit", config.storage.max_failure_s, counters),
-      read_retry_("duplicate check", config.storage.max_failure_s, counters) {
+      commit_retry_("commit", config.storage_max_failure_s(), counters,
+                    config.storage_max_failure_key()),
+      read_retry_("duplicate check", config.storage_max_failure_s(), counters,
+                  config.storage_max_failure_key()) {
   pending_.reserve(static_cast<size_t>(config.storage.commit_every_samples));
+  if (const std::string path = config.spill_path(); !path.empty()) {
+    spill_ = std::make_unique<SampleSpill>(path, db_->name(), config.storage.spill_max_bytes);
+    if (spill_->dropped_records() > 0) {
+      counters_.spill_dropped.fetch_add(spill_->dropped_records());
+      spdlog::error(
+          "spill file {}: its torn or corrupt end was cut off (the process stopped "
+          "during a write); its {} complete samples are kept",
+          path, spill_->held_samples());
+    }
+    update_spill_gauges();
+  }
   if (config.data_clock()) {
     const auto minute = parse_daily_time_utc(config.refit.daily_at_utc);
     data_schedule_ = RefitSchedule{minute.value_or(120), config.refit.every_hours};
@@ -74,6 +87,18 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
 IngestWorker::~IngestWorker() = default;
 
 void IngestWorker::restore() {
+  if (spill_ && spill_->held_samples() > 0) {
+    // Before the trackers are rebuilt: they, and the filter re-run, then include these samples.
+    const int64_t held = spill_->held_samples();
+    spdlog::warn(
+        "spill file {} (written for {}) holds {} samples an earlier run received during "
+        "a database outage: committing them",
+        spill_->path(), spill_->found_database(), held);
+    commit_spill(true);
+    spdlog::info("spill file {}: {} samples committed ({} already stored); file removed",
+                 spill_->path(), counters_.spill_recovered.load(),
+                 held - counters_.spill_recovered.load());
+  }
   const int64_t period = snapshot_period_utime(config_);
   std::vector<storage::StoredSample> rows;
   int64_t rerun = 0;
@@ -192,29 +217,29 @@ void IngestWorker::count_missing(SpacecraftTracker& t, int64_t seq) {
   t.counters->missing.fetch_add(missing, std::memory_order_relaxed);
 }
 
-void IngestWorker::count_stored(size_t begin, size_t end) {
+void IngestWorker::count_stored(std::span<const storage::StoredSample> rows) {
   // Rows come in runs of one spacecraft (a batch, a recorder dump): one lookup per run.
   size_t dup = 0;
-  size_t run_start = begin;
+  size_t run_start = 0;
   int64_t run_stored = 0;
   auto flush_run = [&](size_t at) {
     if (run_stored > 0) {
-      if (SpacecraftTracker* t = fleet_.find(pending_[run_start].sat_id)) {
+      if (SpacecraftTracker* t = fleet_.find(rows[run_start].sat_id)) {
         t->counters->stored.fetch_add(run_stored, std::memory_order_relaxed);
       }
     }
     run_stored = 0;
     run_start = at;
   };
-  for (size_t i = begin; i < end; ++i) {
-    if (pending_[i].sat_id != pending_[run_start].sat_id) flush_run(i);
-    if (dup < duplicate_rows_.size() && duplicate_rows_[dup] + begin == i) {
+  for (size_t i = 0; i < rows.size(); ++i) {
+    if (rows[i].sat_id != rows[run_start].sat_id) flush_run(i);
+    if (dup < duplicate_rows_.size() && duplicate_rows_[dup] == i) {
       ++dup;  // a duplicate the in-memory check could not see: counted as rejected instead
       continue;
     }
     ++run_stored;
   }
-  flush_run(end);
+  flush_run(rows.size());
 }
 
 void IngestWorker::index_pending() {
@@ -239,6 +264,17 @@ bool IngestWorker::is_duplicate(const std::string& sat_id, const SpacecraftTrack
   for (auto it = first; it != last; ++it) {
     const auto& p = pending_[it->second];
     if (p.utime == utime && p.sat_id == sat_id) return true;
+  }
+  if (spill_) {
+    // PostgreSQL: while the database is away the insert decides (ON CONFLICT, counted as
+    // duplicate): a read retried in place would stop intake for the whole outage.
+    if (commit_retry_.failing()) return false;
+    try {
+      return samples_->count_in_window(sat_id, utime, utime + 1) > 0;
+    } catch (const storage::StorageError&) {
+      counters_.storage_failures.fetch_add(1, std::memory_order_relaxed);
+      return false;
+    }
   }
   // Reads work through most faults (WAL readers never wait for the writer); one that fails is
   // retried in place: the sample must not be taken before its answer.
@@ -471,7 +507,7 @@ void IngestWorker::commit_if_due() {
   if (have_reanchors_.load(std::memory_order_acquire)) apply_reanchors();
   const auto now = std::chrono::steady_clock::now();
   release_first_holds(now);
-  if (!pending_.empty() || !pending_snapshots_.empty() || !states_due_.empty()) {
+  if (uncommitted()) {
     const double age_ms =
         std::chrono::duration<double, std::milli>(now - first_pending_time_).count();
     if (age_ms >= config_.storage.commit_every_ms || pending_.empty()) commit();
@@ -482,17 +518,32 @@ void IngestWorker::commit_if_due() {
   }
 }
 
+bool IngestWorker::uncommitted() const {
+  return !pending_.empty() || !pending_snapshots_.empty() || !states_due_.empty() ||
+         (spill_ && spill_->held_samples() > 0);
+}
+
 void IngestWorker::commit() {
-  if ((!pending_.empty() || !pending_snapshots_.empty() || !states_due_.empty()) &&
-      commit_retry_.due()) {
+  // An outage that outlasts memory: the batch goes to the spill file, intake goes on.
+  if (commit_retry_.failing()) spill_pending(false);
+  if (uncommitted() && commit_retry_.due()) {
     commit_retry_.attempting();
     try {
       commit_pending();
       commit_retry_.succeeded();
+      spill_full_ = false;
     } catch (const storage::StorageError& e) {
       // Samples and snapshots stay pending (the UKF has used them: they must be stored).
       commit_retry_.failed(e);  // throws StorageOutage when storage stays broken
       return;
+    }
+    if (!deferred_refits_.empty()) {
+      // Their samples are committed now; requested before retention runs (their floor).
+      const auto due = std::move(deferred_refits_);
+      deferred_refits_.clear();
+      for (const auto& [sat, t_ref] : due) {
+        if (hooks_.on_refit_due) hooks_.on_refit_due(sat, t_ref, "scheduled");
+      }
     }
   }
   // Retention by data time too, so a fast replay keeps its windows as a live feed would.
@@ -510,6 +561,8 @@ void IngestWorker::commit_pending() {
   // snapshots and the filter states that are due go with the last chunk (published once
   // stored; a state then includes exactly the committed samples).
   const auto chunk = static_cast<size_t>(config_.storage.commit_every_samples);
+  // Spilled samples are older than the pending ones, and the states below include them.
+  if (spill_ && spill_->held_samples() > 0) commit_spill(false);
   size_t done = 0;
   try {
     while (done < pending_.size() || !pending_snapshots_.empty() || !states_due_.empty()) {
@@ -544,7 +597,7 @@ void IngestWorker::commit_pending() {
         }
         tx.commit();
       }
-      count_stored(done, done + n);
+      count_stored(std::span(pending_).subspan(done, n));
       done += n;
       counters_.stored.fetch_add(stats.inserted, std::memory_order_relaxed);
       // Duplicates the in-memory check could not see (e.g. within one frame).
@@ -574,10 +627,101 @@ void IngestWorker::commit_pending() {
 }
 
 void IngestWorker::flush() {
-  while (!pending_.empty() || !pending_snapshots_.empty() || !states_due_.empty()) {
+  while (uncommitted()) {
     if (!commit_retry_.due()) std::this_thread::sleep_until(commit_retry_.next_attempt());
     commit();
   }
+}
+
+void IngestWorker::flush_at_stop() {
+  if (spill_ && uncommitted()) {
+    commit();
+    if (commit_retry_.failing() && (pending_.empty() || spill_pending(true))) {
+      if (!pending_snapshots_.empty()) {
+        spdlog::warn(
+            "{} UKF snapshots not stored: the database is unreachable at shutdown (the "
+            "spilled samples are committed at the next start)",
+            pending_snapshots_.size());
+      }
+      pending_snapshots_.clear();
+      // Not saved: the next start re-runs each filter over the samples newer than its state.
+      for (const auto& sat : states_due_) {
+        if (SpacecraftTracker* t = fleet_.find(sat)) t->state_due = false;
+      }
+      states_due_.clear();
+      return;
+    }
+  }
+  flush();
+}
+
+int64_t IngestWorker::spill_all_pending() {
+  const auto n = static_cast<int64_t>(pending_.size());
+  return spill_pending(true) ? n : 0;
+}
+
+bool IngestWorker::spill_pending(bool at_any_size) {
+  if (!spill_ || spill_full_ || pending_.empty()) return false;
+  if (!at_any_size && static_cast<int64_t>(pending_.size()) < config_.storage.max_pending_samples) {
+    return false;
+  }
+  bool appended = false;
+  try {
+    appended = spill_->append(pending_);
+  } catch (const SpillError& e) {
+    spdlog::error("{}", e.what());
+  }
+  if (!appended) {
+    spill_full_ = true;  // until a commit succeeds
+    spdlog::error(
+        "spill file {} cannot take {} more samples ({} bytes held, [storage] "
+        "spill_max_bytes {}): intake stops until the database is back (a live feed "
+        "overflows its receive queue, counted as queue_overflow)",
+        spill_->path(), pending_.size(), spill_->bytes(), spill_->max_bytes());
+    return false;
+  }
+  counters_.spilled.fetch_add(static_cast<int64_t>(pending_.size()), std::memory_order_relaxed);
+  warnings_.warn("spill", fmt::format("database unreachable: {} pending samples spilled to {} "
+                                      "({} held there, {} bytes)",
+                                      pending_.size(), spill_->path(), spill_->held_samples(),
+                                      spill_->bytes()));
+  pending_.clear();
+  reset_pending_index();
+  update_spill_gauges();
+  return true;
+}
+
+void IngestWorker::commit_spill(bool recovered) {
+  const auto chunk = static_cast<size_t>(config_.storage.commit_every_samples);
+  // insert_batch sorts each chunk by (sat_id, utime), the fleet's one key order.
+  while (spill_->read_chunk(chunk, spill_chunk_) > 0) {
+    const storage::InsertStats stats =
+        samples_->insert_batch(spill_chunk_, &duplicate_rows_, config_.station.id);
+    spill_->commit_read();
+    if (recovered) {
+      // Received, counted and checked by the run that spilled them.
+      counters_.spill_recovered.fetch_add(stats.inserted, std::memory_order_relaxed);
+    } else {
+      count_stored(spill_chunk_);
+      counters_.stored.fetch_add(stats.inserted, std::memory_order_relaxed);
+      if (stats.duplicates > 0) counters_.reject(RejectReason::kDuplicate, stats.duplicates);
+    }
+    update_spill_gauges();
+  }
+}
+
+void IngestWorker::update_spill_gauges() {
+  counters_.spill_held.store(spill_->held_samples(), std::memory_order_relaxed);
+  counters_.spill_bytes.store(spill_->bytes(), std::memory_order_relaxed);
+}
+
+bool IngestWorker::committed_for_refit() {
+  if (!spill_) {
+    flush();
+    return true;
+  }
+  commit();  // one attempt, or none during the backoff: never waits through an outage
+  return !uncommitted();
 }
 
 void IngestWorker::run_retention() {
@@ -616,7 +760,15 @@ void IngestWorker::check_data_clock(const std::string& sat_id, SpacecraftTracker
                                t.data_refits->skipped() - skipped_before));
   }
   if (due.empty()) return;
-  flush();  // the refit reads what is committed: everything up to t_ref
+  // The refit reads what is committed: everything up to t_ref.
+  if (!committed_for_refit()) {
+    for (const int64_t t_ref : due) deferred_refits_.emplace_back(sat_id, t_ref);
+    warnings_.warn("refit_deferred",
+                   fmt::format("{}: refit due at {} waits until the database takes the held "
+                               "samples",
+                               sat_id, format_iso8601_utc(due.back())));
+    return;
+  }
   for (const int64_t t_ref : due) {
     if (hooks_.on_refit_due) hooks_.on_refit_due(sat_id, t_ref, "scheduled");
   }
@@ -627,7 +779,9 @@ void IngestWorker::check_early_refit(const std::string& sat_id, SpacecraftTracke
       !t.ukf.initialized() || t.newest_utime == kNoTime) {
     return;
   }
-  flush();  // the refit reads what is committed; so does its key below
+  // The refit reads what is committed; so does its key below. (During an outage: asked again
+  // with the next samples.)
+  if (!committed_for_refit()) return;
   const EarlyRefitPlan plan = config_.early_refits();
   const int64_t n = plan.latest_within(t.n_samples);
   std::optional<int64_t> first_utime, t_ref;
@@ -660,7 +814,7 @@ void IngestWorker::save_filter_states() {
   // A saved state must not include samples that are not stored: after a crash they come again
   // (re-replay, recorder dump) and the restored filter would use them twice.
   commit();
-  if (!pending_.empty()) return;  // storage failing: saved once the commit goes through
+  if (uncommitted()) return;  // storage failing: saved once the commit goes through
   std::vector<SpacecraftTracker*> saved;
   try {
     storage::Transaction tx(*db_);
