@@ -6,7 +6,8 @@
 // - unreachable for 2 minutes with a small [storage] max_pending_samples: the pending samples go
 //   to the spill file, intake goes on, /-/healthy stays 200 while /-/ready answers 503 with the
 //   outage in both bodies; afterwards nothing is lost, the file is gone and /metrics counted it;
-// - killed (SIGKILL) during an outage: the next start commits the spill file it left, exactly.
+// - killed (SIGKILL) during an outage: the next start commits the spill file it left, exactly;
+// - down past [storage] pg_max_failure_s: exit 3, the pending samples spilled, not lost.
 // Skipped without the PostgreSQL server programs (with CI=true it fails).
 #include <signal.h>
 
@@ -212,6 +213,37 @@ TEST_CASE("PostgreSQL unreachable for 2 minutes: samples spilled, none lost, mag
   CHECK(std::filesystem::is_empty(spill_dir));
 }
 
+// After a daemon that spilled ended during an outage (`stored` samples in `db`), with the server
+// back: the samples its spill file holds, all committed by the next start (with a config that
+// takes none of the log's samples, so that the file alone adds them), and the file gone.
+void check_next_start_commits_spill(const TempDir& dir, const std::string& config_text,
+                                    const std::string& log, const std::string& db, int64_t stored) {
+  const std::string spill_file =
+      dir.file("magcal-spill-" + magcal::default_station_id() + ".spill");
+  int64_t held = 0;
+  {
+    magcal::SampleSpill left(spill_file, "", int64_t{1} << 30);  // (the lock died with magcald)
+    held = left.held_samples();
+  }
+  CHECK(held > 0);
+  CHECK(stored_samples(db) == stored);
+  const std::string again =
+      write_config(dir, "again.toml", config_text + "[service]\nwhitelist = [\"SOMEONE-ELSE\"]\n");
+  const std::string again_log = dir.file("magcald_again.log");
+  const int rc = run({kBin + "/magcald", "--config", again, "--http-listen", "", "--lcm-url",
+                      "file://" + log + "?speed=0"},
+                     again_log, 120);
+  const std::string text = slurp(again_log);
+  INFO(text);
+  REQUIRE(rc == 0);
+  CHECK(stored_samples(db) == stored + held);
+  CHECK(text.find("holds " + std::to_string(held) + " samples an earlier run received") !=
+        std::string::npos);
+  CHECK(text.find(std::to_string(held) + " samples committed (0 already stored); file removed") !=
+        std::string::npos);
+  CHECK_FALSE(std::filesystem::exists(spill_file));
+}
+
 TEST_CASE("magcald killed during a PostgreSQL outage: the next start commits its spill file",
           "[daemon][postgres][outage][integration]") {
   magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
@@ -222,41 +254,37 @@ TEST_CASE("magcald killed during a PostgreSQL outage: the next start commits its
   const std::string db = server->create_database();
   const std::string config_text =
       "db_path = \"" + db + "\"\nmax_pending_samples = 400\nspill_dir = \"" + dir.file("") + "\"\n";
-  const std::string config = write_config(dir, "pg.toml", config_text);
-  const PacedDaemon daemon(log, config, dir, 400);
-  const int port = daemon.port;
+  const PacedDaemon daemon(log, write_config(dir, "pg.toml", config_text), dir, 400);
   server->stop();
-  REQUIRE(wait_until([&] { return metric(port, "magcal_samples_spilled_total") >= 1200; }, 30));
+  REQUIRE(
+      wait_until([&] { return metric(daemon.port, "magcal_samples_spilled_total") >= 1200; }, 30));
   // Nothing is committed while the server is down: what is stored now stays so.
-  const double stored = metric(port, "magcal_samples_stored_total");
+  const double stored = metric(daemon.port, "magcal_samples_stored_total");
   ::kill(daemon.pid, SIGKILL);
   CHECK(wait_exit(daemon.pid, 30) == -2);
-  const std::string spill_file =
-      dir.file("magcal-spill-" + magcal::default_station_id() + ".spill");
-  int64_t held = 0;
-  {
-    magcal::SampleSpill left(spill_file, "", int64_t{1} << 30);  // (the lock died with magcald)
-    held = left.held_samples();
-  }
-  CHECK(held >= 1200);
   server->start();
-  CHECK(stored_samples(db) == static_cast<int64_t>(stored));
+  check_next_start_commits_spill(dir, config_text, log, db, static_cast<int64_t>(stored));
+}
 
-  // The next start, with a config that takes none of the log's samples: the spill file alone
-  // adds its samples.
-  const std::string again =
-      write_config(dir, "again.toml", config_text + "[service]\nwhitelist = [\"SOMEONE-ELSE\"]\n");
-  const std::string again_log = dir.file("magcald_again.log");
-  const int rc = run({kBin + "/magcald", "--config", again, "--http-listen", "", "--lcm-url",
-                      "file://" + log + "?speed=0"},
-                     again_log, 120);
-  const std::string text = slurp(again_log);
+TEST_CASE("PostgreSQL down past pg_max_failure_s: exit 3 with the pending samples spilled",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_spill_exit");
+  const std::string log = paced_log(dir, 6000, 200'000);
+  const std::string db = server->create_database();
+  // The default max_pending_samples: nothing is spilled for its size, all of it at the exit.
+  const std::string config_text =
+      "db_path = \"" + db + "\"\npg_max_failure_s = 3\nspill_dir = \"" + dir.file("") + "\"\n";
+  const PacedDaemon daemon(log, write_config(dir, "pg.toml", config_text), dir, 400);
+  server->stop();
+  const double stored = metric(daemon.port, "magcal_samples_stored_total");
+  const int rc = wait_exit(daemon.pid, 30);
+  const std::string text = slurp(daemon.log_path);
   INFO(text);
-  REQUIRE(rc == 0);
-  CHECK(stored_samples(db) == static_cast<int64_t>(stored) + held);
-  CHECK(text.find("holds " + std::to_string(held) + " samples an earlier run received") !=
-        std::string::npos);
-  CHECK(text.find(std::to_string(held) + " samples committed (0 already stored); file removed") !=
-        std::string::npos);
-  CHECK_FALSE(std::filesystem::exists(spill_file));
+  CHECK(rc == 3);
+  CHECK(text.find("[storage] pg_max_failure_s = 3;") != std::string::npos);
+  CHECK(text.find("pending samples spilled: committed at the next start") != std::string::npos);
+  server->start();
+  check_next_start_commits_spill(dir, config_text, log, db, static_cast<int64_t>(stored));
 }
