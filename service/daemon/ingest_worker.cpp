@@ -19,6 +19,9 @@ constexpr int64_t kNoTime = SpacecraftTracker::kNoTime;
 constexpr double kRetentionEvery_s = 2.0;                   // wall time...
 constexpr int64_t kRetentionEveryData_utime = 600'000'000;  // ...or data time
 constexpr int kRetentionChunkRows = 2000;
+// A commit drains the spill file for at most this long, then the worker takes frames again: a
+// large spill (1 GiB: minutes of inserts) must not stall intake or the systemd watchdog.
+constexpr double kSpillDrainSlice_s = 1.0;
 
 int64_t wall_utime() {
   return std::chrono::duration_cast<std::chrono::microseconds>(
@@ -537,7 +540,7 @@ void IngestWorker::commit() {
       commit_retry_.failed(e);  // throws StorageOutage when storage stays broken
       return;
     }
-    if (!deferred_refits_.empty()) {
+    if (!deferred_refits_.empty() && !uncommitted()) {
       // Their samples are committed now; requested before retention runs (their floor).
       const auto due = std::move(deferred_refits_);
       deferred_refits_.clear();
@@ -561,8 +564,18 @@ void IngestWorker::commit_pending() {
   // snapshots and the filter states that are due go with the last chunk (published once
   // stored; a state then includes exactly the committed samples).
   const auto chunk = static_cast<size_t>(config_.storage.commit_every_samples);
-  // Spilled samples are older than the pending ones, and the states below include them.
-  if (spill_ && spill_->held_samples() > 0) commit_spill(false);
+  // Spilled samples are older than the pending ones, and the states below include them. Until
+  // the file is drained the pending batch queues behind it in the file (one order, and memory
+  // stays bounded); snapshots and states wait.
+  if (spill_ && spill_->held_samples() > 0) {
+    commit_spill(false, std::chrono::steady_clock::now() +
+                            std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                                std::chrono::duration<double>(kSpillDrainSlice_s)));
+    if (spill_->held_samples() > 0) {
+      spill_pending(true);
+      return;
+    }
+  }
   size_t done = 0;
   try {
     while (done < pending_.size() || !pending_snapshots_.empty() || !states_due_.empty()) {
@@ -673,11 +686,14 @@ bool IngestWorker::spill_pending(bool at_any_size) {
   }
   if (!appended) {
     spill_full_ = true;  // until a commit succeeds
-    spdlog::error(
-        "spill file {} cannot take {} more samples ({} bytes held, [storage] "
-        "spill_max_bytes {}): intake stops until the database is back (a live feed "
-        "overflows its receive queue, counted as queue_overflow)",
-        spill_->path(), pending_.size(), spill_->bytes(), spill_->max_bytes());
+    warnings_.warn(
+        "spill_full",
+        fmt::format("spill file {} cannot take {} more samples (its size {} bytes, "
+                    "[storage] spill_max_bytes {}): they stay in memory, and at "
+                    "max_pending_samples intake stops until the database takes them (a "
+                    "live feed then overflows its receive queue, counted as "
+                    "queue_overflow)",
+                    spill_->path(), pending_.size(), spill_->bytes(), spill_->max_bytes()));
     return false;
   }
   counters_.spilled.fetch_add(static_cast<int64_t>(pending_.size()), std::memory_order_relaxed);
@@ -691,10 +707,10 @@ bool IngestWorker::spill_pending(bool at_any_size) {
   return true;
 }
 
-void IngestWorker::commit_spill(bool recovered) {
+void IngestWorker::commit_spill(bool recovered, std::chrono::steady_clock::time_point until) {
   const auto chunk = static_cast<size_t>(config_.storage.commit_every_samples);
   // insert_batch sorts each chunk by (sat_id, utime), the fleet's one key order.
-  while (spill_->read_chunk(chunk, spill_chunk_) > 0) {
+  while (std::chrono::steady_clock::now() < until && spill_->read_chunk(chunk, spill_chunk_) > 0) {
     const storage::InsertStats stats =
         samples_->insert_batch(spill_chunk_, &duplicate_rows_, config_.station.id);
     spill_->commit_read();

@@ -195,9 +195,11 @@ class IngestWorker {
   // The pending batch goes to the spill file (all of it, or only once it is at
   // max_pending_samples); false when it did not (full, or no spill).
   bool spill_pending(bool at_any_size);
-  // Commits the spill file's samples, chunk by chunk (throws storage::StorageError; what was
-  // committed stays committed). `recovered`: an earlier run's file (counted apart).
-  void commit_spill(bool recovered);
+  // Commits the spill file's samples, chunk by chunk, until it is empty or `until` (throws
+  // storage::StorageError; what was committed stays committed). `recovered`: an earlier run's
+  // file (counted apart).
+  void commit_spill(bool recovered, std::chrono::steady_clock::time_point until =
+                                        std::chrono::steady_clock::time_point::max());
   void update_spill_gauges();
   // Before a refit reads the database: everything committed. Blocks (flush()) except on
   // PostgreSQL, where during an outage it returns false at once and the refit waits.

@@ -54,9 +54,11 @@ int64_t log_start_utime() {
 // The config of every run: no refit falls due (a refit started just before an outage would hold
 // a replay until the database returns, and this test is about the samples), a window that keeps
 // every sample, small commits; `extra` adds keys to [storage].
-std::string write_config(const TempDir& dir, const std::string& name, const std::string& extra) {
+std::string write_config(const TempDir& dir, const std::string& name, const std::string& extra,
+                         int commit_every_samples = 200) {
   const std::string path = dir.file(name);
-  std::ofstream(path) << "[storage]\nwindow_hours = 200\ncommit_every_samples = 200\n"
+  std::ofstream(path) << "[storage]\nwindow_hours = 200\ncommit_every_samples = "
+                      << commit_every_samples << "\n"
                       << extra << "[refit]\nmin_samples = 1000000000\n";
   return path;
 }
@@ -157,7 +159,8 @@ TEST_CASE("PostgreSQL unreachable for 2 minutes: samples spilled, none lost, mag
   if (server == nullptr) return;
   TempDir dir("magcald_pg_outage");
   // 15000 samples in 300 frames 0.5 s apart: 150 s of replay at 100 samples/s, so a 120 s
-  // outage receives ~12000 samples, 12 times max_pending_samples.
+  // outage receives ~12000 samples, 12 times max_pending_samples. Commits of 10 samples: the
+  // spill takes more than one drain slice (IngestWorker: 1 s) to go back, while samples come.
   const std::string log = paced_log(dir, 15000, 500'000);
   const int64_t expected = reference_count(log, dir);
   REQUIRE(expected == 15000);
@@ -167,7 +170,8 @@ TEST_CASE("PostgreSQL unreachable for 2 minutes: samples spilled, none lost, mag
   std::filesystem::create_directories(spill_dir);
   const std::string config = write_config(
       dir, "pg.toml",
-      "db_path = \"" + db + "\"\nmax_pending_samples = 1000\nspill_dir = \"" + spill_dir + "\"\n");
+      "db_path = \"" + db + "\"\nmax_pending_samples = 1000\nspill_dir = \"" + spill_dir + "\"\n",
+      10);
   const PacedDaemon daemon(log, config, dir, 500);
   const int port = daemon.port;
   CHECK(http_get(port, "/-/ready").status == 200);
