@@ -697,10 +697,11 @@ bool IngestWorker::spill_pending(bool at_any_size) {
     return false;
   }
   counters_.spilled.fetch_add(static_cast<int64_t>(pending_.size()), std::memory_order_relaxed);
-  warnings_.warn("spill", fmt::format("database unreachable: {} pending samples spilled to {} "
-                                      "({} held there, {} bytes)",
-                                      pending_.size(), spill_->path(), spill_->held_samples(),
-                                      spill_->bytes()));
+  warnings_.warn(
+      "spill",
+      fmt::format("{}: {} pending samples spilled to {} ({} held there, {} bytes)",
+                  commit_retry_.failing() ? "database unreachable" : "queued behind the spill",
+                  pending_.size(), spill_->path(), spill_->held_samples(), spill_->bytes()));
   pending_.clear();
   reset_pending_index();
   update_spill_gauges();
