@@ -7,7 +7,8 @@
 //   to the spill file, intake goes on, /-/healthy stays 200 while /-/ready answers 503 with the
 //   outage in both bodies; afterwards nothing is lost, the file is gone and /metrics counted it;
 // - killed (SIGKILL) during an outage: the next start commits the spill file it left, exactly;
-// - down past [storage] pg_max_failure_s: exit 3, the pending samples spilled, not lost.
+// - down past [storage] pg_max_failure_s: exit 3, the pending samples spilled, not lost;
+// - stopped (SIGTERM) during an outage: at once, exit 0, the pending samples spilled.
 // Skipped without the PostgreSQL server programs (with CI=true it fails).
 #include <signal.h>
 
@@ -289,6 +290,35 @@ TEST_CASE("PostgreSQL down past pg_max_failure_s: exit 3 with the pending sample
   CHECK(rc == 3);
   CHECK(text.find("[storage] pg_max_failure_s = 3;") != std::string::npos);
   CHECK(text.find("pending samples spilled: committed at the next start") != std::string::npos);
+  server->start();
+  check_next_start_commits_spill(dir, config_text, log, db, static_cast<int64_t>(stored));
+}
+
+TEST_CASE("SIGTERM during a PostgreSQL outage: magcald stops at once, its samples spilled",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_spill_stop");
+  const std::string log = paced_log(dir, 6000, 200'000);
+  const std::string db = server->create_database();
+  // The default max_pending_samples: nothing is spilled for its size, all of it at the stop.
+  const std::string config_text =
+      "db_path = \"" + db + "\"\nspill_dir = \"" + dir.file("") + "\"\n";
+  const PacedDaemon daemon(log, write_config(dir, "pg.toml", config_text), dir, 400);
+  server->stop();
+  REQUIRE(wait_until([&] { return http_get(daemon.port, "/-/ready").status == 503; }, 20));
+  const double stored = metric(daemon.port, "magcal_samples_stored_total");
+  // Without the spill the stop would retry for pg_max_failure_s (an hour).
+  const auto t0 = std::chrono::steady_clock::now();
+  ::kill(daemon.pid, SIGTERM);
+  const int rc = wait_exit(daemon.pid, 30);
+  const double stop_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const std::string text = slurp(daemon.log_path);
+  INFO(text);
+  CHECK(rc == 0);
+  CHECK(stop_s < 10);
+  CHECK(text.find("database unreachable: ") != std::string::npos);
   server->start();
   check_next_start_commits_spill(dir, config_text, log, db, static_cast<int64_t>(stored));
 }
