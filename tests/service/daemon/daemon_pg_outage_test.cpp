@@ -8,21 +8,25 @@
 //   outage in both bodies; afterwards nothing is lost, the file is gone and /metrics counted it;
 // - killed (SIGKILL) during an outage: the next start commits the spill file it left, exactly;
 // - down past [storage] pg_max_failure_s: exit 3, the pending samples spilled, not lost;
-// - stopped (SIGTERM) during an outage: at once, exit 0, the pending samples spilled.
+// - stopped (SIGTERM) during an outage: at once, exit 0, the pending samples spilled;
+// - data-clock refits due during an outage: run after it, each once, as on SQLite.
 // Skipped without the PostgreSQL server programs (with CI=true it fails).
 #include <signal.h>
 
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
 #include <string>
 #include <thread>
+#include <vector>
 
 #include "service/daemon/daemon_config.hpp"
 #include "service/daemon/sample_spill.hpp"
 #include "storage/connection.hpp"
+#include "storage/refit_job_log.hpp"
 #include "storage/sample_window_store.hpp"
 #include "tests/service/http_test_support.hpp"
 #include "tests/service/prometheus_text.hpp"
@@ -52,15 +56,17 @@ int64_t log_start_utime() {
          300LL * 3600 * 1'000'000;
 }
 
-// The config of every run: no refit falls due (a refit started just before an outage would hold
-// a replay until the database returns, and this test is about the samples), a window that keeps
-// every sample, small commits; `extra` adds keys to [storage].
+// The config of every run: no refit computes (too few samples for min_samples: a refit started
+// just before an outage would hold a replay until the database returns, and these tests are
+// about the samples; a due one still leaves its job row, "skipped"), a window that keeps every
+// sample, small commits; `extra` adds keys to [storage], `refit_extra` to [refit].
 std::string write_config(const TempDir& dir, const std::string& name, const std::string& extra,
-                         int commit_every_samples = 200) {
+                         int commit_every_samples = 200, const std::string& refit_extra = "") {
   const std::string path = dir.file(name);
   std::ofstream(path) << "[storage]\nwindow_hours = 200\ncommit_every_samples = "
                       << commit_every_samples << "\n"
-                      << extra << "[refit]\nmin_samples = 1000000000\n";
+                      << extra << "[refit]\nmin_samples = 1000000000\n"
+                      << refit_extra;
   return path;
 }
 
@@ -70,16 +76,39 @@ int64_t stored_samples(const std::string& db) {
   return storage::open_database(db, read_only)->make_sample_window_store()->count(kSat);
 }
 
-// Samples the same log leaves in a fresh SQLite file (replayed as fast as it goes).
-int64_t reference_count(const std::string& log, const TempDir& dir) {
+// The same log replayed as fast as it goes into a fresh SQLite file: its path.
+std::string reference_db(const std::string& log, const TempDir& dir,
+                         const std::string& refit_extra = "") {
   const std::string db = dir.file("reference.db");
-  const std::string config = write_config(dir, "reference.toml", "");
+  const std::string config = write_config(dir, "reference.toml", "", 200, refit_extra);
   const int rc = run({kBin + "/magcald", "--config", config, "--db", db, "--http-listen", "",
                       "--lcm-url", "file://" + log + "?speed=0"},
                      dir.file("reference.log"), 120);
   INFO(slurp(dir.file("reference.log")));
   REQUIRE(rc == 0);
-  return stored_samples(db);
+  return db;
+}
+
+// Samples the same log leaves in a fresh SQLite file.
+int64_t reference_count(const std::string& log, const TempDir& dir) {
+  return stored_samples(reference_db(log, dir));
+}
+
+// The due times of kSat's scheduled refits in `db` that ran to their end, ascending; fails the
+// test when one ran twice.
+std::vector<int64_t> scheduled_refits(const std::string& db) {
+  storage::OpenOptions read_only;
+  read_only.read_only = true;
+  std::vector<int64_t> out;
+  for (const auto& job :
+       storage::open_database(db, read_only)->make_refit_job_log()->recent(kSat, 10'000)) {
+    if (job.trigger != "scheduled" || job.outcome == storage::job_outcome::kInterrupted) continue;
+    CHECK(job.outcome != storage::job_outcome::kRunning);
+    out.push_back(job.scheduled_utime);
+  }
+  std::sort(out.begin(), out.end());
+  CHECK(std::adjacent_find(out.begin(), out.end()) == out.end());
+  return out;
 }
 
 // A log of n samples of kSat, kLogBatch per frame, frames `frame_spacing_us` apart.
@@ -321,4 +350,32 @@ TEST_CASE("SIGTERM during a PostgreSQL outage: magcald stops at once, its sample
   CHECK(text.find("database unreachable: ") != std::string::npos);
   server->start();
   check_next_start_commits_spill(dir, config_text, log, db, static_cast<int64_t>(stored));
+}
+
+TEST_CASE("data-clock refits that fall due during a PostgreSQL outage run after it, once each",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_refits");
+  // 6000 samples (16.7 h of data) in 24 s: a data hour every 1.4 s of replay.
+  const std::string log = paced_log(dir, 6000, 200'000);
+  const std::string hourly = "clock = \"data\"\nevery_hours = 1\n";
+  const std::vector<int64_t> expected = scheduled_refits(reference_db(log, dir, hourly));
+  REQUIRE(expected.size() >= 12);
+
+  const std::string db = server->create_database();
+  const std::string config =
+      write_config(dir, "pg.toml",
+                   "db_path = \"" + db + "\"\nspill_dir = \"" + dir.file("") + "\"\n", 200, hourly);
+  const PacedDaemon daemon(log, config, dir, 400);
+  server->stop();
+  std::this_thread::sleep_for(std::chrono::seconds(8));  // ~5 data hours
+  server->start();
+  const int rc = wait_exit(daemon.pid, 120);
+  const std::string text = slurp(daemon.log_path);
+  INFO(text);
+  REQUIRE(rc == 0);
+  CHECK(text.find("waits until the database takes the held samples") != std::string::npos);
+  CHECK(scheduled_refits(db) == expected);
+  CHECK(text.find("received=6000 stored=6000 rejected=0") != std::string::npos);
 }
