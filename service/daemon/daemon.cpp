@@ -198,10 +198,10 @@ struct Daemon::Impl {
     if (counters.storage_healthy()) return "";
     return fmt::format(
         "storage failing for {:.0f} s of [storage] {} = {:.0f} s (database {}): {} samples held "
-        "in memory, {} in the spill file\n",
+        "in memory{}\n",
         storage_failing_s(), config.storage_max_failure_key(), config.storage_max_failure_s(),
         storage::database_name(config.storage.db_path), counters.storage_pending.load(),
-        counters.spill_held.load());
+        postgres ? fmt::format(", {} in the spill file", counters.spill_held.load()) : "");
   }
 
   http::DaemonMetrics::Totals metric_totals() const {

@@ -17,9 +17,11 @@
 //
 // PostgreSQL outages (issue 19, "Network faults"): once the pending batch reaches
 // max_pending_samples while commits fail, it goes to the spill file (sample_spill.hpp) and
-// intake goes on; the file is committed first when the database returns, and at start when an
-// earlier run left one. Meanwhile the duplicate check does not read the database (the insert,
-// which counts duplicates, decides), and refits that fall due wait until everything is committed.
+// intake goes on; the file is committed first when the database returns (a slice of at most
+// 1 s per commit, the pending batch queued behind it in the file until it is empty), and at
+// start when an earlier run left one. Meanwhile the duplicate check does not read the database (the
+// insert, which counts duplicates, decides), and refits that fall due wait until everything is
+// committed.
 //
 // Owns its own database connection and everything it touches, so it runs on one thread; the
 // only cross-thread entry points are post_reanchor() and the retention floor.
