@@ -3,8 +3,10 @@
 #include <sys/resource.h>
 #include <unistd.h>
 
+#include <cerrno>
 #include <chrono>
 #include <condition_variable>
+#include <cstring>
 #include <deque>
 #include <mutex>
 #include <optional>
@@ -55,6 +57,7 @@ struct Daemon::Impl {
   DaemonCounters counters;
   std::chrono::steady_clock::time_point start_time = std::chrono::steady_clock::now();
   bool replay = false;
+  bool postgres = false;  // config.postgres(), once
 
   std::unique_ptr<lcm::LCM> lcm;
   std::unique_ptr<LcmPublisher> publisher;
@@ -173,11 +176,33 @@ struct Daemon::Impl {
   }
 
   // /-/healthy: ingest, storage and the scheduler work. A dead thread or storage broken past
-  // max_failure_s ends the process (fatal), so until then "working" means storage is not
-  // failing right now (a failing operation is being retried).
-  bool healthy() const { return !fatal.load() && counters.storage_healthy(); }
-  // /-/ready: the database is open (the server only starts after it is) and LCM is live.
-  bool ready() const { return lcm_live.load() && !fatal.load(); }
+  // its limit ends the process (fatal). On SQLite "working" also means storage is not failing
+  // right now (a failing operation is being retried): a local disk that fails wants this
+  // host's attention, and a restart reopens the file. On PostgreSQL an outage is the network's
+  // or the server's, ridden out for pg_max_failure_s (samples held, then spilled): a liveness
+  // probe must not restart a daemon for it (that would not help, and would drop what it holds
+  // in memory), so it stays healthy and /-/ready answers 503 instead; both bodies say why.
+  bool healthy() const { return !fatal.load() && (postgres || counters.storage_healthy()); }
+  // /-/ready: the database is open (the server only starts after it is) and LCM is live; on
+  // PostgreSQL, and storage is not failing.
+  bool ready() const {
+    return lcm_live.load() && !fatal.load() && (!postgres || counters.storage_healthy());
+  }
+  double storage_failing_s() const {
+    const int64_t since = counters.storage_failing_since_utime.load();
+    return since == 0 ? 0.0
+                      : std::max<double>(0.0, static_cast<double>(wall_utime() - since) * 1e-6);
+  }
+  // The probes' extra line during a storage failure ("" otherwise).
+  std::string storage_outage_note() const {
+    if (counters.storage_healthy()) return "";
+    return fmt::format(
+        "storage failing for {:.0f} s of [storage] {} = {:.0f} s (database {}): {} samples held "
+        "in memory{}\n",
+        storage_failing_s(), config.storage_max_failure_key(), config.storage_max_failure_s(),
+        storage::database_name(config.storage.db_path), counters.storage_pending.load(),
+        postgres ? fmt::format(", {} in the spill file", counters.spill_held.load()) : "");
+  }
 
   http::DaemonMetrics::Totals metric_totals() const {
     http::DaemonMetrics::Totals t;
@@ -189,6 +214,13 @@ struct Daemon::Impl {
     t.queue_depth = queue->depth_samples();
     t.queue_overflow = queue->overflow_samples();
     t.storage_healthy = counters.storage_healthy();
+    t.storage_failing_s = storage_failing_s();
+    t.storage_pending = counters.storage_pending.load(std::memory_order_relaxed);
+    t.spilled = counters.spilled.load(std::memory_order_relaxed);
+    t.spill_held = counters.spill_held.load(std::memory_order_relaxed);
+    t.spill_bytes = counters.spill_bytes.load(std::memory_order_relaxed);
+    t.spill_recovered = counters.spill_recovered.load(std::memory_order_relaxed);
+    t.spill_dropped = counters.spill_dropped.load(std::memory_order_relaxed);
     counters.spacecraft.for_each([&t](const SpacecraftCounters& c) {
       http::DaemonMetrics::SpacecraftTotals s;
       s.sat_label = c.sat_label;
@@ -222,6 +254,7 @@ struct Daemon::Impl {
     hooks.metrics_text = [this] { return metrics->text(); };
     hooks.healthy = [this] { return healthy(); };
     hooks.ready = [this] { return ready(); };
+    hooks.probe_detail = [this] { return storage_outage_note(); };
     hooks.status_window_utime = config.window_utime();
     std::string error;
     server = http::OperationsServer::bind(config.http.listen, std::move(hooks), &error);
@@ -263,7 +296,8 @@ struct Daemon::Impl {
   }
 
   void refit_all(const RefitRequest& req) {
-    StorageRetry retry("refit", config.storage.max_failure_s, counters);
+    StorageRetry retry("refit", config.storage_max_failure_s(), counters,
+                       config.storage_max_failure_key());
     // The wall-clock schedule refits the spacecraft this daemon owns (design.md "Fleet"); the
     // others' owners refit theirs.
     std::vector<std::string> sats = req.sat_id.empty()
@@ -418,12 +452,12 @@ struct Daemon::Impl {
       }
     }
     if (fatal.load()) return;
-    // Drained (end of log or stop): store everything, retrying until max_failure_s; the owned
-    // filters take every stored sample (their refits still run: this thread is the refit
-    // thread's client).
-    worker->flush();
+    // Drained (end of log or stop): store everything, retrying until max_failure_s (on
+    // PostgreSQL during an outage: spilled for the next start); the owned filters take every
+    // stored sample (their refits still run: this thread is the refit thread's client).
+    worker->flush_at_stop();
     worker->track_all_now();
-    worker->flush();
+    worker->flush_at_stop();
   }
 };
 
@@ -445,6 +479,7 @@ std::string Daemon::open() {
   auto& d = *impl_;
   const auto& c = d.config;
   d.replay = is_file_url(c.lcm.url);
+  d.postgres = c.postgres();
   std::string error;
   auto field = ReferenceField::from_file(c.igrf.coefficients_file, &error);
   if (!field) return "[igrf] coefficients_file: " + error;
@@ -476,6 +511,14 @@ std::string Daemon::open() {
   }
   // The listen socket before the database, for the same reason as LCM.
   if (std::string e = d.bind_server(); !e.empty()) return e;
+  // A spill directory that cannot take the file must show now, not in the middle of an outage.
+  if (const std::string spill = c.spill_path(); !spill.empty()) {
+    const std::string dir = spill.substr(0, spill.rfind('/'));
+    if (::access(dir.c_str(), W_OK | X_OK) != 0) {
+      return "[storage] spill_dir: " + dir + ": not a writable directory (" + std::strerror(errno) +
+             "); the spill file of a PostgreSQL outage goes there";
+    }
+  }
   try {
     d.worker = std::make_unique<IngestWorker>(
         c, d.counters, std::move(field),
@@ -495,6 +538,8 @@ std::string Daemon::open() {
     d.worker->restore();
   } catch (const storage::StorageError& e) {
     return "database " + storage::database_name(c.storage.db_path) + ": " + e.what();
+  } catch (const SpillError& e) {
+    return std::string("[storage] spill_dir: ") + e.what();
   }
   return d.start_server();
 }
@@ -538,16 +583,21 @@ int Daemon::run(const std::atomic<bool>& stop) {
     d.guarded("main", [&d] {
       d.worker->commit_if_due();  // applies re-anchors posted by the last refits
       d.worker->settle_held();    // first samples stored, unconfirmed jumps counted
-      d.worker->flush();
+      d.worker->flush_at_stop();
       d.worker->save_filter_states();
       d.worker->leave_fleet();  // the other daemons take its spacecraft over at once
     });
   }
   if (d.fatal.load()) {
-    // Everything received and neither stored nor counted yet was never committed: the pending
-    // batch, the frames popped or still queued. Counted, so the books balance.
+    // On PostgreSQL the pending batch goes to the spill file: committed at the next start.
+    if (const int64_t spilled = d.worker->spill_all_pending(); spilled > 0) {
+      spdlog::warn("{} pending samples spilled: committed at the next start", spilled);
+    }
+    // Everything received and neither stored, spilled nor counted yet was never committed:
+    // the pending batch, the frames popped or still queued. Counted, so the books balance.
     const int64_t not_committed = d.counters.received.load() - d.counters.stored.load() -
-                                  d.counters.rejected_total() - d.queue->overflow_samples();
+                                  d.counters.rejected_total() - d.queue->overflow_samples() -
+                                  d.counters.spill_held.load();
     if (not_committed > 0) {
       d.counters.reject(RejectReason::kStorageError, not_committed);
       spdlog::error(

@@ -3,8 +3,10 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <cctype>
 #include <climits>
 #include <cmath>
+#include <cstdlib>
 #include <fstream>
 #include <functional>
 #include <map>
@@ -14,6 +16,7 @@
 
 #include "service/daemon/refit_scheduler.hpp"
 #include "service/http/operations_server.hpp"
+#include "storage/connection.hpp"
 
 namespace magcal {
 namespace {
@@ -127,7 +130,10 @@ std::map<std::string, Section> key_table(DaemonConfig& c) {
         {"commit_every_ms", bind(c.storage.commit_every_ms)},
         {"busy_timeout_ms", bind(c.storage.busy_timeout_ms)},
         {"max_failure_s", bind(c.storage.max_failure_s)},
-        {"max_pending_samples", bind(c.storage.max_pending_samples)}}},
+        {"max_pending_samples", bind(c.storage.max_pending_samples)},
+        {"pg_max_failure_s", bind(c.storage.pg_max_failure_s)},
+        {"spill_dir", bind(c.storage.spill_dir)},
+        {"spill_max_bytes", bind(c.storage.spill_max_bytes)}}},
       {"refit",
        {{"daily_at_utc", bind(c.refit.daily_at_utc)},
         {"every_hours", bind(c.refit.every_hours)},
@@ -242,6 +248,27 @@ std::string default_station_id() {
   return name;
 }
 
+bool DaemonConfig::postgres() const {
+  return storage::is_postgres_uri(storage.db_path);
+}
+
+std::string DaemonConfig::spill_path() const {
+  if (!postgres() || storage.spill_max_bytes == 0) return "";
+  std::string dir = storage.spill_dir;
+  if (dir.empty()) {
+    const char* state = std::getenv("STATE_DIRECTORY");  // systemd: may list several, ':'
+    dir = state != nullptr ? std::string(state).substr(0, std::string(state).find(':')) : ".";
+  }
+  // The station id is printable ASCII without spaces (check_station_id); '/' and the like
+  // must not make a path of it.
+  std::string name = "magcal-spill-";
+  for (const char ch : station.id)
+    name += std::isalnum(static_cast<unsigned char>(ch)) || ch == '-' || ch == '_' || ch == '.'
+                ? ch
+                : '_';
+  return dir + "/" + name + ".spill";
+}
+
 std::string DaemonConfig::validate() const {
   for (const auto& [key, name] : {std::pair{"[lcm] samples_channel", lcm.samples_channel},
                                   {"[lcm] batch_channel", lcm.batch_channel},
@@ -260,6 +287,10 @@ std::string DaemonConfig::validate() const {
   if (!(storage.max_failure_s > 0.0)) return "[storage] max_failure_s: must be > 0";
   if (storage.max_pending_samples < storage.commit_every_samples) {
     return "[storage] max_pending_samples: must be >= commit_every_samples";
+  }
+  if (!(storage.pg_max_failure_s > 0.0)) return "[storage] pg_max_failure_s: must be > 0";
+  if (storage.spill_max_bytes < 0) {
+    return "[storage] spill_max_bytes: must be >= 0 (0 = no spill file)";
   }
   if (!parse_daily_time_utc(refit.daily_at_utc)) {
     return "[refit] daily_at_utc: expected \"HH:MM\" (UTC), got \"" + refit.daily_at_utc + "\"";

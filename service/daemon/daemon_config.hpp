@@ -47,6 +47,23 @@ struct DaemonConfig {
     // bound the worker stops taking frames: a live feed then overflows the receive queue
     // (counted), a replay waits.
     int64_t max_pending_samples = 200000;
+    // The same limit when db_path is a PostgreSQL URI, used instead of max_failure_s. A fleet's
+    // server is reached over a network and fails in ways that heal without this host: a restart
+    // (seconds), a failover to its standby (repmgr/Patroni: about a minute), a WAN link down or
+    // maintenance (minutes to an hour). Meanwhile a station keeps receiving (its samples held
+    // in memory, then spilled) and a restart of magcald would not help; past an hour a person
+    // has to look, and exit 3 makes systemd log it and restart (the spill is kept).
+    double pg_max_failure_s = 3600.0;
+    // PostgreSQL: during an outage that outlasts max_pending_samples the pending samples go to a
+    // spill file (service/daemon/sample_spill.hpp) instead of stopping intake, and are committed
+    // when the database returns (or at the next start). The file is
+    // <spill_dir>/magcal-spill-<station id>.spill; spill_dir "" = $STATE_DIRECTORY (systemd's
+    // StateDirectory, /var/lib/magcal) when set, else the working directory: local to this
+    // daemon, never shared. Past spill_max_bytes the worker stops taking frames (as without a
+    // spill: a live feed overflows its receive queue, counted); 0 = no spill. 1 GiB holds about
+    // 6.5 million samples (~160 bytes each): hours of a busy station.
+    std::string spill_dir;
+    int64_t spill_max_bytes = int64_t{1} << 30;
   } storage;
   struct Refit {
     std::string daily_at_utc = "02:00";
@@ -136,6 +153,18 @@ struct DaemonConfig {
   std::string validate() const;
 
   bool data_clock() const { return refit.clock == "data"; }
+  // db_path is a PostgreSQL URI (a fleet's database).
+  bool postgres() const;
+  // How long storage may fail before the daemon stops (exit 3): [storage] pg_max_failure_s on
+  // PostgreSQL, max_failure_s otherwise; and that key, for messages.
+  double storage_max_failure_s() const {
+    return postgres() ? storage.pg_max_failure_s : storage.max_failure_s;
+  }
+  const char* storage_max_failure_key() const {
+    return postgres() ? "pg_max_failure_s" : "max_failure_s";
+  }
+  // The spill file ("" = none: SQLite, or spill_max_bytes = 0). See Storage::spill_dir.
+  std::string spill_path() const;
   EarlyRefitPlan early_refits() const { return {refit.min_samples, refit.early_growth}; }
   int64_t window_utime() const { return static_cast<int64_t>(storage.window_hours * 3.6e9); }
   int64_t max_time_jump_utime() const { return static_cast<int64_t>(ingest.max_time_jump_s * 1e6); }

@@ -1,6 +1,7 @@
 #include "service/daemon/health.hpp"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 
 #include <fmt/format.h>
@@ -105,6 +106,18 @@ int64_t DaemonCounters::rejected_total() const {
   int64_t sum = 0;
   for (const auto& r : rejected) sum += r.load(std::memory_order_relaxed);
   return sum;
+}
+
+void DaemonCounters::storage_path_failing() {
+  if (storage_failing_paths.fetch_add(1) == 0) {
+    storage_failing_since_utime.store(std::chrono::duration_cast<std::chrono::microseconds>(
+                                          std::chrono::system_clock::now().time_since_epoch())
+                                          .count());
+  }
+}
+
+void DaemonCounters::storage_path_recovered() {
+  if (storage_failing_paths.fetch_sub(1) == 1) storage_failing_since_utime.store(0);
 }
 
 void DaemonCounters::set_last_refit(const std::string& sat_id, int64_t utime) {

@@ -2,12 +2,13 @@
 // numbers in the log at a lower rate).
 //
 // Invariant the tests check: received = stored + rejected (all reasons) + queue_overflow
-// + samples still in flight (queue and uncommitted batch). A daemon that stops because storage
-// stays broken counts every received sample it could not commit as storage_error.
+// + samples still in flight (queue, uncommitted batch and spill file). A daemon that stops because
+// storage stays broken counts every received sample it could not commit as storage_error.
 //
 // Storage health: a storage operation that fails is kept and retried with backoff
 // (service/daemon/storage_retry.hpp); while any is failing, storage_healthy() is false (the status
-// message says so, and /-/healthy will answer 503). An undecodable frame counts as one
+// message says so, and /-/healthy answers 503 on SQLite; on PostgreSQL /-/ready does, while
+// /-/healthy stays 200: daemon.cpp). An undecodable frame counts as one
 // received and one rejected (decode_error / wrong_type): its sample count is unknowable.
 #pragma once
 
@@ -154,10 +155,24 @@ struct DaemonCounters {
   // Spacecraft leases lost to another daemon (this one stalled past the lease, or the database
   // was unreachable for that long): their filters stopped here and went on there.
   std::atomic<int64_t> leases_lost{0};
+  // Wall time (utime) since when some storage path has been failing; 0 while none is.
+  std::atomic<int64_t> storage_failing_since_utime{0};
+  // The spill file (PostgreSQL outages, service/daemon/sample_spill.hpp): samples written to it,
+  // the samples it holds now (not committed yet: in flight, like storage_pending) and its size;
+  // samples committed at start from a file an earlier run left (received by that run), and
+  // records of such a file dropped as torn or corrupt (a crash during a write).
+  std::atomic<int64_t> spilled{0};
+  std::atomic<int64_t> spill_held{0};
+  std::atomic<int64_t> spill_bytes{0};
+  std::atomic<int64_t> spill_recovered{0};
+  std::atomic<int64_t> spill_dropped{0};
   SpacecraftCounterTable spacecraft;
   CommitLatencyHistogram commit_seconds;
 
   bool storage_healthy() const { return storage_failing_paths.load() == 0; }
+  // A storage path starts failing / works again (StorageRetry).
+  void storage_path_failing();
+  void storage_path_recovered();
 
   void reject(RejectReason r, int64_t n = 1) {
     rejected[static_cast<int>(r)].fetch_add(n, std::memory_order_relaxed);

@@ -28,6 +28,9 @@ uint64_t ownership_preference(const std::string& sat_id, const std::string& stat
   const uint64_t h = std::hash<std::string>{}(sat_id)*0x9E3779B97F4A7C15ULL;
   return h ^ (std::hash<std::string>{}(station) + 0x7F4A7C15ULL + (h << 6) + (h >> 2));
 }
+// A commit drains the spill file for at most this long, then the worker takes frames again: a
+// large spill (1 GiB: minutes of inserts) must not stall intake or the systemd watchdog.
+constexpr double kSpillDrainSlice_s = 1.0;
 
 int64_t wall_utime() {
   return std::chrono::duration_cast<std::chrono::microseconds>(
@@ -81,9 +84,22 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
       jobs_(db_->make_refit_job_log()),
       leases_(db_->make_lease_store()),
       fleet_(config.ukf.filter),
-      commit_retry_("commit", config.storage.max_failure_s, counters),
-      read_retry_("duplicate check", config.storage.max_failure_s, counters) {
+      commit_retry_("commit", config.storage_max_failure_s(), counters,
+                    config.storage_max_failure_key()),
+      read_retry_("duplicate check", config.storage_max_failure_s(), counters,
+                  config.storage_max_failure_key()) {
   pending_.reserve(static_cast<size_t>(config.storage.commit_every_samples));
+  if (const std::string path = config.spill_path(); !path.empty()) {
+    spill_ = std::make_unique<SampleSpill>(path, db_->name(), config.storage.spill_max_bytes);
+    if (spill_->dropped_records() > 0) {
+      counters_.spill_dropped.fetch_add(spill_->dropped_records());
+      spdlog::error(
+          "spill file {}: its torn or corrupt end was cut off (the process stopped "
+          "during a write); its {} complete samples are kept",
+          path, spill_->held_samples());
+    }
+    update_spill_gauges();
+  }
   if (config.data_clock()) {
     const auto minute = parse_daily_time_utc(config.refit.daily_at_utc);
     data_schedule_ = RefitSchedule{minute.value_or(120), config.refit.every_hours};
@@ -93,6 +109,18 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
 IngestWorker::~IngestWorker() = default;
 
 void IngestWorker::restore() {
+  if (spill_ && spill_->held_samples() > 0) {
+    // Before the trackers are rebuilt: they, and the filter re-run, then include these samples.
+    const int64_t held = spill_->held_samples();
+    spdlog::warn(
+        "spill file {} (written for {}) holds {} samples an earlier run received during "
+        "a database outage: committing them",
+        spill_->path(), spill_->found_database(), held);
+    commit_spill(true);
+    spdlog::info("spill file {}: {} samples committed ({} already stored); file removed",
+                 spill_->path(), counters_.spill_recovered.load(),
+                 held - counters_.spill_recovered.load());
+  }
   for (const auto& sat : samples_->spacecraft()) {
     const auto newest = samples_->newest_utime(sat);
     if (!newest) continue;
@@ -231,15 +259,15 @@ void IngestWorker::maintain_leases() {
     const std::vector<storage::Lease> all = leases_->list();
     live_stations_ = std::max<size_t>(1, leases_->live_stations(now).size());
     const size_t share = (all.size() + live_stations_ - 1) / live_stations_;
-    if (held > share) {
-      // Hand over the ones this station prefers least (the others take them at their next
-      // round); their states are committed first.
+    // Hand over the ones this station prefers least (the others take them at their next round),
+    // once their snapshots are committed (one attempt: never waits through an outage).
+    if (held > share) commit();
+    if (held > share && !uncommitted()) {
       std::vector<std::pair<uint64_t, std::string>> mine;
       fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
         if (t.owned) mine.emplace_back(ownership_preference(sat, me), sat);
       });
       std::sort(mine.begin(), mine.end());
-      flush();
       for (size_t i = 0; i < mine.size() && held > share; ++i) {
         SpacecraftTracker& t = *fleet_.find(mine[i].second);
         if (t.state_dirty) {
@@ -299,8 +327,9 @@ void IngestWorker::maintain_leases() {
 }
 
 void IngestWorker::leave_fleet() {
-  flush();
-  save_filter_states();
+  save_filter_states();  // commits first
+  // Storage failing (an outage): the leases and the heartbeat run out by themselves.
+  if (uncommitted()) return;
   const std::string& me = config_.station.id;
   try {
     fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
@@ -428,6 +457,15 @@ void IngestWorker::track_union(const std::string& sat, SpacecraftTracker& t, boo
 }
 
 void IngestWorker::track_due() {
+  track_owned(false);
+}
+
+void IngestWorker::track_all_now() {
+  track_owned(true);
+  last_retention_data_utime_ = std::numeric_limits<int64_t>::min() / 2;  // at the next commit
+}
+
+void IngestWorker::track_owned(bool drain) {
   if (tracking_) return;
   tracking_ = true;
   struct Done {
@@ -436,27 +474,23 @@ void IngestWorker::track_due() {
   } done{tracking_};
   const auto now = std::chrono::steady_clock::now();
   // Alone, this station stores every sample: its own commits say when to read.
-  const bool poll = live_stations_ > 1 && now >= next_union_poll_;
-  if (poll) {
+  const bool poll = drain || (live_stations_ > 1 && now >= next_union_poll_);
+  if (poll && !drain) {
     next_union_poll_ = now + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
                                  std::chrono::duration<double>(kUnionPoll_s));
   }
-  fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
-    if (t.owned && (t.union_due || poll)) track_union(sat, t, false);
-  });
-}
-
-void IngestWorker::track_all_now() {
-  if (tracking_) return;
-  tracking_ = true;
-  struct Done {
-    bool& flag;
-    ~Done() { flag = false; }
-  } done{tracking_};
-  fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
-    if (t.owned) track_union(sat, t, true);
-  });
-  last_retention_data_utime_ = std::numeric_limits<int64_t>::min() / 2;  // at the next commit
+  try {
+    fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
+      if (t.owned && (t.union_due || poll)) track_union(sat, t, drain);
+    });
+  } catch (const storage::StorageError& e) {
+    // The filters wait where they are (a database outage): read again once commits go through.
+    counters_.storage_failures.fetch_add(1, std::memory_order_relaxed);
+    fleet_.for_each([](const std::string&, SpacecraftTracker& t) { t.union_due = t.owned; });
+    warnings_.warn("track", fmt::format("database: the owned filters could not read the stored "
+                                        "samples, retried: {}",
+                                        e.what()));
+  }
 }
 
 void IngestWorker::process(const IngestItem& item) {
@@ -485,29 +519,29 @@ void IngestWorker::count_missing(SpacecraftTracker& t, int64_t seq) {
   t.counters->missing.fetch_add(missing, std::memory_order_relaxed);
 }
 
-void IngestWorker::count_stored(size_t begin, size_t end) {
+void IngestWorker::count_stored(std::span<const storage::StoredSample> rows) {
   // Rows come in runs of one spacecraft (a batch, a recorder dump): one lookup per run.
   size_t dup = 0;
-  size_t run_start = begin;
+  size_t run_start = 0;
   int64_t run_stored = 0;
   auto flush_run = [&](size_t at) {
     if (run_stored > 0) {
-      if (SpacecraftTracker* t = fleet_.find(pending_[run_start].sat_id)) {
+      if (SpacecraftTracker* t = fleet_.find(rows[run_start].sat_id)) {
         t->counters->stored.fetch_add(run_stored, std::memory_order_relaxed);
       }
     }
     run_stored = 0;
     run_start = at;
   };
-  for (size_t i = begin; i < end; ++i) {
-    if (pending_[i].sat_id != pending_[run_start].sat_id) flush_run(i);
-    if (dup < duplicate_rows_.size() && duplicate_rows_[dup] + begin == i) {
+  for (size_t i = 0; i < rows.size(); ++i) {
+    if (rows[i].sat_id != rows[run_start].sat_id) flush_run(i);
+    if (dup < duplicate_rows_.size() && duplicate_rows_[dup] == i) {
       ++dup;  // a duplicate the in-memory check could not see: counted as rejected instead
       continue;
     }
     ++run_stored;
   }
-  flush_run(end);
+  flush_run(rows.size());
 }
 
 void IngestWorker::index_pending() {
@@ -532,6 +566,17 @@ bool IngestWorker::is_duplicate(const std::string& sat_id, const SpacecraftTrack
   for (auto it = first; it != last; ++it) {
     const auto& p = pending_[it->second];
     if (p.utime == utime && p.sat_id == sat_id) return true;
+  }
+  if (spill_) {
+    // PostgreSQL: while the database is away the insert decides (ON CONFLICT, counted as
+    // duplicate): a read retried in place would stop intake for the whole outage.
+    if (commit_retry_.failing()) return false;
+    try {
+      return samples_->count_in_window(sat_id, utime, utime + 1) > 0;
+    } catch (const storage::StorageError&) {
+      counters_.storage_failures.fetch_add(1, std::memory_order_relaxed);
+      return false;
+    }
   }
   // Reads work through most faults (WAL readers never wait for the writer); one that fails is
   // retried in place: the sample must not be taken before its answer.
@@ -755,7 +800,7 @@ void IngestWorker::commit_if_due() {
   const auto now = std::chrono::steady_clock::now();
   release_first_holds(now);
   if (now >= next_lease_round_) maintain_leases();
-  if (!pending_.empty() || !pending_snapshots_.empty() || !states_due_.empty()) {
+  if (uncommitted()) {
     const double age_ms =
         std::chrono::duration<double, std::milli>(now - first_pending_time_).count();
     if (age_ms >= config_.storage.commit_every_ms || pending_.empty()) commit();
@@ -767,24 +812,41 @@ void IngestWorker::commit_if_due() {
   }
 }
 
+bool IngestWorker::uncommitted() const {
+  return !pending_.empty() || !pending_snapshots_.empty() || !states_due_.empty() ||
+         (spill_ && spill_->held_samples() > 0);
+}
+
 void IngestWorker::commit() {
+  // An outage that outlasts memory: the batch goes to the spill file, intake goes on.
+  if (commit_retry_.failing()) spill_pending(false);
   // Two rounds: the samples, then what the owned filters made of them (snapshots, states), so
-  // that after commit() everything they produced from committed samples is stored too.
+  // that after commit() everything they produced from committed samples is stored too (not
+  // while the spill drains: one slice per call).
   for (int round = 0; round < 2; ++round) {
-    if (!(!pending_.empty() || !pending_snapshots_.empty() || !states_due_.empty()) ||
-        !commit_retry_.due()) {
+    if (!uncommitted() || !commit_retry_.due() ||
+        (round > 0 && spill_ && spill_->held_samples() > 0)) {
       break;
     }
     commit_retry_.attempting();
     try {
       commit_pending();
       commit_retry_.succeeded();
+      spill_full_ = false;
     } catch (const storage::StorageError& e) {
       // Samples and snapshots stay pending.
       commit_retry_.failed(e);  // throws StorageOutage when storage stays broken
       return;
     }
-    if (tracking_) break;  // a flush inside track_union(): it goes on by itself
+    if (!deferred_refits_.empty() && !uncommitted()) {
+      // Their samples are committed now; requested before retention runs (their floor).
+      const auto due = std::move(deferred_refits_);
+      deferred_refits_.clear();
+      for (const auto& [sat, t_ref] : due) {
+        if (hooks_.on_refit_due) hooks_.on_refit_due(sat, t_ref, "scheduled");
+      }
+    }
+    if (tracking_) break;  // a commit inside track_union(): it goes on by itself
     // A new spacecraft gets its lease row and, when this daemon's share allows, its owner here
     // before its first samples are read back.
     if (std::chrono::steady_clock::now() >= next_lease_round_) maintain_leases();
@@ -805,6 +867,18 @@ void IngestWorker::commit_pending() {
   // snapshots and the filter states that are due go with the last chunk (published once
   // stored; a state then includes exactly the committed samples).
   const auto chunk = static_cast<size_t>(config_.storage.commit_every_samples);
+  // Spilled samples are older than the pending ones, and the states below include them. Until
+  // the file is drained the pending batch queues behind it in the file (one order, and memory
+  // stays bounded); snapshots and states wait.
+  if (spill_ && spill_->held_samples() > 0) {
+    commit_spill(false, std::chrono::steady_clock::now() +
+                            std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                                std::chrono::duration<double>(kSpillDrainSlice_s)));
+    if (spill_->held_samples() > 0) {
+      spill_pending(true);
+      return;
+    }
+  }
   size_t done = 0;
   try {
     while (done < pending_.size() || !pending_snapshots_.empty() || !states_due_.empty()) {
@@ -840,8 +914,8 @@ void IngestWorker::commit_pending() {
         }
         tx.commit();
       }
-      mark_union_due(done, done + n);
-      count_stored(done, done + n);
+      mark_union_due(std::span(pending_).subspan(done, n));
+      count_stored(std::span(pending_).subspan(done, n));
       done += n;
       counters_.stored.fetch_add(stats.inserted, std::memory_order_relaxed);
       // Duplicates the in-memory check could not see (e.g. within one frame).
@@ -896,20 +970,116 @@ void IngestWorker::fence_owned_writes() {
   }
 }
 
-void IngestWorker::mark_union_due(size_t begin, size_t end) {
+void IngestWorker::mark_union_due(std::span<const storage::StoredSample> rows) {
   const std::string* last = nullptr;
-  for (size_t i = begin; i < end; ++i) {
-    if (last != nullptr && *last == pending_[i].sat_id) continue;
-    last = &pending_[i].sat_id;
+  for (const auto& row : rows) {
+    if (last != nullptr && *last == row.sat_id) continue;
+    last = &row.sat_id;
     if (SpacecraftTracker* t = fleet_.find(*last); t != nullptr && t->owned) t->union_due = true;
   }
 }
 
 void IngestWorker::flush() {
-  while (!pending_.empty() || !pending_snapshots_.empty() || !states_due_.empty()) {
+  while (uncommitted()) {
     if (!commit_retry_.due()) std::this_thread::sleep_until(commit_retry_.next_attempt());
     commit();
   }
+}
+
+void IngestWorker::flush_at_stop() {
+  if (spill_ && uncommitted()) {
+    commit();
+    if (commit_retry_.failing() && (pending_.empty() || spill_pending(true))) {
+      if (!pending_snapshots_.empty()) {
+        spdlog::warn(
+            "{} UKF snapshots not stored: the database is unreachable at shutdown (the "
+            "spilled samples are committed at the next start)",
+            pending_snapshots_.size());
+      }
+      pending_snapshots_.clear();
+      // Not saved: the next start re-runs each filter over the samples newer than its state.
+      for (const auto& sat : states_due_) {
+        if (SpacecraftTracker* t = fleet_.find(sat)) t->state_due = false;
+      }
+      states_due_.clear();
+      return;
+    }
+  }
+  flush();
+}
+
+int64_t IngestWorker::spill_all_pending() {
+  const auto n = static_cast<int64_t>(pending_.size());
+  return spill_pending(true) ? n : 0;
+}
+
+bool IngestWorker::spill_pending(bool at_any_size) {
+  if (!spill_ || spill_full_ || pending_.empty()) return false;
+  if (!at_any_size && static_cast<int64_t>(pending_.size()) < config_.storage.max_pending_samples) {
+    return false;
+  }
+  bool appended = false;
+  try {
+    appended = spill_->append(pending_);
+  } catch (const SpillError& e) {
+    spdlog::error("{}", e.what());
+  }
+  if (!appended) {
+    spill_full_ = true;  // until a commit succeeds
+    warnings_.warn(
+        "spill_full",
+        fmt::format("spill file {} cannot take {} more samples (its size {} bytes, "
+                    "[storage] spill_max_bytes {}): they stay in memory, and at "
+                    "max_pending_samples intake stops until the database takes them (a "
+                    "live feed then overflows its receive queue, counted as "
+                    "queue_overflow)",
+                    spill_->path(), pending_.size(), spill_->bytes(), spill_->max_bytes()));
+    return false;
+  }
+  counters_.spilled.fetch_add(static_cast<int64_t>(pending_.size()), std::memory_order_relaxed);
+  warnings_.warn(
+      "spill",
+      fmt::format("{}: {} pending samples spilled to {} ({} held there, {} bytes)",
+                  commit_retry_.failing() ? "database unreachable" : "queued behind the spill",
+                  pending_.size(), spill_->path(), spill_->held_samples(), spill_->bytes()));
+  pending_.clear();
+  reset_pending_index();
+  update_spill_gauges();
+  return true;
+}
+
+void IngestWorker::commit_spill(bool recovered, std::chrono::steady_clock::time_point until) {
+  const auto chunk = static_cast<size_t>(config_.storage.commit_every_samples);
+  // insert_batch sorts each chunk by (sat_id, utime), the fleet's one key order.
+  while (std::chrono::steady_clock::now() < until && spill_->read_chunk(chunk, spill_chunk_) > 0) {
+    const storage::InsertStats stats =
+        samples_->insert_batch(spill_chunk_, &duplicate_rows_, config_.station.id);
+    spill_->commit_read();
+    mark_union_due(spill_chunk_);
+    if (recovered) {
+      // Received, counted and checked by the run that spilled them.
+      counters_.spill_recovered.fetch_add(stats.inserted, std::memory_order_relaxed);
+    } else {
+      count_stored(spill_chunk_);
+      counters_.stored.fetch_add(stats.inserted, std::memory_order_relaxed);
+      if (stats.duplicates > 0) counters_.reject(RejectReason::kDuplicate, stats.duplicates);
+    }
+    update_spill_gauges();
+  }
+}
+
+void IngestWorker::update_spill_gauges() {
+  counters_.spill_held.store(spill_->held_samples(), std::memory_order_relaxed);
+  counters_.spill_bytes.store(spill_->bytes(), std::memory_order_relaxed);
+}
+
+bool IngestWorker::committed_for_refit() {
+  if (!spill_) {
+    flush();
+    return true;
+  }
+  commit();  // one attempt, or none during the backoff: never waits through an outage
+  return !uncommitted();
 }
 
 void IngestWorker::run_retention() {
@@ -955,7 +1125,15 @@ void IngestWorker::check_data_clock(const std::string& sat_id, SpacecraftTracker
                                t.data_refits->skipped() - skipped_before));
   }
   if (due.empty()) return;
-  flush();  // the refit reads what is committed: everything up to t_ref
+  // The refit reads what is committed: everything up to t_ref.
+  if (!committed_for_refit()) {
+    for (const int64_t t_ref : due) deferred_refits_.emplace_back(sat_id, t_ref);
+    warnings_.warn("refit_deferred",
+                   fmt::format("{}: refit due at {} waits until the database takes the held "
+                               "samples",
+                               sat_id, format_iso8601_utc(due.back())));
+    return;
+  }
   for (const int64_t t_ref : due) {
     if (hooks_.on_refit_due) hooks_.on_refit_due(sat_id, t_ref, "scheduled");
   }
@@ -966,7 +1144,9 @@ void IngestWorker::check_early_refit(const std::string& sat_id, SpacecraftTracke
       !t.ukf.initialized() || t.filtered_utime == kNoTime) {
     return;
   }
-  flush();  // the refit reads what is committed; so does its key below
+  // The refit reads what is committed; so does its key below. (During an outage: asked again
+  // with the next samples.)
+  if (!committed_for_refit()) return;
   const EarlyRefitPlan plan = config_.early_refits();
   const int64_t n = plan.latest_within(t.n_samples);
   std::optional<int64_t> first_utime, t_ref;
@@ -999,7 +1179,7 @@ void IngestWorker::save_filter_states() {
   // A saved state must not include samples that are not stored: after a crash they come again
   // (re-replay, recorder dump) and the restored filter would use them twice.
   commit();
-  if (!pending_.empty()) return;  // storage failing: saved once the commit goes through
+  if (uncommitted()) return;  // storage failing: saved once the commit goes through
   std::vector<SpacecraftTracker*> saved;
   try {
     storage::Transaction tx(*db_);

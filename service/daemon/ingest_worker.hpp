@@ -21,8 +21,17 @@
 // Storage faults (service/daemon/storage_retry.hpp): a failed commit keeps its samples and
 // snapshots pending and is retried with backoff (snapshots are published only once stored); the
 // caller stops feeding process() while backlogged() (pending at [storage] max_pending_samples). The
-// duplicate check retries in place. Storage broken for [storage] max_failure_s (or a permanent
-// error) throws StorageOutage out of process() / commit_if_due() / commit() / flush().
+// duplicate check retries in place. Storage broken for [storage] max_failure_s (pg_max_failure_s
+// on PostgreSQL), or a permanent error, throws StorageOutage out of process() / commit_if_due() /
+// commit() / flush().
+//
+// PostgreSQL outages (issue 19, "Network faults"): once the pending batch reaches
+// max_pending_samples while commits fail, it goes to the spill file (sample_spill.hpp) and
+// intake goes on; the file is committed first when the database returns (a slice of at most
+// 1 s per commit, the pending batch queued behind it in the file until it is empty), and at
+// start when an earlier run left one. Meanwhile the duplicate check does not read the database (the
+// insert, which counts duplicates, decides), and refits that fall due wait until everything is
+// committed.
 //
 // Owns its own database connection and everything it touches, so it runs on one thread; the
 // only cross-thread entry points are post_reanchor(), owns() and the retention floor.
@@ -45,6 +54,7 @@
 #include <mutex>
 #include <optional>
 #include <set>
+#include <span>
 #include <string>
 #include <unordered_map>
 #include <vector>
@@ -54,6 +64,7 @@
 #include "service/daemon/health.hpp"
 #include "service/daemon/ingest_queue.hpp"
 #include "service/daemon/refit_scheduler.hpp"
+#include "service/daemon/sample_spill.hpp"
 #include "service/daemon/sample_validator.hpp"
 #include "service/daemon/spacecraft_tracker.hpp"
 #include "service/daemon/storage_retry.hpp"
@@ -84,14 +95,15 @@ class IngestWorker {
         on_refit_due;
   };
 
-  // Opens its own connection to config.storage.db_path (throws storage::StorageError). Counts
-  // in `counters` (must outlive the worker), per spacecraft too, and times each commit.
+  // Opens its own connection to config.storage.db_path (throws storage::StorageError) and, on
+  // PostgreSQL, a spill file left behind (throws SpillError). Counts in `counters` (must outlive
+  // the worker), per spacecraft too, and times each commit.
   IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
                std::unique_ptr<ReferenceField> field, Hooks hooks);
   ~IngestWorker();
 
-  // Rebuilds the receive side from the database, then takes the leases this daemon may own
-  // (see file comment). Call once before process().
+  // Commits a spill file an earlier run left, rebuilds the receive side from the database, then
+  // takes the leases this daemon may own (see file comment). Call once before process().
   void restore();
 
   // Heartbeat, lease renewal, takeovers and handovers (see file comment). commit_if_due() runs
@@ -117,9 +129,18 @@ class IngestWorker {
   // Commits everything pending, retrying through the backoff until it is stored; throws
   // StorageOutage when storage stays broken (shutdown, and before a data-clock refit).
   void flush();
-  // Pending at [storage] max_pending_samples: take no more frames until a commit succeeds.
+  // At shutdown: flush(), except that with a spill file (PostgreSQL) while storage fails the
+  // pending samples are spilled at once (committed at the next start) instead of waiting up to
+  // pg_max_failure_s; UKF snapshots not yet stored are then dropped (logged).
+  void flush_at_stop();
+  // Moves every pending sample to the spill file (when there is one and it has room); returns
+  // how many. After StorageOutage: what the daemon would otherwise count as not committed.
+  int64_t spill_all_pending();
+  // Pending at [storage] max_pending_samples and no spill file that takes them (SQLite, or the
+  // spill full): take no more frames until a commit succeeds.
   bool backlogged() const {
-    return static_cast<int64_t>(pending_.size()) >= config_.storage.max_pending_samples;
+    return static_cast<int64_t>(pending_.size()) >= config_.storage.max_pending_samples &&
+           (!spill_ || spill_full_);
   }
   // A failed commit is waiting for its retry.
   bool commit_failing() const { return commit_retry_.failing(); }
@@ -201,6 +222,9 @@ class IngestWorker {
   // track_union() for every owned spacecraft whose union grew here (union_due), and for all
   // owned ones when another station may have stored samples (every kUnionPoll_s).
   void track_due();
+  // track_due(), or with `drain` track_all_now(); a storage error leaves the filters where they
+  // are (read again after the next commit).
+  void track_owned(bool drain);
   void run_retention();
   // Data clock: advances sat_id's refit schedule to its newest sample; due refits are
   // committed up to their time, then handed to on_refit_due.
@@ -211,10 +235,24 @@ class IngestWorker {
   // In the commit of snapshots and states: gives up (and drops the writes of) every spacecraft
   // whose lease is no longer this daemon's.
   void fence_owned_writes();
-  // The owned spacecraft among the committed rows [begin, end) of pending_ read the union next.
-  void mark_union_due(size_t begin, size_t end);
-  // Counts the committed rows [begin, end) of pending_ per spacecraft (minus duplicate_rows_).
-  void count_stored(size_t begin, size_t end);
+  // The owned spacecraft among committed `rows` read the union next.
+  void mark_union_due(std::span<const storage::StoredSample> rows);
+  // Counts committed `rows` per spacecraft (minus duplicate_rows_, indices into them).
+  void count_stored(std::span<const storage::StoredSample> rows);
+  // Something awaits its commit: samples (pending or spilled), snapshots, filter states.
+  bool uncommitted() const;
+  // The pending batch goes to the spill file (all of it, or only once it is at
+  // max_pending_samples); false when it did not (full, or no spill).
+  bool spill_pending(bool at_any_size);
+  // Commits the spill file's samples, chunk by chunk, until it is empty or `until` (throws
+  // storage::StorageError; what was committed stays committed). `recovered`: an earlier run's
+  // file (counted apart).
+  void commit_spill(bool recovered, std::chrono::steady_clock::time_point until =
+                                        std::chrono::steady_clock::time_point::max());
+  void update_spill_gauges();
+  // Before a refit reads the database: everything committed. Blocks (flush()) except on
+  // PostgreSQL, where during an outage it returns false at once and the refit waits.
+  bool committed_for_refit();
   SpacecraftTracker& tracker(const std::string& sat_id, bool* created);
   void count_missing(SpacecraftTracker& t, int64_t seq);
 
@@ -236,6 +274,11 @@ class IngestWorker {
   StorageRetry read_retry_;
 
   std::vector<storage::StoredSample> pending_;
+  std::unique_ptr<SampleSpill> spill_;  // PostgreSQL only (DaemonConfig::spill_path())
+  bool spill_full_ = false;             // refused a batch: back-pressure until it is drained
+  std::vector<storage::StoredSample> spill_chunk_;  // reused by commit_spill()
+  // Data-clock refits that fell due during an outage: requested once everything is committed.
+  std::vector<std::pair<std::string, int64_t>> deferred_refits_;
   std::vector<size_t> duplicate_rows_;  // of the last insert (reused: no allocation per batch)
   // pending_[0, pending_indexed_) by a hash of (sat_id, utime) -> row; built only when a
   // duplicate check needs it (out-of-order samples), so in-order ingest pays nothing.

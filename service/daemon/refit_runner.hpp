@@ -96,7 +96,7 @@ class RefitRunner {
   std::unique_ptr<storage::CalibrationHistory> history_;
   std::unique_ptr<storage::RefitJobLog> jobs_;
   std::unique_ptr<storage::LeaseStore> leases_;  // which stations are live
-  std::vector<storage::StoredSample> rows_;  // reused between refits
+  std::vector<storage::StoredSample> rows_;      // reused between refits
   SampleSet window_;
 };
 

@@ -19,11 +19,15 @@ std::string describe(const storage::StorageError& e) {
 
 }  // namespace
 
-StorageRetry::StorageRetry(std::string what, double max_failure_s, DaemonCounters& counters)
-    : what_(std::move(what)), max_failure_s_(max_failure_s), counters_(counters) {}
+StorageRetry::StorageRetry(std::string what, double max_failure_s, DaemonCounters& counters,
+                           std::string limit_key)
+    : what_(std::move(what)),
+      max_failure_s_(max_failure_s),
+      limit_key_(std::move(limit_key)),
+      counters_(counters) {}
 
 StorageRetry::~StorageRetry() {
-  if (failing_) counters_.storage_failing_paths.fetch_sub(1);
+  if (failing_) counters_.storage_path_recovered();
 }
 
 void StorageRetry::sleep_until(Clock::time_point t) {
@@ -42,7 +46,7 @@ void StorageRetry::failed(const storage::StorageError& e) {
     since_ = now;
     backoff_s_ = kFirstBackoff_s;
     attempts_failed_ = 0;
-    counters_.storage_failing_paths.fetch_add(1);
+    counters_.storage_path_failing();
   }
   ++attempts_failed_;
   const double failing_s = std::chrono::duration<double>(now - since_).count();
@@ -52,17 +56,15 @@ void StorageRetry::failed(const storage::StorageError& e) {
   }
   if (failing_s >= max_failure_s_) {
     throw StorageOutage(fmt::format(
-        "database {} failed for {:.1f} s ([storage] max_failure_s = {}; {} attempts), last "
-        "error ({}): {}",
-        what_, failing_s, max_failure_s_, attempts_failed_, describe(e), e.what()));
+        "database {} failed for {:.1f} s ([storage] {} = {}; {} attempts), last error ({}): {}",
+        what_, failing_s, limit_key_, max_failure_s_, attempts_failed_, describe(e), e.what()));
   }
   // One line per doubling of the backoff, then one every 5 attempts (10 s): a live outage stays
   // visible in the log without flooding it.
   if (backoff_s_ < kMaxBackoff_s || attempts_failed_ % 5 == 0) {
     spdlog::error(
-        "database {} failed ({}; failing for {:.1f} s of max_failure_s {}), kept in "
-        "memory, retry in {:.2f} s: {}",
-        what_, describe(e), failing_s, max_failure_s_, backoff_s_, e.what());
+        "database {} failed ({}; failing for {:.1f} s of {} {}), kept, retry in {:.2f} s: {}",
+        what_, describe(e), failing_s, limit_key_, max_failure_s_, backoff_s_, e.what());
   }
   // Never retry later than the give-up time, so an outage ends on time.
   const double wait_s = std::min(backoff_s_, std::max(0.0, max_failure_s_ - failing_s));
@@ -73,7 +75,7 @@ void StorageRetry::failed(const storage::StorageError& e) {
 void StorageRetry::succeeded() {
   if (!failing_) return;
   failing_ = false;
-  counters_.storage_failing_paths.fetch_sub(1);
+  counters_.storage_path_recovered();
   spdlog::warn("database {} works again after {:.1f} s ({} failed attempts)", what_,
                std::chrono::duration<double>(Clock::now() - since_).count(), attempts_failed_);
 }

@@ -4,7 +4,8 @@
 // lock past the busy timeout, I/O error, full disk, file deleted / moved / read-only) the
 // operation is retried with bounded exponential backoff (50 ms doubling to 2 s); while it fails,
 // DaemonCounters::storage_healthy() is false and every failed attempt and retry is counted.
-// When the path has failed continuously for [storage] max_failure_s, or on a permanent error
+// When the path has failed continuously for [storage] max_failure_s (pg_max_failure_s on
+// PostgreSQL: DaemonConfig::storage_max_failure_s()), or on a permanent error
 // (corrupt or foreign file, constraint), StorageOutage is thrown: the daemon stops receiving,
 // logs why and exits with kExitStorageFailed, so systemd restarts it and an operator is alerted.
 #pragma once
@@ -34,8 +35,10 @@ class StorageRetry {
   static constexpr double kFirstBackoff_s = 0.05;
   static constexpr double kMaxBackoff_s = 2.0;
 
-  // `what` names the path in the log ("commit", "duplicate check", "refit").
-  StorageRetry(std::string what, double max_failure_s, DaemonCounters& counters);
+  // `what` names the path in the log ("commit", "duplicate check", "refit"); `limit_key` the
+  // [storage] key max_failure_s came from (DaemonConfig::storage_max_failure_key()).
+  StorageRetry(std::string what, double max_failure_s, DaemonCounters& counters,
+               std::string limit_key = "max_failure_s");
   ~StorageRetry();
   StorageRetry(const StorageRetry&) = delete;
   StorageRetry& operator=(const StorageRetry&) = delete;
@@ -82,6 +85,7 @@ class StorageRetry {
 
   std::string what_;
   double max_failure_s_;
+  std::string limit_key_;
   DaemonCounters& counters_;
   bool failing_ = false;
   Clock::time_point since_{};

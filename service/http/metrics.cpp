@@ -35,6 +35,14 @@ struct Families {
   prometheus::Family<prometheus::Counter>* refits_claimed_elsewhere;
   prometheus::Family<prometheus::Gauge>* last_refit_success;
   prometheus::Family<prometheus::Gauge>* storage_healthy;
+  // The daemon's alone (magcal serve has no such series).
+  prometheus::Family<prometheus::Gauge>* storage_failing_s;
+  prometheus::Family<prometheus::Gauge>* storage_pending;
+  prometheus::Family<prometheus::Counter>* spilled;
+  prometheus::Family<prometheus::Gauge>* spill_held;
+  prometheus::Family<prometheus::Gauge>* spill_bytes;
+  prometheus::Family<prometheus::Counter>* spill_recovered;
+  prometheus::Family<prometheus::Counter>* spill_dropped;
 };
 
 // Every family of the contract, registered in one place for the daemon and `magcal serve`.
@@ -107,6 +115,32 @@ Families register_families(prometheus::Registry& r, const std::string& version) 
                            .Name("magcal_storage_healthy")
                            .Help("1, or 0 while a storage operation fails and is retried")
                            .Register(r);
+  f.storage_failing_s = &BuildGauge()
+                             .Name("magcal_storage_failing_seconds")
+                             .Help("How long storage has been failing, s (0 while it works)")
+                             .Register(r);
+  f.storage_pending = &BuildGauge()
+                           .Name("magcal_storage_pending_samples")
+                           .Help("Received samples held in memory, not committed yet")
+                           .Register(r);
+  f.spilled = &BuildCounter()
+                   .Name("magcal_samples_spilled_total")
+                   .Help("Samples written to the spill file during a database outage")
+                   .Register(r);
+  f.spill_held = &BuildGauge()
+                      .Name("magcal_spill_samples")
+                      .Help("Samples in the spill file, not committed yet")
+                      .Register(r);
+  f.spill_bytes =
+      &BuildGauge().Name("magcal_spill_bytes").Help("Size of the spill file, bytes").Register(r);
+  f.spill_recovered = &BuildCounter()
+                           .Name("magcal_spill_recovered_samples_total")
+                           .Help("Samples committed at start from a spill file an earlier run left")
+                           .Register(r);
+  f.spill_dropped = &BuildCounter()
+                         .Name("magcal_spill_dropped_records_total")
+                         .Help("Records of a spill file cut off at start as torn or corrupt")
+                         .Register(r);
   BuildGauge()
       .Name("magcal_build_info")
       .Help("Build of magcal (value 1)")
@@ -168,6 +202,13 @@ DaemonMetrics::DaemonMetrics(const std::string& version, const std::string& stat
   last_refit_success_ = f.last_refit_success;
   storage_healthy_ = &f.storage_healthy->Add({});
   storage_healthy_->Set(1.0);
+  storage_failing_s_ = &f.storage_failing_s->Add({});
+  storage_pending_ = &f.storage_pending->Add({});
+  spilled_ = &f.spilled->Add({});
+  spill_held_ = &f.spill_held->Add({});
+  spill_bytes_ = &f.spill_bytes->Add({});
+  spill_recovered_ = &f.spill_recovered->Add({});
+  spill_dropped_ = &f.spill_dropped->Add({});
 }
 
 DaemonMetrics::~DaemonMetrics() = default;
@@ -201,6 +242,13 @@ void DaemonMetrics::apply_totals(const Totals& t) {
   queue_depth_->Set(static_cast<double>(t.queue_depth));
   raise_to(*queue_overflow_, t.queue_overflow);
   storage_healthy_->Set(t.storage_healthy ? 1.0 : 0.0);
+  storage_failing_s_->Set(t.storage_failing_s);
+  storage_pending_->Set(static_cast<double>(t.storage_pending));
+  raise_to(*spilled_, t.spilled);
+  spill_held_->Set(static_cast<double>(t.spill_held));
+  spill_bytes_->Set(static_cast<double>(t.spill_bytes));
+  raise_to(*spill_recovered_, t.spill_recovered);
+  raise_to(*spill_dropped_, t.spill_dropped);
 
   for (const SpacecraftTotals& sc : t.spacecraft) {
     SpacecraftSeries& m = series(sc.sat_label);

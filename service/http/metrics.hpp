@@ -25,7 +25,17 @@
 //   magcal_last_refit_success_timestamp_seconds{sat}  data time (s since 1970) of the newest
 //                                           accepted refit (its t_ref; = wall time when live)
 //   magcal_storage_healthy                  1, or 0 while a storage operation is failing and
-//                                           being retried (then /-/healthy answers 503)
+//                                           being retried (then /-/healthy answers 503 on
+//                                           SQLite; on PostgreSQL /-/ready does)
+//   magcal_storage_failing_seconds          how long storage has been failing (0: it works)
+//   magcal_storage_pending_samples          received samples held in memory, not committed
+//   magcal_samples_spilled_total            samples written to the spill file (PostgreSQL
+//                                           outages: service/daemon/sample_spill.hpp)
+//   magcal_spill_samples                    samples in the spill file, not committed yet
+//   magcal_spill_bytes                      size of the spill file
+//   magcal_spill_recovered_samples_total    samples committed at start from a spill file an
+//                                           earlier run left (received by that run)
+//   magcal_spill_dropped_records_total      records of such a file cut off as torn or corrupt
 //   magcal_build_info{version}              1
 //   magcal_station_info{station}            1, the daemon's [station] id (design.md "Fleet"):
 //                                           an info metric, joined in queries
@@ -86,6 +96,13 @@ class DaemonMetrics {
     int64_t queue_depth = 0;
     int64_t queue_overflow = 0;
     bool storage_healthy = true;
+    double storage_failing_s = 0.0;
+    int64_t storage_pending = 0;
+    int64_t spilled = 0;
+    int64_t spill_held = 0;
+    int64_t spill_bytes = 0;
+    int64_t spill_recovered = 0;
+    int64_t spill_dropped = 0;
     std::vector<SpacecraftTotals> spacecraft;
     // Commit latency: one count per bucket of the constructor's bounds plus +Inf (not
     // cumulative), and the sum of the observations, s. Empty = none observed.
@@ -128,6 +145,13 @@ class DaemonMetrics {
   prometheus::Family<prometheus::Counter>* refits_claimed_elsewhere_;
   prometheus::Family<prometheus::Gauge>* last_refit_success_;
   prometheus::Gauge* storage_healthy_;
+  prometheus::Gauge* storage_failing_s_;
+  prometheus::Gauge* storage_pending_;
+  prometheus::Counter* spilled_;
+  prometheus::Gauge* spill_held_;
+  prometheus::Gauge* spill_bytes_;
+  prometheus::Counter* spill_recovered_;
+  prometheus::Counter* spill_dropped_;
 
   std::mutex mutex_;  // the totals source and scrapes
   std::unordered_map<std::string, std::unique_ptr<SpacecraftSeries>> series_;

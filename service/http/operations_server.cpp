@@ -216,11 +216,13 @@ void OperationsServer::Impl::routes() {
     if (!hooks.metrics_text) return send_error(res, 404, "no metrics in this server");
     res.set_content(hooks.metrics_text(), "text/plain; version=0.0.4; charset=utf-8");
   });
-  auto probe = [](const std::function<bool()>& hook, const char* yes, const char* no) {
-    return [&hook, yes, no](const httplib::Request&, httplib::Response& res) {
+  auto probe = [this](const std::function<bool()>& hook, const char* yes, const char* no) {
+    return [this, &hook, yes, no](const httplib::Request&, httplib::Response& res) {
       const bool ok = !hook || hook();
       res.status = ok ? 200 : 503;
-      res.set_content(ok ? yes : no, "text/plain; charset=utf-8");
+      std::string body = ok ? yes : no;
+      if (hooks.probe_detail) body += hooks.probe_detail();
+      res.set_content(body, "text/plain; charset=utf-8");
     };
   };
   get("/-/healthy", probe(hooks.healthy, "magcal is healthy.\n", "magcal is unhealthy.\n"));

@@ -33,6 +33,9 @@ struct ServerHooks {
       metrics_text;               // Prometheus text exposition for /metrics (empty fn: 404)
   std::function<bool()> healthy;  // /-/healthy: 200 when true, 503 when false
   std::function<bool()> ready;    // /-/ready: 200 when true, 503 when false
+  // A line added to both probes' bodies ("" or an empty fn: none): what the answer rests on,
+  // e.g. a storage outage being ridden out.
+  std::function<std::string()> probe_detail;
   // The refit window /api/v1/spacecraft counts samples in (the daemon's [storage]
   // window_hours; `magcal serve` and `magcal status` use the default config's). Must be > 0.
   int64_t status_window_utime = 0;

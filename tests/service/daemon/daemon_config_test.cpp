@@ -5,12 +5,14 @@
 #include <unistd.h>
 
 #include <cmath>
+#include <cstdlib>
 #include <set>
 #include <string>
 
 #include "service/daemon/daemon_config.hpp"
 #include "storage/connection.hpp"
 
+using magcal::DaemonConfig;
 using magcal::parse_daemon_config;
 
 TEST_CASE("defaults are valid and match design.md", "[daemon_config]") {
@@ -39,6 +41,9 @@ TEST_CASE("defaults are valid and match design.md", "[daemon_config]") {
   CHECK(c.ingest.max_future_s == 300.0);
   CHECK(c.storage.max_failure_s == 60.0);
   CHECK(c.storage.max_pending_samples == 200000);
+  CHECK(c.storage.pg_max_failure_s == 3600.0);
+  CHECK(c.storage.spill_dir.empty());
+  CHECK(c.storage.spill_max_bytes == int64_t{1} << 30);
   CHECK(c.storage.busy_timeout_ms == 5000);
   CHECK(c.http.listen == "127.0.0.1:9780");  // design.md: loopback by default
   char host[256] = {};
@@ -58,6 +63,9 @@ TEST_CASE("the example config lists every key with exactly the defaults", "[daem
   CHECK(c.storage.busy_timeout_ms == d.storage.busy_timeout_ms);
   CHECK(c.storage.max_failure_s == d.storage.max_failure_s);
   CHECK(c.storage.max_pending_samples == d.storage.max_pending_samples);
+  CHECK(c.storage.pg_max_failure_s == d.storage.pg_max_failure_s);
+  CHECK(c.storage.spill_dir == d.storage.spill_dir);
+  CHECK(c.storage.spill_max_bytes == d.storage.spill_max_bytes);
   CHECK(c.refit.robust == d.refit.robust);
   CHECK(c.refit.early_growth == d.refit.early_growth);
   CHECK(c.ukf.filter.process_noise_per_sqrt_hour == d.ukf.filter.process_noise_per_sqrt_hour);
@@ -159,6 +167,11 @@ TEST_CASE("unknown keys, bad types and bad values name the key", "[daemon_config
       {"[ingest]\nmax_future_s = -1\n", "[ingest] max_future_s"},
       {"[ingest]\nmax_future_s = inf\n", "[ingest] max_future_s"},
       {"[storage]\nmax_failure_s = 0\n", "[storage] max_failure_s: must be > 0"},
+      {"[storage]\npg_max_failure_s = -5\n", "[storage] pg_max_failure_s: must be > 0"},
+      {"[storage]\npg_max_failure_s = \"1h\"\n", "[storage] pg_max_failure_s: expected a number"},
+      {"[storage]\nspill_max_bytes = -1\n", "[storage] spill_max_bytes: must be >= 0"},
+      {"[storage]\nspill_max_bytes = 1.5e9\n", "[storage] spill_max_bytes: expected an integer"},
+      {"[storage]\nspill_dir = 7\n", "[storage] spill_dir: expected a string"},
       {"[storage]\nbusy_timeout_ms = -1\n", "[storage] busy_timeout_ms: must be >= 0"},
       {"[storage]\nmax_pending_samples = 100\n",
        "[storage] max_pending_samples: must be >= commit_every_samples"},
@@ -192,6 +205,36 @@ TEST_CASE("a station id is read from [station] id, up to 64 characters", "[daemo
   CHECK(load.ok());
   load = parse_daemon_config("[station]\nid = \"" + std::string(65, 's') + "\"\n", "t.toml");
   CHECK_THAT(load.error, Catch::Contains("[station] id") && Catch::Contains("(65 characters)"));
+}
+
+TEST_CASE("PostgreSQL has its own storage failure limit and a spill file per station",
+          "[daemon_config]") {
+  auto load = parse_daemon_config(
+      "[storage]\nmax_failure_s = 30\npg_max_failure_s = 900\n[station]\nid = \"gs/2\"\n",
+      "t.toml");
+  REQUIRE(load.ok());
+  DaemonConfig c = load.config;
+  // SQLite: max_failure_s, no spill.
+  CHECK(c.storage_max_failure_s() == 30.0);
+  CHECK(std::string(c.storage_max_failure_key()) == "max_failure_s");
+  CHECK(c.spill_path().empty());
+  c.storage.db_path = "postgresql://magcal@db.example/fleet";
+  CHECK(c.storage_max_failure_s() == 900.0);
+  CHECK(std::string(c.storage_max_failure_key()) == "pg_max_failure_s");
+  // The station id names the file ('/' made harmless); spill_dir, else $STATE_DIRECTORY, else
+  // the working directory.
+  c.storage.spill_dir = "/var/spool/magcal";
+  CHECK(c.spill_path() == "/var/spool/magcal/magcal-spill-gs_2.spill");
+  c.storage.spill_dir.clear();
+  const char* state = std::getenv("STATE_DIRECTORY");
+  const std::string saved = state ? state : "";
+  ::setenv("STATE_DIRECTORY", "/var/lib/magcal:/var/lib/other", 1);
+  CHECK(c.spill_path() == "/var/lib/magcal/magcal-spill-gs_2.spill");
+  ::unsetenv("STATE_DIRECTORY");
+  CHECK(c.spill_path() == "./magcal-spill-gs_2.spill");
+  if (state) ::setenv("STATE_DIRECTORY", saved.c_str(), 1);
+  c.storage.spill_max_bytes = 0;  // no spill
+  CHECK(c.spill_path().empty());
 }
 
 TEST_CASE("a missing config file is an error", "[daemon_config]") {

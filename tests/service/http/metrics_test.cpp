@@ -70,6 +70,13 @@ TEST_CASE("daemon metrics: the contract's names, the counted values, valid text"
     t.queue_depth = 12;
     t.queue_overflow = 5;
     t.storage_healthy = false;
+    t.storage_failing_s = 42.5;
+    t.storage_pending = 4000;
+    t.spilled = 12000;
+    t.spill_held = 8000;
+    t.spill_bytes = 1'300'000;
+    t.spill_recovered = 17;
+    t.spill_dropped = 1;
     t.spacecraft = {a, b};
     t.commit_bucket_counts = buckets;
     t.commit_sum_s = 7.0062;
@@ -94,6 +101,13 @@ TEST_CASE("daemon metrics: the contract's names, the counted values, valid text"
       {"magcal_refits_claimed_elsewhere_total", "counter"},
       {"magcal_last_refit_success_timestamp_seconds", "gauge"},
       {"magcal_storage_healthy", "gauge"},
+      {"magcal_storage_failing_seconds", "gauge"},
+      {"magcal_storage_pending_samples", "gauge"},
+      {"magcal_samples_spilled_total", "counter"},
+      {"magcal_spill_samples", "gauge"},
+      {"magcal_spill_bytes", "gauge"},
+      {"magcal_spill_recovered_samples_total", "counter"},
+      {"magcal_spill_dropped_records_total", "counter"},
       {"magcal_build_info", "gauge"},
       {"magcal_station_info", "gauge"}};
   CHECK(p.types == expected_types);
@@ -107,6 +121,13 @@ TEST_CASE("daemon metrics: the contract's names, the counted values, valid text"
   CHECK(p.value("magcal_queue_depth") == 12.0);
   CHECK(p.value("magcal_queue_overflow_total") == 5.0);
   CHECK(p.value("magcal_storage_healthy") == 0.0);
+  CHECK(p.value("magcal_storage_failing_seconds") == 42.5);
+  CHECK(p.value("magcal_storage_pending_samples") == 4000.0);
+  CHECK(p.value("magcal_samples_spilled_total") == 12000.0);
+  CHECK(p.value("magcal_spill_samples") == 8000.0);
+  CHECK(p.value("magcal_spill_bytes") == 1'300'000.0);
+  CHECK(p.value("magcal_spill_recovered_samples_total") == 17.0);
+  CHECK(p.value("magcal_spill_dropped_records_total") == 1.0);
   CHECK(p.value("magcal_build_info", {{"version", "9.9.9-test"}}) == 1.0);
   CHECK(p.value("magcal_station_info", {{"station", "gs-north"}}) == 1.0);
   CHECK(p.sum("magcal_station_info") == 1.0);  // one station: this daemon's

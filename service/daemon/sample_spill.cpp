@@ -1,0 +1,303 @@
+#include "service/daemon/sample_spill.hpp"
+
+#include <fcntl.h>
+#include <sys/file.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <cstring>
+
+#include <fmt/format.h>
+
+namespace magcal {
+namespace {
+
+constexpr char kMagic[8] = {'M', 'G', 'S', 'P', 'I', 'L', 'L', '1'};
+constexpr size_t kRecordHeaderBytes = sizeof(uint32_t) + sizeof(uint64_t);
+constexpr uint8_t kHasDirection = 1, kHasAttitude = 2, kHasPosition = 4;
+
+uint64_t fnv1a(const char* data, size_t n) {
+  uint64_t h = 0xcbf29ce484222325ULL;
+  for (size_t i = 0; i < n; ++i) {
+    h ^= static_cast<unsigned char>(data[i]);
+    h *= 0x100000001b3ULL;
+  }
+  return h;
+}
+
+template <typename T>
+void put(std::vector<char>& out, const T& v) {
+  const auto* p = reinterpret_cast<const char*>(&v);
+  out.insert(out.end(), p, p + sizeof(T));
+}
+
+// Reads values off a payload; ok() is false once one ran past its end.
+class Reader {
+ public:
+  Reader(const char* data, size_t n) : p_(data), end_(data + n) {}
+  template <typename T>
+  T get() {
+    T v{};
+    if (static_cast<size_t>(end_ - p_) < sizeof(T)) {
+      ok_ = false;
+      return v;
+    }
+    std::memcpy(&v, p_, sizeof(T));
+    p_ += sizeof(T);
+    return v;
+  }
+  std::string get_string(size_t n) {
+    if (static_cast<size_t>(end_ - p_) < n) {
+      ok_ = false;
+      return {};
+    }
+    std::string s(p_, n);
+    p_ += n;
+    return s;
+  }
+  // Every byte used, none missing.
+  bool done() const { return ok_ && p_ == end_; }
+
+ private:
+  const char* p_;
+  const char* end_;
+  bool ok_ = true;
+};
+
+void encode(const storage::StoredSample& s, std::vector<char>& out) {
+  put(out, static_cast<uint32_t>(s.sat_id.size()));
+  out.insert(out.end(), s.sat_id.begin(), s.sat_id.end());
+  put(out, s.utime);
+  put(out, s.seq);
+  put(out, s.receive_utime);
+  put(out, s.b_sensor_nT);
+  put(out, static_cast<uint8_t>((s.has_direction ? kHasDirection : 0) |
+                                (s.has_attitude ? kHasAttitude : 0) |
+                                (s.has_position ? kHasPosition : 0)));
+  put(out, s.h_body_nT);
+  put(out, s.h_norm_nT);
+  put(out, s.q_body_from_eci);
+  put(out, s.r_ecef_m);
+  put(out, s.temperature_C);
+}
+
+bool decode(const char* data, size_t n, storage::StoredSample& s) {
+  Reader in(data, n);
+  s.sat_id = in.get_string(in.get<uint32_t>());
+  s.utime = in.get<int64_t>();
+  s.seq = in.get<int64_t>();
+  s.receive_utime = in.get<int64_t>();
+  s.b_sensor_nT = in.get<std::array<double, 3>>();
+  const auto flags = in.get<uint8_t>();
+  s.has_direction = (flags & kHasDirection) != 0;
+  s.has_attitude = (flags & kHasAttitude) != 0;
+  s.has_position = (flags & kHasPosition) != 0;
+  s.h_body_nT = in.get<std::array<double, 3>>();
+  s.h_norm_nT = in.get<double>();
+  s.q_body_from_eci = in.get<std::array<double, 4>>();
+  s.r_ecef_m = in.get<std::array<double, 3>>();
+  s.temperature_C = in.get<double>();
+  return in.done() && !s.sat_id.empty();
+}
+
+}  // namespace
+
+SampleSpill::SampleSpill(std::string path, std::string database, int64_t max_bytes)
+    : path_(std::move(path)), database_(std::move(database)), max_bytes_(max_bytes) {
+  if (::access(path_.c_str(), F_OK) == 0) open_existing();
+}
+
+SampleSpill::~SampleSpill() {
+  if (fd_ >= 0) ::close(fd_);  // also releases the lock
+}
+
+void SampleSpill::fail(const std::string& what) const {
+  throw SpillError(fmt::format("spill file {}: {}: {}", path_, what, std::strerror(errno)));
+}
+
+bool SampleSpill::read_exact(int64_t offset, void* out, size_t n) const {
+  auto* p = static_cast<char*>(out);
+  while (n > 0) {
+    const ssize_t got = ::pread(fd_, p, n, offset);
+    if (got < 0 && errno == EINTR) continue;
+    if (got < 0) fail("read");
+    if (got == 0) return false;
+    p += got;
+    n -= static_cast<size_t>(got);
+    offset += got;
+  }
+  return true;
+}
+
+void SampleSpill::open_existing() {
+  fd_ = ::open(path_.c_str(), O_RDWR | O_CLOEXEC);
+  if (fd_ < 0) fail("cannot open");
+  if (::flock(fd_, LOCK_EX | LOCK_NB) != 0) fail("locked by another process (another magcald?)");
+  char magic[sizeof kMagic];
+  uint64_t committed = 0;
+  uint32_t name_bytes = 0;
+  if (!read_exact(0, magic, sizeof magic) || std::memcmp(magic, kMagic, sizeof kMagic) != 0 ||
+      !read_exact(sizeof magic, &committed, sizeof committed) ||
+      !read_exact(sizeof magic + sizeof committed, &name_bytes, sizeof name_bytes) ||
+      name_bytes > kMaxPayloadBytes) {
+    errno = 0;
+    throw SpillError("spill file " + path_ +
+                     ": not a magcal spill file (no MGSPILL1 header); move it away to start");
+  }
+  header_bytes_ =
+      static_cast<int64_t>(sizeof magic + sizeof committed + sizeof name_bytes + name_bytes);
+  found_database_.resize(name_bytes);
+  if (!read_exact(header_bytes_ - name_bytes, found_database_.data(), name_bytes)) {
+    found_database_.clear();
+  }
+  committed_ = std::max(header_bytes_, static_cast<int64_t>(committed));
+  // Every record after the committed offset is checked; the first short or corrupt one ends
+  // the file (records are appended in order, so nothing valid can follow a torn one).
+  const off_t size = ::lseek(fd_, 0, SEEK_END);
+  if (size < 0) fail("seek");
+  int64_t at = committed_;
+  storage::StoredSample row;
+  while (at < size) {
+    uint32_t n = 0;
+    uint64_t sum = 0;
+    if (!read_exact(at, &n, sizeof n) || !read_exact(at + 4, &sum, sizeof sum) ||
+        n > kMaxPayloadBytes) {
+      break;
+    }
+    buffer_.resize(n);
+    if (!read_exact(at + static_cast<int64_t>(kRecordHeaderBytes), buffer_.data(), n) ||
+        fnv1a(buffer_.data(), n) != sum || !decode(buffer_.data(), n, row)) {
+      break;
+    }
+    at += static_cast<int64_t>(kRecordHeaderBytes + n);
+    ++held_;
+  }
+  if (at < size) {
+    ++dropped_;
+    if (::ftruncate(fd_, at) != 0) fail("cannot cut off its torn end");
+  }
+  end_ = at;
+  if (held_ == 0) close_and_remove();
+}
+
+void SampleSpill::create() {
+  fd_ = ::open(path_.c_str(), O_RDWR | O_CREAT | O_EXCL | O_CLOEXEC, 0640);
+  if (fd_ < 0) fail("cannot create");
+  if (::flock(fd_, LOCK_EX | LOCK_NB) != 0) fail("locked by another process (another magcald?)");
+  header_bytes_ =
+      static_cast<int64_t>(sizeof kMagic + sizeof(uint64_t) + sizeof(uint32_t) + database_.size());
+  const auto offset = static_cast<uint64_t>(header_bytes_);
+  const auto name_bytes = static_cast<uint32_t>(database_.size());
+  std::string header(kMagic, sizeof kMagic);
+  header.append(reinterpret_cast<const char*>(&offset), sizeof offset);
+  header.append(reinterpret_cast<const char*>(&name_bytes), sizeof name_bytes);
+  header += database_;
+  if (::pwrite(fd_, header.data(), header.size(), 0) != static_cast<ssize_t>(header.size())) {
+    const int e = errno;
+    ::close(fd_);
+    fd_ = -1;
+    ::unlink(path_.c_str());
+    errno = e;
+    fail("cannot write its header");
+  }
+  committed_ = end_ = header_bytes_;
+}
+
+void SampleSpill::close_and_remove() {
+  if (fd_ >= 0) {
+    ::unlink(path_.c_str());  // while still locked: no other process opens a half-removed file
+    ::close(fd_);
+    fd_ = -1;
+  }
+  committed_ = end_ = header_bytes_ = held_ = 0;
+  read_end_ = read_count_ = 0;
+}
+
+bool SampleSpill::append(std::span<const storage::StoredSample> rows) {
+  if (rows.empty()) return true;
+  buffer_.clear();
+  for (const auto& s : rows) {
+    const size_t at = buffer_.size();
+    buffer_.resize(at + kRecordHeaderBytes);
+    encode(s, buffer_);
+    const auto n = static_cast<uint32_t>(buffer_.size() - at - kRecordHeaderBytes);
+    const uint64_t sum = fnv1a(buffer_.data() + at + kRecordHeaderBytes, n);
+    std::memcpy(buffer_.data() + at, &n, sizeof n);
+    std::memcpy(buffer_.data() + at + sizeof n, &sum, sizeof sum);
+  }
+  // (A new file's header is small against a batch: not counted against the bound.)
+  if (end_ + static_cast<int64_t>(buffer_.size()) > max_bytes_) return false;
+  if (fd_ < 0) create();
+  const char* p = buffer_.data();
+  size_t left = buffer_.size();
+  int64_t at = end_;
+  while (left > 0) {
+    const ssize_t put_bytes = ::pwrite(fd_, p, left, at);
+    if (put_bytes < 0 && errno == EINTR) continue;
+    if (put_bytes <= 0) {
+      const int e = errno;
+      if (::ftruncate(fd_, end_) != 0) {
+        // (Cut back at the next open: a torn tail.)
+      }
+      errno = e;
+      fail("write");
+    }
+    p += put_bytes;
+    left -= static_cast<size_t>(put_bytes);
+    at += put_bytes;
+  }
+  if (::fdatasync(fd_) != 0) {
+    const int e = errno;
+    if (::ftruncate(fd_, end_) != 0) {
+      // (As above.)
+    }
+    errno = e;
+    fail("fdatasync");
+  }
+  end_ = at;
+  held_ += static_cast<int64_t>(rows.size());
+  return true;
+}
+
+size_t SampleSpill::read_chunk(size_t max_rows, std::vector<storage::StoredSample>& out) {
+  out.clear();
+  int64_t at = committed_;
+  while (out.size() < max_rows && at < end_) {
+    uint32_t n = 0;
+    uint64_t sum = 0;
+    if (!read_exact(at, &n, sizeof n) || !read_exact(at + 4, &sum, sizeof sum) ||
+        n > kMaxPayloadBytes) {
+      errno = EIO;
+      fail("record changed since it was written");
+    }
+    buffer_.resize(n);
+    if (!read_exact(at + static_cast<int64_t>(kRecordHeaderBytes), buffer_.data(), n) ||
+        fnv1a(buffer_.data(), n) != sum || !decode(buffer_.data(), n, out.emplace_back())) {
+      errno = EIO;
+      fail("record changed since it was written");
+    }
+    at += static_cast<int64_t>(kRecordHeaderBytes + n);
+  }
+  read_end_ = at;
+  read_count_ = static_cast<int64_t>(out.size());
+  return out.size();
+}
+
+void SampleSpill::commit_read() {
+  if (read_count_ == 0) return;
+  committed_ = read_end_;
+  held_ -= read_count_;
+  read_count_ = 0;
+  if (committed_ >= end_) {
+    close_and_remove();
+    return;
+  }
+  write_committed_offset();
+}
+
+void SampleSpill::write_committed_offset() {
+  const auto offset = static_cast<uint64_t>(committed_);
+  if (::pwrite(fd_, &offset, sizeof offset, sizeof kMagic) != sizeof offset) fail("write");
+}
+
+}  // namespace magcal

@@ -1,0 +1,381 @@
+// magcald rides out PostgreSQL outages (issue 19, "Network faults"), as real processes against a
+// throwaway PostgreSQL server (tests/storage/postgres/pg_test_server.hpp) that the test restarts
+// or stops under a paced replay (write_batch_log, ?speed=1):
+// - restarted (pg_ctl stop -m fast + start) mid-replay: no sample lost (as many stored as a
+//   reference run into SQLite stores), no daemon exit;
+// - unreachable for 2 minutes with a small [storage] max_pending_samples: the pending samples go
+//   to the spill file, intake goes on, /-/healthy stays 200 while /-/ready answers 503 with the
+//   outage in both bodies; afterwards nothing is lost, the file is gone and /metrics counted it;
+// - killed (SIGKILL) during an outage: the next start commits the spill file it left, exactly;
+// - down past [storage] pg_max_failure_s: exit 3, the pending samples spilled, not lost;
+// - stopped (SIGTERM) during an outage: at once, exit 0, the pending samples spilled;
+// - data-clock refits due during an outage: run after it, each once, as on SQLite.
+// Skipped without the PostgreSQL server programs (with CI=true it fails).
+#include <signal.h>
+
+#include <catch2/catch.hpp>
+
+#include <algorithm>
+#include <chrono>
+#include <filesystem>
+#include <fstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "service/daemon/daemon_config.hpp"
+#include "service/daemon/sample_spill.hpp"
+#include "storage/connection.hpp"
+#include "storage/refit_job_log.hpp"
+#include "storage/sample_window_store.hpp"
+#include "tests/service/http_test_support.hpp"
+#include "tests/service/prometheus_text.hpp"
+#include "tests/storage/postgres/pg_test_server.hpp"
+
+namespace {
+
+using magcal::test::http_get;
+using magcal::test::run;
+using magcal::test::slurp;
+using magcal::test::spawn;
+using magcal::test::TempDir;
+using magcal::test::wait_exit;
+using magcal::test::wait_http_port;
+using magcal::test::wait_until;
+namespace storage = magcal::storage;
+
+const std::string kBin = MAGCAL_BIN_DIR;
+const std::string kSat = "OUTAGE-1";
+
+// Samples 10 s apart from 300 h ago (within [ingest] max_future_s of the wall clock, and the
+// whole log within the window below).
+int64_t log_start_utime() {
+  return std::chrono::duration_cast<std::chrono::microseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+             .count() -
+         300LL * 3600 * 1'000'000;
+}
+
+// The config of every run: no refit computes (too few samples for min_samples: a refit started
+// just before an outage would hold a replay until the database returns, and these tests are
+// about the samples; a due one still leaves its job row, "skipped"), a window that keeps every
+// sample, small commits; `extra` adds keys to [storage], `refit_extra` to [refit].
+std::string write_config(const TempDir& dir, const std::string& name, const std::string& extra,
+                         int commit_every_samples = 200, const std::string& refit_extra = "") {
+  const std::string path = dir.file(name);
+  std::ofstream(path) << "[storage]\nwindow_hours = 200\ncommit_every_samples = "
+                      << commit_every_samples << "\n"
+                      << extra << "[refit]\nmin_samples = 1000000000\n"
+                      << refit_extra;
+  return path;
+}
+
+int64_t stored_samples(const std::string& db) {
+  storage::OpenOptions read_only;
+  read_only.read_only = true;
+  return storage::open_database(db, read_only)->make_sample_window_store()->count(kSat);
+}
+
+// The same log replayed as fast as it goes into a fresh SQLite file: its path.
+std::string reference_db(const std::string& log, const TempDir& dir,
+                         const std::string& refit_extra = "") {
+  const std::string db = dir.file("reference.db");
+  const std::string config = write_config(dir, "reference.toml", "", 200, refit_extra);
+  const int rc = run({kBin + "/magcald", "--config", config, "--db", db, "--http-listen", "",
+                      "--lcm-url", "file://" + log + "?speed=0"},
+                     dir.file("reference.log"), 120);
+  INFO(slurp(dir.file("reference.log")));
+  REQUIRE(rc == 0);
+  return db;
+}
+
+// Samples the same log leaves in a fresh SQLite file.
+int64_t reference_count(const std::string& log, const TempDir& dir) {
+  return stored_samples(reference_db(log, dir));
+}
+
+// The due times of kSat's scheduled refits in `db` that ran to their end, ascending; fails the
+// test when one ran twice.
+std::vector<int64_t> scheduled_refits(const std::string& db) {
+  storage::OpenOptions read_only;
+  read_only.read_only = true;
+  std::vector<int64_t> out;
+  for (const auto& job :
+       storage::open_database(db, read_only)->make_refit_job_log()->recent(kSat, 10'000)) {
+    if (job.trigger != "scheduled" || job.outcome == storage::job_outcome::kInterrupted) continue;
+    CHECK(job.outcome != storage::job_outcome::kRunning);
+    out.push_back(job.scheduled_utime);
+  }
+  std::sort(out.begin(), out.end());
+  CHECK(std::adjacent_find(out.begin(), out.end()) == out.end());
+  return out;
+}
+
+// A log of n samples of kSat, kLogBatch per frame, frames `frame_spacing_us` apart.
+std::string paced_log(const TempDir& dir, int n, int64_t frame_spacing_us) {
+  const std::string log = dir.file("paced.lcm");
+  magcal::test::write_batch_log(log, kSat, log_start_utime(), n, frame_spacing_us);
+  return log;
+}
+
+double metric(int port, const std::string& name);
+
+// magcald replaying `log` at its recorded pace (?speed=1) into the database of `config`, its
+// operations server on a free port; constructed once it has stored `first_samples`.
+struct PacedDaemon {
+  std::string log_path;
+  pid_t pid = -1;
+  int port = -1;
+
+  PacedDaemon(const std::string& log, const std::string& config, const TempDir& dir,
+              double first_samples)
+      : log_path(dir.file("magcald.log")) {
+    pid = spawn({kBin + "/magcald", "--config", config, "--http-listen", "127.0.0.1:0", "--lcm-url",
+                 "file://" + log + "?speed=1"},
+                log_path);
+    REQUIRE(pid > 0);
+    port = wait_http_port(log_path, 30);
+    REQUIRE(port > 0);
+    REQUIRE(wait_until([&] { return metric(port, "magcal_samples_stored_total") >= first_samples; },
+                       30));
+  }
+};
+
+magcal::test::PromText scrape(int port) {
+  const auto res = http_get(port, "/metrics");
+  REQUIRE(res.status == 200);
+  auto p = magcal::test::parse_prometheus_text(res.body);
+  REQUIRE(p.error.empty());
+  return p;
+}
+
+double metric(int port, const std::string& name) {
+  return scrape(port).sum(name);
+}
+
+}  // namespace
+
+TEST_CASE("PostgreSQL restarted mid-replay: no sample lost, magcald rides it out",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_restart");
+  // 3000 samples in 60 frames 0.2 s apart: 12 s of replay.
+  const std::string log = paced_log(dir, 3000, 200'000);
+  const int64_t expected = reference_count(log, dir);
+  REQUIRE(expected == 3000);
+
+  const std::string db = server->create_database();
+  const std::string config = write_config(
+      dir, "pg.toml", "db_path = \"" + db + "\"\nspill_dir = \"" + dir.file("") + "\"\n");
+  const PacedDaemon daemon(log, config, dir, 500);
+  // pg_ctl restart: a fast stop (sessions terminated) and a start.
+  server->stop();
+  server->start();
+  const int rc = wait_exit(daemon.pid, 120);
+  const std::string text = slurp(daemon.log_path);
+  INFO(text);
+  REQUIRE(rc == 0);
+  CHECK(stored_samples(db) == expected);
+  // It did see the restart (its session was terminated), and recovered from it.
+  CHECK(text.find("database commit failed") != std::string::npos);
+  CHECK(text.find("database commit works again") != std::string::npos);
+  CHECK(text.find("received=3000 stored=3000 rejected=0") != std::string::npos);
+}
+
+TEST_CASE("PostgreSQL unreachable for 2 minutes: samples spilled, none lost, magcald alive",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_outage");
+  // 15000 samples in 300 frames 0.5 s apart: 150 s of replay at 100 samples/s, so a 120 s
+  // outage receives ~12000 samples, 12 times max_pending_samples. Commits of 10 samples: the
+  // spill takes more than one drain slice (IngestWorker: 1 s) to go back, while samples come.
+  const std::string log = paced_log(dir, 15000, 500'000);
+  const int64_t expected = reference_count(log, dir);
+  REQUIRE(expected == 15000);
+
+  const std::string db = server->create_database();
+  const std::string spill_dir = dir.file("spill");
+  std::filesystem::create_directories(spill_dir);
+  const std::string config = write_config(
+      dir, "pg.toml",
+      "db_path = \"" + db + "\"\nmax_pending_samples = 1000\nspill_dir = \"" + spill_dir + "\"\n",
+      10);
+  const PacedDaemon daemon(log, config, dir, 500);
+  const int port = daemon.port;
+  CHECK(http_get(port, "/-/ready").status == 200);
+
+  const auto outage_start = std::chrono::steady_clock::now();
+  server->stop();
+  // Within seconds the failing commit shows: alive (a liveness probe must not restart it), not
+  // ready, both bodies saying why.
+  REQUIRE(wait_until([&] { return http_get(port, "/-/ready").status == 503; }, 20));
+  const auto healthy = http_get(port, "/-/healthy");
+  CHECK(healthy.status == 200);
+  CHECK(healthy.body.find("storage failing for") != std::string::npos);
+  CHECK(healthy.body.find("[storage] pg_max_failure_s = 3600 s") != std::string::npos);
+  CHECK(http_get(port, "/-/ready").body.find("storage failing for") != std::string::npos);
+  // The pending batch reaches max_pending_samples and goes to the spill file, again and again.
+  REQUIRE(wait_until([&] { return metric(port, "magcal_samples_spilled_total") >= 5000; }, 100));
+  const auto during = scrape(port);
+  CHECK(during.sum("magcal_storage_healthy") == 0);
+  CHECK(during.sum("magcal_storage_failing_seconds") > 10);
+  CHECK(during.sum("magcal_spill_samples") >= 5000);
+  CHECK(during.sum("magcal_spill_bytes") > 5000 * 100);
+  CHECK(during.sum("magcal_queue_overflow_total") == 0);
+  const std::string spill_file =
+      spill_dir + "/magcal-spill-" + magcal::default_station_id() + ".spill";
+  CHECK(std::filesystem::exists(spill_file));
+  std::this_thread::sleep_until(outage_start + std::chrono::seconds(120));
+  server->start();
+
+  // Back: the spill is committed and removed while the replay goes on.
+  REQUIRE(wait_until([&] { return metric(port, "magcal_spill_samples") == 0; }, 60));
+  // (Ready once the commit that emptied the spill ends: it goes on with the pending batch.)
+  CHECK(wait_until([&] { return http_get(port, "/-/ready").status == 200; }, 20));
+  const double spilled = metric(port, "magcal_samples_spilled_total");
+  const int rc = wait_exit(daemon.pid, 120);
+  const std::string text = slurp(daemon.log_path);
+  INFO(text);
+  REQUIRE(rc == 0);
+  CHECK(stored_samples(db) == expected);
+  CHECK(text.find("received=15000 stored=15000 rejected=0") != std::string::npos);
+  CHECK(text.find("pending samples spilled to " + spill_file) != std::string::npos);
+  CHECK(spilled >= 5000);
+  CHECK_FALSE(std::filesystem::exists(spill_file));
+  CHECK(std::filesystem::is_empty(spill_dir));
+}
+
+// After a daemon that spilled ended during an outage (`stored` samples in `db`), with the server
+// back: the samples its spill file holds, all committed by the next start (with a config that
+// takes none of the log's samples, so that the file alone adds them), and the file gone.
+void check_next_start_commits_spill(const TempDir& dir, const std::string& config_text,
+                                    const std::string& log, const std::string& db, int64_t stored) {
+  const std::string spill_file =
+      dir.file("magcal-spill-" + magcal::default_station_id() + ".spill");
+  int64_t held = 0;
+  {
+    magcal::SampleSpill left(spill_file, "", int64_t{1} << 30);  // (the lock died with magcald)
+    held = left.held_samples();
+  }
+  CHECK(held > 0);
+  CHECK(stored_samples(db) == stored);
+  const std::string again =
+      write_config(dir, "again.toml", config_text + "[service]\nwhitelist = [\"SOMEONE-ELSE\"]\n");
+  const std::string again_log = dir.file("magcald_again.log");
+  const int rc = run({kBin + "/magcald", "--config", again, "--http-listen", "", "--lcm-url",
+                      "file://" + log + "?speed=0"},
+                     again_log, 120);
+  const std::string text = slurp(again_log);
+  INFO(text);
+  REQUIRE(rc == 0);
+  CHECK(stored_samples(db) == stored + held);
+  CHECK(text.find("holds " + std::to_string(held) + " samples an earlier run received") !=
+        std::string::npos);
+  CHECK(text.find(std::to_string(held) + " samples committed (0 already stored); file removed") !=
+        std::string::npos);
+  CHECK_FALSE(std::filesystem::exists(spill_file));
+}
+
+TEST_CASE("magcald killed during a PostgreSQL outage: the next start commits its spill file",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_spill_kill");
+  // 6000 samples in 120 frames 0.2 s apart: 24 s of replay.
+  const std::string log = paced_log(dir, 6000, 200'000);
+  const std::string db = server->create_database();
+  const std::string config_text =
+      "db_path = \"" + db + "\"\nmax_pending_samples = 400\nspill_dir = \"" + dir.file("") + "\"\n";
+  const PacedDaemon daemon(log, write_config(dir, "pg.toml", config_text), dir, 400);
+  server->stop();
+  REQUIRE(
+      wait_until([&] { return metric(daemon.port, "magcal_samples_spilled_total") >= 1200; }, 30));
+  // Nothing is committed while the server is down: what is stored now stays so.
+  const double stored = metric(daemon.port, "magcal_samples_stored_total");
+  ::kill(daemon.pid, SIGKILL);
+  CHECK(wait_exit(daemon.pid, 30) == -2);
+  server->start();
+  check_next_start_commits_spill(dir, config_text, log, db, static_cast<int64_t>(stored));
+}
+
+TEST_CASE("PostgreSQL down past pg_max_failure_s: exit 3 with the pending samples spilled",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_spill_exit");
+  const std::string log = paced_log(dir, 6000, 200'000);
+  const std::string db = server->create_database();
+  // The default max_pending_samples: nothing is spilled for its size, all of it at the exit.
+  const std::string config_text =
+      "db_path = \"" + db + "\"\npg_max_failure_s = 3\nspill_dir = \"" + dir.file("") + "\"\n";
+  const PacedDaemon daemon(log, write_config(dir, "pg.toml", config_text), dir, 400);
+  server->stop();
+  const double stored = metric(daemon.port, "magcal_samples_stored_total");
+  const int rc = wait_exit(daemon.pid, 30);
+  const std::string text = slurp(daemon.log_path);
+  INFO(text);
+  CHECK(rc == 3);
+  CHECK(text.find("[storage] pg_max_failure_s = 3;") != std::string::npos);
+  CHECK(text.find("pending samples spilled: committed at the next start") != std::string::npos);
+  server->start();
+  check_next_start_commits_spill(dir, config_text, log, db, static_cast<int64_t>(stored));
+}
+
+TEST_CASE("SIGTERM during a PostgreSQL outage: magcald stops at once, its samples spilled",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_spill_stop");
+  const std::string log = paced_log(dir, 6000, 200'000);
+  const std::string db = server->create_database();
+  // The default max_pending_samples: nothing is spilled for its size, all of it at the stop.
+  const std::string config_text =
+      "db_path = \"" + db + "\"\nspill_dir = \"" + dir.file("") + "\"\n";
+  const PacedDaemon daemon(log, write_config(dir, "pg.toml", config_text), dir, 400);
+  server->stop();
+  REQUIRE(wait_until([&] { return http_get(daemon.port, "/-/ready").status == 503; }, 20));
+  const double stored = metric(daemon.port, "magcal_samples_stored_total");
+  // Without the spill the stop would retry for pg_max_failure_s (an hour).
+  const auto t0 = std::chrono::steady_clock::now();
+  ::kill(daemon.pid, SIGTERM);
+  const int rc = wait_exit(daemon.pid, 30);
+  const double stop_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const std::string text = slurp(daemon.log_path);
+  INFO(text);
+  CHECK(rc == 0);
+  CHECK(stop_s < 10);
+  CHECK(text.find("database unreachable: ") != std::string::npos);
+  server->start();
+  check_next_start_commits_spill(dir, config_text, log, db, static_cast<int64_t>(stored));
+}
+
+TEST_CASE("data-clock refits that fall due during a PostgreSQL outage run after it, once each",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_refits");
+  // 6000 samples (16.7 h of data) in 24 s: a data hour every 1.4 s of replay.
+  const std::string log = paced_log(dir, 6000, 200'000);
+  const std::string hourly = "clock = \"data\"\nevery_hours = 1\n";
+  const std::vector<int64_t> expected = scheduled_refits(reference_db(log, dir, hourly));
+  REQUIRE(expected.size() >= 12);
+
+  const std::string db = server->create_database();
+  const std::string config =
+      write_config(dir, "pg.toml",
+                   "db_path = \"" + db + "\"\nspill_dir = \"" + dir.file("") + "\"\n", 200, hourly);
+  const PacedDaemon daemon(log, config, dir, 400);
+  server->stop();
+  std::this_thread::sleep_for(std::chrono::seconds(8));  // ~5 data hours
+  server->start();
+  const int rc = wait_exit(daemon.pid, 120);
+  const std::string text = slurp(daemon.log_path);
+  INFO(text);
+  REQUIRE(rc == 0);
+  CHECK(text.find("waits until the database takes the held samples") != std::string::npos);
+  CHECK(scheduled_refits(db) == expected);
+  CHECK(text.find("received=6000 stored=6000 rejected=0") != std::string::npos);
+}
