@@ -221,6 +221,7 @@ struct Daemon::Impl {
     t.spill_bytes = counters.spill_bytes.load(std::memory_order_relaxed);
     t.spill_recovered = counters.spill_recovered.load(std::memory_order_relaxed);
     t.spill_dropped = counters.spill_dropped.load(std::memory_order_relaxed);
+    t.leases_lost = counters.leases_lost.load(std::memory_order_relaxed);
     counters.spacecraft.for_each([&t](const SpacecraftCounters& c) {
       http::DaemonMetrics::SpacecraftTotals s;
       s.sat_label = c.sat_label;
@@ -231,6 +232,7 @@ struct Daemon::Impl {
       s.refits_rejected = c.refits_rejected.load(std::memory_order_relaxed);
       s.refits_error = c.refits_error.load(std::memory_order_relaxed);
       s.refits_claimed_elsewhere = c.refits_claimed_elsewhere.load(std::memory_order_relaxed);
+      s.owned = c.owned.load(std::memory_order_relaxed);
       s.last_refit_success_utime = c.last_refit_success_utime.load(std::memory_order_relaxed);
       const SpacecraftCounters::UkfSnapshot ukf = c.ukf_snapshot();
       s.has_ukf_snapshot = ukf.present;

@@ -43,6 +43,8 @@ struct Families {
   prometheus::Family<prometheus::Gauge>* spill_bytes;
   prometheus::Family<prometheus::Counter>* spill_recovered;
   prometheus::Family<prometheus::Counter>* spill_dropped;
+  prometheus::Family<prometheus::Gauge>* owned;
+  prometheus::Family<prometheus::Counter>* leases_lost;
 };
 
 // Every family of the contract, registered in one place for the daemon and `magcal serve`.
@@ -141,6 +143,18 @@ Families register_families(prometheus::Registry& r, const std::string& version) 
                          .Name("magcal_spill_dropped_records_total")
                          .Help("Records of a spill file cut off at start as torn or corrupt")
                          .Register(r);
+  f.owned = &BuildGauge()
+                 .Name("magcal_spacecraft_owned")
+                 .Help(
+                     "1 while this daemon holds the spacecraft's lease (runs its UKF and refits), "
+                     "0 while another daemon of the fleet does")
+                 .Register(r);
+  f.leases_lost = &BuildCounter()
+                       .Name("magcal_leases_lost_total")
+                       .Help(
+                           "Spacecraft leases lost to another daemon (this one stalled past the "
+                           "lease, or the database was unreachable for that long)")
+                       .Register(r);
   BuildGauge()
       .Name("magcal_build_info")
       .Help("Build of magcal (value 1)")
@@ -172,6 +186,7 @@ struct DaemonMetrics::SpacecraftSeries {
   std::array<prometheus::Gauge*, 3> ukf_bias_sigma_nT{};
   prometheus::Gauge* ukf_snapshot_accepted = nullptr;
   prometheus::Gauge* last_refit_success_s = nullptr;
+  prometheus::Gauge* owned = nullptr;
 };
 
 DaemonMetrics::DaemonMetrics(const std::string& version, const std::string& station,
@@ -209,6 +224,8 @@ DaemonMetrics::DaemonMetrics(const std::string& version, const std::string& stat
   spill_bytes_ = &f.spill_bytes->Add({});
   spill_recovered_ = &f.spill_recovered->Add({});
   spill_dropped_ = &f.spill_dropped->Add({});
+  owned_ = f.owned;
+  leases_lost_ = &f.leases_lost->Add({});
 }
 
 DaemonMetrics::~DaemonMetrics() = default;
@@ -223,6 +240,7 @@ DaemonMetrics::SpacecraftSeries& DaemonMetrics::series(const std::string& label)
   m->refits_rejected = &refits_->Add({{"sat", label}, {"verdict", "rejected"}});
   m->refits_error = &refits_->Add({{"sat", label}, {"verdict", "error"}});
   m->refits_claimed_elsewhere = &refits_claimed_elsewhere_->Add({{"sat", label}});
+  m->owned = &owned_->Add({{"sat", label}});
   return *series_.emplace(label, std::move(m)).first->second;
 }
 
@@ -249,6 +267,7 @@ void DaemonMetrics::apply_totals(const Totals& t) {
   spill_bytes_->Set(static_cast<double>(t.spill_bytes));
   raise_to(*spill_recovered_, t.spill_recovered);
   raise_to(*spill_dropped_, t.spill_dropped);
+  raise_to(*leases_lost_, t.leases_lost);
 
   for (const SpacecraftTotals& sc : t.spacecraft) {
     SpacecraftSeries& m = series(sc.sat_label);
@@ -259,6 +278,7 @@ void DaemonMetrics::apply_totals(const Totals& t) {
     raise_to(*m.refits_rejected, sc.refits_rejected);
     raise_to(*m.refits_error, sc.refits_error);
     raise_to(*m.refits_claimed_elsewhere, sc.refits_claimed_elsewhere);
+    m.owned->Set(sc.owned ? 1.0 : 0.0);
     if (sc.has_ukf_snapshot) {
       if (!m.ukf_snapshot_accepted) {
         for (size_t i = 0; i < 3; ++i) {

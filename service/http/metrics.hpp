@@ -37,6 +37,8 @@
 //                                           earlier run left (received by that run)
 //   magcal_spill_dropped_records_total      records of such a file cut off as torn or corrupt
 //   magcal_build_info{version}              1
+//   magcal_spacecraft_owned{sat}            1 while this daemon holds the spacecraft's lease
+//   magcal_leases_lost_total                leases lost to another daemon (stalled, cut off)
 //   magcal_station_info{station}            1, the daemon's [station] id (design.md "Fleet"):
 //                                           an info metric, joined in queries
 //                                           (`* on(instance) group_left(station)`) rather than
@@ -85,6 +87,7 @@ class DaemonMetrics {
     int64_t refits_rejected = 0;
     int64_t refits_error = 0;
     int64_t refits_claimed_elsewhere = 0;
+    bool owned = false;                    // this daemon holds its lease
     int64_t last_refit_success_utime = 0;  // 0 = none yet (no series: never a made-up time)
     bool has_ukf_snapshot = false;         // no series before the first snapshot
     std::array<double, 3> ukf_bias_nT{};
@@ -103,6 +106,7 @@ class DaemonMetrics {
     int64_t spill_bytes = 0;
     int64_t spill_recovered = 0;
     int64_t spill_dropped = 0;
+    int64_t leases_lost = 0;
     std::vector<SpacecraftTotals> spacecraft;
     // Commit latency: one count per bucket of the constructor's bounds plus +Inf (not
     // cumulative), and the sum of the observations, s. Empty = none observed.
@@ -152,6 +156,8 @@ class DaemonMetrics {
   prometheus::Gauge* spill_bytes_;
   prometheus::Counter* spill_recovered_;
   prometheus::Counter* spill_dropped_;
+  prometheus::Family<prometheus::Gauge>* owned_;
+  prometheus::Counter* leases_lost_;
 
   std::mutex mutex_;  // the totals source and scrapes
   std::unordered_map<std::string, std::unique_ptr<SpacecraftSeries>> series_;

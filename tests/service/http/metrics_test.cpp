@@ -50,6 +50,7 @@ TEST_CASE("daemon metrics: the contract's names, the counted values, valid text"
   a.ukf_bias_nT = {1000.5, 800.25, -900.0};
   a.ukf_bias_sigma_nT = {0.3, 1.2, 0.2};
   a.ukf_accepted = true;
+  a.owned = true;
   DaemonMetrics::SpacecraftTotals b;
   b.sat_label = "SAT-B";
   b.received = 7;
@@ -77,6 +78,7 @@ TEST_CASE("daemon metrics: the contract's names, the counted values, valid text"
     t.spill_bytes = 1'300'000;
     t.spill_recovered = 17;
     t.spill_dropped = 1;
+    t.leases_lost = 2;
     t.spacecraft = {a, b};
     t.commit_bucket_counts = buckets;
     t.commit_sum_s = 7.0062;
@@ -108,9 +110,14 @@ TEST_CASE("daemon metrics: the contract's names, the counted values, valid text"
       {"magcal_spill_bytes", "gauge"},
       {"magcal_spill_recovered_samples_total", "counter"},
       {"magcal_spill_dropped_records_total", "counter"},
+      {"magcal_spacecraft_owned", "gauge"},
+      {"magcal_leases_lost_total", "counter"},
       {"magcal_build_info", "gauge"},
       {"magcal_station_info", "gauge"}};
   CHECK(p.types == expected_types);
+  CHECK(p.value("magcal_spacecraft_owned", {{"sat", "SAT-A"}}) == 1.0);
+  CHECK(p.value("magcal_spacecraft_owned", {{"sat", "SAT-B"}}) == 0.0);  // another daemon's
+  CHECK(p.value("magcal_leases_lost_total") == 2.0);
 
   CHECK(p.value("magcal_samples_received_total", {{"sat", "SAT-A"}}) == 300.0);
   CHECK(p.sum("magcal_samples_received_total") == 307.0);
