@@ -473,15 +473,23 @@ void IngestWorker::track_owned(bool drain) {
     ~Done() { flag = false; }
   } done{tracking_};
   const auto now = std::chrono::steady_clock::now();
-  // Alone, this station stores every sample: its own commits say when to read.
-  const bool poll = drain || (live_stations_ > 1 && now >= next_union_poll_);
-  if (poll && !drain) {
+  // Every kUnionPoll_s: while other stations are live, every owned spacecraft (their samples);
+  // alone, those with samples still behind the reorder horizon (the end of a pass, taken once
+  // it has been quiet for the reorder delay). Otherwise this station's commits say when.
+  const bool due_poll = !drain && now >= next_union_poll_;
+  if (due_poll) {
     next_union_poll_ = now + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
                                  std::chrono::duration<double>(kUnionPoll_s));
   }
+  const bool poll_all = drain || (due_poll && live_stations_ > 1);
+  auto due = [&](const SpacecraftTracker& t) {
+    return t.union_due || poll_all ||
+           (due_poll && t.union_newest_utime != kNoTime &&
+            (t.filtered_utime == kNoTime || t.union_newest_utime > t.filtered_utime));
+  };
   try {
     fleet_.for_each([&](const std::string& sat, SpacecraftTracker& t) {
-      if (t.owned && (t.union_due || poll)) track_union(sat, t, drain);
+      if (t.owned && due(t)) track_union(sat, t, drain);
     });
   } catch (const storage::StorageError& e) {
     // The filters wait where they are (a database outage): read again once commits go through.

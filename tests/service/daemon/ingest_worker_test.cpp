@@ -940,3 +940,37 @@ TEST_CASE(
   want.insert(want.begin() + 3, expected[2]);
   CHECK(counts == want);
 }
+
+TEST_CASE(
+    "the owner's filter stays the reorder delay behind the newest stored sample, and takes "
+    "the end of a pass once it has been quiet that long",
+    "[ingest_worker]") {
+  const auto s = simulate(300, 17);
+  const size_t n = s.size();
+  SECTION("25 s of data time: the samples within 25 s of the newest (three, 10 s apart) wait") {
+    TempDb tmp("reorder");
+    DaemonConfig c = test_config(tmp.path());
+    c.fleet.reorder_delay_s = 25.0;
+    DaemonCounters counters;
+    auto w = make_worker(c, counters);
+    feed(*w, s, 0, n);
+    const SpacecraftTracker& t = *w->fleet().find("SAT-1");
+    REQUIRE(t.owned);  // alone: this daemon owns what it receives
+    CHECK(t.filtered_utime == s[n - 4].utime);
+    CHECK(counters.ukf_updates == static_cast<int64_t>(n) - 3);
+  }
+  SECTION("no more samples come (the pass is over): taken after the delay in wall time") {
+    TempDb tmp("reorder-quiet");
+    DaemonConfig c = test_config(tmp.path());
+    c.fleet.reorder_delay_s = 1.0;  // the last sample waits (its predecessor is 10 s older)
+    DaemonCounters counters;
+    auto w = make_worker(c, counters);
+    feed(*w, s, 0, n);
+    const SpacecraftTracker& t = *w->fleet().find("SAT-1");
+    CHECK(t.filtered_utime == s[n - 2].utime);
+    std::this_thread::sleep_for(std::chrono::milliseconds(1300));
+    w->commit_if_due();  // nothing new to commit: the poll finds the quiet tail
+    CHECK(t.filtered_utime == s[n - 1].utime);
+    CHECK(counters.ukf_updates == static_cast<int64_t>(n));
+  }
+}
