@@ -46,6 +46,7 @@ SqliteLeaseStore::SqliteLeaseStore(Database& db)
       ensure_(db, columns::kLeaseEnsure),
       renew_all_(db, columns::kLeaseRenewAll),
       heartbeat_(db, columns::kStationHeartbeat),
+      beat_(db, columns::kStationBeat),
       leave_(db, "UPDATE stations SET expires_utime = min(expires_utime, ?2) WHERE station = ?1"),
       live_(db, "SELECT station FROM stations WHERE expires_utime > ?1 ORDER BY station") {}
 
@@ -108,10 +109,21 @@ std::vector<Lease> SqliteLeaseStore::renew_all(std::string_view owner, int64_t n
   return out;
 }
 
-void SqliteLeaseStore::heartbeat(std::string_view station, int64_t now_utime, int64_t ttl_utime) {
+std::optional<StationBeat> SqliteLeaseStore::heartbeat(std::string_view station,
+                                                       std::string_view instance, int64_t now_utime,
+                                                       int64_t ttl_utime) {
   check_request(station, ttl_utime);
+  std::optional<StationBeat> before;
+  {
+    auto use = beat_.use();
+    beat_.bind(1, station);
+    if (beat_.step()) {
+      before = StationBeat{beat_.column_text(0), beat_.column_int64(1), beat_.column_int64(2)};
+    }
+  }
   auto use = heartbeat_.use();
-  heartbeat_.bind(1, station).bind(2, now_utime).bind(3, ttl_utime).execute();
+  heartbeat_.bind(1, station).bind(2, now_utime).bind(3, ttl_utime).bind(4, instance).execute();
+  return before;
 }
 
 void SqliteLeaseStore::leave(std::string_view station, int64_t now_utime) {

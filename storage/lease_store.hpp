@@ -24,6 +24,13 @@
 
 namespace magcal::storage {
 
+// A station's heartbeat row (table `stations`).
+struct StationBeat {
+  std::string instance;  // the process that beat (random per start)
+  int64_t heartbeat_utime = 0;
+  int64_t expires_utime = 0;
+};
+
 struct Lease {
   std::string sat_id;
   std::string owner;  // the holder's station id (or the last holder's, once expired)
@@ -71,8 +78,11 @@ class LeaseStore {
   virtual std::vector<Lease> renew_all(std::string_view owner, int64_t now_utime,
                                        int64_t ttl_utime) = 0;
 
-  // The daemons sharing the database (table `stations`): `station` is live until now + ttl.
-  virtual void heartbeat(std::string_view station, int64_t now_utime, int64_t ttl_utime) = 0;
+  // The daemons sharing the database (table `stations`): `station` (this process: `instance`)
+  // is live until now + ttl. Returns the row as it was before (nullopt: the first beat ever), so
+  // a daemon sees another live process beating under its id.
+  virtual std::optional<StationBeat> heartbeat(std::string_view station, std::string_view instance,
+                                               int64_t now_utime, int64_t ttl_utime) = 0;
   // Ends `station`'s heartbeat at now (a clean stop: the others rebalance at once).
   virtual void leave(std::string_view station, int64_t now_utime) = 0;
   // The stations live at now, sorted.

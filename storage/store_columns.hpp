@@ -58,8 +58,11 @@ inline constexpr const char* kLeaseRenewAll =
     "RETURNING sat_id, owner, epoch, acquired_utime, expires_utime";
 
 inline constexpr const char* kStationHeartbeat =
-    "INSERT INTO stations (station, heartbeat_utime, expires_utime) VALUES (?1, ?2, ?2 + ?3) "
+    "INSERT INTO stations (station, heartbeat_utime, expires_utime, instance) "
+    "VALUES (?1, ?2, ?2 + ?3, ?4) "
     "ON CONFLICT (station) DO UPDATE SET heartbeat_utime = excluded.heartbeat_utime, "
-    "expires_utime = excluded.expires_utime";
+    "expires_utime = excluded.expires_utime, instance = excluded.instance";
+inline constexpr const char* kStationBeat =
+    "SELECT instance, heartbeat_utime, expires_utime FROM stations WHERE station = ?1";
 
 }  // namespace magcal::storage::columns

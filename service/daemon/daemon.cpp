@@ -119,6 +119,8 @@ struct Daemon::Impl {
       body();
     } catch (const StorageOutage& e) {
       fail(kExitStorageFailed, fmt::format("storage failed ({} thread): {}", thread, e.what()));
+    } catch (const StationConflict& e) {
+      fail(kExitUsage, e.what());
     } catch (const std::exception& e) {
       fail(kExitThreadDied, fmt::format("{} thread died: {}", thread, e.what()));
     } catch (...) {

@@ -1,8 +1,11 @@
 #include "service/daemon/ingest_worker.hpp"
 
+#include <unistd.h>
+
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <random>
 #include <span>
 #include <thread>
 
@@ -25,6 +28,14 @@ constexpr double kUnionPoll_s = 1.0;
 // on PostgreSQL), so a daemon taking over hundreds of spacecraft keeps receiving in between;
 // the rest follow at the next rounds.
 constexpr size_t kMaxTakeoversPerRound = 256;
+
+// This process's id in the stations table: random per start.
+std::string random_instance_id() {
+  std::random_device rd;
+  const uint64_t id =
+      (static_cast<uint64_t>(rd()) << 32) ^ rd() ^ static_cast<uint64_t>(::getpid());
+  return fmt::format("{:016x}", id);
+}
 
 // How much `station` prefers to own `sat_id` (rendezvous hashing): the daemons of a fleet try
 // different spacecraft first, and a handover gives back those it prefers least.
@@ -87,6 +98,7 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
       filter_states_(db_->make_filter_state_store()),
       jobs_(db_->make_refit_job_log()),
       leases_(db_->make_lease_store()),
+      instance_(random_instance_id()),
       fleet_(config.ukf.filter),
       commit_retry_("commit", config.storage_max_failure_s(), counters,
                     config.storage_max_failure_key()),
@@ -234,7 +246,22 @@ void IngestWorker::maintain_leases() {
   const std::string& me = config_.station.id;
   std::vector<std::pair<std::string, int64_t>> acquired;  // (sat, epoch), taken over below
   try {
-    leases_->heartbeat(me, now, ttl);
+    const auto before = leases_->heartbeat(me, instance_, now, ttl);
+    if (before && before->instance != instance_ && before->expires_utime > now) {
+      if (last_beat_utime_ != 0) {
+        // It beat since this process did: it is alive.
+        throw StationConflict(fmt::format(
+            "another magcald runs as station '{}' on {} (it beat at {}, wall clock): give each "
+            "daemon sharing a database its own [station] id (--station)",
+            me, db_->name(), format_iso8601_utc(before->heartbeat_utime)));
+      }
+      spdlog::warn(
+          "station '{}': the heartbeat of a previous process is live until {} (wall "
+          "clock): a restart after a crash, or another magcald with the same [station] "
+          "id (then both stop within {:.0f} s)",
+          me, format_iso8601_utc(before->expires_utime), config_.fleet.lease_s / 3);
+    }
+    last_beat_utime_ = now;
     for (const auto& sat : unregistered_) leases_->ensure(sat);
     unregistered_.clear();
     std::unordered_map<std::string, int64_t> renewed;
@@ -1105,9 +1132,10 @@ void IngestWorker::run_retention() {
   for (const auto& sat : retention_dirty_) {
     SpacecraftTracker* t = fleet_.find(sat);
     if (!t || t->newest_utime == kNoTime) continue;
-    // The owner's filter triggers refits at its own data time, which may lag the stored samples
-    // (the reorder delay; a replay commits ahead of it): their windows stay.
-    const int64_t edge = t->owned ? std::min(t->newest_utime, t->filtered_utime) : t->newest_utime;
+    // Only the owner deletes, behind its filter: it triggers refits at its own data time, which
+    // may lag the stored samples (the reorder delay; a replay commits ahead of it), and another
+    // station far ahead of it (a backfill) must not delete the window its refits will read.
+    const int64_t edge = t->owned ? std::min(t->newest_utime, t->filtered_utime) : kNoTime;
     if (edge == kNoTime) {
       t->retention_due = false;  // due again once its filter has taken samples
       continue;

@@ -55,6 +55,7 @@
 #include <optional>
 #include <set>
 #include <span>
+#include <stdexcept>
 #include <string>
 #include <unordered_map>
 #include <vector>
@@ -78,6 +79,12 @@
 #include "storage/sample_window_store.hpp"
 
 namespace magcal {
+
+// Another live process beats under this daemon's [station] id: a misuse (two daemons with one
+// id would both own the same spacecraft). Ends the daemon (exit 1) with the reason.
+struct StationConflict : std::runtime_error {
+  using std::runtime_error::runtime_error;
+};
 
 class IngestWorker {
  public:
@@ -310,8 +317,10 @@ class IngestWorker {
   std::vector<std::string> unregistered_;  // spacecraft new here: lease rows to ensure
   std::chrono::steady_clock::time_point next_lease_round_{};
   std::chrono::steady_clock::time_point next_union_poll_{};
-  size_t live_stations_ = 1;  // at the last lease round (1: alone, no other station writes)
-  bool tracking_ = false;     // track_union() is running (a flush inside it must not re-enter)
+  size_t live_stations_ = 1;     // at the last lease round (1: alone, no other station writes)
+  const std::string instance_;   // this process in the stations table (random per start)
+  int64_t last_beat_utime_ = 0;  // 0: not beaten yet
+  bool tracking_ = false;        // track_union() is running (a flush inside it must not re-enter)
   std::vector<storage::StoredSample> union_rows_;  // reused by track_union()
   mutable std::mutex owned_mutex_;
   std::set<std::string> owned_names_;  // owns(), from any thread

@@ -6,5 +6,7 @@
 CREATE TABLE stations (
   station         TEXT    NOT NULL PRIMARY KEY,
   heartbeat_utime INTEGER NOT NULL,  -- wall clock of its last heartbeat
-  expires_utime   INTEGER NOT NULL   -- wall clock: live until then unless it beats again
+  expires_utime   INTEGER NOT NULL,  -- wall clock: live until then unless it beats again
+  instance        TEXT    NOT NULL DEFAULT ''  -- the beating process (random per start): two
+                                               -- live processes with one id are a misuse
 ) WITHOUT ROWID;

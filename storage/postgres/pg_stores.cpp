@@ -555,12 +555,23 @@ std::vector<Lease> PgLeaseStore::renew_all(std::string_view owner, int64_t now_u
   return out;
 }
 
-void PgLeaseStore::heartbeat(std::string_view station, int64_t now_utime, int64_t ttl_utime) {
+std::optional<StationBeat> PgLeaseStore::heartbeat(std::string_view station,
+                                                   std::string_view instance, int64_t now_utime,
+                                                   int64_t ttl_utime) {
   check_request(station, ttl_utime);
+  std::optional<StationBeat> before;
+  {
+    static const std::string sql = dollar_params(columns::kStationBeat);
+    PgParams p;
+    p.add(station);
+    const PgResult r = db_.execute_prepared(sql, p, PgFormat::kBinary);
+    if (r.rows() > 0) before = StationBeat{r.get_text(0, 0), r.get_int64(0, 1), r.get_int64(0, 2)};
+  }
   static const std::string sql = dollar_params(columns::kStationHeartbeat);
   PgParams p;
-  p.add(station).add(now_utime).add(ttl_utime);
+  p.add(station).add(now_utime).add(ttl_utime).add(instance);
   db_.execute_prepared(sql, p);
+  return before;
 }
 
 void PgLeaseStore::leave(std::string_view station, int64_t now_utime) {

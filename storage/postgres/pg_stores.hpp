@@ -112,7 +112,8 @@ class PgLeaseStore final : public LeaseStore {
   void ensure(std::string_view sat_id) override;
   std::vector<Lease> renew_all(std::string_view owner, int64_t now_utime,
                                int64_t ttl_utime) override;
-  void heartbeat(std::string_view station, int64_t now_utime, int64_t ttl_utime) override;
+  std::optional<StationBeat> heartbeat(std::string_view station, std::string_view instance,
+                                       int64_t now_utime, int64_t ttl_utime) override;
   void leave(std::string_view station, int64_t now_utime) override;
   std::vector<std::string> live_stations(int64_t now_utime) override;
 

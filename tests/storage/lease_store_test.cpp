@@ -180,13 +180,20 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest,
 
   // Stations: live until their heartbeat's time to live runs out, or they leave.
   CHECK(leases->live_stations(kT0).empty());
-  leases->heartbeat("A", kT0, kTtl);
-  leases->heartbeat("B", kT0 + 5 * kSecond, kTtl);
+  CHECK_FALSE(leases->heartbeat("A", "a1", kT0, kTtl).has_value());  // the first beat
+  leases->heartbeat("B", "b1", kT0 + 5 * kSecond, kTtl);
   CHECK(leases->live_stations(kT0 + 6 * kSecond) == std::vector<std::string>{"A", "B"});
   CHECK(leases->live_stations(kT0 + kTtl) == std::vector<std::string>{"B"});
-  leases->heartbeat("A", kT0 + kTtl, kTtl);  // beats again: live again
+  // Beats again: live again; the row as it was comes back (a second process under one id would
+  // see the other's instance there).
+  const auto before = leases->heartbeat("A", "a2", kT0 + kTtl, kTtl);
+  REQUIRE(before.has_value());
+  CHECK(before->instance == "a1");
+  CHECK(before->heartbeat_utime == kT0);
+  CHECK(before->expires_utime == kT0 + kTtl);
+  CHECK(leases->heartbeat("A", "a2", kT0 + kTtl + 1, kTtl)->instance == "a2");
   CHECK(leases->live_stations(kT0 + kTtl + 1) == std::vector<std::string>{"A", "B"});
   leases->leave("B", kT0 + kTtl + 2);
   CHECK(leases->live_stations(kT0 + kTtl + 2) == std::vector<std::string>{"A"});
-  CHECK_THROWS_AS(leases->heartbeat("C", kT0, 0), StorageError);
+  CHECK_THROWS_AS(leases->heartbeat("C", "c1", kT0, 0), StorageError);
 }

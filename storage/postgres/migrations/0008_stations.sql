@@ -3,5 +3,6 @@
 CREATE TABLE stations (
   station         text   NOT NULL PRIMARY KEY,
   heartbeat_utime bigint NOT NULL,
-  expires_utime   bigint NOT NULL
+  expires_utime   bigint NOT NULL,
+  instance        text   NOT NULL DEFAULT ''
 );

@@ -29,6 +29,7 @@
 #include <vector>
 
 #include "schemas/magcal_messages.hpp"
+#include "service/io/exit_codes.hpp"
 #include "storage/calibration_history.hpp"
 #include "storage/connection.hpp"
 #include "storage/lease_store.hpp"
@@ -481,4 +482,38 @@ TEST_CASE("the live daemons share the spacecraft evenly, and take over those of 
       CHECK(times.insert(r.utime).second);
     }
   }
+}
+
+TEST_CASE("two magcald with one station id: both stop with the reason, none keeps running",
+          "[daemon][fleet][integration]") {
+  TempDir dir("magcald_same_station");
+  // 20 s of telemetry at speed 1 (a frame every 0.2 s).
+  const std::string log = dir.file("sat.lcm");
+  magcal::test::write_batch_log(log, kSat, 1'767'225'600LL * kSecond, 100 * magcal::test::kLogBatch,
+                                200'000);
+  const std::string config = dir.file("d.toml");
+  {
+    std::ofstream out(config);
+    out << "[fleet]\nlease_s = " << kLease_s << "\n";
+  }
+  const std::string db = dir.file("shared.db");
+  const std::string log_a = dir.file("a.log"), log_b = dir.file("b.log");
+  const pid_t a = spawn({kBin + "/magcald", "--config", config, "--db", db, "--station", "dup",
+                         "--http-listen", "", "--lcm-url", "file://" + log + "?speed=1"},
+                        log_a);
+  REQUIRE(a > 0);
+  std::this_thread::sleep_for(std::chrono::milliseconds(1500));
+  const pid_t b = spawn({kBin + "/magcald", "--config", config, "--db", db, "--station", "dup",
+                         "--http-listen", "", "--lcm-url", "file://" + log + "?speed=1"},
+                        log_b);
+  REQUIRE(b > 0);
+  const int rc_a = wait_exit(a, 15);
+  const int rc_b = wait_exit(b, 15);
+  const std::string text = slurp(log_a) + "\n" + slurp(log_b);
+  INFO(text);
+  CHECK(rc_a == magcal::kExitUsage);
+  CHECK(rc_b == magcal::kExitUsage);
+  CHECK(text.find("another magcald runs as station 'dup'") != std::string::npos);
+  // The newcomer was told at once what its first beat found.
+  CHECK(slurp(log_b).find("the heartbeat of a previous process is live") != std::string::npos);
 }
