@@ -82,6 +82,25 @@ void write_log_event(lcm::LogFile& out, int64_t eventnum, int64_t timestamp_utim
 constexpr int kLogBatch = 50;                   // samples per mag_batch_t frame of write_batch_log
 constexpr int64_t kLogStep_utime = 10'000'000;  // 10 s between its samples
 
+// The k-th valid sample of `sat` (has_reference, seq k) kLogStep_utime apart from t0_utime: a
+// field turning slowly through all directions, seen with a constant bias.
+inline magcal::mag_sample_t turning_field_sample(const std::string& sat, int64_t t0_utime, int k) {
+  magcal::mag_sample_t s{};
+  s.utime = t0_utime + k * kLogStep_utime;
+  s.sat_id = sat;
+  s.seq = k;
+  const double a = 0.01 * k, b = 0.0037 * k;
+  const double h[3] = {30000.0 * std::cos(a) * std::cos(b), 30000.0 * std::sin(a) * std::cos(b),
+                       30000.0 * std::sin(b)};
+  for (int i = 0; i < 3; ++i) {
+    s.h_body_nT[i] = h[i];
+    s.b_sensor_nT[i] = h[i] + 100.0 * (i + 1);
+  }
+  s.has_reference = true;
+  s.temperature_C = std::nanf("");
+  return s;
+}
+
 // A replay log of n valid samples of `sat` (has_reference) from t0_utime, kLogBatch per
 // mag_batch_t frame on MAGCAL_BATCH; consecutive frames are `frame_spacing_us` apart in log
 // time, so `?speed=1` (or lcm-logplayer -s 1) plays them over n/kLogBatch spacings.
@@ -94,21 +113,7 @@ inline void write_batch_log(const std::string& path, const std::string& sat, int
     magcal::mag_batch_t batch;
     batch.sat_id = sat;
     for (int k = first; k < std::min(n, first + kLogBatch); ++k) {
-      magcal::mag_sample_t s{};
-      s.utime = t0_utime + k * kLogStep_utime;
-      s.sat_id = sat;
-      s.seq = k;
-      // A field turning slowly through all directions, seen with a constant bias.
-      const double a = 0.01 * k, b = 0.0037 * k;
-      const double h[3] = {30000.0 * std::cos(a) * std::cos(b), 30000.0 * std::sin(a) * std::cos(b),
-                           30000.0 * std::sin(b)};
-      for (int i = 0; i < 3; ++i) {
-        s.h_body_nT[i] = h[i];
-        s.b_sensor_nT[i] = h[i] + 100.0 * (i + 1);
-      }
-      s.has_reference = true;
-      s.temperature_C = std::nanf("");
-      batch.samples.push_back(s);
+      batch.samples.push_back(turning_field_sample(sat, t0_utime, k));
     }
     batch.n = static_cast<int32_t>(batch.samples.size());
     write_log_event(out, event, t0_utime + event * frame_spacing_us, "MAGCAL_BATCH", batch);

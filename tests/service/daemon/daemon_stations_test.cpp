@@ -143,6 +143,13 @@ std::map<int64_t, storage::RefitJob> scheduled_refits(storage::Connection& db) {
   return out;
 }
 
+// Wall clock, as the leases count it.
+int64_t wall_utime() {
+  return std::chrono::duration_cast<std::chrono::microseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
 double wall_s() {
   return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count();
 }
@@ -208,11 +215,6 @@ TEST_CASE("three stations, one database: one window, one series, each refit once
   }
   const auto connection = storage::open_database(db);
   const auto leases = connection->make_lease_store();
-  auto wall_utime = [] {
-    return std::chrono::duration_cast<std::chrono::microseconds>(
-               std::chrono::system_clock::now().time_since_epoch())
-        .count();
-  };
 
   // Mid-day (about 10 h of data): kill the owner.
   std::this_thread::sleep_until(std::chrono::steady_clock::now() +
@@ -394,21 +396,7 @@ TEST_CASE("the live daemons share the spacecraft evenly, and take over those of 
         magcal::mag_batch_t batch;
         batch.sat_id = "SAT-" + std::to_string(k);
         for (int i = 0; i < 5; ++i) {
-          magcal::mag_sample_t s{};
-          const int n = f * 5 + i;
-          s.utime = t0 + n * 10 * kSecond;
-          s.sat_id = batch.sat_id;
-          s.seq = n;
-          const double a = 0.01 * n, b = 0.0037 * n;
-          const double h[3] = {30000.0 * std::cos(a) * std::cos(b),
-                               30000.0 * std::sin(a) * std::cos(b), 30000.0 * std::sin(b)};
-          for (int j = 0; j < 3; ++j) {
-            s.h_body_nT[j] = h[j];
-            s.b_sensor_nT[j] = h[j] + 100.0 * (j + 1);
-          }
-          s.has_reference = true;
-          s.temperature_C = std::nanf("");
-          batch.samples.push_back(s);
+          batch.samples.push_back(magcal::test::turning_field_sample(batch.sat_id, t0, f * 5 + i));
         }
         batch.n = static_cast<int32_t>(batch.samples.size());
         magcal::test::write_log_event(out, event++, t0 + f * 500'000, "MAGCAL_BATCH", batch);
@@ -432,9 +420,7 @@ TEST_CASE("the live daemons share the spacecraft evenly, and take over those of 
   const auto connection = storage::open_database(db);
   const auto leases = connection->make_lease_store();
   auto owned_by = [&] {
-    const int64_t now = std::chrono::duration_cast<std::chrono::microseconds>(
-                            std::chrono::system_clock::now().time_since_epoch())
-                            .count();
+    const int64_t now = wall_utime();
     std::map<std::string, int> out;
     for (const auto& l : leases->list()) {
       if (l.held_at(now)) ++out[l.owner];
