@@ -541,7 +541,11 @@ std::string Daemon::open() {
     }
     d.worker->restore();
   } catch (const storage::StorageError& e) {
-    return "database " + storage::database_name(c.storage.db_path) + ": " + e.what();
+    // Storage errors mostly name the database themselves; name it once.
+    const std::string name = storage::database_name(c.storage.db_path);
+    const std::string what = e.what();
+    return what.find(name) != std::string::npos ? "database: " + what
+                                                : "database " + name + ": " + what;
   } catch (const SpillError& e) {
     return std::string("[storage] spill_dir: ") + e.what();
   }

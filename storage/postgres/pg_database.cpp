@@ -314,7 +314,9 @@ void PgDatabase::check_and_migrate(const OpenOptions& options) {
   if (options.read_only) {
     if (state.version == 0) {
       throw StorageError(StorageError::Kind::kForeignFile,
-                         name_ + " is empty, not a magcal database");
+                         name_ +
+                             " has no magcal tables yet (a new database): magcald creates "
+                             "them on its first start");
     }
     throw StorageError(StorageError::Kind::kOlderSchema,
                        name_ + " has schema version " + std::to_string(state.version) +

@@ -203,4 +203,7 @@ TEST_CASE("magcald, magcal status, history, refit and serve on PostgreSQL answer
   const std::string refused = slurp(dir.file("magcald_unreachable.log"));
   CHECK(refused.find(named) != std::string::npos);
   CHECK(refused.find(kPassword) == std::string::npos);
+  // Named once: the daemon's prefix does not repeat what the storage error already says.
+  const std::string uri_shown = "postgresql://magcal:***@127.0.0.1:1/magcal";
+  CHECK(refused.find(uri_shown) == refused.rfind(uri_shown));
 }

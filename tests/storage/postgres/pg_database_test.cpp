@@ -199,10 +199,14 @@ TEST_CASE("PostgreSQL schema: migrations, re-open, foreign / newer / older schem
     CHECK(open_error(uri).kind() == StorageError::Kind::kForeignFile);
   }
 
-  SECTION("read-only: an empty database is not magcal's, an old one needs an upgrade first") {
+  SECTION("read-only: an empty database has no tables yet, an old one needs an upgrade first") {
     OpenOptions read_only;
     read_only.read_only = true;
-    CHECK(open_error(uri, read_only).kind() == StorageError::Kind::kForeignFile);
+    const StorageError empty = open_error(uri, read_only);
+    CHECK(empty.kind() == StorageError::Kind::kForeignFile);
+    // The state right after createdb: say what to do, not that it is someone else's.
+    CHECK_THAT(empty.what(), Catch::Contains("no magcal tables yet") &&
+                                 Catch::Contains("magcald creates them on its first start"));
     OpenOptions v1;
     v1.migrate_to = 1;
     { PgDatabase db(uri, v1); }
