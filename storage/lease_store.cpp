@@ -48,7 +48,8 @@ SqliteLeaseStore::SqliteLeaseStore(Database& db)
       heartbeat_(db, columns::kStationHeartbeat),
       beat_(db, columns::kStationBeat),
       leave_(db, "UPDATE stations SET expires_utime = min(expires_utime, ?2) WHERE station = ?1"),
-      live_(db, "SELECT station FROM stations WHERE expires_utime > ?1 ORDER BY station") {}
+      live_(db, "SELECT station FROM stations WHERE expires_utime > ?1 ORDER BY station"),
+      stations_(db, columns::kStationList) {}
 
 std::optional<Lease> SqliteLeaseStore::try_acquire(std::string_view sat_id, std::string_view owner,
                                                    int64_t now_utime, int64_t ttl_utime) {
@@ -136,6 +137,16 @@ std::vector<std::string> SqliteLeaseStore::live_stations(int64_t now_utime) {
   auto use = live_.use();
   live_.bind(1, now_utime);
   while (live_.step()) out.push_back(live_.column_text(0));
+  return out;
+}
+
+std::vector<StationRow> SqliteLeaseStore::stations() {
+  std::vector<StationRow> out;
+  auto use = stations_.use();
+  while (stations_.step()) {
+    out.push_back(StationRow{stations_.column_text(0), stations_.column_text(1),
+                             stations_.column_int64(2), stations_.column_int64(3)});
+  }
   return out;
 }
 

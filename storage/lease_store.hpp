@@ -31,6 +31,16 @@ struct StationBeat {
   int64_t expires_utime = 0;
 };
 
+// A station's row as `magcal status` lists it: live until expires_utime (a clean stop ends it at
+// once, a daemon that died at its last heartbeat + [fleet] lease_s).
+struct StationRow {
+  std::string station;
+  std::string instance;
+  int64_t heartbeat_utime = 0;
+  int64_t expires_utime = 0;
+  bool live_at(int64_t now_utime) const { return now_utime < expires_utime; }
+};
+
 struct Lease {
   std::string sat_id;
   std::string owner;  // the holder's station id (or the last holder's, once expired)
@@ -87,6 +97,8 @@ class LeaseStore {
   virtual void leave(std::string_view station, int64_t now_utime) = 0;
   // The stations live at now, sorted.
   virtual std::vector<std::string> live_stations(int64_t now_utime) = 0;
+  // Every station that ever beat, live or not, sorted by station (for magcal status).
+  virtual std::vector<StationRow> stations() = 0;
 
  protected:
   // Both backends' argument check: a non-empty owner, a positive time to live.

@@ -154,6 +154,7 @@ class SqliteLeaseStore final : public LeaseStore {
                                        int64_t now_utime, int64_t ttl_utime) override;
   void leave(std::string_view station, int64_t now_utime) override;
   std::vector<std::string> live_stations(int64_t now_utime) override;
+  std::vector<StationRow> stations() override;
 
  private:
   Statement acquire_;
@@ -168,6 +169,7 @@ class SqliteLeaseStore final : public LeaseStore {
   Statement beat_;
   Statement leave_;
   Statement live_;
+  Statement stations_;
 };
 
 class SqliteMetaStore final : public MetaStore {

@@ -62,6 +62,9 @@ inline constexpr const char* kStationHeartbeat =
     "VALUES (?1, ?2, ?2 + ?3, ?4) "
     "ON CONFLICT (station) DO UPDATE SET heartbeat_utime = excluded.heartbeat_utime, "
     "expires_utime = excluded.expires_utime, instance = excluded.instance";
+// Sorted by the bytes of the id on both backends (COLLATE "C" on PostgreSQL, as SQLite's BINARY).
+inline constexpr const char* kStationList =
+    "SELECT station, instance, heartbeat_utime, expires_utime FROM stations ORDER BY station";
 inline constexpr const char* kStationBeat =
     "SELECT instance, heartbeat_utime, expires_utime FROM stations WHERE station = ?1";
 

@@ -13,7 +13,7 @@ namespace magcal::cli {
 int run_status(const StatusArgs& args) {
   // The daemon's default window (design.md [storage] window_hours); status takes no config.
   const int64_t window_utime = DaemonConfig{}.window_utime();
-  std::vector<SpacecraftStatus> all;
+  FleetStatus all;
   try {
     all = read_consistently(args.db,
                             [&](storage::Connection& db) { return read_status(db, window_utime); });
@@ -23,7 +23,7 @@ int run_status(const StatusArgs& args) {
   }
   if (args.json) {
     std::cout << status_json_text(all, window_utime);
-  } else if (all.empty()) {
+  } else if (all.spacecraft.empty()) {
     std::cerr << "magcal status: no spacecraft in " << storage::database_name(args.db) << "\n";
   } else {
     std::cout << status_text(all, window_utime);

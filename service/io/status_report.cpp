@@ -95,8 +95,9 @@ std::string by_station_line(const std::vector<storage::StationCount>& counts) {
 
 }  // namespace
 
-std::vector<SpacecraftStatus> read_status(storage::Connection& db, int64_t window_utime) {
-  std::vector<SpacecraftStatus> all;
+FleetStatus read_status(storage::Connection& db, int64_t window_utime) {
+  FleetStatus fleet;
+  std::vector<SpacecraftStatus>& all = fleet.spacecraft;
   storage::Transaction snapshot(db, storage::Transaction::Mode::kReadSnapshot);
   const auto samples = db.make_sample_window_store();
   const auto history = db.make_calibration_history();
@@ -131,12 +132,19 @@ std::vector<SpacecraftStatus> read_status(storage::Connection& db, int64_t windo
     s.owner_now = s.lease && s.lease->held_at(now_utime);
     all.push_back(std::move(s));
   }
-  return all;
+  for (auto& row : leases->stations()) {
+    StationStatus st;
+    st.live = row.live_at(now_utime);
+    for (const auto& s : all) st.spacecraft_owned += s.owner_now && s.lease->owner == row.station;
+    st.row = std::move(row);
+    fleet.stations.push_back(std::move(st));
+  }
+  return fleet;
 }
 
-nlohmann::json status_json(const std::vector<SpacecraftStatus>& all, int64_t window_utime) {
+nlohmann::json status_json(const FleetStatus& fleet, int64_t window_utime) {
   nlohmann::json list = nlohmann::json::array();
-  for (const auto& s : all) {
+  for (const auto& s : fleet.spacecraft) {
     nlohmann::json j;
     j["sat_id"] = s.sat_id;
     j["last_sample_time"] =
@@ -169,17 +177,27 @@ nlohmann::json status_json(const std::vector<SpacecraftStatus>& all, int64_t win
           : nlohmann::json(nullptr);
     list.push_back(std::move(j));
   }
-  return nlohmann::json{{"spacecraft", list}};
+  nlohmann::json stations = nlohmann::json::array();
+  for (const auto& st : fleet.stations) {
+    stations.push_back({{"station", st.row.station},
+                        {"live", st.live},
+                        {"heartbeat_time", format_iso8601_utc(st.row.heartbeat_utime)},
+                        {"heartbeat_utime", st.row.heartbeat_utime},
+                        {"expires_time", format_iso8601_utc(st.row.expires_utime)},
+                        {"expires_utime", st.row.expires_utime},
+                        {"spacecraft_owned", st.spacecraft_owned}});
+  }
+  return nlohmann::json{{"spacecraft", list}, {"stations", stations}};
 }
 
-std::string status_json_text(const std::vector<SpacecraftStatus>& all, int64_t window_utime) {
-  return status_json(all, window_utime).dump(2) + "\n";
+std::string status_json_text(const FleetStatus& fleet, int64_t window_utime) {
+  return status_json(fleet, window_utime).dump(2) + "\n";
 }
 
-std::string status_text(const std::vector<SpacecraftStatus>& all, int64_t window_utime) {
+std::string status_text(const FleetStatus& fleet, int64_t window_utime) {
   std::string text =
       "(times in UTC: data time, the samples' time tags, unless marked wall clock)\n";
-  for (const auto& s : all) {
+  for (const auto& s : fleet.spacecraft) {
     append_printf(&text, "%s\n", s.sat_id.c_str());
     if (s.last_sample_utime) {
       append_printf(&text, "  %-16s %s  (%lld samples in the %.4g h window)\n", "last sample",
@@ -240,6 +258,20 @@ std::string status_text(const std::vector<SpacecraftStatus>& all, int64_t window
       if (s.last_refit->has_temperature_model == 1 && s.previous_refit->has_temperature_model == 1)
         append_printf(&text, "  %-16s both at %.2f degC (the last refit's T0)\n", "",
                       s.last_refit->reference_temperature_C);
+    }
+  }
+  if (!fleet.stations.empty()) {
+    // The daemons sharing the database: which are up, and who does the tracking work.
+    text += "stations (wall clock)\n";
+    for (const auto& st : fleet.stations) {
+      if (st.live) {
+        append_printf(&text, "  %-16s live, last beat %s, owns %lld spacecraft\n",
+                      st.row.station.c_str(), format_iso8601_utc(st.row.heartbeat_utime).c_str(),
+                      static_cast<long long>(st.spacecraft_owned));
+      } else {
+        append_printf(&text, "  %-16s gone since %s\n", st.row.station.c_str(),
+                      format_iso8601_utc(st.row.expires_utime).c_str());
+      }
     }
   }
   return text;

@@ -35,21 +35,37 @@ struct SpacecraftStatus {
   std::optional<storage::RefitJob> last_job;
 };
 
-// Every spacecraft with samples or results (sorted by id), read in one snapshot (a short
-// deferred read transaction) on `db`, which may be read-only. window_utime: the refit window
-// the samples are counted in (the daemon's [storage] window_hours). Throws StorageError.
-std::vector<SpacecraftStatus> read_status(storage::Connection& db, int64_t window_utime);
+// A daemon sharing the database (design.md "Fleet"; one daemon alone is a fleet of one): live
+// while its heartbeat has not expired at the time of the read (wall clock).
+struct StationStatus {
+  storage::StationRow row;
+  bool live = false;
+  int64_t spacecraft_owned = 0;  // leases it holds at the time of the read
+};
+
+struct FleetStatus {
+  std::vector<SpacecraftStatus> spacecraft;  // sorted by sat_id
+  std::vector<StationStatus> stations;       // sorted by station id
+};
+
+// Every spacecraft with samples or results and every station that ever beat, read in one
+// snapshot (a short deferred read transaction) on `db`, which may be read-only. window_utime:
+// the refit window the samples are counted in (the daemon's [storage] window_hours). Throws
+// StorageError.
+FleetStatus read_status(storage::Connection& db, int64_t window_utime);
 
 // `magcal status --json`: {"spacecraft": [{sat_id, last_sample_time, last_sample_utime,
 // samples_in_window, samples_by_station ([{station (null: none), samples}]), owner ({station,
 // lease_epoch, lease_expires_time, lease_expires_utime}; null: no daemon holds its lease now),
 // last_owner (the same for the lease row held or not; null: none), window_hours,
 // last_ukf, last_refit (history objects or null), last_refit_job,
-// bias_change_since_previous_refit_nT}]}.
-nlohmann::json status_json(const std::vector<SpacecraftStatus>& all, int64_t window_utime);
+// bias_change_since_previous_refit_nT}], "stations": [{station, live, heartbeat_time,
+// heartbeat_utime, expires_time, expires_utime (wall clock: live until then; a clean stop ends
+// it at once), spacecraft_owned}]}.
+nlohmann::json status_json(const FleetStatus& fleet, int64_t window_utime);
 // The exact stdout of `magcal status --json` (dumped with indent 2 and a final newline).
-std::string status_json_text(const std::vector<SpacecraftStatus>& all, int64_t window_utime);
-// The exact stdout of `magcal status` (empty when there is no spacecraft).
-std::string status_text(const std::vector<SpacecraftStatus>& all, int64_t window_utime);
+std::string status_json_text(const FleetStatus& fleet, int64_t window_utime);
+// The exact stdout of `magcal status`: each spacecraft, then the stations.
+std::string status_text(const FleetStatus& fleet, int64_t window_utime);
 
 }  // namespace magcal

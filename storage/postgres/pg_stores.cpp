@@ -591,6 +591,17 @@ std::vector<std::string> PgLeaseStore::live_stations(int64_t now_utime) {
   return out;
 }
 
+std::vector<StationRow> PgLeaseStore::stations() {
+  static const std::string sql = std::string(columns::kStationList) + " COLLATE \"C\"";
+  const PgResult r = db_.execute_prepared(sql, PgParams{}, PgFormat::kBinary);
+  std::vector<StationRow> out;
+  for (int row = 0; row < r.rows(); ++row) {
+    out.push_back(StationRow{r.get_text(row, 0), r.get_text(row, 1), r.get_int64(row, 2),
+                             r.get_int64(row, 3)});
+  }
+  return out;
+}
+
 void PgMetaStore::set(std::string_view key, std::string_view value) {
   PgParams p;
   p.add(key).add(value);

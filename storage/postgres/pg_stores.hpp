@@ -116,6 +116,7 @@ class PgLeaseStore final : public LeaseStore {
                                        int64_t now_utime, int64_t ttl_utime) override;
   void leave(std::string_view station, int64_t now_utime) override;
   std::vector<std::string> live_stations(int64_t now_utime) override;
+  std::vector<StationRow> stations() override;
 
  private:
   PgDatabase& db_;

@@ -196,4 +196,17 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest,
   leases->leave("B", kT0 + kTtl + 2);
   CHECK(leases->live_stations(kT0 + kTtl + 2) == std::vector<std::string>{"A"});
   CHECK_THROWS_AS(leases->heartbeat("C", "c1", kT0, 0), StorageError);
+  // Every row stays listed, the one that left with its end (the same order on both backends:
+  // "a" sorts after "B" by bytes).
+  leases->heartbeat("a", "x1", kT0, kTtl);
+  const auto rows = leases->stations();
+  REQUIRE(rows.size() == 3);
+  CHECK(rows[0].station == "A");
+  CHECK(rows[0].instance == "a2");
+  CHECK(rows[0].heartbeat_utime == kT0 + kTtl + 1);
+  CHECK(rows[0].live_at(kT0 + kTtl + 2));
+  CHECK(rows[1].station == "B");
+  CHECK(rows[1].expires_utime == kT0 + kTtl + 2);
+  CHECK_FALSE(rows[1].live_at(kT0 + kTtl + 2));
+  CHECK(rows[2].station == "a");
 }

@@ -168,7 +168,8 @@ TEST_CASE("status on an empty, missing or foreign database") {
   { Database d(empty); }
   Run r = run_magcal("status --db " + empty + " --json", dir);
   CHECK(r.exit_code == 0);
-  CHECK(nlohmann::json::parse(r.out) == nlohmann::json{{"spacecraft", nlohmann::json::array()}});
+  CHECK(nlohmann::json::parse(r.out) == nlohmann::json{{"spacecraft", nlohmann::json::array()},
+                                                       {"stations", nlohmann::json::array()}});
 
   const std::string missing = dir.file("missing.db");
   r = run_magcal("status --db " + missing, dir);

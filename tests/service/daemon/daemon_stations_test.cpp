@@ -249,6 +249,14 @@ TEST_CASE("three stations, one database: one window, one series, each refit once
     REQUIRE(j["spacecraft"].size() == 1);
     CHECK(j["spacecraft"][0]["owner"]["station"] == new_owner);
     CHECK(j["spacecraft"][0]["owner"]["lease_epoch"] == 2);
+    // ... and lists the stations: the killed one gone (its heartbeat expired with the lease it
+    // held: both were renewed at one time), the new owner live with the spacecraft.
+    REQUIRE(j["stations"].size() == kStations);
+    for (const auto& st : j["stations"]) {
+      INFO(st.dump());
+      CHECK(st["live"] == (st["station"] != *owner));
+      CHECK(st["spacecraft_owned"] == (st["station"] == new_owner ? 1 : 0));
+    }
   }
 
   // The killed station comes back: it re-sends its last half hour, then goes on with its passes

@@ -32,9 +32,9 @@
 #include "tests/test_skip.hpp"
 
 namespace fs = std::filesystem;
-using magcal::storage::SqliteCalibrationHistory;
 using magcal::storage::CalibrationRecord;
 using magcal::storage::Database;
+using magcal::storage::SqliteCalibrationHistory;
 using magcal::test::Run;
 using magcal::test::run_magcal;
 using magcal::test::TempDir;
@@ -210,7 +210,8 @@ TEST_CASE("a lock-free read notices a writer that opened the file meanwhile and 
   const auto immutable = [&reader] { return dynamic_cast<Database&>(*reader).immutable(); };
   const auto ids = [](magcal::storage::Connection& db) {
     std::vector<std::string> out;
-    for (const auto& s : magcal::read_status(db, 3600 * kSecond)) out.push_back(s.sat_id);
+    for (const auto& s : magcal::read_status(db, 3600 * kSecond).spacecraft)
+      out.push_back(s.sat_id);
     return out;
   };
   CHECK(magcal::read_consistently(reader, view + "/m.db", ids) == std::vector<std::string>{"SAT1"});

@@ -1,16 +1,18 @@
 // status_report (magcal status and /api/v1/spacecraft): the bias change between the last two
 // refits, at one temperature when both model the bias temperature; the window's samples by
-// station.
+// station; the stations sharing the database, live or gone, and what each owns.
 #include "service/io/status_report.hpp"
 
 #include <unistd.h>
 
 #include <catch2/catch.hpp>
+#include <chrono>
 #include <filesystem>
 #include <string>
 #include <vector>
 
 #include "storage/database.hpp"
+#include "storage/lease_store.hpp"
 #include "storage/sample_window_store.hpp"
 
 using magcal::SpacecraftStatus;
@@ -52,16 +54,18 @@ TEST_CASE("status: the bias change compares the two refits at the last one's T0"
     }
     s.previous_refit->reference_temperature_C = 17.0;
     s.last_refit->reference_temperature_C = 22.0;
-    const auto j = magcal::status_json({s}, window);
+    const auto j = magcal::status_json({.spacecraft = {s}, .stations = {}}, window);
     const auto& d = j["spacecraft"][0]["bias_change_since_previous_refit_nT"];
     for (int i = 0; i < 3; ++i) CHECK(d[i].get<double>() == Approx(0.0).margin(1e-9));
-    CHECK(magcal::status_text({s}, window).find("both at 22.00 degC") != std::string::npos);
+    CHECK(magcal::status_text({.spacecraft = {s}, .stations = {}}, window)
+              .find("both at 22.00 degC") != std::string::npos);
   }
   SECTION("not modelled: the plain difference, and no temperature line") {
-    const auto j = magcal::status_json({s}, window);
+    const auto j = magcal::status_json({.spacecraft = {s}, .stations = {}}, window);
     const auto& d = j["spacecraft"][0]["bias_change_since_previous_refit_nT"];
     for (int i = 0; i < 3; ++i) CHECK(d[i].get<double>() == Approx(k[i] * 5.0));
-    CHECK(magcal::status_text({s}, window).find("degC") == std::string::npos);
+    CHECK(magcal::status_text({.spacecraft = {s}, .stations = {}}, window).find("degC") ==
+          std::string::npos);
   }
 }
 
@@ -82,13 +86,13 @@ TEST_CASE("status: the samples in the window by the station that stored them") {
     }
     return out;
   };
-  std::vector<SpacecraftStatus> all;
+  magcal::FleetStatus all;
   {
     magcal::storage::Database db(path);
     const auto samples = db.make_sample_window_store();
     samples->insert_batch(batch(0, 30), nullptr, "gs-b");  // 0..290 s: out of the window
     all = magcal::read_status(db, window);
-    REQUIRE(all.size() == 1);
+    REQUIRE(all.spacecraft.size() == 1);
     CHECK(magcal::status_text(all, window).find("by station") != std::string::npos);
     samples->insert_batch(batch(300, 5));                           // no station, out too
     samples->insert_batch(batch(4000, 20), nullptr, "gs-b");        // 4000..4190 s
@@ -98,14 +102,14 @@ TEST_CASE("status: the samples in the window by the station that stored them") {
     all = magcal::read_status(db, window);
   }
   std::filesystem::remove(path);
-  REQUIRE(all.size() == 1);
+  REQUIRE(all.spacecraft.size() == 1);
   // The window (4390 s - 1 h, 4390 s] holds gs-b's 20 and gs-a's 21.
-  CHECK(all[0].samples_in_window == 41);
-  REQUIRE(all[0].samples_by_station.size() == 2);
-  CHECK(all[0].samples_by_station[0].station == "gs-a");
-  CHECK(all[0].samples_by_station[0].samples == 21);
-  CHECK(all[0].samples_by_station[1].station == "gs-b");
-  CHECK(all[0].samples_by_station[1].samples == 20);
+  CHECK(all.spacecraft[0].samples_in_window == 41);
+  REQUIRE(all.spacecraft[0].samples_by_station.size() == 2);
+  CHECK(all.spacecraft[0].samples_by_station[0].station == "gs-a");
+  CHECK(all.spacecraft[0].samples_by_station[0].samples == 21);
+  CHECK(all.spacecraft[0].samples_by_station[1].station == "gs-b");
+  CHECK(all.spacecraft[0].samples_by_station[1].samples == 20);
   CHECK(magcal::status_text(all, window).find("  by station       gs-a 21, gs-b 20\n") !=
         std::string::npos);
   const auto j = magcal::status_json(all, window)["spacecraft"][0]["samples_by_station"];
@@ -113,11 +117,69 @@ TEST_CASE("status: the samples in the window by the station that stored them") {
                  R"([{"station": "gs-a", "samples": 21}, {"station": "gs-b", "samples": 20}])"));
 
   // Samples without a station are shown as such; none named at all: no line.
-  all[0].samples_by_station = {{"", 5}, {"gs-a", 3}};
+  all.spacecraft[0].samples_by_station = {{"", 5}, {"gs-a", 3}};
   CHECK(magcal::status_text(all, window).find("by station       no station 5, gs-a 3\n") !=
         std::string::npos);
   CHECK(magcal::status_json(all, window)["spacecraft"][0]["samples_by_station"][0]["station"]
             .is_null());
-  all[0].samples_by_station = {{"", 5}};
+  all.spacecraft[0].samples_by_station = {{"", 5}};
   CHECK(magcal::status_text(all, window).find("by station") == std::string::npos);
+}
+
+TEST_CASE("status: the stations sharing the database, live or gone, with what each owns") {
+  const std::string path = (std::filesystem::temp_directory_path() /
+                            ("magcal_status_stations_" + std::to_string(::getpid()) + ".db"))
+                               .string();
+  const int64_t second = 1'000'000;
+  // Liveness is judged on the wall clock at the read, as the daemons beat on it.
+  const int64_t now = std::chrono::duration_cast<std::chrono::microseconds>(
+                          std::chrono::system_clock::now().time_since_epoch())
+                          .count();
+  magcal::FleetStatus fleet;
+  {
+    magcal::storage::Database db(path);
+    const auto leases = db.make_lease_store();
+    leases->heartbeat("gs-b", "b1", now - 600 * second, 30 * second);  // died 10 min ago
+    leases->heartbeat("gs-a", "a1", now, 3600 * second);
+    leases->heartbeat("gs-c", "c1", now, 3600 * second);
+    leases->leave("gs-c", now);  // a clean stop: gone at once
+    REQUIRE(leases->try_acquire("S1", "gs-a", now, 3600 * second));
+    REQUIRE(leases->try_acquire("S2", "gs-a", now, 3600 * second));
+    REQUIRE(leases->try_acquire("S3", "gs-b", now - 600 * second, 30 * second));  // expired
+    // Status lists spacecraft with samples or results: give each a result-free sample.
+    const auto samples = db.make_sample_window_store();
+    std::vector<magcal::storage::StoredSample> rows(3);
+    for (int k = 0; k < 3; ++k) {
+      rows[static_cast<size_t>(k)].sat_id = "S" + std::to_string(k + 1);
+      rows[static_cast<size_t>(k)].utime = kT0;
+      rows[static_cast<size_t>(k)].h_norm_nT = 4.0e4;
+    }
+    samples->insert_batch(rows);
+    fleet = magcal::read_status(db, 3600 * second);
+  }
+  std::filesystem::remove(path);
+  REQUIRE(fleet.spacecraft.size() == 3);
+  REQUIRE(fleet.stations.size() == 3);
+  CHECK(fleet.stations[0].row.station == "gs-a");
+  CHECK(fleet.stations[0].live);
+  CHECK(fleet.stations[0].spacecraft_owned == 2);
+  CHECK(fleet.stations[1].row.station == "gs-b");
+  CHECK_FALSE(fleet.stations[1].live);
+  CHECK(fleet.stations[1].spacecraft_owned == 0);  // its expired lease is owned by nobody
+  CHECK(fleet.stations[2].row.station == "gs-c");
+  CHECK_FALSE(fleet.stations[2].live);
+
+  const std::string text = magcal::status_text(fleet, 3600 * second);
+  CHECK(text.find("stations (wall clock)\n  gs-a             live, last beat ") !=
+        std::string::npos);
+  CHECK(text.find(", owns 2 spacecraft\n") != std::string::npos);
+  CHECK(text.find("  gs-b             gone since ") != std::string::npos);
+  const auto j = magcal::status_json(fleet, 3600 * second)["stations"];
+  REQUIRE(j.size() == 3);
+  CHECK(j[0]["station"] == "gs-a");
+  CHECK(j[0]["live"] == true);
+  CHECK(j[0]["spacecraft_owned"] == 2);
+  CHECK(j[1]["live"] == false);
+  CHECK(j[1]["expires_utime"] == now - 570 * second);
+  CHECK(j[2]["expires_utime"] == now);
 }
