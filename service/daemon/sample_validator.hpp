@@ -2,7 +2,8 @@
 // sample keeps.
 //
 // Stateless checks, in this order (the first failing one is the reason counted):
-//   invalid_sat_id      empty sat_id (a batch sample with an empty id inherits the batch's)
+//   invalid_sat_id      empty sat_id (a batch sample with an empty id inherits the batch's), or
+//                       not UTF-8 (PostgreSQL refuses it: one such frame would stop the daemon)
 //   batch_sat_mismatch  a batch sample naming another spacecraft than its batch
 //   unknown_spacecraft  not on the whitelist (when one is configured)
 //   time_out_of_range   utime outside [1990-01-01, 2100-01-01) (pipeline/time_utc.hpp)
