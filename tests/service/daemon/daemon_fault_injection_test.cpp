@@ -886,6 +886,9 @@ TEST_CASE(
   INFO(daemon_log);
   CHECK(rc == 0);
   CHECK(stop_s < 5.0);
+  // Why, as it is: the lock (not an unreachable server).
+  CHECK_THAT(daemon_log, Catch::Contains("SQLSTATE 55P03"));
+  CHECK_THAT(daemon_log, Catch::Contains("database commit failing: "));
   const auto s = read_published(out).statuses.back();
   const int64_t spilled = magcal::SampleSpill(sc.spill_file(), "", int64_t{1} << 30).held_samples();
   CHECK(spilled > 0);
