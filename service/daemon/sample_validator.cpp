@@ -63,7 +63,9 @@ std::optional<RejectReason> check_sample(const mag_sample_t& s, const std::strin
     return RejectReason::kBatchSatMismatch;
   }
   const std::string& sat = sample_sat_id(s, batch_sat_id);
-  if (sat.empty() || !is_utf8(sat)) return RejectReason::kInvalidSatId;
+  if (sat.empty() || sat.size() > kMaxSatIdBytes || !is_utf8(sat)) {
+    return RejectReason::kInvalidSatId;
+  }
   if (!options.whitelist.empty() &&
       !std::binary_search(options.whitelist.begin(), options.whitelist.end(), sat)) {
     return RejectReason::kUnknownSpacecraft;
