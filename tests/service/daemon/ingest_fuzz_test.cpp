@@ -1,13 +1,13 @@
 // Mutation fuzzer of the ingest path (issue 11): valid encoded mag_sample_t and mag_batch_t
 // frames are bit-flipped, truncated, extended, overwritten, given extreme field values
-// (int64 limits in utime and seq, NaN/Inf in every double, huge or negative batch n, empty and
-// 10 000-character sat ids), then driven through the daemon's real path in-process: decode_frame
-// (service/daemon/lcm_ingest.cpp) with the receive side's accounting, then IngestWorker on a
-// new database, SQLite and PostgreSQL (tests/storage/storage_backends.hpp; the PostgreSQL case is
-// skipped without the server programs). CI runs it under ASan+UBSan: no crash, no sanitizer
-// report, the worker never gives up on storage, and every frame is accounted for: received ==
-// stored + rejected (per reason, decode failures included), and the database holds exactly the
-// stored samples.
+// (int64 limits in utime and seq, NaN/Inf in every double, huge or negative batch n, empty,
+// non-UTF-8, 10 000-character and 3 000 random-character sat ids), then driven through the daemon's
+// real path in-process: decode_frame (service/daemon/lcm_ingest.cpp) with the receive side's
+// accounting, then IngestWorker on a new database, SQLite and PostgreSQL
+// (tests/storage/storage_backends.hpp; the PostgreSQL case is skipped without the server programs).
+// CI runs it under ASan+UBSan: no crash, no sanitizer report, the worker never gives up on storage,
+// and every frame is accounted for: received == stored + rejected (per reason, decode failures
+// included), and the database holds exactly the stored samples.
 #include <catch2/catch.hpp>
 
 #include <chrono>
@@ -100,8 +100,12 @@ class FrameMaker {
     switch (pick(4)) {
       case 0:
         return "";
-      case 1:
-        return std::string(10000, 'S');
+      case 1: {
+        if (pick(2) == 0) return std::string(10000, 'S');
+        std::string s(3000, ' ');  // incompressible
+        for (auto& ch : s) ch = static_cast<char>('A' + pick(26));
+        return s;
+      }
       case 2: {
         std::string s(1 + pick(40), ' ');
         for (auto& ch : s) ch = static_cast<char>(1 + pick(255));  // no NUL (LCM strings)
