@@ -590,7 +590,7 @@ int64_t pg_query_int(const std::string& uri, const std::string& sql) {
 }
 
 // psql running the statements of `script` on `uri` (stops at the first error; rows only, one
-// value per line), in the background: its pid; output in log_path.
+// value per line), in the background: its pid; script and output in tmp as NAME.sql, NAME.log.
 pid_t spawn_psql(const TempDir& tmp, const std::string& uri, const std::string& name,
                  const std::string& script) {
   std::ofstream(tmp.file(name + ".sql")) << script;
@@ -599,14 +599,14 @@ pid_t spawn_psql(const TempDir& tmp, const std::string& uri, const std::string& 
                tmp.file(name + ".log"));
 }
 
-int run_psql(const TempDir& tmp, const std::string& uri, const std::string& name,
-             const std::string& script) {
+// The same, waited for; it must succeed.
+void run_psql(const TempDir& tmp, const std::string& uri, const std::string& name,
+              const std::string& script) {
   const pid_t p = spawn_psql(tmp, uri, name, script);
   REQUIRE(p > 0);
   const int rc = wait_exit(p, 30);
   INFO(slurp(tmp.file(name + ".log")));
   REQUIRE(rc == 0);
-  return rc;
 }
 
 // Sessions other than the caller's on the database of `uri` holding a granted lock of `mode`
@@ -614,7 +614,8 @@ int run_psql(const TempDir& tmp, const std::string& uri, const std::string& name
 int64_t samples_locks(const std::string& uri, const std::string& mode) {
   return pg_query_int(uri,
                       "SELECT count(*) FROM pg_locks l JOIN pg_class c ON c.oid = l.relation "
-                      "WHERE c.relname = 'samples' AND l.granted AND l.mode = '" +
+                      "WHERE l.database = (SELECT oid FROM pg_database WHERE datname = "
+                      "current_database()) AND c.relname = 'samples' AND l.granted AND l.mode = '" +
                           mode + "' AND l.pid <> pg_backend_pid()");
 }
 
