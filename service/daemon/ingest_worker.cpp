@@ -1032,7 +1032,7 @@ void IngestWorker::flush_at_stop() {
     if (commit_retry_.failing() && (pending_.empty() || spill_pending(true))) {
       if (!pending_snapshots_.empty()) {
         spdlog::warn(
-            "{} UKF snapshots not stored: the database is unreachable at shutdown (the "
+            "{} UKF snapshots not stored: the database commit fails at shutdown (the "
             "spilled samples are committed at the next start)",
             pending_snapshots_.size());
       }
@@ -1080,7 +1080,7 @@ bool IngestWorker::spill_pending(bool at_any_size) {
   warnings_.warn(
       "spill",
       fmt::format("{}: {} pending samples spilled to {} ({} held there, {} bytes)",
-                  commit_retry_.failing() ? "database unreachable" : "queued behind the spill",
+                  commit_retry_.failing() ? "database commit failing" : "queued behind the spill",
                   pending_.size(), spill_->path(), spill_->held_samples(), spill_->bytes()));
   pending_.clear();
   reset_pending_index();

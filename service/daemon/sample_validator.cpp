@@ -16,6 +16,40 @@ bool all_finite(const double* v, int n) {
   return true;
 }
 
+// Well-formed UTF-8 (no overlong forms, surrogates or code points past U+10FFFF): PostgreSQL
+// refuses anything else in a text column, and JSON output cannot carry it.
+bool is_utf8(const std::string& text) {
+  size_t i = 0;
+  while (i < text.size()) {
+    const auto byte = [&](size_t k) { return static_cast<unsigned char>(text[k]); };
+    const unsigned char c = byte(i);
+    int more = 0;
+    unsigned char lo = 0x80, hi = 0xBF;  // the allowed range of the second byte
+    if (c < 0x80) {
+      more = 0;
+    } else if (c >= 0xC2 && c <= 0xDF) {
+      more = 1;
+    } else if (c >= 0xE0 && c <= 0xEF) {
+      more = 2;
+      if (c == 0xE0) lo = 0xA0;
+      if (c == 0xED) hi = 0x9F;
+    } else if (c >= 0xF0 && c <= 0xF4) {
+      more = 3;
+      if (c == 0xF0) lo = 0x90;
+      if (c == 0xF4) hi = 0x8F;
+    } else {
+      return false;
+    }
+    if (text.size() - i <= static_cast<size_t>(more)) return false;
+    for (int k = 1; k <= more; ++k) {
+      const unsigned char b = byte(i + static_cast<size_t>(k));
+      if (k == 1 ? (b < lo || b > hi) : (b < 0x80 || b > 0xBF)) return false;
+    }
+    i += static_cast<size_t>(more) + 1;
+  }
+  return true;
+}
+
 Eigen::Vector3d vec3(const double* v) {
   return {v[0], v[1], v[2]};
 }
@@ -29,7 +63,9 @@ std::optional<RejectReason> check_sample(const mag_sample_t& s, const std::strin
     return RejectReason::kBatchSatMismatch;
   }
   const std::string& sat = sample_sat_id(s, batch_sat_id);
-  if (sat.empty()) return RejectReason::kInvalidSatId;
+  if (sat.empty() || sat.size() > kMaxSatIdBytes || !is_utf8(sat)) {
+    return RejectReason::kInvalidSatId;
+  }
   if (!options.whitelist.empty() &&
       !std::binary_search(options.whitelist.begin(), options.whitelist.end(), sat)) {
     return RejectReason::kUnknownSpacecraft;

@@ -2,7 +2,9 @@
 // sample keeps.
 //
 // Stateless checks, in this order (the first failing one is the reason counted):
-//   invalid_sat_id      empty sat_id (a batch sample with an empty id inherits the batch's)
+//   invalid_sat_id      empty sat_id (a batch sample with an empty id inherits the batch's), not
+//                       UTF-8, or longer than kMaxSatIdBytes (PostgreSQL refuses either: one
+//                       such frame would stop the daemon)
 //   batch_sat_mismatch  a batch sample naming another spacecraft than its batch
 //   unknown_spacecraft  not on the whitelist (when one is configured)
 //   time_out_of_range   utime outside [1990-01-01, 2100-01-01) (pipeline/time_utc.hpp)
@@ -31,6 +33,9 @@
 #include "service/io/reference_field.hpp"
 
 namespace magcal {
+
+// No spacecraft is named longer; PostgreSQL's index takes keys up to about 2.7 kB only.
+constexpr size_t kMaxSatIdBytes = 256;
 
 struct ValidatorOptions {
   double range_nT = 100000.0;

@@ -8,6 +8,8 @@
 //   auto db = backend.open();    // a new, empty database; nullptr: skipped, return at once
 //   backend.open(options)        // the same, opened with these options (e.g. an old schema)
 //   backend.open_again(options)  // another connection to the same database
+//   backend.new_database()       // instead of open(): the path or URI of a new, empty database
+//                                // for code that opens it itself (a worker, magcald); "": skipped
 //   query_int(*db, sql)          // the one integer a query returns (a count), either backend
 #pragma once
 
@@ -49,8 +51,9 @@ class SqliteBackend {
     return open_again(options);
   }
   std::unique_ptr<storage::Connection> open_again(const storage::OpenOptions& options = {}) {
-    return storage::open_database((dir_ / "test.db").string(), options);
+    return storage::open_database(new_database(), options);
   }
+  std::string new_database() const { return (dir_ / "test.db").string(); }
   // SQL for a blob of n zero bytes.
   static std::string zero_blob_sql(int n) { return "zeroblob(" + std::to_string(n) + ")"; }
 
@@ -62,10 +65,13 @@ class PostgresBackend {
  public:
   static constexpr const char* kName = "postgres";
   std::unique_ptr<storage::Connection> open(const storage::OpenOptions& options = {}) {
-    PgTestServer* server = pg_server_or_skip();
-    if (server == nullptr) return nullptr;
-    uri_ = server->create_database();
+    if (new_database().empty()) return nullptr;
     return open_again(options);
+  }
+  std::string new_database() {
+    PgTestServer* server = pg_server_or_skip();
+    uri_ = server == nullptr ? "" : server->create_database();
+    return uri_;
   }
   std::unique_ptr<storage::Connection> open_again(const storage::OpenOptions& options = {}) {
     return storage::open_database(uri_, options);

@@ -122,6 +122,25 @@ TEST_CASE("each rejection reason fires on its condition", "[sample_validator]") 
     CHECK(sample_sat_id(s, "SAT-1") == "SAT-1");
     CHECK(check(s) == RejectReason::kInvalidSatId);
   }
+  SECTION("sat ids that are not UTF-8, or too long") {
+    auto s = good_sample();
+    for (const std::string bad : {"SAT-\xbc", "\xc3", "\xc0\xaf", "\xe0\x80\xaf", "\xed\xa0\x80",
+                                  "\xf4\x90\x80\x80", "\xff", "SAT-\xe2\x82"}) {
+      INFO(bad);
+      s.sat_id = bad;
+      CHECK(check(s) == RejectReason::kInvalidSatId);
+      CHECK(check(good_sample(), bad) == RejectReason::kBatchSatMismatch);
+    }
+    s.sat_id = std::string(kMaxSatIdBytes + 1, 'S');
+    CHECK(check(s) == RejectReason::kInvalidSatId);
+    s.sat_id = std::string(kMaxSatIdBytes, 'S');
+    CHECK_FALSE(check(s));
+    for (const std::string good : {"SAT-\xc3\xa9", "\xe2\x82\xac-1", "\xf0\x9f\x9b\xb0", "\x7f"}) {
+      INFO(good);
+      s.sat_id = good;
+      CHECK_FALSE(check(s));
+    }
+  }
   SECTION("whitelist") {
     ValidatorOptions o;
     o.whitelist = {"SAT-0", "SAT-1"};
