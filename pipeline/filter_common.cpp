@@ -31,6 +31,9 @@ constexpr int kBlockBiasIterations = 4;
 // Blocks before the bias trend is tested (its standard error has n - 2 degrees of freedom).
 constexpr int kBiasMotionMinBlocks = 6;
 constexpr int kBiasMotionFloorMinBlocks = 4;  // two degrees of freedom for the trend's scatter
+// Step of the central differences of a block's bias in D (dimensionless): the bias moves by
+// ~|B| x step = ~0.5 nT, far above the solve's round-off, far below its curvature in D.
+constexpr double kBlockBiasDStep = 1e-5;
 
 bool is_finite(const Eigen::Vector3d& v) {
   return v.allFinite();
@@ -108,6 +111,10 @@ bool FilterState::operator==(const FilterState& o) const {
          bias_motion_sum_nT == o.bias_motion_sum_nT &&
          bias_motion_sum_tm_nT_h == o.bias_motion_sum_tm_nT_h &&
          bias_motion_sum_m2_nT2 == o.bias_motion_sum_m2_nT2 &&
+         bias_motion_sum_J_nT == o.bias_motion_sum_J_nT &&
+         bias_motion_sum_tJ_nT_h == o.bias_motion_sum_tJ_nT_h &&
+         bias_motion_sum_Jd_nT == o.bias_motion_sum_Jd_nT &&
+         bias_motion_sum_tJd_nT_h == o.bias_motion_sum_tJd_nT_h &&
          bias_random_walk_nT2_per_hour == o.bias_random_walk_nT2_per_hour;
 }
 
@@ -602,28 +609,30 @@ void ScalarFilterBase::monitor(FilterUpdate& u) {
   update_convergence_time();
 }
 
-bool ScalarFilterBase::block_bias_given_scale(const ScalarMoments& block,
-                                              Eigen::Vector3d& bias_nT) const {
-  // Gauss-Newton on c = (I + D) b with E held at the filter's estimate (file comment).
-  const CalibrationParameters current = parameters();
-  Vector9d theta = theta_from_parameters(current);
-  const Matrix11d M = block.matrix();
+bool ScalarFilterBase::block_bias_given_scale(const Matrix11d& block, const Vector9d& scale,
+                                              Eigen::Vector3d& bias_nT) {
+  // Gauss-Newton on c = (I + D) b with E held at that of `scale` (file comment).
+  const CalibrationParameters p = CalibrationParameters::from_packed(scale);
+  Vector9d theta = theta_from_parameters(p);
   Matrix9d F;
   Vector9d g;
   for (int iteration = 0; iteration < kBlockBiasIterations; ++iteration) {
-    if (!moments_cost(M, theta, nullptr, &F, &g)) return false;
+    if (!moments_cost(block, theta, nullptr, &F, &g)) return false;
     const Eigen::LDLT<Eigen::Matrix3d> ldlt(F.topLeftCorner<3, 3>());
     if (ldlt.info() != Eigen::Success || !(ldlt.vectorD().array() > 0.0).all()) return false;
     theta.head<3>() -= ldlt.solve(g.head<3>());
   }
-  bias_nT = (Eigen::Matrix3d::Identity() + current.D).inverse() * theta.head<3>();
+  bias_nT = (Eigen::Matrix3d::Identity() + p.D).inverse() * theta.head<3>();
   return bias_nT.allFinite();
 }
 
 bool ScalarFilterBase::bias_trend(Eigen::Array3d& rate_nT_per_h,
                                   Eigen::Array3d& se2_nT2_per_h2) const {
   // Per axis: the least-squares trend of the block biases and its standard error from their own
-  // scatter about it (block noise, stationary model error and aliased fast motion alike).
+  // scatter about it (block noise, stationary model error and aliased fast motion alike). The
+  // scatter is that of the biases as solved: at the current D it would need their squares'
+  // sensitivity to D (84 more sums); as solved it also holds the earlier D's errors, so the
+  // standard error is on the safe side for the motion test.
   const int n = state_.bias_motion_n;
   if (n < 3) return false;
   const double Stt =
@@ -633,8 +642,16 @@ bool ScalarFilterBase::bias_trend(Eigen::Array3d& rate_nT_per_h,
                              state_.bias_motion_sum_t_h * state_.bias_motion_sum_nT.array() / n;
   const Eigen::Array3d Smm =
       state_.bias_motion_sum_m2_nT2.array() - state_.bias_motion_sum_nT.array().square() / n;
-  rate_nT_per_h = Stm / Stt;
-  se2_nT2_per_h2 = ((Smm - rate_nT_per_h * Stm) / (n - 2)).max(1e-300) / Stt;
+  const Eigen::Array3d rate_as_solved = Stm / Stt;
+  se2_nT2_per_h2 = ((Smm - rate_as_solved * Stm) / (n - 2)).max(1e-300) / Stt;
+  // The biases at the current D d: m_k + J_k (d - d_k) (linear in D: its steps are small).
+  const Vector6d d = state_.x.tail<6>();
+  const Eigen::Vector3d sum_m =
+      state_.bias_motion_sum_nT + state_.bias_motion_sum_J_nT * d - state_.bias_motion_sum_Jd_nT;
+  const Eigen::Vector3d sum_tm = state_.bias_motion_sum_tm_nT_h +
+                                 state_.bias_motion_sum_tJ_nT_h * d -
+                                 state_.bias_motion_sum_tJd_nT_h;
+  rate_nT_per_h = (sum_tm.array() - state_.bias_motion_sum_t_h * sum_m.array() / n) / Stt;
   return true;
 }
 
@@ -669,17 +686,34 @@ void ScalarFilterBase::track_bias_motion() {
   state_.bias_block_start_m = state_.moments.m;
   state_.bias_block_start_n = state_.moments.n;
   state_.bias_block_start_utime = state_.last_utime;
+  const Matrix11d M = block.matrix();
   Eigen::Vector3d m;
-  if (!block_bias_given_scale(block, m)) return;
+  if (!block_bias_given_scale(M, state_.x, m)) return;
+  // Its sensitivity to D, by central differences (13 small solves every block_hours).
+  Eigen::Matrix<double, 3, 6> J;
+  for (int j = 0; j < 6; ++j) {
+    Vector9d plus = state_.x, minus = state_.x;
+    plus(3 + j) += kBlockBiasDStep;
+    minus(3 + j) -= kBlockBiasDStep;
+    Eigen::Vector3d m_plus, m_minus;
+    if (!block_bias_given_scale(M, plus, m_plus) || !block_bias_given_scale(M, minus, m_minus))
+      return;
+    J.col(j) = (m_plus - m_minus) / (2.0 * kBlockBiasDStep);
+  }
   const double t_h = static_cast<double>(state_.last_utime - state_.first_utime) /
                          (kMicrosecondsPerSecond * kSecondsPerHour) -
                      0.5 * elapsed_h;  // block centre
+  const Eigen::Vector3d Jd = J * state_.x.tail<6>();
   state_.bias_motion_n += 1;
   state_.bias_motion_sum_t_h += t_h;
   state_.bias_motion_sum_t2_h2 += t_h * t_h;
   state_.bias_motion_sum_nT += m;
   state_.bias_motion_sum_tm_nT_h += t_h * m;
   state_.bias_motion_sum_m2_nT2 += m.cwiseAbs2();
+  state_.bias_motion_sum_J_nT += J;
+  state_.bias_motion_sum_tJ_nT_h += t_h * J;
+  state_.bias_motion_sum_Jd_nT += Jd;
+  state_.bias_motion_sum_tJd_nT_h += t_h * Jd;
   if (state_.bias_motion_n < kBiasMotionMinBlocks) return;
   Eigen::Array3d rate, se2;
   if (!bias_trend(rate, se2)) return;

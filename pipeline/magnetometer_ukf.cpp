@@ -8,29 +8,52 @@
 namespace magcal {
 
 namespace {
+
 constexpr int kN = 9;  // state dimension
+
+// The scaled unscented transform's spread and weights (magnetometer_ukf.hpp).
+struct UnscentedWeights {
+  double lambda, spread, w0m, w0c, wi;
+};
+
+UnscentedWeights unscented_weights(double alpha, double beta, double kappa) {
+  UnscentedWeights w;
+  w.lambda = alpha * alpha * (kN + kappa) - kN;
+  w.spread = std::sqrt(kN + w.lambda);
+  w.w0m = w.lambda / (kN + w.lambda);
+  w.w0c = w.w0m + 1.0 - alpha * alpha + beta;
+  w.wi = 1.0 / (2.0 * (kN + w.lambda));
+  return w;
 }
+
+}  // namespace
 
 std::string UkfOptions::validate() const {
   std::string e = FilterOptions::validate();
   if (!e.empty()) return e;
   if (!(alpha > 0.0) || !std::isfinite(alpha)) return "ukf alpha must be > 0";
   if (!std::isfinite(beta) || !std::isfinite(kappa)) return "ukf beta and kappa must be finite";
-  const double lambda = alpha * alpha * (kN + kappa) - kN;
-  if (!(kN + lambda > 0.0)) return "ukf requires n + lambda = alpha^2 (n + kappa) > 0";
-  const double w0c = lambda / (kN + lambda) + 1.0 - alpha * alpha + beta;
-  if (w0c < 0.0) return "ukf requires W0c = lambda / (n + lambda) + 1 - alpha^2 + beta >= 0";
+  const UnscentedWeights w = unscented_weights(alpha, beta, kappa);
+  if (!(kN + w.lambda > 0.0)) return "ukf requires n + lambda = alpha^2 (n + kappa) > 0";
+  if (w.w0c < 0.0) return "ukf requires W0c = lambda / (n + lambda) + 1 - alpha^2 + beta >= 0";
   return {};
 }
 
 MagnetometerUkf::MagnetometerUkf(const Options& options)
-    : ScalarFilterBase(options, "ukf"), ukf_options_(options) {
+    : ScalarFilterBase(options, "ukf"),
+      alpha_(options.alpha),
+      beta_(options.beta),
+      kappa_(options.kappa) {
   assert(options.validate().empty());
-  const double lambda = options.alpha * options.alpha * (kN + options.kappa) - kN;
-  spread_ = std::sqrt(kN + lambda);
-  w0m_ = lambda / (kN + lambda);
-  w0c_ = w0m_ + 1.0 - options.alpha * options.alpha + options.beta;
-  wi_ = 1.0 / (2.0 * (kN + lambda));
+}
+
+MagnetometerUkf::Options MagnetometerUkf::options() const {
+  Options o;
+  static_cast<FilterOptions&>(o) = filter_options();
+  o.alpha = alpha_;
+  o.beta = beta_;
+  o.kappa = kappa_;
+  return o;
 }
 
 FilterUpdate MagnetometerUkf::update(const Eigen::Vector3d& b_sensor_nT, double h_norm_nT,
@@ -54,16 +77,18 @@ FilterUpdate MagnetometerUkf::update(const Eigen::Vector3d& b_sensor_nT, double 
     a(i) = y0.dot(m);
     q(i) = m.squaredNorm();
   }
-  const double s2 = spread_ * spread_;
-  const Vector9d z_plus = (z0 - 2.0 * spread_ * a.array() - s2 * q.array()).matrix();
-  const Vector9d z_minus = (z0 + 2.0 * spread_ * a.array() - s2 * q.array()).matrix();
-  const double y_hat = w0m_ * z0 + wi_ * (z_plus.sum() + z_minus.sum());
+  // Computed per sample (a few flops), not stored: memory per tracked spacecraft.
+  const auto [lambda, spread, w0m, w0c, wi] = unscented_weights(alpha_, beta_, kappa_);
+  const double s2 = spread * spread;
+  const Vector9d z_plus = (z0 - 2.0 * spread * a.array() - s2 * q.array()).matrix();
+  const Vector9d z_minus = (z0 + 2.0 * spread * a.array() - s2 * q.array()).matrix();
+  const double y_hat = w0m * z0 + wi * (z_plus.sum() + z_minus.sum());
   const double dz0 = z0 - y_hat;
   const Vector9d dzp = z_plus.array() - y_hat;
   const Vector9d dzm = z_minus.array() - y_hat;
-  const double hph = w0c_ * dz0 * dz0 + wi_ * (dzp.squaredNorm() + dzm.squaredNorm());
+  const double hph = w0c * dz0 * dz0 + wi * (dzp.squaredNorm() + dzm.squaredNorm());
   // Pxz = sum_i Wi (X_i - x)(Z_i - y_hat) = S v (the centre point has X_0 - x = 0).
-  const Vector9d v = (wi_ * spread_) * (dzp - dzm);
+  const Vector9d v = (wi * spread) * (dzp - dzm);
   finish_update(u, b_sensor_nT, h_norm_nT, y0, y_hat, hph, v);
   return u;
 }

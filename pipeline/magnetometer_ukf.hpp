@@ -41,7 +41,9 @@ class MagnetometerUkf : public ScalarFilterBase {
   // options must be valid (Options::validate() empty); asserted.
   explicit MagnetometerUkf(const Options& options = Options());
 
-  const Options& options() const { return ukf_options_; }
+  // The options it was built with (filter_options() and the three below: one copy is kept,
+  // per tracked spacecraft).
+  Options options() const;
 
   // One sample: b_sensor_nT = measured field (sensor frame), h_norm_nT = |reference field|,
   // utime = sample time (microseconds; the filter predicts by the time since the last sample,
@@ -49,9 +51,7 @@ class MagnetometerUkf : public ScalarFilterBase {
   FilterUpdate update(const Eigen::Vector3d& b_sensor_nT, double h_norm_nT, int64_t utime);
 
  private:
-  Options ukf_options_;
-  double spread_ = 0.0;  // sqrt(n + lambda)
-  double w0m_ = 0.0, w0c_ = 0.0, wi_ = 0.0;
+  double alpha_ = 0.0, beta_ = 0.0, kappa_ = 0.0;
 };
 
 }  // namespace magcal

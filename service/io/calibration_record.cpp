@@ -17,10 +17,12 @@ namespace {
 //   2  P blob = the Cholesky factor S, the noise estimate, the moments and the snapshot period;
 //      the reported covariance's blocks, the model error and the bias motion were appended in
 //      later releases and may be absent (read as their defaults);
-//   3  (written now) the same fields as 2, every section present, nothing after them.
+//   3  the same fields as 2, every section present, nothing after them;
+//   4  (written now) 3 and the bias-motion blocks' sensitivity to D (read as zero from 2 and 3:
+//      their blocks then count as solved, without the correction to the current D).
 // A blob of another version or not starting with "MCF" is refused with a message naming it.
 constexpr uint32_t kFilterBlobMagicBase = 0x4D434600;  // "MCF" + version digit, little-endian
-constexpr int kFilterBlobVersion = 3;
+constexpr int kFilterBlobVersion = 4;
 constexpr int kOldestFilterBlobVersion = 1;
 
 class BlobWriter {
@@ -129,6 +131,11 @@ void filter_state_fields(Io& io, State& st, int version) {
   io.each(st.bias_motion_sum_tm_nT_h);
   io.each(st.bias_motion_sum_m2_nT2);
   io(st.bias_random_walk_nT2_per_hour);
+  if (version < 4) return;
+  io.each(st.bias_motion_sum_J_nT);
+  io.each(st.bias_motion_sum_tJ_nT_h);
+  io.each(st.bias_motion_sum_Jd_nT);
+  io.each(st.bias_motion_sum_tJd_nT_h);
 }
 
 }  // namespace
@@ -407,7 +414,7 @@ std::string filter_state_from_stored(const storage::FilterState& in, FilterState
     return "filter state blob version " + std::to_string(version) + " ends after " +
            std::to_string(b.size()) + " bytes, inside its fields";
   }
-  if (version == kFilterBlobVersion && !reader.at_end()) {
+  if (version >= 3 && !reader.at_end()) {
     return "filter state blob version " + std::to_string(version) + " has " +
            std::to_string(b.size() - reader.pos()) + " bytes after its fields";
   }

@@ -11,6 +11,7 @@
 #include <catch2/catch.hpp>
 
 #include "pipeline/acceptance_gates.hpp"
+#include "pipeline/batch_calibration.hpp"
 #include "pipeline/magnetometer_ekf.hpp"
 #include "pipeline/magnetometer_ukf.hpp"
 #include "pipeline/scenario.hpp"
@@ -26,18 +27,8 @@ struct TruthSample {
   Eigen::Vector3d bias_nT;  // b(t, T) at this sample
 };
 
-// The paper sensor with a linear bias drift (nT/h per axis) and, if swing, a +-10 nT
-// orbit-synchronous thermal swing.
-std::vector<TruthSample> simulate_drift(uint64_t seed, double hours,
-                                        const Eigen::Vector3d& drift_nT_per_h, bool swing) {
-  Scenario sc = *scenario_preset("paper");
-  sc.seed = seed;
-  sc.duration_s = hours * 3600.0;
-  if (swing) {
-    sc.sensor.temperature_amplitude_C = 10.0;
-    sc.sensor.temperature_coefficient_nT_per_C = Eigen::Vector3d(1.0, 1.0, 1.0);  // +-10 nT
-  }
-  sc.sensor.drift_nT_per_day = 24.0 * drift_nT_per_h;
+// Every sample of the scenario with the true current bias.
+std::vector<TruthSample> simulate_with_truth(const Scenario& sc) {
   Simulator sim(sc);
   SensorModelParameters p = sc.sensor;
   p.temperature_period_s = sim.truth().temperature_period_s;
@@ -49,6 +40,26 @@ std::vector<TruthSample> simulate_drift(uint64_t seed, double hours,
     out.push_back({s.calibration_sample(), truth.bias_nT(t_s, s.temperature_C)});
   }
   return out;
+}
+
+Scenario paper_day(uint64_t seed, double hours) {
+  Scenario sc = *scenario_preset("paper");
+  sc.seed = seed;
+  sc.duration_s = hours * 3600.0;
+  return sc;
+}
+
+// The paper sensor with a linear bias drift (nT/h per axis) and, if swing, a +-10 nT
+// orbit-synchronous thermal swing.
+std::vector<TruthSample> simulate_drift(uint64_t seed, double hours,
+                                        const Eigen::Vector3d& drift_nT_per_h, bool swing) {
+  Scenario sc = paper_day(seed, hours);
+  if (swing) {
+    sc.sensor.temperature_amplitude_C = 10.0;
+    sc.sensor.temperature_coefficient_nT_per_C = Eigen::Vector3d(1.0, 1.0, 1.0);  // +-10 nT
+  }
+  sc.sensor.drift_nT_per_day = 24.0 * drift_nT_per_h;
+  return simulate_with_truth(sc);
 }
 
 // moving = false: the same paper sensor with a constant bias (the control).
@@ -74,33 +85,37 @@ struct Outcome {
   Eigen::Vector3d rms() const { return (sum_z2 / std::max(ok, 1)).cwiseSqrt(); }
 };
 
+// One snapshot against the truth (gated as the daemon gates it).
+template <class Filter>
+void judge_snapshot(Filter& f, const TruthSample& truth, int64_t first_utime, Outcome& o) {
+  CalibrationResult r = f.snapshot_and_reset_period();
+  ++o.snapshots;
+  GateVerdict v = evaluate_gates(r, GateInputs{}, GateOptions{});
+  reject_unless_ok(r, v);
+  o.max_random_walk = std::max(o.max_random_walk, f.bias_random_walk_nT_per_sqrt_hour());
+  o.moving_messages += r.message.find("the bias moves") != std::string::npos;
+  const Eigen::Vector3d z = (r.parameters.bias_nT - truth.bias_nT).cwiseQuotient(r.bias_sigma_nT());
+  if (f.initialized()) {
+    ++o.started;
+    o.started_sum_z2 += z.cwiseAbs2();
+  }
+  if (r.status != CalibrationStatus::kOk) return;
+  ++o.ok;
+  o.accepted += v.accepted;
+  o.sum_z2 += z.cwiseAbs2();
+  const double worst = z.cwiseAbs().maxCoeff();
+  o.beyond_3_sigma += worst > 3.0;
+  o.beyond_3_sigma_per_axis += (z.cwiseAbs().array() > 3.0).cast<int>().matrix();
+  o.worst = std::max(o.worst, worst);
+  if (o.first_ok_h < 0) o.first_ok_h = (truth.sample.utime - first_utime) * 1e-6 / 3600.0;
+}
+
 template <class Filter>
 void replay(Filter& f, const std::vector<TruthSample>& data, Outcome& o) {
   for (size_t k = 0; k < data.size(); ++k) {
     const CalibrationSample& c = data[k].sample;
     f.update(c.b_sensor_nT, c.h_body_nT.norm(), c.utime);
-    if ((k + 1) % 90 != 0) continue;  // every 15 min, as the daemon
-    CalibrationResult r = f.snapshot_and_reset_period();
-    ++o.snapshots;
-    GateVerdict v = evaluate_gates(r, GateInputs{}, GateOptions{});
-    reject_unless_ok(r, v);
-    o.max_random_walk = std::max(o.max_random_walk, f.bias_random_walk_nT_per_sqrt_hour());
-    o.moving_messages += r.message.find("the bias moves") != std::string::npos;
-    const Eigen::Vector3d z =
-        (r.parameters.bias_nT - data[k].bias_nT).cwiseQuotient(r.bias_sigma_nT());
-    if (f.initialized()) {
-      ++o.started;
-      o.started_sum_z2 += z.cwiseAbs2();
-    }
-    if (r.status != CalibrationStatus::kOk) continue;
-    ++o.ok;
-    o.accepted += v.accepted;
-    o.sum_z2 += z.cwiseAbs2();
-    const double worst = z.cwiseAbs().maxCoeff();
-    o.beyond_3_sigma += worst > 3.0;
-    o.beyond_3_sigma_per_axis += (z.cwiseAbs().array() > 3.0).cast<int>().matrix();
-    o.worst = std::max(o.worst, worst);
-    if (o.first_ok_h < 0) o.first_ok_h = (c.utime - data.front().sample.utime) * 1e-6 / 3600.0;
+    if ((k + 1) % 90 == 0) judge_snapshot(f, data[k], data.front().sample.utime, o);  // 15 min
   }
 }
 
@@ -204,9 +219,9 @@ std::pair<Outcome, Outcome> replay_drifts(std::mt19937_64& rng, Draw rate_nT_per
 // (near-invisible). Bar: per axis, >= 99 % of the ok snapshots within 3 sigma of the current bias;
 // a bias that moves faster than the data observe it is not_converged.
 //
-// The trend test alone does not hold this: drifts it cannot see (or sees cancelled by the first
-// blocks' systematic, filter_common.hpp) leave a static filter lagging by up to 12 sigma while ok;
-// the floor of the bias random walk (FilterOptions) keeps x and z within their sigmas.
+// The trend test alone does not hold this: drifts it cannot see leave a static filter lagging by
+// up to 12 sigma while ok; the floor of the bias random walk (FilterOptions) keeps x and z within
+// their sigmas.
 // Not met on y (issue 20 item 3 still open there; CHECK_NOFAIL reports it): a drift of ~2-3 nT/h
 // on the orbit normal alone (x, z drifting slowly) is below what the block biases resolve on that
 // axis (their trend's standard error there is ~2 nT/h), and the isotropic floor (0.5 nT/sqrt(h))
@@ -240,4 +255,70 @@ TEST_CASE("Linear bias drift alone: ok snapshots within 3 sigma of the current b
   // 0.1 nT/h moves the bias 2.4 nT in a day: the filters still reach ok.
   CHECK(ekf_slow.ok > ekf_slow.snapshots / 4);
   CHECK(ukf_slow.ok > ukf_slow.snapshots / 4);
+}
+
+namespace {
+
+// A UKF as the daemon runs it for a new spacecraft on its embedded defaults: `ok` waits for a
+// refit's model error, and twostep refits of all samples so far at 1 000 samples, then each
+// sqrt(2) more until the first full window (4 000), re-anchor it when accepted (with their
+// residual rms as its noise seed), as service/daemon/ingest_worker.cpp does.
+void replay_with_refits(const std::vector<TruthSample>& data, Outcome& o, int& refits,
+                        int& refits_accepted) {
+  MagnetometerUkf::Options options;
+  options.ok_needs_model_error = true;
+  MagnetometerUkf ukf(options);
+  SampleSet window;
+  double next_refit = 1000.0;
+  for (size_t k = 0; k < data.size(); ++k) {
+    const CalibrationSample& c = data[k].sample;
+    ukf.update(c.b_sensor_nT, c.h_body_nT.norm(), c.utime);
+    window.push_back(c);
+    if (next_refit <= 4000.5 && static_cast<double>(window.size()) >= std::round(next_refit)) {
+      next_refit *= std::sqrt(2.0);
+      const CalibrationResult refit = calibrate_batch(window, BatchCalibrationOptions{});
+      ++refits;
+      if (refit.accepted) {
+        ++refits_accepted;
+        ukf.reanchor(refit.parameters.packed(), refit.covariance, refit.model_error_covariance());
+        ukf.seed_noise(refit.residual_rms_nT);
+      }
+    }
+    if ((k + 1) % 90 == 0) judge_snapshot(ukf, data[k], data.front().sample.utime, o);
+  }
+}
+
+}  // namespace
+
+// Issue 20: a side-panel sensor (mounted at pitch 90 deg, so the orbit normal is no longer one
+// sensor axis) with a constant bias. The bias-motion blocks of the first hours are solved at the
+// young filter's D, and each re-anchor moves D by much more than the later refits' sigmas: taken
+// as solved, those blocks made a trend (measured before the blocks were corrected to the current
+// D: 1.5-3.6 nT/sqrt(h) of random walk from 14 h on, the UKF not_converged for the rest of the day
+// while every refit was accepted at about 1 nT). Bar: no motion measured, every ok snapshot within
+// 3 sigma of the truth, and the UKF ok for most of the time after the first full-window refit.
+TEST_CASE(
+    "Side-panel sensor, constant bias, daemon refits: no false bias motion, ok within 3 sigma") {
+  Outcome total;
+  int refits = 0, refits_accepted = 0;
+  for (uint64_t seed : {1, 2, 3}) {
+    Scenario sc = paper_day(seed, 24.0);
+    sc.sensor.installation_deg = Eigen::Vector3d(30.0, 90.0, -50.0);
+    sc.sensor.internal_misalignment_mrad.setZero();
+    Outcome o;
+    replay_with_refits(simulate_with_truth(sc), o, refits, refits_accepted);
+    report(("side panel, seed " + std::to_string(seed)).c_str(), o);
+    add(total, o);
+    total.beyond_3_sigma += o.beyond_3_sigma;
+    CHECK(o.max_random_walk == 0.0);
+    CHECK(o.moving_messages == 0);
+    CHECK(o.ok > 0);
+  }
+  // The first full-window refit comes at 11.1 h; after it the weakly observed axis's sigma (the
+  // refit's model error, ~9 nT) stays near the 10 nT bound: ok for much of the time, not all.
+  CHECK(total.ok > total.snapshots / 3);
+  WARN("side panel, 3 seeds: " << per_axis(total) << "; refits accepted " << refits_accepted
+                               << " of " << refits);
+  REQUIRE(refits_accepted == refits);  // the refits are fine: the filter must not contradict them
+  CHECK(total.beyond_3_sigma == 0);
 }

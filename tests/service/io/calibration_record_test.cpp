@@ -194,8 +194,8 @@ TEST_CASE("calibration_t converts to and from a history record without loss") {
 
 namespace {
 
-// A filter state with every field set: a UKF run over noisy samples, re-anchored half-way (the
-// model error), its state as the daemon saves it.
+// A filter state with every field set: a UKF run over noisy samples for 5 h (two bias-motion
+// blocks closed), re-anchored early (the model error), its state as the daemon saves it.
 FilterState run_filter_state() {
   std::mt19937_64 rng(17);
   std::normal_distribution<double> n(0.0, 1.0);
@@ -203,13 +203,15 @@ FilterState run_filter_state() {
   const Eigen::Vector3d b(1000.0, 800.0, 900.0);
   Vector9d model_error;
   model_error << 1.2, -4.2, 0.1, 1e-5, 2e-5, -3e-5, 4e-6, -5e-5, 6e-6;
-  for (int k = 0; k < 300; ++k) {
+  for (int k = 0; k < 1800; ++k) {
     const Eigen::Vector3d h = 40000.0 * Eigen::Vector3d(n(rng), n(rng), n(rng)).normalized();
     ukf.update(h + b + 3.0 * Eigen::Vector3d(n(rng), n(rng), n(rng)), 40000.0,
                1704067200000000 + k * 10'000'000LL);
     if (k == 150) ukf.reanchor(ukf.x(), ukf.P(), model_error * model_error.transpose());
   }
   REQUIRE(ukf.initialized());
+  REQUIRE(ukf.state().bias_motion_n == 2);
+  REQUIRE(ukf.state().bias_motion_sum_J_nT.norm() > 0.0);
   return ukf.state();
 }
 
@@ -243,11 +245,11 @@ TEST_CASE("a filter state blob of an unknown version or format is refused, namin
   storage::FilterState stored = stored_filter_state("SAT-1", "ukf", run_filter_state());
   FilterState back;
   REQUIRE(stored.counters.size() > 4);
-  CHECK(stored.counters[0] == '3');  // "MCF" + version, little-endian: the version comes first
+  CHECK(stored.counters[0] == '4');  // "MCF" + version, little-endian: the version comes first
   auto newer = stored;
   newer.counters[0] = '7';
   CHECK(filter_state_from_stored(newer, back) ==
-        "filter state blob version 7: this magcal reads 1 to 3");
+        "filter state blob version 7: this magcal reads 1 to 4");
   auto foreign = stored;
   foreign.counters[3] = 'X';
   CHECK(filter_state_from_stored(foreign, back).starts_with("not a magcal filter state"));
@@ -258,11 +260,28 @@ TEST_CASE("a filter state blob of an unknown version or format is refused, namin
   longer.counters.push_back(0);
   CHECK(filter_state_from_stored(longer, back).find("1 bytes after its fields") !=
         std::string::npos);
-  // Version 2 had the same fields (the later ones optional): a version 2 blob still restores.
-  auto v2 = stored;
+  // Version 3 is version 4 without the blocks' sensitivity to D (3 x 6 x 2 + 3 x 2 doubles at
+  // the end): it restores with those sums zero, everything else as written.
+  FilterState from_v4;
+  REQUIRE(filter_state_from_stored(stored, from_v4) == "");
+  auto v3 = stored;
+  v3.counters[0] = '3';
+  v3.counters.resize(v3.counters.size() - (36 + 6) * sizeof(double));
+  FilterState from_v3;
+  REQUIRE(filter_state_from_stored(v3, from_v3) == "");
+  FilterState expected = from_v4;
+  expected.bias_motion_sum_J_nT.setZero();
+  expected.bias_motion_sum_tJ_nT_h.setZero();
+  expected.bias_motion_sum_Jd_nT.setZero();
+  expected.bias_motion_sum_tJd_nT_h.setZero();
+  CHECK(from_v3 == expected);
+  auto v3_longer = v3;
+  v3_longer.counters.push_back(0);
+  CHECK(filter_state_from_stored(v3_longer, back).find("1 bytes after its fields") !=
+        std::string::npos);
+  // Version 2 had the same fields as 3 (the later ones optional): a version 2 blob still restores.
+  auto v2 = v3;
   v2.counters[0] = '2';
   REQUIRE(filter_state_from_stored(v2, back) == "");
-  FilterState from_v3;
-  REQUIRE(filter_state_from_stored(stored, from_v3) == "");
   CHECK(back == from_v3);
 }
