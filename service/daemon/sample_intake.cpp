@@ -84,13 +84,12 @@ void SampleIntake::restore(CommitParticipant& owner) {
                  held - counters_.spill_recovered.load());
   }
   for (const auto& sat : samples_.spacecraft()) restore_spacecraft(sat);
-  new_spacecraft_.clear();  // stored: their lease rows exist
 }
 
 void SampleIntake::restore_spacecraft(const std::string& sat) {
   const auto newest = samples_.newest_utime(sat);
   if (!newest) return;
-  ReceivedSpacecraft& t = fleet_.get(sat);
+  ReceivedSpacecraft& t = spacecraft(sat);  // (its lease row ensured: stored before leases were)
   t.newest_utime = *newest;
   t.stored_bound_utime = *newest;
   samples_.read_window(sat, *newest, saturating_add(*newest, 1), read_rows_);

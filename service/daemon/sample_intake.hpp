@@ -99,7 +99,8 @@ class SampleIntake {
   void begin_frame() { ++frame_counter_; }
   // Validates and ingests one sample of the frame.
   void ingest(const mag_sample_t& s, const std::string& batch_sat_id, int64_t receive_utime);
-  // Spacecraft seen here for the first time since the last call (their lease rows are due).
+  // Spacecraft new to this process since the last call, received or restored (their lease
+  // rows are ensured).
   std::vector<std::string> take_new_spacecraft();
   bool has_new_spacecraft() const { return !new_spacecraft_.empty(); }
 
