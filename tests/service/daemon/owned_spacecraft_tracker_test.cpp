@@ -64,6 +64,17 @@ struct StationB {
   void hand_over() { leases->release("SAT-1", "B", epoch, wall_now_utime()); }
 };
 
+// Station B (holding SAT-1's lease) and station A's worker, restored, on one database.
+struct TwoStations {
+  StationB b;
+  DaemonCounters counters;
+  IngestWorker a;
+  explicit TwoStations(const std::string& db)
+      : b(db), a(station_config(db, "A"), counters, std::make_unique<ReferenceField>(), {}) {
+    a.restore();
+  }
+};
+
 void feed(IngestWorker& w, const std::vector<mag_sample_t>& s) {
   for (size_t i = 0; i < s.size(); i += kLogBatch) {
     IngestItem item;
@@ -90,11 +101,8 @@ TEST_CASE(
     "it the UKF takes the union",
     "[owned_spacecraft_tracker]") {
   TempDir tmp("magcal_owner_test_union");
-  StationB b(tmp.file("m.db"));
-  DaemonCounters counters;
-  IngestWorker a(station_config(tmp.file("m.db"), "A"), counters,
-                 std::make_unique<ReferenceField>(), {});
-  a.restore();
+  TwoStations fleet(tmp.file("m.db"));
+  auto& [b, counters, a] = fleet;
   feed(a, samples(0, 300));
   a.track_all_now();
   a.flush();
@@ -122,11 +130,8 @@ TEST_CASE(
 TEST_CASE("a refit still running elsewhere at the takeover re-anchors the new owner when it ends",
           "[owned_spacecraft_tracker][refit]") {
   TempDir tmp("magcal_owner_test_refit-elsewhere");
-  StationB b(tmp.file("m.db"));
-  DaemonCounters counters;
-  IngestWorker a(station_config(tmp.file("m.db"), "A"), counters,
-                 std::make_unique<ReferenceField>(), {});
-  a.restore();
+  TwoStations fleet(tmp.file("m.db"));
+  auto& [b, counters, a] = fleet;
   const auto s = samples(0, 600);
   feed(a, s);
   // B (the owner) started the refit of the window ending at sample 499, then handed over.
