@@ -13,7 +13,7 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
           config.storage.db_path,
           storage::OpenOptions{.busy_timeout_ms = config.storage.busy_timeout_ms})),
       samples_(db_->make_sample_window_store()),
-      fleet_(config.ukf.filter, counters),
+      fleet_(config.ukf.filter, &counters),
       intake_(config_, counters, std::move(field), *db_, *samples_, fleet_),
       owner_(config_, counters, *db_, *samples_, fleet_, intake_, std::move(hooks),
              OwnedSpacecraftTracker::Links{[this](bool block) { return commit_all(block); }}) {}

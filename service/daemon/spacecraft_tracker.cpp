@@ -163,11 +163,11 @@ SpacecraftTracker* SpacecraftFleet::find(const std::string& sat_id) {
 
 SpacecraftTracker& SpacecraftFleet::get(const std::string& sat_id, bool* created) {
   auto [it, inserted] = trackers_.try_emplace(sat_id, options_);
-  if (inserted) {
-    SpacecraftCounters* c = &counters_.spacecraft.spacecraft(sat_id);
+  if (inserted && counters_ != nullptr) {
+    SpacecraftCounters* c = &counters_->spacecraft.spacecraft(sat_id);
     static_cast<ReceivedSpacecraft&>(it->second).counters = c;
     static_cast<OwnedSpacecraft&>(it->second).counters = c;
-    counters_.n_spacecraft.store(static_cast<int32_t>(trackers_.size()));
+    counters_->n_spacecraft.store(static_cast<int32_t>(trackers_.size()));
   }
   if (created) *created = inserted;
   return it->second;

@@ -218,7 +218,8 @@ struct SpacecraftTracker : ReceivedSpacecraft, OwnedSpacecraft {
 // Every spacecraft this daemon receives or owns. Shared by the worker's two parts (one thread).
 class SpacecraftFleet {
  public:
-  SpacecraftFleet(MagnetometerUkf::Options options, DaemonCounters& counters)
+  // `counters`: the daemon's (nullptr: none, e.g. a memory benchmark of the trackers alone).
+  explicit SpacecraftFleet(MagnetometerUkf::Options options, DaemonCounters* counters = nullptr)
       : options_(options), counters_(counters) {}
 
   SpacecraftTracker* find(const std::string& sat_id);
@@ -238,7 +239,7 @@ class SpacecraftFleet {
 
  private:
   MagnetometerUkf::Options options_;
-  DaemonCounters& counters_;
+  DaemonCounters* counters_;
   std::unordered_map<std::string, SpacecraftTracker> trackers_;
 };
 

@@ -111,7 +111,7 @@ struct Intake {
       : config(config_for(path, "A")),
         db(storage::open_database(path)),
         store(*db),
-        fleet(config.ukf.filter, counters),
+        fleet(config.ukf.filter, &counters),
         intake(config, counters, std::make_unique<ReferenceField>(), *db, store, fleet) {}
 
   void feed(const std::vector<mag_sample_t>& s, size_t from, size_t to) {
