@@ -1,8 +1,9 @@
 // magcald's threads and their wiring (design.md "Daemon data flow"):
 //
 //   caller's thread : LCM receive loop (LcmIngest) -> IngestQueue
-//   worker thread   : IngestQueue -> IngestWorker (validate, UKF, SQLite, snapshots);
-//                     daemon_status_t every [service] status_every_s, counters in the log every
+//   worker thread   : IngestQueue -> IngestWorker: SampleIntake (validate, store: every
+//                     station) then OwnedSpacecraftTracker (the owned spacecraft's UKF over the
+//                     stored union, snapshots, refit triggers, leases); daemon_status_t every [service] status_every_s, counters in the log every
 //                     [log] status_every_s, filter states every 30 s
 //   refit thread    : scheduled refits (wall clock: its own timer, every spacecraft; data
 //                     clock: requests from the worker, each spacecraft on its own data time) on

@@ -5,6 +5,7 @@
 
 #include "pipeline/temperature_model.hpp"
 #include "pipeline/time_utc.hpp"
+#include "service/daemon/health.hpp"
 
 namespace magcal {
 
@@ -88,11 +89,11 @@ int64_t SeqGapCounter::observe(int64_t seq) {
   return 0;
 }
 
-bool SpacecraftTracker::on_time_base(int64_t utime, int64_t max_time_jump_utime) const {
+bool ReceivedSpacecraft::on_time_base(int64_t utime, int64_t max_time_jump_utime) const {
   return newest_utime != kNoTime && utime <= saturating_add(newest_utime, max_time_jump_utime);
 }
 
-int64_t SpacecraftTracker::corroborated_utime(int64_t max_time_jump_utime) const {
+int64_t ReceivedSpacecraft::corroborated_utime(int64_t max_time_jump_utime) const {
   if (held.size() < static_cast<size_t>(kCorroborating) + 1) return kNoTime;
   const HeldSample& latest = held.back();
   int members = 0;
@@ -109,7 +110,7 @@ int64_t SpacecraftTracker::corroborated_utime(int64_t max_time_jump_utime) const
   return newest;
 }
 
-int64_t SpacecraftTracker::likeliest_held_utime(int64_t max_time_jump_utime) const {
+int64_t ReceivedSpacecraft::likeliest_held_utime(int64_t max_time_jump_utime) const {
   // Quadratic in the hold (at most kHeldCapacity), run once per spacecraft that needs it.
   int best_members = 0;
   int64_t best = kNoTime;
@@ -130,7 +131,7 @@ int64_t SpacecraftTracker::likeliest_held_utime(int64_t max_time_jump_utime) con
   return best;
 }
 
-void SpacecraftTracker::hold(const mag_sample_t& s, int64_t receive_utime, int64_t frame) {
+void ReceivedSpacecraft::hold(const mag_sample_t& s, int64_t receive_utime, int64_t frame) {
   HeldSample& h = held.emplace_back();
   // Field by field: the sat_id (possibly long) is the tracker's and is not copied.
   h.sample.utime = s.utime;
@@ -148,7 +149,7 @@ void SpacecraftTracker::hold(const mag_sample_t& s, int64_t receive_utime, int64
   h.advances_at_hold = advances;
 }
 
-bool SpacecraftTracker::holds_utime(int64_t utime) const {
+bool ReceivedSpacecraft::holds_utime(int64_t utime) const {
   for (const auto& h : held) {
     if (h.sample.utime == utime) return true;
   }
@@ -162,6 +163,12 @@ SpacecraftTracker* SpacecraftFleet::find(const std::string& sat_id) {
 
 SpacecraftTracker& SpacecraftFleet::get(const std::string& sat_id, bool* created) {
   auto [it, inserted] = trackers_.try_emplace(sat_id, options_);
+  if (inserted && counters_ != nullptr) {
+    SpacecraftCounters* c = &counters_->spacecraft.spacecraft(sat_id);
+    static_cast<ReceivedSpacecraft&>(it->second).counters = c;
+    static_cast<OwnedSpacecraft&>(it->second).counters = c;
+    counters_->n_spacecraft.store(static_cast<int32_t>(trackers_.size()));
+  }
   if (created) *created = inserted;
   return it->second;
 }

@@ -1,0 +1,235 @@
+// Track: the part of the daemon's worker that runs only for the spacecraft this daemon owns
+// (design.md "Fleet"). The daemon holding a spacecraft's lease (LeaseStore, maintain_leases()
+// every [fleet] lease_s / 3; the live daemons share the spacecraft evenly) reads back the union
+// of all stations' stored samples in time order, [fleet] reorder_delay_s of data time behind the
+// newest (track_union()), and runs them through the UKF: snapshots every `snapshot_every_s` of
+// DATA time, on a grid every owner shares (history row + calibration_t), and the refit triggers
+// (the data clock, each spacecraft on its own data time; early refits). The filter only ever
+// takes committed samples, so a stored state never includes a sample that could come again.
+//
+// It touches only the OwnedSpacecraft half of each spacecraft and the history, filter-state,
+// job-log and lease stores; it reads the sample window. It never writes a sample. Its couplings
+// with the intake (SampleIntake), each for a reason:
+//   - Its snapshot rows and the filter states due ride in the transaction of the intake's last
+//     sample chunk (CommitParticipant), so a stored state includes exactly the committed
+//     samples; a commit is two rounds (IngestWorker::commit()): the samples, then what the
+//     filters made of them once read back.
+//   - Those writes are fenced by the lease inside that transaction (LeaseStore::holds(); on
+//     PostgreSQL the lease row stays locked until the commit, so a takeover waits for it): a
+//     daemon that stalled past its lease writes nothing.
+//   - Before a refit is requested, everything is committed (Links::commit_for_refit): the refit
+//     reads the window from the database. During a PostgreSQL outage (samples held or spilled)
+//     a data-clock refit waits, and is requested once everything is committed
+//     (request_deferred_refits()).
+//   - Retention: only the owner lets the intake delete, behind its filter
+//     (SampleIntake::allow_retention()).
+//
+// Takeover (take_over(): at a restart, or from a daemon that died or handed it over): the UKF
+// from its stored state, then the normal reading of the union goes on after the state's last
+// sample, with its snapshots and refit triggers, as the previous owner would have (snapshots
+// and states are committed together, so none is lost or repeated). An accepted refit the stored
+// state was not re-anchored on is applied then; one still running elsewhere when the lease came
+// here is applied when it ends (poll_refits_elsewhere()). Each data-clock schedule resumes after
+// the last scheduled refit that ran to its end, so a refit that was due when the owner died
+// runs again (its job claim was given up: RefitJobLog).
+#pragma once
+
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <mutex>
+#include <optional>
+#include <set>
+#include <span>
+#include <stdexcept>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "pipeline/calibration_result.hpp"
+#include "service/daemon/daemon_config.hpp"
+#include "service/daemon/health.hpp"
+#include "service/daemon/refit_scheduler.hpp"
+#include "service/daemon/sample_intake.hpp"
+#include "service/daemon/spacecraft_tracker.hpp"
+#include "service/daemon/throttled_log.hpp"
+#include "storage/calibration_history.hpp"
+#include "storage/connection.hpp"
+#include "storage/filter_state_store.hpp"
+#include "storage/lease_store.hpp"
+#include "storage/refit_job_log.hpp"
+#include "storage/sample_window_store.hpp"
+
+namespace magcal {
+
+// Another live process beats under this daemon's [station] id: a misuse (two daemons with one
+// id would both own the same spacecraft). Ends the daemon (exit 1) with the reason.
+struct StationConflict : std::runtime_error {
+  using std::runtime_error::runtime_error;
+};
+
+class OwnedSpacecraftTracker final : public CommitParticipant {
+ public:
+  struct Hooks {
+    // A UKF snapshot was committed (publish it).
+    std::function<void(const std::string& sat_id, const CalibrationResult&)> on_snapshot;
+    // A refit of sat_id's window ending at t_ref is due, and its samples up to t_ref are
+    // committed. trigger "scheduled" (data clock: sat_id's own data time passed its scheduled
+    // time t_ref), or "first" / "early" (EarlyRefitPlan: its UKF started from data and the
+    // stored samples reached min_samples, or grew by [refit] early_growth since, while they span
+    // less than window_hours; t_ref is the time of the N-th stored sample, so the window holds
+    // exactly N: each refit re-anchors the filter with a covariance from the residuals'
+    // structure, hours before the schedule would).
+    std::function<void(const std::string& sat_id, int64_t t_ref_utime, const char* trigger)>
+        on_refit_due;
+  };
+  // What it asks of the worker that sequences it with the intake (IngestWorker).
+  struct Links {
+    // Everything received so far committed, with this tracker's writes: true when it is. May
+    // wait through the retry backoff (`block`, SQLite) or make one attempt (PostgreSQL, and
+    // before a handover).
+    std::function<bool(bool block)> commit_all;
+  };
+
+  // Uses the stores on one thread's connection `db`; reads `samples`; `intake` for retention
+  // and the time base of a spacecraft it takes over without having received it.
+  OwnedSpacecraftTracker(const DaemonConfig& config, DaemonCounters& counters,
+                         storage::Connection& db, storage::SampleWindowStore& samples,
+                         SpacecraftFleet& fleet, SampleIntake& intake, Hooks hooks, Links links);
+
+  // Heartbeat, lease renewal, takeovers and handovers. A storage error is logged and counted;
+  // the next round retries (leases not renewed in time are lost, and given up here). Throws
+  // StationConflict.
+  void maintain_leases();
+  std::chrono::steady_clock::time_point next_lease_round() const { return next_lease_round_; }
+  // Spacecraft new here: their lease rows are ensured at the next round, which is now.
+  void register_spacecraft(std::vector<std::string> sat_ids);
+  // Live stations at the last lease round (1: alone).
+  size_t live_stations() const { return live_stations_; }
+  // At a clean stop, with everything committed: hands every owned spacecraft back and ends the
+  // heartbeat, so the other daemons take over at once instead of after the lease time.
+  void release_all();
+  // From any thread: this daemon holds sat_id's lease.
+  bool owns(const std::string& sat_id) const;
+  size_t owned_count();
+
+  // The owned filters read the union where it grew (union_due), and every kUnionPoll_s where
+  // other stations may have stored samples; with `drain` all of them, without the reorder
+  // delay (end of a replay, shutdown). A storage error leaves the filters where they are (read
+  // again after the next commit).
+  void track_owned(bool drain);
+  // track_owned() is running (a commit inside it must not start another).
+  bool tracking() const { return tracking_; }
+
+  // Data-clock refits deferred during an outage: requested now (their samples are committed).
+  void request_deferred_refits();
+  // From any thread: re-anchor sat_id's UKF on an accepted refit, stored as calibration_id
+  // (applied by the worker thread at its next apply_reanchors()).
+  void post_reanchor(const std::string& sat_id, const CalibrationResult& refit,
+                     int64_t calibration_id);
+  void apply_reanchors_if_posted() {
+    if (have_reanchors_.load(std::memory_order_acquire)) apply_reanchors();
+  }
+  // Writes the filter state of every owned spacecraft whose filter changed since the last write,
+  // fenced by its lease (call with every sample it used committed). A failure is logged and
+  // counted; the states are written next time.
+  void save_dirty_states();
+  // At a stop while the database is unreachable: the snapshots not stored are dropped (logged),
+  // the states are not saved (the next start re-runs the filters over the newer samples).
+  void drop_unstored_writes();
+  int64_t pending_snapshots() const { return static_cast<int64_t>(pending_snapshots_.size()); }
+
+  // CommitParticipant: snapshots and due states, fenced by the leases; the owned spacecraft
+  // among committed rows read the union next.
+  bool has_writes() const override { return !pending_snapshots_.empty() || !states_due_.empty(); }
+  void write() override;
+  void written() override;
+  void samples_committed(std::span<const storage::StoredSample> rows) override;
+
+ private:
+  // estimation.md 3a: t's UKF continues from the accepted refit (stored as calibration_id).
+  void reanchor(const std::string& sat_id, OwnedSpacecraft& t, const CalibrationResult& refit,
+                int64_t calibration_id);
+  void apply_reanchors();
+  // t's state goes into the next commit (OwnedSpacecraft::state_due).
+  void mark_state_due(const std::string& sat_id, OwnedSpacecraft& t);
+  storage::FilterState stored_state(const std::string& sat_id, const OwnedSpacecraft& t) const;
+  void maybe_snapshot(const std::string& sat_id, OwnedSpacecraft& t, int64_t utime);
+  // The filter from its stored state, and a re-anchor the state does not have yet (deferred to
+  // the refit's time).
+  void restore_filter(const std::string& sat_id, OwnedSpacecraft& t);
+  // An accepted refit newer than t's anchor, stored meanwhile: t re-anchors on it once its
+  // filter has passed the refit's time (at once when it has).
+  void catch_up_reanchor(const std::string& sat_id, OwnedSpacecraft& t, int64_t reanchor_id);
+  void apply_deferred_reanchor(const std::string& sat_id, OwnedSpacecraft& t);
+  // A refit of an owned spacecraft still running at another station after the takeover: its
+  // re-anchor is applied once it ends (checked every lease round).
+  void poll_refits_elsewhere();
+  // This daemon got sat_id's lease of `epoch`: the filter, its counts and schedule from the
+  // database (see file comment).
+  void take_over(const std::string& sat_id, SpacecraftTracker& t, int64_t epoch);
+  // This daemon no longer owns sat_id (lost or handed over): its filter stops, nothing of it is
+  // written any more.
+  void give_up(const std::string& sat_id, OwnedSpacecraft& t);
+  // The owner's filter takes the union's stored samples after filtered_utime, up to the reorder
+  // horizon (all of them with `drain`).
+  void track_union(const std::string& sat_id, OwnedSpacecraft& t, bool drain);
+  // Data clock: advances sat_id's refit schedule to its filter's time; due refits are
+  // committed up to their time, then handed to on_refit_due.
+  void check_data_clock(const std::string& sat_id, OwnedSpacecraft& t);
+  // Requests sat_id's first or next early refit once it is due (Hooks::on_refit_due).
+  void check_early_refit(const std::string& sat_id, OwnedSpacecraft& t);
+  // In the commit of snapshots and states: gives up (and drops the writes of) every spacecraft
+  // whose lease is no longer this daemon's.
+  void fence_owned_writes();
+
+  const DaemonConfig& config_;
+  DaemonCounters& counters_;
+  Hooks hooks_;
+  Links links_;
+  storage::Connection& db_;
+  storage::SampleWindowStore& samples_;  // read only
+  std::unique_ptr<storage::CalibrationHistory> history_;
+  std::unique_ptr<storage::FilterStateStore> filter_states_;
+  std::unique_ptr<storage::RefitJobLog> jobs_;
+  std::unique_ptr<storage::LeaseStore> leases_;
+  SpacecraftFleet& fleet_;
+  SampleIntake& intake_;
+  ThrottledLog warnings_;
+  std::optional<RefitSchedule> data_schedule_;  // [refit] clock = "data": each tracker's schedule
+
+  struct PendingSnapshot {
+    std::string sat_id;
+    CalibrationResult result;
+    int64_t temperature_model_refit_id = 0;  // the refit whose temperature model it applied
+  };
+  std::vector<PendingSnapshot> pending_snapshots_;
+  std::vector<std::string> states_due_;  // spacecraft whose state goes into the next commit
+  // Data-clock refits that fell due during an outage: requested once everything is committed.
+  std::vector<std::pair<std::string, int64_t>> deferred_refits_;
+  // Owned spacecraft with a refit another station was running when the lease came here.
+  std::vector<std::string> refits_elsewhere_;
+
+  std::vector<std::string> unregistered_;  // spacecraft new here: lease rows to ensure
+  std::chrono::steady_clock::time_point next_lease_round_{};
+  std::chrono::steady_clock::time_point next_union_poll_{};
+  size_t live_stations_ = 1;     // at the last lease round (1: alone, no other station writes)
+  const std::string instance_;   // this process in the stations table (random per start)
+  int64_t last_beat_utime_ = 0;  // 0: not beaten yet
+  bool tracking_ = false;        // track_owned() is running (a flush inside it must not re-enter)
+  std::vector<storage::StoredSample> union_rows_;  // reused by track_union()
+  mutable std::mutex owned_mutex_;
+  std::set<std::string> owned_names_;  // owns(), from any thread
+
+  struct Reanchor {
+    std::string sat_id;
+    CalibrationResult refit;
+    int64_t calibration_id = 0;
+  };
+  std::mutex reanchor_mutex_;
+  std::vector<Reanchor> reanchors_;
+  std::atomic<bool> have_reanchors_{false};
+};
+
+}  // namespace magcal
