@@ -35,6 +35,10 @@ bool is_refit_method(std::string_view method) {
   return method == "centered" || method == "twostep";
 }
 
+void CalibrationHistory::append_all(std::span<const CalibrationRecord> records) {
+  for (const CalibrationRecord& r : records) append(r);
+}
+
 std::optional<CalibrationRecord> CalibrationHistory::latest_refit(std::string_view sat_id) {
   auto refits = newest_refits(sat_id, 1);
   if (refits.empty()) return std::nullopt;

@@ -13,6 +13,7 @@
 #include <cstdint>
 #include <limits>
 #include <optional>
+#include <span>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -99,6 +100,10 @@ class CalibrationHistory {
 
   // Stores one result; returns its id. Throws StorageError.
   virtual int64_t append(const CalibrationRecord& record) = 0;
+  // Stores every record, in order, without returning their ids (the UKF snapshots of a commit:
+  // nothing refers to them). On PostgreSQL a few statements for the lot instead of a round trip
+  // each. Throws StorageError (call it inside a transaction to store all or nothing).
+  virtual void append_all(std::span<const CalibrationRecord> records);
   virtual std::vector<CalibrationRecord> query(const HistoryQuery& q) = 0;
 
   virtual std::optional<CalibrationRecord> latest(std::string_view sat_id,

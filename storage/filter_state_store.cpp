@@ -23,6 +23,10 @@ SqliteFilterStateStore::SqliteFilterStateStore(Database& db)
       load_all_(db, std::string("SELECT ") + columns::kFilterState +
                         " FROM filter_states ORDER BY sat_id, method") {}
 
+void FilterStateStore::save_all(std::span<const FilterState> states) {
+  for (const FilterState& s : states) save(s);
+}
+
 void SqliteFilterStateStore::save(const FilterState& s) {
   auto use = upsert_.use();
   upsert_.bind(1, s.sat_id).bind(2, s.method);

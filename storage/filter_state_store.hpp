@@ -36,6 +36,10 @@ class FilterStateStore {
   virtual ~FilterStateStore() = default;
   // Insert or replace the row of (sat_id, method).
   virtual void save(const FilterState& state) = 0;
+  // save() of each, in order (of two states of one (sat_id, method) the later one stays). On
+  // PostgreSQL a few statements for the lot instead of a round trip each. Throws StorageError
+  // (call it inside a transaction to store all or nothing).
+  virtual void save_all(std::span<const FilterState> states);
   virtual std::optional<FilterState> load(std::string_view sat_id, std::string_view method) = 0;
   // Every stored state, ordered by (sat_id, method).
   virtual std::vector<FilterState> load_all() = 0;

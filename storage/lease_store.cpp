@@ -32,6 +32,15 @@ std::optional<std::string> LeaseStore::owner_of(std::string_view sat_id, int64_t
   return std::move(lease->owner);
 }
 
+std::vector<std::string> LeaseStore::not_held(std::string_view owner,
+                                              std::span<const Held> leases) {
+  std::vector<std::string> out;
+  for (const Held& l : leases) {
+    if (!holds(l.sat_id, owner, l.epoch)) out.push_back(l.sat_id);
+  }
+  return out;
+}
+
 SqliteLeaseStore::SqliteLeaseStore(Database& db)
     : acquire_(db, columns::kLeaseAcquire),
       renew_(db,

@@ -16,6 +16,7 @@
 
 #include <cstdint>
 #include <optional>
+#include <span>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -71,6 +72,14 @@ class LeaseStore {
   // the writes that follow: on PostgreSQL the lease row stays locked (FOR SHARE) until the
   // commit, so a takeover waits for it; SQLite serialises writers anyway.
   virtual bool holds(std::string_view sat_id, std::string_view owner, int64_t epoch) = 0;
+  // A lease as its holder knows it.
+  struct Held {
+    std::string sat_id;
+    int64_t epoch = 0;
+  };
+  // holds() for several of owner's leases at once (on PostgreSQL one statement): the sat_ids of
+  // those it no longer holds, in the order given. Fences the same way.
+  virtual std::vector<std::string> not_held(std::string_view owner, std::span<const Held> leases);
 
   // The lease row of `sat_id` (held or expired), nullopt when it never had one.
   virtual std::optional<Lease> get(std::string_view sat_id) = 0;

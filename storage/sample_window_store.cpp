@@ -186,9 +186,7 @@ RetentionStats SampleWindowStore::delete_before(std::string_view sat_id, int64_t
   }
   RetentionStats stats;
   for (;;) {
-    Transaction tx(db_);
     const int64_t deleted = delete_chunk(sat_id, cutoff_utime, chunk_rows);
-    tx.commit();
     ++stats.transactions;
     stats.deleted += deleted;
     if (deleted < chunk_rows) break;
@@ -205,9 +203,15 @@ RetentionStats SampleWindowStore::apply_retention(std::string_view sat_id, int64
 
 int64_t SqliteSampleWindowStore::delete_chunk(std::string_view sat_id, int64_t cutoff_utime,
                                               int chunk_rows) {
-  auto use = delete_chunk_.use();
-  delete_chunk_.bind(1, sat_id).bind(2, cutoff_utime).bind(3, chunk_rows);
-  return delete_chunk_.execute();
+  Transaction tx(db_);
+  int64_t deleted = 0;
+  {
+    auto use = delete_chunk_.use();
+    delete_chunk_.bind(1, sat_id).bind(2, cutoff_utime).bind(3, chunk_rows);
+    deleted = delete_chunk_.execute();
+  }
+  tx.commit();
+  return deleted;
 }
 
 }  // namespace magcal::storage

@@ -104,8 +104,9 @@ class SampleWindowStore {
 
  protected:
   explicit SampleWindowStore(Connection& db) : db_(db) {}
-  // One chunk of delete_before: at most chunk_rows of the oldest samples below the cutoff, in
-  // the caller's transaction. Returns how many were deleted.
+  // One chunk of delete_before, a transaction of its own (nested in the caller's, if any): at
+  // most chunk_rows of the oldest samples below the cutoff. Returns how many were deleted.
+  // (PostgreSQL: one statement, atomic without BEGIN and COMMIT round trips.)
   virtual int64_t delete_chunk(std::string_view sat_id, int64_t cutoff_utime, int chunk_rows) = 0;
 
   Connection& db_;

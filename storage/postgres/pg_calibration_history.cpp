@@ -42,13 +42,23 @@ struct PgRow {
   }
 };
 
-std::string insert_sql() {
-  std::string sql =
-      std::string("INSERT INTO calibrations (") + calibration_row::kInsertColumns + ") VALUES (";
-  for (int i = 1; i <= calibration_row::kInsertValues; ++i) {
-    sql += (i > 1 ? ", $" : "$") + std::to_string(i);
-  }
-  return sql + ") RETURNING id";
+// The INSERT of `rows` records.
+std::string insert_sql(size_t rows, std::string_view tail = {}) {
+  return multi_row_values_sql(
+      std::string("INSERT INTO calibrations (") + calibration_row::kInsertColumns + ") VALUES ",
+      rows, calibration_row::kInsertValues, 1, "", tail);
+}
+
+// [k]: the INSERT of 2^k records.
+const std::vector<std::string>& insert_all_sql() {
+  static const std::vector<std::string> sql = [] {
+    std::vector<std::string> out;
+    for (size_t k = 0; k <= PgCalibrationHistory::kMaxLog2RowsPerInsert; ++k) {
+      out.push_back(insert_sql(size_t{1} << k));
+    }
+    return out;
+  }();
+  return sql;
 }
 
 const std::string kRefitFilter =
@@ -62,8 +72,24 @@ int64_t PgCalibrationHistory::append(const CalibrationRecord& r) {
   params_.clear();
   PgBinder binder{params_};
   calibration_row::write(r, reasons_json, binder);
-  static const std::string sql = insert_sql();
+  static const std::string sql = insert_sql(1, " RETURNING id");
   return db_.execute_prepared(sql, params_, PgFormat::kBinary).get_int64(0, 0);
+}
+
+void PgCalibrationHistory::append_all(std::span<const CalibrationRecord> records) {
+  reasons_json_.clear();
+  for (const CalibrationRecord& r : records) {
+    calibration_row::check_appendable(r);
+    reasons_json_.push_back(calibration_row::json_string_array(r.rejection_reasons));
+  }
+  for_each_power_of_two_run(records.size(), kMaxLog2RowsPerInsert, [&](size_t begin, size_t k) {
+    params_.clear();
+    PgBinder binder{params_};
+    for (size_t i = begin; i < begin + (size_t{1} << k); ++i) {
+      calibration_row::write(records[i], reasons_json_[i], binder);
+    }
+    db_.execute_prepared(insert_all_sql()[k], params_);
+  });
 }
 
 std::vector<std::string> PgCalibrationHistory::reasons(const std::string& json) {

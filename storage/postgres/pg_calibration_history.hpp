@@ -17,6 +17,9 @@ class PgCalibrationHistory final : public CalibrationHistory {
   explicit PgCalibrationHistory(PgDatabase& db) : db_(db) {}
 
   int64_t append(const CalibrationRecord& record) override;
+  // Statements of up to 2^kMaxLog2RowsPerInsert rows (55 parameters each).
+  void append_all(std::span<const CalibrationRecord> records) override;
+  static constexpr size_t kMaxLog2RowsPerInsert = 6;
   std::vector<CalibrationRecord> query(const HistoryQuery& q) override;
   std::optional<CalibrationRecord> latest(std::string_view sat_id,
                                           std::string_view method) override;
@@ -34,7 +37,8 @@ class PgCalibrationHistory final : public CalibrationHistory {
   std::vector<std::string> reasons(const std::string& json);
 
   PgDatabase& db_;
-  PgParams params_;  // append's, reused
+  PgParams params_;                        // append's, reused
+  std::vector<std::string> reasons_json_;  // append_all's, kept alive while bound
 };
 
 }  // namespace magcal::storage

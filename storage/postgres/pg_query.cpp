@@ -16,7 +16,8 @@ namespace {
 // Type OIDs (server/catalog/pg_type_d.h, which libpq-dev does not ship; fixed since 7.x).
 constexpr unsigned kBoolOid = 16, kByteaOid = 17, kNameOid = 19, kInt8Oid = 20, kInt2Oid = 21,
                    kInt4Oid = 23, kTextOid = 25, kFloat4Oid = 700, kFloat8Oid = 701,
-                   kBpcharOid = 1042, kVarcharOid = 1043, kNumericOid = 1700;
+                   kBpcharOid = 1042, kVarcharOid = 1043, kNumericOid = 1700, kTextArrayOid = 1009,
+                   kInt8ArrayOid = 1016;
 // An unspecified parameter type: the server infers it from the statement, as for a literal.
 constexpr unsigned kInferredOid = 0;
 
@@ -71,6 +72,50 @@ PgParams& PgParams::add_bytes(std::span<const std::byte> bytes) {
               bytes.size(), 1);
 }
 
+template <typename Length, typename Put>
+PgParams& PgParams::push_array(unsigned array_type, unsigned element_type, std::size_t n,
+                               Length length, Put put) {
+  // PostgreSQL's binary array (array_recv): ndim, has-nulls flag, element type, then per
+  // dimension its size and lower bound, then each element as a 32-bit length and its bytes; all
+  // big-endian.
+  const auto offset = static_cast<std::ptrdiff_t>(bytes_.size());
+  auto put32 = [this](uint32_t v) {
+    const uint32_t wire = htobe32(v);
+    const char* p = reinterpret_cast<const char*>(&wire);
+    bytes_.insert(bytes_.end(), p, p + sizeof wire);
+  };
+  put32(1);
+  put32(0);
+  put32(element_type);
+  put32(static_cast<uint32_t>(n));
+  put32(1);
+  for (std::size_t i = 0; i < n; ++i) {
+    put32(static_cast<uint32_t>(length(i)));
+    put(i);
+  }
+  types_.push_back(array_type);
+  lengths_.push_back(static_cast<int>(bytes_.size() - static_cast<std::size_t>(offset)));
+  formats_.push_back(1);
+  offsets_.push_back(offset);
+  return *this;
+}
+
+PgParams& PgParams::add_array(std::span<const int64_t> values) {
+  return push_array(
+      kInt8ArrayOid, kInt8Oid, values.size(), [](std::size_t) { return sizeof(uint64_t); },
+      [&](std::size_t i) {
+        const uint64_t wire = htobe64(static_cast<uint64_t>(values[i]));
+        const char* p = reinterpret_cast<const char*>(&wire);
+        bytes_.insert(bytes_.end(), p, p + sizeof wire);
+      });
+}
+
+PgParams& PgParams::add_array(std::span<const std::string> values) {
+  return push_array(
+      kTextArrayOid, kTextOid, values.size(), [&](std::size_t i) { return values[i].size(); },
+      [&](std::size_t i) { bytes_.insert(bytes_.end(), values[i].begin(), values[i].end()); });
+}
+
 PgParams& PgParams::add_null() {
   return push(kInferredOid, nullptr, 0, 0);
 }
@@ -89,6 +134,25 @@ const char* const* PgParams::values() const {
     values_[i] = offsets_[i] < 0 ? nullptr : bytes_.data() + offsets_[i];
   }
   return values_.data();
+}
+
+std::string multi_row_values_sql(std::string_view head, std::size_t rows, int columns,
+                                 int first_param, std::string_view row_tail,
+                                 std::string_view tail) {
+  std::string sql(head);
+  int param = first_param;
+  for (std::size_t row = 0; row < rows; ++row) {
+    sql += row == 0 ? "(" : ", (";
+    for (int c = 0; c < columns; ++c, ++param) {
+      if (c > 0) sql += ", ";
+      sql += '$';
+      sql += std::to_string(param);
+    }
+    sql += row_tail;
+    sql += ')';
+  }
+  sql += tail;
+  return sql;
 }
 
 PgResult::~PgResult() {

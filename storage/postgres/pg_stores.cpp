@@ -4,6 +4,7 @@
 #include <cmath>
 #include <limits>
 #include <numeric>
+#include <tuple>
 
 #include "storage/blob_doubles.hpp"
 #include "storage/store_columns.hpp"
@@ -44,24 +45,14 @@ void add_sample(PgParams& p, const StoredSample& s) {
   add_value(p, s.temperature_C);
 }
 
-// INSERT of `rows` samples (parameters $1 .. $20*rows, then the station, the same for every
+// INSERT of `rows` samples (parameters: $1 the station, the same for every row, then 20 per
 // row), returning the keys it stored. Only a repeated key is ignored (and counted); a NOT NULL
 // violation is an error.
 std::string insert_sql(size_t rows) {
-  const std::string station = "$" + std::to_string(rows * kParamsPerSample + 1) + "::text";
-  std::string sql = std::string("INSERT INTO samples (") + columns::kSampleInsert + ") VALUES ";
-  int param = 1;
-  for (size_t row = 0; row < rows; ++row) {
-    sql += row == 0 ? "(" : ", (";
-    for (int c = 0; c < kParamsPerSample; ++c, ++param) {
-      sql += '$';
-      sql += std::to_string(param);
-      sql += ", ";
-    }
-    sql += station + ")";
-  }
-  sql += " ON CONFLICT (sat_id, utime) DO NOTHING RETURNING sat_id, utime";
-  return sql;
+  return multi_row_values_sql(
+      std::string("INSERT INTO samples (") + columns::kSampleInsert + ") VALUES ", rows,
+      kParamsPerSample, 2, ", $1::text",
+      " ON CONFLICT (sat_id, utime) DO NOTHING RETURNING sat_id, utime");
 }
 
 std::optional<int64_t> optional_int(const PgResult& r, int row, int column) {
@@ -92,24 +83,21 @@ InsertStats PgSampleWindowStore::insert_batch(std::span<const StoredSample> samp
   });
   Transaction tx(pg_);
   stored_keys_.clear();
-  for (size_t begin = 0; begin < order_.size();) {
-    // The largest power of two not above what is left (at most kMaxRowsPerInsert).
-    size_t k = insert_sql_.size() - 1;
-    while ((size_t{1} << k) > order_.size() - begin) --k;
-    const size_t n = size_t{1} << k;
+  for_each_power_of_two_run(order_.size(), insert_sql_.size() - 1, [&](size_t begin, size_t k) {
     params_.clear();
-    for (size_t row = begin; row < begin + n; ++row) add_sample(params_, samples[order_[row]]);
     if (station.empty()) {
       params_.add_null();
     } else {
       params_.add(station);
     }
+    for (size_t row = begin; row < begin + (size_t{1} << k); ++row) {
+      add_sample(params_, samples[order_[row]]);
+    }
     const PgResult r = pg_.execute_prepared(insert_sql_[k], params_, PgFormat::kBinary);
     for (int row = 0; row < r.rows(); ++row) {
       stored_keys_.emplace_back(r.get_text(row, 0), r.get_int64(row, 1));
     }
-    begin += n;
-  }
+  });
   tx.commit();
   // The stored keys against the batch, both in key order: a row whose key was stored and not
   // yet claimed by an earlier copy was inserted; any other row is a duplicate.
@@ -419,24 +407,61 @@ std::span<const std::byte> bytes_of(const void* data, size_t size) {
   return {static_cast<const std::byte*>(data), size};
 }
 
-}  // namespace
+constexpr int kFilterStateColumns = 9;
 
-void PgFilterStateStore::save(const FilterState& s) {
-  PgParams p;
+void add_filter_state(PgParams& p, const FilterState& s) {
   p.add(s.sat_id).add(s.method);
   p.add_bytes(bytes_of(s.x.data(), sizeof(double) * s.x.size()));
   p.add_bytes(bytes_of(s.P.data(), sizeof(double) * s.P.size()));
   p.add(s.last_utime).add(s.n_samples);
   p.add_bytes(bytes_of(s.counters.data(), s.counters.size()));
   p.add(save_utime(s)).add(s.anchor_calibration_id);
-  db_.execute_prepared(
-      std::string("INSERT INTO filter_states (") + columns::kFilterState +
-          ") VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9) "
-          "ON CONFLICT (sat_id, method) DO UPDATE SET x = excluded.x, P = excluded.P, "
-          "last_utime = excluded.last_utime, n_samples = excluded.n_samples, "
-          "counters = excluded.counters, updated_utime = excluded.updated_utime, "
-          "anchor_calibration_id = excluded.anchor_calibration_id",
-      p);
+}
+
+// The upsert of `rows` states (distinct keys: a statement cannot update one row twice).
+std::string filter_state_upsert_sql(size_t rows) {
+  return multi_row_values_sql(
+      std::string("INSERT INTO filter_states (") + columns::kFilterState + ") VALUES ", rows,
+      kFilterStateColumns, 1, "",
+      " ON CONFLICT (sat_id, method) DO UPDATE SET x = excluded.x, P = excluded.P, "
+      "last_utime = excluded.last_utime, n_samples = excluded.n_samples, "
+      "counters = excluded.counters, updated_utime = excluded.updated_utime, "
+      "anchor_calibration_id = excluded.anchor_calibration_id");
+}
+
+}  // namespace
+
+void PgFilterStateStore::save(const FilterState& s) {
+  save_all(std::span(&s, 1));
+}
+
+void PgFilterStateStore::save_all(std::span<const FilterState> states) {
+  static const std::vector<std::string> sql = [] {
+    std::vector<std::string> out;
+    for (size_t k = 0; k <= kMaxLog2RowsPerUpsert; ++k) {
+      out.push_back(filter_state_upsert_sql(size_t{1} << k));
+    }
+    return out;
+  }();
+  // Key order (stable: the later of two states of one key is the one kept, as by successive
+  // saves), each key once.
+  std::vector<size_t> order(states.size());
+  std::iota(order.begin(), order.end(), size_t{0});
+  auto key = [&](size_t i) { return std::tie(states[i].sat_id, states[i].method); };
+  std::stable_sort(order.begin(), order.end(), [&](size_t a, size_t b) { return key(a) < key(b); });
+  size_t kept = 0;
+  for (size_t i = 0; i < order.size(); ++i) {
+    if (i + 1 < order.size() && key(order[i]) == key(order[i + 1])) continue;
+    order[kept++] = order[i];
+  }
+  order.resize(kept);
+  for_each_power_of_two_run(order.size(), kMaxLog2RowsPerUpsert, [&](size_t begin, size_t k) {
+    params_.clear();
+    for (size_t i = begin; i < begin + (size_t{1} << k); ++i) {
+      add_filter_state(params_, states[order[i]]);
+    }
+    db_.execute_prepared(sql[k], params_);
+  });
 }
 
 std::optional<FilterState> PgFilterStateStore::load(std::string_view sat_id,
@@ -515,6 +540,35 @@ bool PgLeaseStore::holds(std::string_view sat_id, std::string_view owner, int64_
                 "epoch = $3 FOR SHARE",
                 p)
              .rows() == 1;
+}
+
+std::vector<std::string> PgLeaseStore::not_held(std::string_view owner,
+                                                std::span<const Held> leases) {
+  if (leases.empty()) return {};
+  std::vector<std::string> sats;
+  std::vector<int64_t> epochs;
+  for (const Held& l : leases) {
+    sats.push_back(l.sat_id);
+    epochs.push_back(l.epoch);
+  }
+  PgParams p;
+  p.add(owner).add_array(sats).add_array(epochs);
+  // Locked in one order (sat_id, as renew_all and the takeovers' single rows need no other), so
+  // two fences never wait for each other crosswise.
+  const PgResult r = db_.execute_prepared(
+      "SELECT l.sat_id FROM leases l JOIN unnest($2::text[], $3::bigint[]) AS q(sat_id, epoch) "
+      "ON l.sat_id = q.sat_id AND l.epoch = q.epoch WHERE l.owner = $1 ORDER BY l.sat_id "
+      "FOR SHARE OF l",
+      p);
+  std::vector<std::string> held;
+  held.reserve(static_cast<size_t>(r.rows()));
+  for (int row = 0; row < r.rows(); ++row) held.push_back(r.get_text(row, 0));
+  std::sort(held.begin(), held.end());
+  std::vector<std::string> out;
+  for (const Held& l : leases) {
+    if (!std::binary_search(held.begin(), held.end(), l.sat_id)) out.push_back(l.sat_id);
+  }
+  return out;
 }
 
 std::optional<Lease> PgLeaseStore::get(std::string_view sat_id) {

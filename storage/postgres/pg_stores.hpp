@@ -27,10 +27,8 @@ namespace magcal::storage {
 
 class PgSampleWindowStore final : public SampleWindowStore {
  public:
-  // Rows per INSERT statement: 21 parameters each, well below PostgreSQL's 65 535. A batch goes
-  // in statements of 512 rows and the rest in statements of 256, 128, ..., 1 rows (its binary
-  // digits): a few prepared statements serve every batch size (parsing a statement of
-  // thousands of parameters costs more than running it).
+  // Rows per INSERT statement (for_each_power_of_two_run): 20 parameters each, well below
+  // PostgreSQL's 65 535.
   static constexpr size_t kMaxRowsPerInsert = 512;
 
   explicit PgSampleWindowStore(PgDatabase& db);
@@ -89,11 +87,15 @@ class PgFilterStateStore final : public FilterStateStore {
   explicit PgFilterStateStore(PgDatabase& db) : db_(db) {}
 
   void save(const FilterState& state) override;
+  // Statements of up to 2^kMaxLog2RowsPerUpsert states, in key order.
+  void save_all(std::span<const FilterState> states) override;
   std::optional<FilterState> load(std::string_view sat_id, std::string_view method) override;
   std::vector<FilterState> load_all() override;
+  static constexpr size_t kMaxLog2RowsPerUpsert = 6;
 
  private:
   PgDatabase& db_;
+  PgParams params_;  // save_all's, reused
 };
 
 class PgLeaseStore final : public LeaseStore {
@@ -107,6 +109,7 @@ class PgLeaseStore final : public LeaseStore {
   bool release(std::string_view sat_id, std::string_view owner, int64_t epoch,
                int64_t now_utime) override;
   bool holds(std::string_view sat_id, std::string_view owner, int64_t epoch) override;
+  std::vector<std::string> not_held(std::string_view owner, std::span<const Held> leases) override;
   std::optional<Lease> get(std::string_view sat_id) override;
   std::vector<Lease> list() override;
   void ensure(std::string_view sat_id) override;

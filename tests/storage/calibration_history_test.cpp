@@ -458,6 +458,37 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest, "invalid records are refused", "[calibrat
   CHECK(history.query(q).empty());
 }
 
+TEMPLATE_TEST_CASE_METHOD(BackendTest,
+                          "append_all stores a batch as appends one by one would, or none of it",
+                          "[calibrations]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto history = this->db->make_calibration_history();
+  // 100 = 64 + 32 + 4 rows (PostgreSQL's statement sizes), rejected ones with reasons among them.
+  std::vector<CalibrationRecord> batch;
+  for (int k = 0; k < 100; ++k) batch.push_back(make_record("SAT1", "ukf", kT0 + k * kHour, k));
+  history->append_all(batch);
+  history->append_all({});
+  HistoryQuery q;
+  q.sat_id = "SAT1";
+  const auto rows = history->query(q);
+  REQUIRE(rows.size() == batch.size());
+  for (size_t i = 0; i < rows.size(); ++i) {
+    check_round_trip(rows[i], batch[i]);
+    if (i > 0) CHECK(rows[i].id > rows[i - 1].id);  // stored in order
+  }
+
+  // An invalid record: refused, and in a transaction the valid ones before it are not stored.
+  std::vector<CalibrationRecord> bad{make_record("SAT2", "ukf", kT0, 0),
+                                     make_record("SAT2", "ukf", kT0 + kHour, 1)};
+  bad[1].bias_nT[1] = std::nan("");  // NOT NULL column
+  {
+    Transaction tx(*this->db);
+    CHECK_THROWS_AS(history->append_all(bad), StorageError);
+  }
+  q.sat_id = "SAT2";
+  CHECK(history->query(q).empty());
+}
+
 TEST_CASE("status names") {
   CHECK(std::string(status_name(4)) == "rejected");
   CHECK(std::string(status_name(1)) == "not_converged");

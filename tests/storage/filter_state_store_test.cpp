@@ -39,6 +39,10 @@ FilterState random_state(const std::string& sat, std::mt19937_64& rng) {
   return s;
 }
 
+std::string fmt_sat(int i) {
+  return (i < 10 ? "SAT-0" : "SAT-") + std::to_string(i);
+}
+
 }  // namespace
 
 TEMPLATE_TEST_CASE_METHOD(BackendTest,
@@ -72,6 +76,34 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest,
   store->save(e);
   CHECK(store->load_all().size() == 2);
   CHECK_FALSE(store->load("SAT2", "ukf").has_value());
+}
+
+TEMPLATE_TEST_CASE_METHOD(BackendTest,
+                          "save_all stores a batch as saves one by one would (the later of a key)",
+                          "[filter_states]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto store = this->db->make_filter_state_store();
+  std::mt19937_64 rng(3);
+  store->save(random_state("SAT-00", rng));  // replaced below
+  // 70 = 64 + 4 + 2 rows (PostgreSQL's statement sizes) after SAT-07's two states become one;
+  // out of key order.
+  std::vector<FilterState> batch;
+  for (int i = 70; i >= 0; --i) batch.push_back(random_state(fmt_sat(i), rng));
+  FilterState later = random_state("SAT-07", rng);
+  later.n_samples = 7;
+  batch.push_back(later);
+  store->save_all(batch);
+  store->save_all({});
+  const auto all = store->load_all();
+  REQUIRE(all.size() == 71);
+  for (const FilterState& want : batch) {
+    if (want.sat_id == "SAT-07" && want.n_samples != 7) continue;  // replaced by the later one
+    const auto got = store->load(want.sat_id, "ukf");
+    REQUIRE(got.has_value());
+    CHECK(got->n_samples == want.n_samples);
+    for (size_t i = 0; i < want.P.size(); ++i) CHECK(bit_equal(got->P[i], want.P[i]));
+    CHECK(got->counters == want.counters);
+  }
 }
 
 TEMPLATE_TEST_CASE_METHOD(

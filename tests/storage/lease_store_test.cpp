@@ -84,6 +84,24 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest,
   CHECK_THROWS_AS(leases->try_acquire("SAT2", "", kT0, kTtl), StorageError);
 }
 
+TEMPLATE_TEST_CASE_METHOD(BackendTest,
+                          "not_held names the leases of a list that their owner no longer holds",
+                          "[leases]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto leases = this->db->make_lease_store();
+  for (const char* sat : {"SAT1", "SAT2", "SAT3"})
+    REQUIRE(leases->try_acquire(sat, "A", kT0, kTtl));
+  REQUIRE(leases->try_acquire("SAT4", "B", kT0, kTtl));
+  // SAT2 taken over by B after A's lease ran out (epoch 2).
+  REQUIRE(leases->try_acquire("SAT2", "B", kT0 + kTtl, kTtl));
+  const std::vector<LeaseStore::Held> mine{
+      {"SAT3", 1}, {"SAT2", 1}, {"SAT5", 1}, {"SAT1", 1}, {"SAT4", 1}};
+  CHECK(leases->not_held("A", mine) == std::vector<std::string>{"SAT2", "SAT5", "SAT4"});
+  CHECK(leases->not_held("B", mine) ==
+        std::vector<std::string>{"SAT3", "SAT2", "SAT5", "SAT1"});  // SAT2 is B's at epoch 2
+  CHECK(leases->not_held("A", {}).empty());
+}
+
 TEMPLATE_TEST_CASE(
     "daemons racing for leases: exactly one owner of each, and exactly one takes "
     "over an expired lease",
