@@ -130,6 +130,18 @@ std::vector<StoredSample> SampleWindowStore::window(std::string_view sat_id, int
   return out;
 }
 
+void SampleWindowStore::read_windows(std::span<const WindowRequest> requests,
+                                     std::vector<StoredSample>& out, std::vector<size_t>& ends) {
+  out.clear();
+  ends.clear();
+  for (const WindowRequest& r : requests) {
+    read_window(r.sat_id, r.t0_utime, r.t1_utime, window_rows_);
+    out.insert(out.end(), std::make_move_iterator(window_rows_.begin()),
+               std::make_move_iterator(window_rows_.end()));
+    ends.push_back(out.size());
+  }
+}
+
 int64_t SqliteSampleWindowStore::count_in_window(std::string_view sat_id, int64_t t0_utime,
                                                  int64_t t1_utime) {
   auto use = count_window_.use();

@@ -78,6 +78,16 @@ class SampleWindowStore {
   virtual void read_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime,
                            std::vector<StoredSample>& out) = 0;
   std::vector<StoredSample> window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime);
+  // read_window of several spacecraft at once (PostgreSQL: one statement for the lot instead of
+  // a round trip each): `out` (cleared first) holds the rows of requests[0], then of
+  // requests[1], ...; ends[i] (cleared first) is the end in `out` of requests[i]'s rows.
+  struct WindowRequest {
+    std::string_view sat_id;
+    int64_t t0_utime = 0;
+    int64_t t1_utime = 0;
+  };
+  virtual void read_windows(std::span<const WindowRequest> requests, std::vector<StoredSample>& out,
+                            std::vector<size_t>& ends);
 
   virtual int64_t count_in_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime) = 0;
   // The samples of `sat_id` with t0 <= utime < t1 per station that stored them, sorted by
@@ -110,6 +120,9 @@ class SampleWindowStore {
   virtual int64_t delete_chunk(std::string_view sat_id, int64_t cutoff_utime, int chunk_rows) = 0;
 
   Connection& db_;
+
+ private:
+  std::vector<StoredSample> window_rows_;  // read_windows' (default), reused
 };
 
 }  // namespace magcal::storage

@@ -118,6 +118,50 @@ InsertStats PgSampleWindowStore::insert_batch(std::span<const StoredSample> samp
   return stats;
 }
 
+namespace {
+
+// The sample columns (columns::kSampleRead) of `r` from column `first` on, read in binary:
+// column types checked once, NOT NULL columns read without a NULL test, nullable groups tested
+// once per group (the hot loop: a 12 h window is 4320 rows).
+class SampleRows {
+ public:
+  SampleRows(const PgResult& r, int first) : r_(r), c_(first) {
+    using Column = PgResult::BinaryColumn;
+    for (int c = 0; c < 19; ++c) {
+      const bool bigint = c < 3 || c == 6;  // utime, seq, receive_utime, has_direction
+      r.check_binary_column(first + c, bigint ? Column::kBigint : Column::kDouble);
+    }
+  }
+  void read(int row, std::string_view sat_id, StoredSample& s) const {
+    constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+    auto bigint = [&](int c) { return r_.bigint_at(row, c_ + c); };
+    auto real = [&](int c) { return r_.double_at(row, c_ + c); };
+    s.sat_id = sat_id;
+    s.utime = bigint(0);
+    s.seq = bigint(1);
+    s.receive_utime = bigint(2);
+    for (int i = 0; i < 3; ++i) s.b_sensor_nT[i] = real(3 + i);
+    s.has_direction = bigint(6) != 0;
+    for (int i = 0; i < 3; ++i) s.h_body_nT[i] = s.has_direction ? real(7 + i) : kNaN;
+    s.h_norm_nT = real(10);
+    s.has_attitude = !r_.is_null(row, c_ + 11);
+    if (s.has_attitude) {
+      for (int i = 0; i < 4; ++i) s.q_body_from_eci[i] = real(11 + i);
+    }
+    s.has_position = !r_.is_null(row, c_ + 15);
+    if (s.has_position) {
+      for (int i = 0; i < 3; ++i) s.r_ecef_m[i] = real(15 + i);
+    }
+    s.temperature_C = r_.is_null(row, c_ + 18) ? kNaN : real(18);
+  }
+
+ private:
+  const PgResult& r_;
+  int c_;
+};
+
+}  // namespace
+
 void PgSampleWindowStore::read_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime,
                                       std::vector<StoredSample>& out) {
   out.clear();
@@ -127,35 +171,47 @@ void PgSampleWindowStore::read_window(std::string_view sat_id, int64_t t0_utime,
       std::string("SELECT ") + columns::kSampleRead +
           " FROM samples WHERE sat_id = $1 AND utime >= $2 AND utime < $3 ORDER BY utime",
       p, PgFormat::kBinary);
-  constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
-  // The hot loop (a 12 h window is 4320 rows): column types checked once, NOT NULL columns read
-  // without a NULL test, nullable groups tested once per group.
-  using Column = PgResult::BinaryColumn;
-  for (int c = 0; c < 19; ++c) {
-    const bool bigint = c < 3 || c == 6;  // utime, seq, receive_utime, has_direction
-    r.check_binary_column(c, bigint ? Column::kBigint : Column::kDouble);
+  const SampleRows rows(r, 0);
+  out.resize(static_cast<size_t>(r.rows()));
+  for (int row = 0; row < r.rows(); ++row) rows.read(row, sat_id, out[static_cast<size_t>(row)]);
+}
+
+void PgSampleWindowStore::read_windows(std::span<const WindowRequest> requests,
+                                       std::vector<StoredSample>& out, std::vector<size_t>& ends) {
+  out.clear();
+  ends.clear();
+  if (requests.empty()) return;
+  request_sats_.resize(requests.size());
+  request_t0s_.clear();
+  request_t1s_.clear();
+  for (size_t i = 0; i < requests.size(); ++i) {
+    request_sats_[i].assign(requests[i].sat_id);
+    request_t0s_.push_back(requests[i].t0_utime);
+    request_t1s_.push_back(requests[i].t1_utime);
   }
-  out.reserve(static_cast<size_t>(r.rows()));
+  PgParams p;
+  p.add_array(request_sats_).add_array(request_t0s_).add_array(request_t1s_);
+  // Column 0: the request's ordinal (1-based); each request's rows by the primary key.
+  const PgResult r = pg_.execute_prepared(
+      std::string("SELECT q.i, w.* FROM unnest($1::text[], $2::bigint[], $3::bigint[]) WITH "
+                  "ORDINALITY AS q(sat_id, t0, t1, i) CROSS JOIN LATERAL (SELECT ") +
+          columns::kSampleRead +
+          " FROM samples WHERE samples.sat_id = q.sat_id COLLATE \"C\" AND utime >= q.t0 AND "
+          "utime < q.t1 ORDER BY utime) w ORDER BY q.i, w.utime",
+      p, PgFormat::kBinary);
+  r.check_binary_column(0, PgResult::BinaryColumn::kBigint);
+  const SampleRows rows(r, 1);
+  out.resize(static_cast<size_t>(r.rows()));
+  size_t request = 0;
   for (int row = 0; row < r.rows(); ++row) {
-    StoredSample& s = out.emplace_back();
-    s.sat_id = sat_id;
-    s.utime = r.bigint_at(row, 0);
-    s.seq = r.bigint_at(row, 1);
-    s.receive_utime = r.bigint_at(row, 2);
-    for (int i = 0; i < 3; ++i) s.b_sensor_nT[i] = r.double_at(row, 3 + i);
-    s.has_direction = r.bigint_at(row, 6) != 0;
-    for (int i = 0; i < 3; ++i) s.h_body_nT[i] = s.has_direction ? r.double_at(row, 7 + i) : kNaN;
-    s.h_norm_nT = r.double_at(row, 10);
-    s.has_attitude = !r.is_null(row, 11);
-    if (s.has_attitude) {
-      for (int i = 0; i < 4; ++i) s.q_body_from_eci[i] = r.double_at(row, 11 + i);
+    const auto of = static_cast<size_t>(r.bigint_at(row, 0) - 1);
+    while (request < of) {
+      ends.push_back(static_cast<size_t>(row));
+      ++request;
     }
-    s.has_position = !r.is_null(row, 15);
-    if (s.has_position) {
-      for (int i = 0; i < 3; ++i) s.r_ecef_m[i] = r.double_at(row, 15 + i);
-    }
-    s.temperature_C = r.is_null(row, 18) ? kNaN : r.double_at(row, 18);
+    rows.read(row, requests[of].sat_id, out[static_cast<size_t>(row)]);
   }
+  while (ends.size() < requests.size()) ends.push_back(out.size());
 }
 
 int64_t PgSampleWindowStore::count_in_window(std::string_view sat_id, int64_t t0_utime,
@@ -236,8 +292,12 @@ int64_t PgSampleWindowStore::delete_chunk(std::string_view sat_id, int64_t cutof
   p.add(sat_id).add(cutoff_utime).add(int64_t{chunk_rows});
   return pg_
       .execute_prepared(
-          "DELETE FROM samples WHERE sat_id = $1 AND utime IN (SELECT utime FROM samples "
-          "WHERE sat_id = $1 AND utime < $2 ORDER BY utime LIMIT $3)",
+          // The chunk as a key range (its last key from the index): two index range scans in
+          // any plan. (utime IN (... LIMIT $3) was planned, once analysed, as a scan of all the
+          // spacecraft's rows, each probed against the chunk: 1 ms for a DELETE of nothing.)
+          "DELETE FROM samples WHERE sat_id = $1 AND utime < $2 AND utime <= coalesce((SELECT "
+          "utime FROM samples WHERE sat_id = $1 AND utime < $2 ORDER BY utime OFFSET $3 - 1 "
+          "LIMIT 1), $2)",
           p)
       .affected_rows();
 }

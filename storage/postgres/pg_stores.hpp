@@ -38,6 +38,8 @@ class PgSampleWindowStore final : public SampleWindowStore {
                            std::string_view station = {}) override;
   void read_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime,
                    std::vector<StoredSample>& out) override;
+  void read_windows(std::span<const WindowRequest> requests, std::vector<StoredSample>& out,
+                    std::vector<size_t>& ends) override;
   int64_t count_in_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime) override;
   std::vector<StationCount> count_by_station(std::string_view sat_id, int64_t t0_utime,
                                              int64_t t1_utime) override;
@@ -56,6 +58,8 @@ class PgSampleWindowStore final : public SampleWindowStore {
   PgParams params_;                      // reused: no allocation per batch once warmed up
   std::vector<size_t> order_;            // batch rows in key order
   std::vector<std::pair<std::string, int64_t>> stored_keys_;  // what RETURNING reported
+  std::vector<std::string> request_sats_;                     // read_windows' arrays, reused
+  std::vector<int64_t> request_t0s_, request_t1s_;
 };
 
 class PgRefitJobLog final : public RefitJobLog {

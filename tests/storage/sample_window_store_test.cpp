@@ -112,6 +112,39 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest, "samples round-trip exactly, including ab
 }
 
 TEMPLATE_TEST_CASE_METHOD(BackendTest,
+                          "read_windows reads several windows at once as read_window reads each",
+                          "[samples]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto store = this->db->make_sample_window_store();
+  const auto a = make_series("SAT-A", 30, 10 * kSecond);
+  const auto b = make_series("SAT-B", 20, 10 * kSecond, 5);
+  REQUIRE(store->insert_batch(a).inserted == 30);
+  REQUIRE(store->insert_batch(b).inserted == 20);
+  // In the order asked, empty ones (no rows in the range, no such spacecraft) included.
+  const std::vector<SampleWindowStore::WindowRequest> requests{
+      {"SAT-B", kT0, kT0 + 1000 * kSecond},
+      {"NOPE", kT0, kT0 + 1000 * kSecond},
+      {"SAT-A", kT0 + 100 * kSecond, kT0 + 200 * kSecond},
+      {"SAT-A", kT0 + 5000 * kSecond, kT0 + 6000 * kSecond},
+      {"SAT-A", kT0, kT0 + 30 * kSecond}};
+  std::vector<StoredSample> rows{make_sample("STALE", kT0, 0)};
+  std::vector<size_t> ends{7};
+  store->read_windows(requests, rows, ends);
+  REQUIRE(ends.size() == requests.size());
+  size_t from = 0;
+  for (size_t i = 0; i < requests.size(); ++i) {
+    const auto want = store->window(requests[i].sat_id, requests[i].t0_utime, requests[i].t1_utime);
+    REQUIRE(ends[i] - from == want.size());
+    for (size_t k = 0; k < want.size(); ++k) check_equal(rows[from + k], want[k]);
+    from = ends[i];
+  }
+  CHECK(rows.size() == 20 + 10 + 3);
+  store->read_windows({}, rows, ends);
+  CHECK(rows.empty());
+  CHECK(ends.empty());
+}
+
+TEMPLATE_TEST_CASE_METHOD(BackendTest,
                           "duplicate (sat_id, utime) is rejected, counted, and the first copy kept",
                           "[samples]", SqliteBackend, PostgresBackend) {
   if (!this->db) return;
