@@ -20,6 +20,8 @@ namespace {
 constexpr int64_t kNoTime = OwnedSpacecraft::kNoTime;
 // While other stations are live, the owner looks for their samples this often (wall time).
 constexpr double kUnionPoll_s = 1.0;
+// Spacecraft whose new samples one statement reads (SampleWindowStore::read_windows).
+constexpr size_t kUnionReadsPerStatement = 64;
 // Takeovers per lease round: each reads the spacecraft's state, history and job log (a few ms
 // on PostgreSQL), so a daemon taking over hundreds of spacecraft keeps receiving in between;
 // the rest follow at the next rounds.
@@ -311,6 +313,9 @@ void OwnedSpacecraftTracker::maintain_leases() {
       }
     }
   }
+  // More to take over: the next round at once, after the frames received meanwhile (not a
+  // lease period later: the filters of the rest would wait that long).
+  if (acquired.size() >= kMaxTakeoversPerRound) next_lease_round_ = {};
 }
 
 void OwnedSpacecraftTracker::release_all() {
@@ -400,17 +405,14 @@ void OwnedSpacecraftTracker::poll_refits_elsewhere() {
   }
 }
 
-void OwnedSpacecraftTracker::track_union(const std::string& sat, OwnedSpacecraft& t, bool drain) {
-  t.union_due = false;
+void OwnedSpacecraftTracker::track_union(const std::string& sat, OwnedSpacecraft& t, bool drain,
+                                         std::span<const storage::StoredSample> union_rows) {
   // An accepted refit posted meanwhile applies before the samples committed since.
   apply_reanchors_if_posted();
   if (!t.owned) return;
-  const int64_t from =
-      t.filtered_utime == kNoTime ? std::numeric_limits<int64_t>::min() / 2 : t.filtered_utime + 1;
-  samples_.read_window(sat, from, std::numeric_limits<int64_t>::max(), union_rows_);
-  if (union_rows_.empty()) return;
+  if (union_rows.empty()) return;
   const int64_t now = wall_utime();
-  const int64_t newest = union_rows_.back().utime;
+  const int64_t newest = union_rows.back().utime;
   if (newest > t.union_newest_utime) {
     t.union_newest_utime = newest;
     t.union_grew_wall_utime = now;
@@ -421,7 +423,7 @@ void OwnedSpacecraftTracker::track_union(const std::string& sat, OwnedSpacecraft
   const int64_t horizon =
       drain || quiet ? newest : saturating_sub(newest, config_.reorder_delay_utime());
   bool state_was_due = t.state_due;
-  for (const auto& row : union_rows_) {
+  for (const auto& row : union_rows) {
     if (row.utime > horizon) break;
     if (!t.owned) return;  // lost during a flush below
     if (t.deferred_reanchor_utime != kNoTime && row.utime > t.deferred_reanchor_utime) {
@@ -468,23 +470,47 @@ void OwnedSpacecraftTracker::track_owned(bool drain) {
   } done{tracking_};
   const auto now = std::chrono::steady_clock::now();
   // Every kUnionPoll_s: while other stations are live, every owned spacecraft (their samples);
-  // alone, those with samples still behind the reorder horizon (the end of a pass, taken once
-  // it has been quiet for the reorder delay). Otherwise this station's commits say when.
+  // alone, those with samples still behind the reorder horizon once it has been quiet for the
+  // reorder delay (the end of a pass: before that a read takes nothing new). Otherwise this
+  // station's commits say when.
   const bool due_poll = !drain && now >= next_union_poll_;
   if (due_poll) {
     next_union_poll_ = now + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
                                  std::chrono::duration<double>(kUnionPoll_s));
   }
   const bool poll_all = drain || (due_poll && live_stations_ > 1);
+  const int64_t quiet_since_utime = saturating_sub(wall_utime(), config_.reorder_delay_utime());
   auto due = [&](const OwnedSpacecraft& t) {
     return t.union_due || poll_all ||
            (due_poll && t.union_newest_utime != kNoTime &&
-            (t.filtered_utime == kNoTime || t.union_newest_utime > t.filtered_utime));
+            (t.filtered_utime == kNoTime || t.union_newest_utime > t.filtered_utime) &&
+            t.union_grew_wall_utime <= quiet_since_utime);
   };
   try {
+    union_due_sats_.clear();
     fleet_.for_each([&](const std::string& sat, OwnedSpacecraft& t) {
-      if (t.owned && due(t)) track_union(sat, t, drain);
+      if (t.owned && due(t)) union_due_sats_.push_back(&sat);  // (map keys: stable)
     });
+    // Their samples after the filter, kUnionReadsPerStatement spacecraft per read.
+    for (size_t begin = 0; begin < union_due_sats_.size(); begin += kUnionReadsPerStatement) {
+      const size_t n = std::min(kUnionReadsPerStatement, union_due_sats_.size() - begin);
+      union_requests_.clear();
+      for (size_t i = begin; i < begin + n; ++i) {
+        OwnedSpacecraft& t = *fleet_.find(*union_due_sats_[i]);
+        t.union_due = false;  // (again once a commit meanwhile stores more of it)
+        const int64_t from = t.filtered_utime == kNoTime ? std::numeric_limits<int64_t>::min() / 2
+                                                         : t.filtered_utime + 1;
+        union_requests_.push_back({*union_due_sats_[i], from, std::numeric_limits<int64_t>::max()});
+      }
+      samples_.read_windows(union_requests_, union_rows_, union_row_ends_);
+      size_t from_row = 0;
+      for (size_t i = 0; i < n; ++i) {
+        const std::string& sat = *union_due_sats_[begin + i];
+        const auto rows = std::span(union_rows_).subspan(from_row, union_row_ends_[i] - from_row);
+        from_row = union_row_ends_[i];
+        track_union(sat, *fleet_.find(sat), drain, rows);
+      }
+    }
   } catch (const storage::StorageError& e) {
     // The filters wait where they are (a database outage): read again once commits go through.
     counters_.storage_failures.fetch_add(1, std::memory_order_relaxed);
@@ -538,14 +564,19 @@ storage::FilterState OwnedSpacecraftTracker::stored_state(const std::string& sat
 
 void OwnedSpacecraftTracker::write() {
   fence_owned_writes();
+  // One call each (a few statements on PostgreSQL instead of a round trip per row).
+  snapshot_records_.clear();
   for (const auto& p : pending_snapshots_) {
-    storage::CalibrationRecord rec = record_from_result(p.sat_id, p.result);
+    storage::CalibrationRecord& rec =
+        snapshot_records_.emplace_back(record_from_result(p.sat_id, p.result));
     rec.temperature_model_refit_id = p.temperature_model_refit_id;
-    history_->append(rec);
   }
+  history_->append_all(snapshot_records_);
+  due_states_.clear();
   for (const auto& sat : states_due_) {
-    if (const SpacecraftTracker* t = fleet_.find(sat)) filter_states_->save(stored_state(sat, *t));
+    if (const SpacecraftTracker* t = fleet_.find(sat)) due_states_.push_back(stored_state(sat, *t));
   }
+  filter_states_->save_all(due_states_);
 }
 
 void OwnedSpacecraftTracker::written() {
@@ -589,19 +620,26 @@ void OwnedSpacecraftTracker::drop_unstored_writes() {
 void OwnedSpacecraftTracker::fence_owned_writes() {
   // Only while the lease is still this daemon's (on PostgreSQL its row stays locked until the
   // commit, so a takeover waits for it): a daemon that stalled past its lease writes nothing.
-  const std::string& me = config_.station.id;
   std::vector<std::string> lost;
+  std::vector<storage::LeaseStore::Held> held;  // checked in one statement
   auto check = [&](const std::string& sat) {
-    if (std::find(lost.begin(), lost.end(), sat) != lost.end()) return;
     const SpacecraftTracker* t = fleet_.find(sat);
-    if (t == nullptr || !t->owned || !leases_->holds(sat, me, t->lease_epoch)) lost.push_back(sat);
+    if (t == nullptr || !t->owned) {
+      lost.push_back(sat);
+    } else {
+      held.push_back({sat, t->lease_epoch});
+    }
   };
-  std::string last_checked;
-  for (const auto& p : pending_snapshots_) {
-    if (p.sat_id != last_checked) check(p.sat_id);
-    last_checked = p.sat_id;
-  }
+  for (const auto& p : pending_snapshots_) check(p.sat_id);
   for (const auto& sat : states_due_) check(sat);
+  auto by_sat = [](const auto& a, const auto& b) { return a.sat_id < b.sat_id; };
+  std::sort(held.begin(), held.end(), by_sat);
+  held.erase(std::unique(held.begin(), held.end(),
+                         [](const auto& a, const auto& b) { return a.sat_id == b.sat_id; }),
+             held.end());
+  for (auto& sat : leases_->not_held(config_.station.id, held)) lost.push_back(std::move(sat));
+  std::sort(lost.begin(), lost.end());
+  lost.erase(std::unique(lost.begin(), lost.end()), lost.end());
   for (const auto& sat : lost) {
     spdlog::warn(
         "{}: lease lost before its snapshots were stored: dropped (the new owner makes "

@@ -172,9 +172,10 @@ class OwnedSpacecraftTracker final : public CommitParticipant {
   // This daemon no longer owns sat_id (lost or handed over): its filter stops, nothing of it is
   // written any more.
   void give_up(const std::string& sat_id, OwnedSpacecraft& t);
-  // The owner's filter takes the union's stored samples after filtered_utime, up to the reorder
-  // horizon (all of them with `drain`).
-  void track_union(const std::string& sat_id, OwnedSpacecraft& t, bool drain);
+  // The owner's filter takes `union_rows` (the union's stored samples after filtered_utime, read
+  // by track_owned()) up to the reorder horizon (all of them with `drain`).
+  void track_union(const std::string& sat_id, OwnedSpacecraft& t, bool drain,
+                   std::span<const storage::StoredSample> union_rows);
   // Data clock: advances sat_id's refit schedule to its filter's time; due refits are
   // committed up to their time, then handed to on_refit_due.
   void check_data_clock(const std::string& sat_id, OwnedSpacecraft& t);
@@ -205,6 +206,8 @@ class OwnedSpacecraftTracker final : public CommitParticipant {
     int64_t temperature_model_refit_id = 0;  // the refit whose temperature model it applied
   };
   std::vector<PendingSnapshot> pending_snapshots_;
+  std::vector<storage::CalibrationRecord> snapshot_records_;  // reused by write()
+  std::vector<storage::FilterState> due_states_;              // reused by write()
   std::vector<std::string> states_due_;  // spacecraft whose state goes into the next commit
   // Data-clock refits that fell due during an outage: requested once everything is committed.
   std::vector<std::pair<std::string, int64_t>> deferred_refits_;
@@ -218,7 +221,10 @@ class OwnedSpacecraftTracker final : public CommitParticipant {
   const std::string instance_;   // this process in the stations table (random per start)
   int64_t last_beat_utime_ = 0;  // 0: not beaten yet
   bool tracking_ = false;        // track_owned() is running (a flush inside it must not re-enter)
-  std::vector<storage::StoredSample> union_rows_;  // reused by track_union()
+  std::vector<storage::StoredSample> union_rows_;   // reused by track_owned()
+  std::vector<size_t> union_row_ends_;              // reused by track_owned()
+  std::vector<const std::string*> union_due_sats_;  // reused by track_owned()
+  std::vector<storage::SampleWindowStore::WindowRequest> union_requests_;  // reused too
   mutable std::mutex owned_mutex_;
   std::set<std::string> owned_names_;  // owns(), from any thread
 

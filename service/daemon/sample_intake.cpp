@@ -15,6 +15,10 @@ constexpr int64_t kNoTime = ReceivedSpacecraft::kNoTime;
 constexpr double kRetentionEvery_s = 2.0;                   // wall time...
 constexpr int64_t kRetentionEveryData_utime = 600'000'000;  // ...or data time
 constexpr int kRetentionChunkRows = 2000;
+// A spacecraft's old samples are deleted once its cutoff has moved this far (data time) past
+// what is stored: a live fleet of 1 000 spacecraft would otherwise run 500 DELETEs a second,
+// each of one sample (one per 10 s each). The window keeps at most this much more.
+constexpr int64_t kRetentionStep_utime = 600'000'000;
 // A commit drains the spill file for at most this long, then the worker takes frames again: a
 // large spill (1 GiB: minutes of inserts) must not stall intake or the systemd watchdog.
 constexpr double kSpillDrainSlice_s = 1.0;
@@ -532,11 +536,12 @@ void SampleIntake::run_retention() {
     const int64_t edge = std::min(t.newest_utime, t.retention_edge_utime);
     const int64_t cutoff = std::min(saturating_sub(edge, window + margin), floor);
     try {
-      // Nothing stored before the cutoff (a window still filling): no transaction.
+      // Nothing stored before the cutoff (a window still filling), or less than a step: no
+      // transaction.
       if (t.retained_from_utime == kNoTime) {
         t.retained_from_utime = samples_.oldest_utime(sat).value_or(cutoff);
       }
-      if (cutoff <= t.retained_from_utime) continue;
+      if (saturating_sub(cutoff, t.retained_from_utime) < kRetentionStep_utime) continue;
       samples_.delete_before(sat, cutoff, kRetentionChunkRows);
       t.retained_from_utime = cutoff;  // (samples stored older since lower it: count_stored)
     } catch (const storage::StorageError& e) {
