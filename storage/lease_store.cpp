@@ -46,6 +46,7 @@ SqliteLeaseStore::SqliteLeaseStore(Database& db)
       renew_(db,
              "UPDATE leases SET expires_utime = ?4 + ?5 WHERE sat_id = ?1 AND owner = ?2 AND "
              "epoch = ?3"),
+      reclaim_(db, columns::kLeaseReclaim),
       release_(db,
                "UPDATE leases SET expires_utime = min(expires_utime, ?4) WHERE sat_id = ?1 AND "
                "owner = ?2 AND epoch = ?3"),
@@ -75,6 +76,16 @@ bool SqliteLeaseStore::renew(std::string_view sat_id, std::string_view owner, in
   auto use = renew_.use();
   renew_.bind(1, sat_id).bind(2, owner).bind(3, epoch).bind(4, now_utime).bind(5, ttl_utime);
   return renew_.execute() == 1;
+}
+
+std::optional<Lease> SqliteLeaseStore::reclaim(std::string_view sat_id, std::string_view owner,
+                                               int64_t epoch, int64_t now_utime,
+                                               int64_t ttl_utime) {
+  check_request(owner, ttl_utime);
+  auto use = reclaim_.use();
+  reclaim_.bind(1, sat_id).bind(2, owner).bind(3, epoch).bind(4, now_utime).bind(5, ttl_utime);
+  if (!reclaim_.step()) return std::nullopt;
+  return read_lease(reclaim_);
 }
 
 bool SqliteLeaseStore::release(std::string_view sat_id, std::string_view owner, int64_t epoch,

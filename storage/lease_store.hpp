@@ -64,6 +64,12 @@ class LeaseStore {
   // since (the caller lost it and must stop acting for the spacecraft).
   virtual bool renew(std::string_view sat_id, std::string_view owner, int64_t epoch,
                      int64_t now_utime, int64_t ttl_utime) = 0;
+  // Owner's lease of that epoch under the next epoch, until now + ttl: a process that finds its
+  // station's lease unexpired at its start (a restart after a crash, or a second process under
+  // the same station id) takes it over this way, so that writes fenced by the old epoch fail and
+  // no two processes write for the spacecraft. nullopt when it is no longer owner's of that epoch.
+  virtual std::optional<Lease> reclaim(std::string_view sat_id, std::string_view owner,
+                                       int64_t epoch, int64_t now_utime, int64_t ttl_utime) = 0;
   // Ends owner's lease of that epoch at now (another daemon may take it at once). False when it
   // was no longer owner's.
   virtual bool release(std::string_view sat_id, std::string_view owner, int64_t epoch,

@@ -140,6 +140,8 @@ class SqliteLeaseStore final : public LeaseStore {
 
   std::optional<Lease> try_acquire(std::string_view sat_id, std::string_view owner,
                                    int64_t now_utime, int64_t ttl_utime) override;
+  std::optional<Lease> reclaim(std::string_view sat_id, std::string_view owner, int64_t epoch,
+                               int64_t now_utime, int64_t ttl_utime) override;
   bool renew(std::string_view sat_id, std::string_view owner, int64_t epoch, int64_t now_utime,
              int64_t ttl_utime) override;
   bool release(std::string_view sat_id, std::string_view owner, int64_t epoch,
@@ -159,6 +161,7 @@ class SqliteLeaseStore final : public LeaseStore {
  private:
   Statement acquire_;
   Statement renew_;
+  Statement reclaim_;
   Statement release_;
   Statement holds_;
   Statement get_;

@@ -46,6 +46,11 @@ inline constexpr const char* kLeaseAcquire =
     "WHERE leases.owner = excluded.owner OR leases.expires_utime <= excluded.acquired_utime "
     "RETURNING sat_id, owner, epoch, acquired_utime, expires_utime";
 
+inline constexpr const char* kLeaseReclaim =
+    "UPDATE leases SET epoch = epoch + 1, acquired_utime = ?4, expires_utime = ?4 + ?5 "
+    "WHERE sat_id = ?1 AND owner = ?2 AND epoch = ?3 "
+    "RETURNING sat_id, owner, epoch, acquired_utime, expires_utime";
+
 // A lease row without an owner: expired (0), epoch 0, so its first owner gets epoch 1.
 inline constexpr const char* kLeaseEnsure =
     "INSERT INTO leases (sat_id, owner, epoch, acquired_utime, expires_utime) "

@@ -237,12 +237,17 @@ void OwnedSpacecraftTracker::maintain_leases() {
       ++held;
     });
     // Leases still this station's that this process does not know it holds (it restarted
-    // within their time to live): taken over at once.
+    // within their time to live, or another process runs under this station id): taken over at
+    // once, under the next epoch, so that the other process's fenced writes fail (no two
+    // processes write one spacecraft's snapshots) until the heartbeat stops one of them.
     for (const auto& [sat, epoch] : renewed) {
       const SpacecraftTracker* t = fleet_.find(sat);
       if (t == nullptr || !t->owned) {
         ++held;  // (held either way: taken over now, or at a next round while it is renewed)
-        if (acquired.size() < kMaxTakeoversPerRound) acquired.emplace_back(sat, epoch);
+        if (acquired.size() >= kMaxTakeoversPerRound) continue;
+        if (const auto lease = leases_->reclaim(sat, me, epoch, now, ttl)) {
+          acquired.emplace_back(sat, lease->epoch);
+        }
       }
     }
     const std::vector<storage::Lease> all = leases_->list();

@@ -580,6 +580,17 @@ bool PgLeaseStore::renew(std::string_view sat_id, std::string_view owner, int64_
              .affected_rows() == 1;
 }
 
+std::optional<Lease> PgLeaseStore::reclaim(std::string_view sat_id, std::string_view owner,
+                                           int64_t epoch, int64_t now_utime, int64_t ttl_utime) {
+  check_request(owner, ttl_utime);
+  static const std::string sql = dollar_params(columns::kLeaseReclaim);
+  PgParams p;
+  p.add(sat_id).add(owner).add(epoch).add(now_utime).add(ttl_utime);
+  const PgResult r = db_.execute_prepared(sql, p, PgFormat::kBinary);
+  if (r.rows() == 0) return std::nullopt;
+  return lease_from_row(r, 0);
+}
+
 bool PgLeaseStore::release(std::string_view sat_id, std::string_view owner, int64_t epoch,
                            int64_t now_utime) {
   PgParams p;

@@ -108,6 +108,8 @@ class PgLeaseStore final : public LeaseStore {
 
   std::optional<Lease> try_acquire(std::string_view sat_id, std::string_view owner,
                                    int64_t now_utime, int64_t ttl_utime) override;
+  std::optional<Lease> reclaim(std::string_view sat_id, std::string_view owner, int64_t epoch,
+                               int64_t now_utime, int64_t ttl_utime) override;
   bool renew(std::string_view sat_id, std::string_view owner, int64_t epoch, int64_t now_utime,
              int64_t ttl_utime) override;
   bool release(std::string_view sat_id, std::string_view owner, int64_t epoch,

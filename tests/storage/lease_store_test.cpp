@@ -74,6 +74,21 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest,
   CHECK_FALSE(leases->renew("SAT1", "A", 1, later + kSecond, kTtl));
   CHECK(leases->renew("SAT1", "A", 3, later + kSecond, kTtl));
 
+  // A new process of station A reclaims A's unexpired lease under the next epoch: the fence of
+  // the old epoch fails (a second process under one station id writes nothing more); a stale
+  // epoch or another owner cannot reclaim.
+  const auto re = leases->reclaim("SAT1", "A", 3, later + 2 * kSecond, kTtl);
+  REQUIRE(re.has_value());
+  CHECK(re->owner == "A");
+  CHECK(re->epoch == 4);
+  CHECK(re->acquired_utime == later + 2 * kSecond);
+  CHECK(re->expires_utime == later + 2 * kSecond + kTtl);
+  CHECK_FALSE(leases->holds("SAT1", "A", 3));
+  CHECK(leases->holds("SAT1", "A", 4));
+  CHECK_FALSE(leases->reclaim("SAT1", "A", 3, later + 2 * kSecond, kTtl).has_value());
+  CHECK_FALSE(leases->reclaim("SAT1", "B", 4, later + 2 * kSecond, kTtl).has_value());
+  CHECK(leases->renew("SAT1", "A", 4, later + 2 * kSecond, kTtl));
+
   leases->try_acquire("SAT0", "B", kT0, kTtl);
   const auto all = leases->list();
   REQUIRE(all.size() == 2);

@@ -529,4 +529,8 @@ TEST_CASE("two magcald with one station id: both stop with the reason, none keep
   CHECK(text.find("another magcald runs as station 'dup'") != std::string::npos);
   // The newcomer was told at once what its first beat found.
   CHECK(slurp(log_b).find("the heartbeat of a previous process is live") != std::string::npos);
+  // Until then never two processes wrote the spacecraft's snapshots: the newcomer took the
+  // lease under the next epoch, so the first one's fenced writes fail (lease_store_test: the
+  // old epoch's holds() is false once reclaimed).
+  CHECK(slurp(log_b).find("owned here (lease epoch 2)") != std::string::npos);
 }
