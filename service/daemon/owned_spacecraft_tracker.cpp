@@ -195,6 +195,10 @@ bool OwnedSpacecraftTracker::owns(const std::string& sat_id) const {
   return owned_names_.count(sat_id) > 0;
 }
 
+OwnedSpacecraftTracker::~OwnedSpacecraftTracker() {
+  if (lease_round_failing_) counters_.storage_path_recovered();
+}
+
 void OwnedSpacecraftTracker::maintain_leases() {
   const auto now_steady = std::chrono::steady_clock::now();
   next_lease_round_ =
@@ -291,9 +295,17 @@ void OwnedSpacecraftTracker::maintain_leases() {
       }
     }
     poll_refits_elsewhere();
+    if (lease_round_failing_) {
+      lease_round_failing_ = false;
+      counters_.storage_path_recovered();
+    }
   } catch (const storage::StorageError& e) {
     // Retried at the next round; a lease that runs out meanwhile is given up there.
     counters_.storage_failures.fetch_add(1, std::memory_order_relaxed);
+    if (!lease_round_failing_) {
+      lease_round_failing_ = true;
+      counters_.storage_path_failing();
+    }
     warnings_.warn("leases", fmt::format("database: lease round failed, retried in {:.0f} s: {}",
                                          config_.fleet.lease_s / 3, e.what()));
   }

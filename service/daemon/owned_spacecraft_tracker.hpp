@@ -97,6 +97,9 @@ class OwnedSpacecraftTracker final : public CommitParticipant {
   OwnedSpacecraftTracker(const DaemonConfig& config, DaemonCounters& counters,
                          storage::Connection& db, storage::SampleWindowStore& samples,
                          SpacecraftFleet& fleet, SampleIntake& intake, Hooks hooks, Links links);
+  ~OwnedSpacecraftTracker();
+  OwnedSpacecraftTracker(const OwnedSpacecraftTracker&) = delete;
+  OwnedSpacecraftTracker& operator=(const OwnedSpacecraftTracker&) = delete;
 
   // Heartbeat, lease renewal, takeovers and handovers. A storage error is logged and counted;
   // the next round retries (leases not renewed in time are lost, and given up here). Throws
@@ -220,7 +223,11 @@ class OwnedSpacecraftTracker final : public CommitParticipant {
   size_t live_stations_ = 1;     // at the last lease round (1: alone, no other station writes)
   const std::string instance_;   // this process in the stations table (random per start)
   int64_t last_beat_utime_ = 0;  // 0: not beaten yet
-  bool tracking_ = false;        // track_owned() is running (a flush inside it must not re-enter)
+  // The last lease round failed on storage: counted as a failing storage path (storage_healthy()
+  // false: /-/ready 503 on PostgreSQL) until a round succeeds, also on a station with nothing to
+  // commit.
+  bool lease_round_failing_ = false;
+  bool tracking_ = false;  // track_owned() is running (a flush inside it must not re-enter)
   std::vector<storage::StoredSample> union_rows_;   // reused by track_owned()
   std::vector<size_t> union_row_ends_;              // reused by track_owned()
   std::vector<const std::string*> union_due_sats_;  // reused by track_owned()

@@ -278,6 +278,46 @@ void check_next_start_commits_spill(const TempDir& dir, const std::string& confi
   CHECK_FALSE(std::filesystem::exists(spill_file));
 }
 
+TEST_CASE("an idle station is not ready while PostgreSQL is down: its lease rounds fail",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_idle");
+  // 10 frames, then nothing for 20 s (a station between passes), then a last frame.
+  const std::string log = dir.file("idle.lcm");
+  {
+    lcm::LogFile out(log, "w");
+    REQUIRE(out.good());
+    const int64_t t0 = log_start_utime();
+    for (int f = 0; f <= 10; ++f) {
+      magcal::mag_batch_t batch;
+      batch.sat_id = kSat;
+      for (int k = f * magcal::test::kLogBatch; k < (f + 1) * magcal::test::kLogBatch; ++k) {
+        batch.samples.push_back(magcal::test::turning_field_sample(kSat, t0, k));
+      }
+      batch.n = static_cast<int32_t>(batch.samples.size());
+      magcal::test::write_log_event(out, f, t0 + (f < 10 ? f * 100'000 : 20'000'000),
+                                    "MAGCAL_BATCH", batch);
+    }
+  }
+  const std::string db = server->create_database();
+  const std::string config =
+      write_config(dir, "idle.toml", "db_path = \"" + db + "\"\n", 200, "[fleet]\nlease_s = 3\n");
+  const PacedDaemon daemon(log, config, dir, 10 * magcal::test::kLogBatch);
+  CHECK(http_get(daemon.port, "/-/ready").status == 200);
+  server->stop();
+  // Nothing to commit, but its heartbeat and lease renewals fail (every lease_s / 3).
+  CHECK(wait_until([&] { return http_get(daemon.port, "/-/ready").status == 503; }, 10));
+  CHECK(http_get(daemon.port, "/-/healthy").status == 200);
+  CHECK(metric(daemon.port, "magcal_storage_healthy") == 0);
+  server->start();
+  CHECK(wait_until([&] { return http_get(daemon.port, "/-/ready").status == 200; }, 20));
+  const int rc = wait_exit(daemon.pid, 60);
+  INFO(slurp(daemon.log_path));
+  CHECK(rc == 0);
+  CHECK(stored_samples(db) == 11 * magcal::test::kLogBatch);
+}
+
 TEST_CASE("magcald killed during a PostgreSQL outage: the next start commits its spill file",
           "[daemon][postgres][outage][integration]") {
   magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
