@@ -103,10 +103,10 @@ bool FilterState::operator==(const FilterState& o) const {
          fisher_condition == o.fisher_condition && samples_since_fisher == o.samples_since_fisher &&
          period_start_utime == o.period_start_utime && period_n == o.period_n &&
          period_residual_sum2_nT2 == o.period_residual_sum2_nT2 &&
-         period_nis_sum == o.period_nis_sum && anchor_information == o.anchor_information &&
+         period_nis_sum == o.period_nis_sum &&
+         anchor_information_and_meat == o.anchor_information_and_meat &&
          score_block == o.score_block && score_block_n == o.score_block_n &&
-         score_meat == o.score_meat && score_blocks == o.score_blocks &&
-         model_error_covariance == o.model_error_covariance &&
+         score_blocks == o.score_blocks && model_error_covariance == o.model_error_covariance &&
          model_error_known == o.model_error_known && lag1_or_block == o.lag1_or_block &&
          bias_motion_n == o.bias_motion_n && bias_motion_sum_t_h == o.bias_motion_sum_t_h &&
          bias_motion_sum_t2_h2 == o.bias_motion_sum_t2_h2 &&
@@ -231,17 +231,15 @@ void ScalarFilterBase::set_covariance(const Matrix9d& P) {
       L = options_->initial_covariance().diagonal().cwiseSqrt().asDiagonal();
       break;
   }
-  state_.S = packed_lower<9>(L);
+  state_.S = L.triangularView<Eigen::Lower>();
 }
 
 void ScalarFilterBase::anchor_sandwich() {
   // A = P^-1 = S^-T S^-1, from the factor (no explicit inverse of P).
-  const Matrix9d S_inv =
-      lower_from_packed<9>(state_.S).triangularView<Eigen::Lower>().solve(Matrix9d::Identity());
-  state_.anchor_information = packed_upper<9>(Matrix9d(S_inv.transpose() * S_inv));
+  const Matrix9d S_inv = state_.S.triangularView<Eigen::Lower>().solve(Matrix9d::Identity());
+  state_.anchor_information_and_meat = packed_upper<9>(Matrix9d(S_inv.transpose() * S_inv));
   state_.score_block.setZero();
   state_.score_block_n = 0;
-  state_.score_meat.setZero();
   state_.score_blocks = 0;
 }
 
@@ -319,8 +317,7 @@ void ScalarFilterBase::reset_period() {
 }
 
 Matrix9d ScalarFilterBase::P() const {
-  const Matrix9d S = lower_from_packed<9>(state_.S);
-  return S * S.transpose();
+  return state_.S * state_.S.transpose();
 }
 
 Matrix9d ScalarFilterBase::reported_covariance() const {
@@ -329,22 +326,12 @@ Matrix9d ScalarFilterBase::reported_covariance() const {
   if (options_->sandwich_block_samples <= 0 || state_.score_blocks == 0) {
     return P + model_error;
   }
-  const Matrix9d C = P *
-                     (symmetric_from_packed<9>(state_.anchor_information) +
-                      symmetric_from_packed<9>(state_.score_meat)) *
-                     P;
+  const Matrix9d C = P * symmetric_from_packed<9>(state_.anchor_information_and_meat) * P;
   return covariance_not_below(P, Matrix9d(0.5 * (C + C.transpose()))) + model_error;
 }
 
 Eigen::Vector3d ScalarFilterBase::bias_sigma_nT() const {
-  // The norms of S's first three rows (lower triangular: row i ends at the diagonal), summed in
-  // the order Eigen sums a full row (per sample: converged()).
-  const PackedTriangle<9>& S = state_.S;
-  const double s00 = S(packed_index<9>(0, 0)), s10 = S(packed_index<9>(0, 1)),
-               s11 = S(packed_index<9>(1, 1)), s20 = S(packed_index<9>(0, 2)),
-               s21 = S(packed_index<9>(1, 2)), s22 = S(packed_index<9>(2, 2));
-  return Eigen::Vector3d(std::sqrt(s00 * s00), std::sqrt(s10 * s10 + s11 * s11),
-                         std::sqrt((s20 * s20 + s21 * s21) + s22 * s22));
+  return state_.S.topRows<3>().rowwise().norm();
 }
 
 bool ScalarFilterBase::converged() const {
@@ -459,7 +446,7 @@ void ScalarFilterBase::start_from(const FilterStartResult& start) {
 }
 
 bool ScalarFilterBase::begin_update(FilterUpdate& u, const Eigen::Vector3d& b_sensor_nT,
-                                    double h_norm_nT, int64_t utime, Matrix9d& S) {
+                                    double h_norm_nT, int64_t utime) {
   u.status = FilterUpdateStatus::kRejectedInvalid;
   if (!is_finite(b_sensor_nT) || !std::isfinite(h_norm_nT) || !(h_norm_nT > 0.0)) {
     ++state_.n_rejected_invalid;
@@ -480,19 +467,15 @@ bool ScalarFilterBase::begin_update(FilterUpdate& u, const Eigen::Vector3d& b_se
           (dt_s / kSecondsPerHour);
       if ((q.array() > 0.0).any()) {
         // P + Q re-factorised (one 9x9 LLT is cheaper than nine serial rank-1 updates).
-        const Matrix9d L = lower_from_packed<9>(state_.S);
-        Matrix9d P = L * L.transpose();
+        Matrix9d P = state_.S * state_.S.transpose();
         P.diagonal() += q;
         const Eigen::LLT<Matrix9d> llt(P);
-        if (llt.info() == Eigen::Success) state_.S = packed_lower<9>(Matrix9d(llt.matrixL()));
+        if (llt.info() == Eigen::Success) state_.S = llt.matrixL();
       }
     }
     state_.last_utime = utime;
   }
-  if (state_.initialized) {
-    S = lower_from_packed<9>(state_.S);
-    return true;
-  }
+  if (state_.initialized) return true;
 
   if (options_->cold_start == FilterOptions::ColdStart::kFromData) {
     const double y =
@@ -523,17 +506,16 @@ bool ScalarFilterBase::begin_update(FilterUpdate& u, const Eigen::Vector3d& b_se
       b_sensor_nT.norm() > 0.0) {
     state_.x.segment<3>(3).setConstant(h_norm_nT / b_sensor_nT.norm() - 1.0);
   }
-  S = options_->initial_covariance().diagonal().cwiseSqrt().asDiagonal();
-  state_.S = packed_lower<9>(S);
+  state_.S = options_->initial_covariance().diagonal().cwiseSqrt().asDiagonal();
   mark_started();
   return true;
 }
 
 void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_sensor_nT,
                                      double h_norm_nT, const Eigen::Vector3d& b_cal, double y_hat,
-                                     double hph, Matrix9d& S, const Vector9d& Pxz_white) {
+                                     double hph, const Vector9d& Pxz_white) {
   const double sigma = options_->sigma_nT;
-  const Vector9d Pxz = S * Pxz_white;
+  const Vector9d Pxz = state_.S * Pxz_white;
   const double y = scalar_measurement(b_sensor_nT, h_norm_nT) - scalar_noise_mean(sigma);
   const double R1 = scalar_noise_variance(b_cal, sigma);
   const double R_white = R1 * state_.noise_scale2;
@@ -591,19 +573,18 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
   // The sample's score for the reported covariance (H: the measurement Jacobian at the prior).
   const Vector9d score =
       scalar_measurement_jacobian_at(b_cal, b_sensor_nT).transpose() * (nu / (S_gain - hph));
-  if (!x_new.allFinite() || !cholesky_downdate_whitened(S, Pxz_white * inv_sqrt_S)) {
+  if (!x_new.allFinite() || !cholesky_downdate_whitened(state_.S, Pxz_white * inv_sqrt_S)) {
     ++state_.n_rejected_invalid;
     u.status = FilterUpdateStatus::kRejectedNumerical;
     return;
   }
   state_.x = x_new;
-  state_.S = packed_lower<9>(S);
   if (options_->sandwich_block_samples > 0 && score.allFinite()) {
     state_.score_block += score;
     if (++state_.score_block_n >= options_->sandwich_block_samples) {
       const Vector9d& g = state_.score_block;
       for (int i = 0, k = 0; i < 9; ++i) {
-        for (int j = i; j < 9; ++j) state_.score_meat(k++) += g(i) * g(j);
+        for (int j = i; j < 9; ++j) state_.anchor_information_and_meat(k++) += g(i) * g(j);
       }
       ++state_.score_blocks;
       state_.score_block.setZero();
@@ -639,18 +620,16 @@ void ScalarFilterBase::monitor(FilterUpdate& u) {
   ++state_.n_inconsistency_events;
   u.inconsistency_event = true;
   const Vector9d p0 = options_->initial_covariance().diagonal();
-  Matrix9d S;
   if (options_->consistency_action == FilterOptions::ConsistencyAction::kReseed) {
-    S = p0.cwiseSqrt().asDiagonal();
+    state_.S = p0.cwiseSqrt().asDiagonal();
   } else {
-    S = lower_from_packed<9>(state_.S) * std::sqrt(options_->inflation_factor);
+    state_.S *= std::sqrt(options_->inflation_factor);
     // Cap each variance at its prior value by scaling its row of S (keeps S lower triangular).
     for (int i = 0; i < 9; ++i) {
-      const double var = S.row(i).squaredNorm();
-      if (var > p0(i)) S.row(i) *= std::sqrt(p0(i) / var);
+      const double var = state_.S.row(i).squaredNorm();
+      if (var > p0(i)) state_.S.row(i) *= std::sqrt(p0(i) / var);
     }
   }
-  state_.S = packed_lower<9>(S);
   anchor_sandwich();  // the re-opened P forgets; so do the blocks
   update_convergence_time();
 }

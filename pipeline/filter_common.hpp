@@ -233,13 +233,14 @@ struct BiasBlockStart {
 };
 
 // Everything a filter needs to resume exactly (the daemon stores it in SQLite). Restoring a
-// state obtained from state() gives a bit-exact continuation. ~3.4 KB: the symmetric and
-// triangular 9 x 9 matrices are packed (packed_triangle.hpp), small fields are grouped against
-// padding (memory per tracked spacecraft, design.md: < 4 KB with the daemon's tracker).
+// state obtained from state() gives a bit-exact continuation. ~3.3 KB: the symmetric 9 x 9
+// matrices are packed (packed_triangle.hpp), small fields are grouped against padding (memory per
+// tracked spacecraft, design.md: < 4 KB with the daemon's tracker).
 struct FilterState {
   Vector9d x = Vector9d::Zero();  // p = [b (nT); D11 D22 D33 D12 D13 D23]
-  // Lower Cholesky factor of the covariance of x (P = S S^T), packed.
-  PackedTriangle<9> S = PackedTriangle<9>::Zero();
+  // Lower Cholesky factor of the covariance of x (P = S S^T). Not packed: the filters use it
+  // every sample, and unpacking it there cost 15-60 % per update (measured).
+  Matrix9d S = Matrix9d::Zero();
   int64_t first_utime = 0;  // first valid sample
   int64_t last_utime = 0;   // time x and P refer to (latest valid sample)
   // Time since which the filter has been converged() (ok); -1 if not now.
@@ -272,11 +273,10 @@ struct FilterState {
   // inflation); from then on, where the current bias-motion block started. Never both: memory.
   std::variant<ScalarLag1Moments, BiasBlockStart> lag1_or_block;
 
-  // Reported covariance (file comment): A, the current block's score sum, sum_b G_b G_b^T
-  // (A and the sum symmetric, packed).
-  PackedTriangle<9> anchor_information = PackedTriangle<9>::Zero();
+  // Reported covariance (file comment): A + sum_b G_b G_b^T (symmetric, packed; only the sum is
+  // used), the current block's score sum.
+  PackedTriangle<9> anchor_information_and_meat = PackedTriangle<9>::Zero();
   Vector9d score_block = Vector9d::Zero();
-  PackedTriangle<9> score_meat = PackedTriangle<9>::Zero();
   int32_t score_block_n = 0;
   int32_t score_blocks = 0;
   // Model error (reanchor(), set_model_error_covariance()): added to the reported covariance
@@ -424,16 +424,15 @@ class ScalarFilterBase {
 
   // Shared first half of update(): rejects invalid input (counted, state untouched), collects
   // for the start (returns false with u.status = kCollecting), starts a prior filter, predicts
-  // to utime. Returns true when the filter-specific update should run, with S the factor after
-  // the prediction, unpacked (the state keeps it packed; finish_update() stores it back).
+  // to utime. Returns true when the filter-specific update should run.
   bool begin_update(FilterUpdate& u, const Eigen::Vector3d& b_sensor_nT, double h_norm_nT,
-                    int64_t utime, Matrix9d& S);
+                    int64_t utime);
   // Shared second half, given b_cal = (I + D) B - b at the prior x, the prior prediction y_hat,
-  // the state part of the innovation variance hph (H P H^T), S from begin_update() and
-  // Pxz_white = S^-1 Pxz (Pxz = P H^T; both filters have it before Pxz): noise adaptation,
-  // gate, Kalman update with the square-root downdate, evidence, monitor.
+  // the state part of the innovation variance hph (H P H^T) and Pxz_white = S^-1 Pxz (Pxz =
+  // P H^T; both filters have it before Pxz): noise adaptation, gate, Kalman update with the
+  // square-root downdate, evidence, monitor.
   void finish_update(FilterUpdate& u, const Eigen::Vector3d& b_sensor_nT, double h_norm_nT,
-                     const Eigen::Vector3d& b_cal, double y_hat, double hph, Matrix9d& S,
+                     const Eigen::Vector3d& b_cal, double y_hat, double hph,
                      const Vector9d& Pxz_white);
 
   std::shared_ptr<const FilterOptions> options_;

@@ -50,13 +50,13 @@ MagnetometerUkf::MagnetometerUkf(std::shared_ptr<const Options> options)
 FilterUpdate MagnetometerUkf::update(const Eigen::Vector3d& b_sensor_nT, double h_norm_nT,
                                      int64_t utime) {
   FilterUpdate u;
-  Matrix9d S;
-  if (!begin_update(u, b_sensor_nT, h_norm_nT, utime, S)) return u;
+  if (!begin_update(u, b_sensor_nT, h_norm_nT, utime)) return u;
 
   // Sigma points X_{+-i} = x +- spread S_i. The state is static, so propagation is h() only, and
   // y(p) = (I + D) B - b is linear in p: y(X_{+-i}) = y0 +- spread m_i, m_i = (dy/dp) S_i, so
   //   Z_{+-i} = |B|^2 - |y0|^2 -+ 2 spread y0.m_i - spread^2 |m_i|^2   (exact, no approximation).
   const Eigen::Vector3d& B = b_sensor_nT;
+  const Matrix9d& S = state_.S;
   const Eigen::Vector3d y0 = parameters().apply(B);
   const double z0 = B.squaredNorm() - y0.squaredNorm();
   Vector9d a, q;
@@ -81,7 +81,7 @@ FilterUpdate MagnetometerUkf::update(const Eigen::Vector3d& b_sensor_nT, double 
   const double hph = w0c * dz0 * dz0 + wi * (dzp.squaredNorm() + dzm.squaredNorm());
   // Pxz = sum_i Wi (X_i - x)(Z_i - y_hat) = S v (the centre point has X_0 - x = 0).
   const Vector9d v = (wi * spread) * (dzp - dzm);
-  finish_update(u, b_sensor_nT, h_norm_nT, y0, y_hat, hph, S, v);
+  finish_update(u, b_sensor_nT, h_norm_nT, y0, y_hat, hph, v);
   return u;
 }
 

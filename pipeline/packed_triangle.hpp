@@ -1,9 +1,14 @@
-// Packed storage of symmetric and lower-triangular N x N matrices: N (N + 1) / 2 doubles instead
-// of N^2 (memory per tracked spacecraft: a filter state holds 9 x 9 and 11 x 11 ones, design.md
-// "< 4 KB"). The order is the upper triangle row by row, which is the lower triangle column by
-// column: (i, j) with i <= j, or (j, i) of a lower-triangular matrix, is at packed_index(i, j).
-// Unpacking gives back exactly the matrix packed when it was symmetric (lower triangular).
+// Packed storage of symmetric N x N matrices: N (N + 1) / 2 doubles instead of N^2 (memory per
+// tracked spacecraft: a filter state holds 9 x 9 and 11 x 11 ones, design.md "< 4 KB"), the
+// upper triangle row by row; (i, j) with i <= j is at packed_index(i, j). Unpacking gives back
+// exactly the matrix packed when it was symmetric. The copies are straight-line code with
+// compile-time positions (run-time loops of a few elements became string instructions whose
+// start-up cost more than the copy).
 #pragma once
+
+#include <cstddef>
+#include <type_traits>
+#include <utility>
 
 #include <Eigen/Core>
 
@@ -17,41 +22,50 @@ constexpr int packed_index(int i, int j) {  // i <= j
   return i * N - i * (i - 1) / 2 + (j - i);
 }
 
+namespace packed_triangle_detail {
+
+// Row and column of the k-th packed element (upper triangle, row by row).
+template <int N>
+constexpr int packed_row(int k) {
+  int i = 0;
+  while (packed_index<N>(i, N - 1) < k) ++i;
+  return i;
+}
+template <int N>
+constexpr int packed_col(int k) {
+  const int i = packed_row<N>(k);
+  return i + (k - packed_index<N>(i, i));
+}
+
+// f(k, i, j) for every packed element, with k, i and j constants.
+template <int N, typename F, std::size_t... K>
+void for_each_packed(F&& f, std::index_sequence<K...>) {
+  (f(static_cast<int>(K), std::integral_constant<int, packed_row<N>(static_cast<int>(K))>::value,
+     std::integral_constant<int, packed_col<N>(static_cast<int>(K))>::value),
+   ...);
+}
+template <int N, typename F>
+void for_each_packed(F&& f) {
+  for_each_packed<N>(f, std::make_index_sequence<N*(N + 1) / 2>{});
+}
+
+}  // namespace packed_triangle_detail
+
 // The upper triangle of M (all of a symmetric M).
 template <int N, typename Derived>
 PackedTriangle<N> packed_upper(const Eigen::MatrixBase<Derived>& M) {
   static_assert(Derived::RowsAtCompileTime == N && Derived::ColsAtCompileTime == N);
   PackedTriangle<N> p;
-  for (int i = 0, k = 0; i < N; ++i) {
-    for (int j = i; j < N; ++j) p(k++) = M(i, j);
-  }
+  packed_triangle_detail::for_each_packed<N>([&](int k, int i, int j) { p(k) = M(i, j); });
   return p;
 }
 
 template <int N>
 Eigen::Matrix<double, N, N> symmetric_from_packed(const PackedTriangle<N>& p) {
   Eigen::Matrix<double, N, N> M;
-  for (int i = 0, k = 0; i < N; ++i) {
-    for (int j = i; j < N; ++j, ++k) M(i, j) = M(j, i) = p(k);
-  }
+  packed_triangle_detail::for_each_packed<N>(
+      [&](int k, int i, int j) { M(i, j) = M(j, i) = p(k); });
   return M;
-}
-
-// The lower triangle of L (a Cholesky factor; nothing above the diagonal is kept).
-template <int N, typename Derived>
-PackedTriangle<N> packed_lower(const Eigen::MatrixBase<Derived>& L) {
-  return packed_upper<N>(L.transpose());
-}
-
-// The lower-triangular matrix, zeros above the diagonal.
-template <int N>
-Eigen::Matrix<double, N, N> lower_from_packed(const PackedTriangle<N>& p) {
-  Eigen::Matrix<double, N, N> L;
-  for (int j = 0, k = 0; j < N; ++j) {
-    for (int i = 0; i < j; ++i) L(i, j) = 0.0;
-    for (int i = j; i < N; ++i) L(i, j) = p(k++);
-  }
-  return L;
 }
 
 }  // namespace magcal

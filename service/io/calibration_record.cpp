@@ -86,10 +86,11 @@ class BlobReader {
   bool ok_ = true;
 };
 
-// The blob keeps the layout it had before the filter state was packed: full 9 x 9 matrices and
-// both the start's lag-1 products and the bias-motion block start, where FilterState holds
-// triangles and one of the two (filter_common.hpp). These are the unpacked fields, taken from a
-// state to write it and put into one after reading.
+// The blob keeps the layout it had before the filter state was packed: full 9 x 9 matrices, A and
+// the score meat apart, and both the start's lag-1 products and the bias-motion block start,
+// where FilterState holds triangles, A + meat and one of the two (filter_common.hpp). These are
+// the unpacked fields, taken from a state to write it (A + meat as A, the meat zero: the sum is
+// what every release uses) and put into one after reading.
 struct UnpackedFields {
   Matrix9d anchor_information = Matrix9d::Zero();
   Matrix9d score_meat = Matrix9d::Zero();
@@ -100,8 +101,7 @@ struct UnpackedFields {
 
 UnpackedFields unpacked_fields(const FilterState& st) {
   UnpackedFields f;
-  f.anchor_information = symmetric_from_packed<9>(st.anchor_information);
-  f.score_meat = symmetric_from_packed<9>(st.score_meat);
+  f.anchor_information = symmetric_from_packed<9>(st.anchor_information_and_meat);  // meat: 0
   f.model_error_covariance = symmetric_from_packed<9>(st.model_error_covariance);
   if (const auto* lag1 = std::get_if<ScalarLag1Moments>(&st.lag1_or_block)) f.lag1 = *lag1;
   if (const auto* block = std::get_if<BiasBlockStart>(&st.lag1_or_block)) f.block = *block;
@@ -114,8 +114,7 @@ void put_unpacked_fields(const UnpackedFields& f, FilterState& st) {
   const auto packed_symmetric = [](const Matrix9d& M) {
     return packed_upper<9>(Matrix9d(0.5 * (M + M.transpose())));
   };
-  st.anchor_information = packed_symmetric(f.anchor_information);
-  st.score_meat = packed_symmetric(f.score_meat);
+  st.anchor_information_and_meat = packed_symmetric(f.anchor_information + f.score_meat);
   st.model_error_covariance = packed_symmetric(f.model_error_covariance);
   if (st.initialized) {
     st.lag1_or_block = f.block;
@@ -419,9 +418,8 @@ storage::FilterState stored_filter_state(const std::string& sat_id, const std::s
   for (int i = 0; i < 9; ++i) out.x[static_cast<size_t>(i)] = st.x(i);
   // MCF2: the P blob holds the lower Cholesky factor S (P = S S^T), row-major, so a restore is
   // bit-exact for the square-root filters.
-  const Matrix9d S = lower_from_packed<9>(st.S);
   for (int i = 0; i < 9; ++i) {
-    for (int j = 0; j < 9; ++j) out.P[static_cast<size_t>(9 * i + j)] = S(i, j);
+    for (int j = 0; j < 9; ++j) out.P[static_cast<size_t>(9 * i + j)] = st.S(i, j);
   }
   out.last_utime = st.last_utime;
   out.n_samples = st.n_accepted;
@@ -474,13 +472,13 @@ std::string filter_state_from_stored(const storage::FilterState& in, FilterState
     } else {
       const Eigen::LLT<Matrix9d> llt(0.5 * (blob + blob.transpose()));
       if (llt.info() != Eigen::Success) return "filter state version 1: P is not positive definite";
-      st.S = packed_lower<9>(Matrix9d(llt.matrixL()));
+      st.S = llt.matrixL();
     }
     st.fisher_condition = std::numeric_limits<double>::infinity();
   } else {
     if (!blob.triangularView<Eigen::StrictlyUpper>().toDenseMatrix().isZero(0.0))
       return "filter state S is not lower triangular";
-    st.S = packed_lower<9>(blob);
+    st.S = blob;
   }
   put_unpacked_fields(fields, st);
   out = st;

@@ -1,5 +1,4 @@
-// Packed symmetric / lower-triangular storage: exact round trips, the shared index, and the one
-// order for both kinds (the upper triangle row by row is the lower one column by column).
+// Packed symmetric storage: exact round trips and the index.
 #include "pipeline/packed_triangle.hpp"
 
 #include <cmath>
@@ -35,20 +34,4 @@ TEST_CASE("a symmetric matrix packs and unpacks exactly") {
   const Eigen::Matrix<double, 11, 11> B = random_matrix<11>(2);
   const Eigen::Matrix<double, 11, 11> sym11 = B + B.transpose();
   CHECK(symmetric_from_packed<11>(packed_upper<11>(sym11)) == sym11);
-}
-
-TEST_CASE("a lower-triangular matrix packs and unpacks exactly, zeros above the diagonal") {
-  const Eigen::Matrix<double, 9, 9> L =
-      random_matrix<9>(3).triangularView<Eigen::Lower>().toDenseMatrix();
-  const PackedTriangle<9> p = packed_lower<9>(L);
-  CHECK(lower_from_packed<9>(p) == L);
-  // Column j of L, from the diagonal down, is one run: what the square-root update walks.
-  for (int j = 0; j < 9; ++j) {
-    CHECK(p.segment(packed_index<9>(j, j), 9 - j) == L.col(j).tail(9 - j));
-  }
-  // Only the lower triangle is kept.
-  Eigen::Matrix<double, 9, 9> with_upper = L;
-  with_upper(0, 8) = 1.0;
-  CHECK(packed_lower<9>(with_upper) == p);
-  CHECK(packed_lower<9>(L) == packed_upper<9>(L.transpose()));
 }
