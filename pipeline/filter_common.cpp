@@ -84,6 +84,10 @@ Matrix9d FilterOptions::initial_covariance() const {
   return d.asDiagonal();
 }
 
+bool BiasBlockStart::operator==(const BiasBlockStart& o) const {
+  return m == o.m && n == o.n && utime == o.utime;
+}
+
 bool FilterState::operator==(const FilterState& o) const {
   return x == o.x && S == o.S && initialized == o.initialized && has_time == o.has_time &&
          consistent == o.consistent && first_utime == o.first_utime && last_utime == o.last_utime &&
@@ -99,14 +103,12 @@ bool FilterState::operator==(const FilterState& o) const {
          fisher_condition == o.fisher_condition && samples_since_fisher == o.samples_since_fisher &&
          period_start_utime == o.period_start_utime && period_n == o.period_n &&
          period_residual_sum2_nT2 == o.period_residual_sum2_nT2 &&
-         period_nis_sum == o.period_nis_sum && anchor_information == o.anchor_information &&
+         period_nis_sum == o.period_nis_sum &&
+         anchor_information_and_meat == o.anchor_information_and_meat &&
          score_block == o.score_block && score_block_n == o.score_block_n &&
-         score_meat == o.score_meat && score_blocks == o.score_blocks &&
-         model_error_covariance == o.model_error_covariance &&
-         model_error_known == o.model_error_known && bias_block_start_m == o.bias_block_start_m &&
-         bias_block_start_n == o.bias_block_start_n &&
-         bias_block_start_utime == o.bias_block_start_utime && bias_motion_n == o.bias_motion_n &&
-         bias_motion_sum_t_h == o.bias_motion_sum_t_h &&
+         score_blocks == o.score_blocks && model_error_covariance == o.model_error_covariance &&
+         model_error_known == o.model_error_known && lag1_or_block == o.lag1_or_block &&
+         bias_motion_n == o.bias_motion_n && bias_motion_sum_t_h == o.bias_motion_sum_t_h &&
          bias_motion_sum_t2_h2 == o.bias_motion_sum_t2_h2 &&
          bias_motion_sum_nT == o.bias_motion_sum_nT &&
          bias_motion_sum_tm_nT_h == o.bias_motion_sum_tm_nT_h &&
@@ -226,7 +228,7 @@ void ScalarFilterBase::set_covariance(const Matrix9d& P) {
       break;
     case CovarianceGuard::kNonFinite:  // refuse a NaN covariance: fall back to the prior
       ++state_.n_covariance_repairs;
-      L = options_.initial_covariance().diagonal().cwiseSqrt().asDiagonal();
+      L = options_->initial_covariance().diagonal().cwiseSqrt().asDiagonal();
       break;
   }
   state_.S = L.triangularView<Eigen::Lower>();
@@ -235,10 +237,9 @@ void ScalarFilterBase::set_covariance(const Matrix9d& P) {
 void ScalarFilterBase::anchor_sandwich() {
   // A = P^-1 = S^-T S^-1, from the factor (no explicit inverse of P).
   const Matrix9d S_inv = state_.S.triangularView<Eigen::Lower>().solve(Matrix9d::Identity());
-  state_.anchor_information = S_inv.transpose() * S_inv;
+  state_.anchor_information_and_meat = packed_upper<9>(Matrix9d(S_inv.transpose() * S_inv));
   state_.score_block.setZero();
   state_.score_block_n = 0;
-  state_.score_meat.setZero();
   state_.score_blocks = 0;
 }
 
@@ -247,7 +248,7 @@ void ScalarFilterBase::initialize(const Vector9d& x0, const Matrix9d& P0) {
   state_.x = x0;
   set_covariance(P0);
   anchor_sandwich();
-  state_.initialized = true;
+  mark_started();
   update_convergence_time();
 }
 
@@ -257,7 +258,7 @@ void ScalarFilterBase::reanchor(const Vector9d& x, const Matrix9d& P,
   state_.x = x;
   set_covariance(P);
   anchor_sandwich();
-  state_.initialized = true;
+  mark_started();
   state_.consistent = true;
   state_.nis_window_sum = 0.0;
   state_.nis_window_count = 0;
@@ -270,8 +271,12 @@ void ScalarFilterBase::reanchor(const Vector9d& x, const Matrix9d& P,
 }
 
 void ScalarFilterBase::set_model_error_covariance(const Matrix9d& model_error_covariance) {
+  // Kept symmetric (packed): an exactly symmetric input, such as the refit's, is kept exactly.
   state_.model_error_covariance =
-      model_error_covariance.allFinite() ? model_error_covariance : Matrix9d::Zero();
+      model_error_covariance.allFinite()
+          ? packed_upper<9>(
+                Matrix9d(0.5 * (model_error_covariance + model_error_covariance.transpose())))
+          : PackedTriangle<9>::Zero();
   state_.model_error_known = true;
 }
 
@@ -281,12 +286,27 @@ void ScalarFilterBase::seed_noise(double measurement_noise_nT, double residual_a
     state_.innovation_c1 = std::clamp(residual_autocorrelation, -1.0, 1.0);
   }
   if (!(measurement_noise_nT > 0.0) || !std::isfinite(measurement_noise_nT)) return;
-  const double ratio = measurement_noise_nT / options_.sigma_nT;
+  const double ratio = measurement_noise_nT / options_->sigma_nT;
   state_.noise_scale2 = std::max(1.0, ratio * ratio);
 }
 
 void ScalarFilterBase::reset() {
   state_ = FilterState{};
+}
+
+void ScalarFilterBase::restore(const FilterState& s) {
+  state_ = s;
+  // A state that breaks the one-or-the-other rule of lag1_or_block (not one from state()) gets
+  // the empty alternative it should hold.
+  if (state_.initialized && !std::holds_alternative<BiasBlockStart>(state_.lag1_or_block))
+    state_.lag1_or_block.emplace<BiasBlockStart>();
+  if (!state_.initialized && !std::holds_alternative<ScalarLag1Moments>(state_.lag1_or_block))
+    state_.lag1_or_block.emplace<ScalarLag1Moments>();
+}
+
+void ScalarFilterBase::mark_started() {
+  if (!state_.initialized) state_.lag1_or_block.emplace<BiasBlockStart>();
+  state_.initialized = true;
 }
 
 void ScalarFilterBase::reset_period() {
@@ -302,12 +322,12 @@ Matrix9d ScalarFilterBase::P() const {
 
 Matrix9d ScalarFilterBase::reported_covariance() const {
   const Matrix9d P = this->P();
-  if (options_.sandwich_block_samples <= 0 || state_.score_blocks == 0) {
-    return P + state_.model_error_covariance;
+  const Matrix9d model_error = symmetric_from_packed<9>(state_.model_error_covariance);
+  if (options_->sandwich_block_samples <= 0 || state_.score_blocks == 0) {
+    return P + model_error;
   }
-  const Matrix9d C = P * (state_.anchor_information + state_.score_meat) * P;
-  return covariance_not_below(P, Matrix9d(0.5 * (C + C.transpose()))) +
-         state_.model_error_covariance;
+  const Matrix9d C = P * symmetric_from_packed<9>(state_.anchor_information_and_meat) * P;
+  return covariance_not_below(P, Matrix9d(0.5 * (C + C.transpose()))) + model_error;
 }
 
 Eigen::Vector3d ScalarFilterBase::bias_sigma_nT() const {
@@ -316,13 +336,13 @@ Eigen::Vector3d ScalarFilterBase::bias_sigma_nT() const {
 
 bool ScalarFilterBase::converged() const {
   return state_.initialized && state_.consistent &&
-         (state_.model_error_known || !options_.ok_needs_model_error) &&
-         state_.fisher_condition <= options_.max_fisher_condition &&
-         (bias_sigma_nT().array() < options_.converged_bias_sigma_nT).all();
+         (state_.model_error_known || !options_->ok_needs_model_error) &&
+         state_.fisher_condition <= options_->max_fisher_condition &&
+         (bias_sigma_nT().array() < options_->converged_bias_sigma_nT).all();
 }
 
 double ScalarFilterBase::measurement_noise_nT() const {
-  return options_.sigma_nT * std::sqrt(state_.noise_scale2);
+  return options_->sigma_nT * std::sqrt(state_.noise_scale2);
 }
 
 double ScalarFilterBase::innovation_autocorrelation() const {
@@ -330,8 +350,8 @@ double ScalarFilterBase::innovation_autocorrelation() const {
 }
 
 double ScalarFilterBase::correlation_inflation() const {
-  if (!options_.start.correlation_inflation) return 1.0;
-  const double rho = std::clamp(innovation_autocorrelation(), 0.0, options_.start.max_correlation);
+  if (!options_->start.correlation_inflation) return 1.0;
+  const double rho = std::clamp(innovation_autocorrelation(), 0.0, options_->start.max_correlation);
   return (1.0 + rho) / (1.0 - rho);
 }
 
@@ -343,7 +363,7 @@ CalibrationResult ScalarFilterBase::snapshot() const {
   r.window_end_utime = state_.last_utime;
   r.n_samples = static_cast<int>(state_.moments.n);
   r.parameters = parameters();
-  r.covariance = state_.initialized ? reported_covariance() : options_.initial_covariance();
+  r.covariance = state_.initialized ? reported_covariance() : options_->initial_covariance();
   const Eigen::Vector3d bias_sigma = r.covariance.diagonal().head<3>().cwiseSqrt();
   r.iterations = static_cast<int>(state_.n_accepted);
   r.converged = converged();
@@ -370,33 +390,33 @@ CalibrationResult ScalarFilterBase::snapshot() const {
                   "collecting data for the start: %lld samples, scaled Fisher condition %.3g "
                   "(start needs <= %.3g)",
                   static_cast<long long>(state_.moments.n), state_.fisher_condition,
-                  options_.start.max_condition);
+                  options_->start.max_condition);
     r.message = buf;
-  } else if (!(r.fisher_condition_number <= options_.max_fisher_condition)) {
+  } else if (!(r.fisher_condition_number <= options_->max_fisher_condition)) {
     r.status = CalibrationStatus::kUnobservable;
     std::snprintf(buf, sizeof buf,
                   "scaled Fisher condition %.3g > %.3g: the data seen do not observe every "
                   "parameter",
-                  r.fisher_condition_number, options_.max_fisher_condition);
+                  r.fisher_condition_number, options_->max_fisher_condition);
     r.message = buf;
   } else if (!state_.consistent) {
     r.status = CalibrationStatus::kNotConverged;
     std::snprintf(buf, sizeof buf, "inconsistent innovations (mean NIS %.3g), covariance re-opened",
                   state_.last_window_mean_nis);
     r.message = buf;
-  } else if (options_.ok_needs_model_error && !state_.model_error_known) {
+  } else if (options_->ok_needs_model_error && !state_.model_error_known) {
     r.status = CalibrationStatus::kNotConverged;
     r.message = "waiting for the first refit to measure the model error";
-  } else if (!(bias_sigma.array() < options_.converged_bias_sigma_nT).all()) {
+  } else if (!(bias_sigma.array() < options_->converged_bias_sigma_nT).all()) {
     r.status = CalibrationStatus::kNotConverged;
     if (state_.bias_random_walk_nT2_per_hour > 0.0) {
       std::snprintf(buf, sizeof buf,
                     "bias 1-sigma above %.3g nT: the bias moves (random walk %.3g nT/sqrt(h) "
                     "measured) faster than the data observe it",
-                    options_.converged_bias_sigma_nT, bias_random_walk_nT_per_sqrt_hour());
+                    options_->converged_bias_sigma_nT, bias_random_walk_nT_per_sqrt_hour());
     } else {
       std::snprintf(buf, sizeof buf, "bias 1-sigma above %.3g nT",
-                    options_.converged_bias_sigma_nT);
+                    options_->converged_bias_sigma_nT);
     }
     r.message = buf;
   } else {
@@ -415,7 +435,7 @@ void ScalarFilterBase::start_from(const FilterStartResult& start) {
   state_.x = start.p;
   set_covariance(start.covariance);
   anchor_sandwich();
-  state_.initialized = true;
+  mark_started();
   state_.noise_scale2 = std::max(state_.noise_scale2, start.noise_scale2);
   state_.innovation_c0 = 1.0;
   state_.innovation_c1 = start.residual_autocorrelation;
@@ -441,7 +461,7 @@ bool ScalarFilterBase::begin_update(FilterUpdate& u, const Eigen::Vector3d& b_se
     if (state_.initialized) {
       const double dt_s =
           static_cast<double>(saturating_sub(utime, state_.last_utime)) / kMicrosecondsPerSecond;
-      Vector9d q = process_noise_diagonal(options_.process_noise_per_sqrt_hour, dt_s);
+      Vector9d q = process_noise_diagonal(options_->process_noise_per_sqrt_hour, dt_s);
       q.head<3>().array() +=
           std::max(state_.bias_random_walk_nT2_per_hour, bias_random_walk_floor_nT2_per_hour()) *
           (dt_s / kSecondsPerHour);
@@ -457,18 +477,20 @@ bool ScalarFilterBase::begin_update(FilterUpdate& u, const Eigen::Vector3d& b_se
   }
   if (state_.initialized) return true;
 
-  if (options_.cold_start == FilterOptions::ColdStart::kFromData) {
+  if (options_->cold_start == FilterOptions::ColdStart::kFromData) {
     const double y =
-        scalar_measurement(b_sensor_nT, h_norm_nT) - scalar_noise_mean(options_.sigma_nT);
-    state_.moments.add(b_sensor_nT, y, 1.0 / scalar_noise_variance(b_sensor_nT, options_.sigma_nT),
-                       true);
+        scalar_measurement(b_sensor_nT, h_norm_nT) - scalar_noise_mean(options_->sigma_nT);
+    // Not started: lag1_or_block holds the lag-1 products (mark_started()).
+    auto& lag1 = std::get<ScalarLag1Moments>(state_.lag1_or_block);
+    state_.moments.add(b_sensor_nT, y, 1.0 / scalar_noise_variance(b_sensor_nT, options_->sigma_nT),
+                       &lag1);
     u.status = FilterUpdateStatus::kCollecting;
-    const StartAttempt due = start_attempt_due(state_.moments.n, options_);
+    const StartAttempt due = start_attempt_due(state_.moments.n, *options_);
     if (due == StartAttempt::kUnconditional ||
         (due == StartAttempt::kIfObservable &&
          start_precheck_condition(state_.moments) <=
-             options_.start.precheck_margin * options_.start.max_condition)) {
-      const FilterStartResult start = solve_filter_start(state_.moments, options_.start);
+             options_->start.precheck_margin * options_->start.max_condition)) {
+      const FilterStartResult start = solve_filter_start(state_.moments, lag1, options_->start);
       if (start.status != FilterStartStatus::kTooFewSamples)
         state_.fisher_condition = start.fisher_condition;
       if (start.status == FilterStartStatus::kOk) {
@@ -480,19 +502,19 @@ bool ScalarFilterBase::begin_update(FilterUpdate& u, const Eigen::Vector3d& b_se
   }
   // Prior start (estimation.md 3): the first valid sample is also the first update.
   state_.x.setZero();
-  if (options_.cold_start == FilterOptions::ColdStart::kFirstSampleScale &&
+  if (options_->cold_start == FilterOptions::ColdStart::kFirstSampleScale &&
       b_sensor_nT.norm() > 0.0) {
     state_.x.segment<3>(3).setConstant(h_norm_nT / b_sensor_nT.norm() - 1.0);
   }
-  state_.S = options_.initial_covariance().diagonal().cwiseSqrt().asDiagonal();
-  state_.initialized = true;
+  state_.S = options_->initial_covariance().diagonal().cwiseSqrt().asDiagonal();
+  mark_started();
   return true;
 }
 
 void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_sensor_nT,
                                      double h_norm_nT, const Eigen::Vector3d& b_cal, double y_hat,
                                      double hph, const Vector9d& Pxz_white) {
-  const double sigma = options_.sigma_nT;
+  const double sigma = options_->sigma_nT;
   const Vector9d Pxz = state_.S * Pxz_white;
   const double y = scalar_measurement(b_sensor_nT, h_norm_nT) - scalar_noise_mean(sigma);
   const double R1 = scalar_noise_variance(b_cal, sigma);
@@ -508,24 +530,24 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
     return;
   }
   u.nis = nu * nu / S_white;
-  const bool gating = options_.gate_nis > 0.0;
+  const bool gating = options_->gate_nis > 0.0;
 
   // Evidence over the snapshot period (prior estimate, every valid sample).
   const double residual_nT = b_cal.norm() - h_norm_nT;
   state_.period_residual_sum2_nT2 += residual_nT * residual_nT;
-  state_.period_nis_sum += gating ? std::min(u.nis, options_.gate_nis) : u.nis;
+  state_.period_nis_sum += gating ? std::min(u.nis, options_->gate_nis) : u.nis;
   ++state_.period_n;
 
-  if (options_.adaptive_noise) {
+  if (options_->adaptive_noise) {
     // Gated samples enter clipped to the gate: a real noise increase still raises a, a spike
     // moves it by at most gate / N.
-    const double nu2 = gating ? std::min(nu * nu, options_.gate_nis * S_white) : nu * nu;
-    const double lambda = 1.0 / options_.noise_adaptation_samples;
+    const double nu2 = gating ? std::min(nu * nu, options_->gate_nis * S_white) : nu * nu;
+    const double lambda = 1.0 / options_->noise_adaptation_samples;
     state_.noise_scale2 += lambda * ((nu2 - hph) / R1 - state_.noise_scale2);
     state_.noise_scale2 = std::max(1.0, state_.noise_scale2);
     double e = nu / std::sqrt(S_white);
     if (gating) {
-      const double lim = std::sqrt(options_.gate_nis);
+      const double lim = std::sqrt(options_->gate_nis);
       e = std::clamp(e, -lim, lim);
     }
     state_.innovation_c0 += lambda * (e * e - state_.innovation_c0);
@@ -536,7 +558,7 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
     state_.has_previous_innovation = true;
   }
 
-  if (gating && u.nis > options_.gate_nis) {
+  if (gating && u.nis > options_->gate_nis) {
     ++state_.n_rejected_gate;
     u.status = FilterUpdateStatus::kRejectedGate;
     monitor(u);
@@ -557,10 +579,13 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
     return;
   }
   state_.x = x_new;
-  if (options_.sandwich_block_samples > 0 && score.allFinite()) {
+  if (options_->sandwich_block_samples > 0 && score.allFinite()) {
     state_.score_block += score;
-    if (++state_.score_block_n >= options_.sandwich_block_samples) {
-      state_.score_meat.noalias() += state_.score_block * state_.score_block.transpose();
+    if (++state_.score_block_n >= options_->sandwich_block_samples) {
+      const Vector9d& g = state_.score_block;
+      for (int i = 0, k = 0; i < 9; ++i) {
+        for (int j = i; j < 9; ++j) state_.anchor_information_and_meat(k++) += g(i) * g(j);
+      }
       ++state_.score_blocks;
       state_.score_block.setZero();
       state_.score_block_n = 0;
@@ -568,9 +593,9 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
   }
   ++state_.n_accepted;
   u.status = FilterUpdateStatus::kAccepted;
-  state_.moments.add(b_sensor_nT, y, 1.0 / scalar_noise_variance(b_sensor_nT, sigma), false);
+  state_.moments.add(b_sensor_nT, y, 1.0 / scalar_noise_variance(b_sensor_nT, sigma));
   track_bias_motion();
-  if (++state_.samples_since_fisher >= options_.fisher_every) {
+  if (++state_.samples_since_fisher >= options_->fisher_every) {
     state_.fisher_condition = moments_fisher_condition(state_.moments.matrix(), state_.x);
     state_.samples_since_fisher = 0;
   }
@@ -581,24 +606,24 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
 void ScalarFilterBase::monitor(FilterUpdate& u) {
   // Gated samples enter clipped to the gate: many of them still trip the monitor (a filter that
   // rejects everything is not consistent), one spike does not.
-  const double nis = options_.gate_nis > 0.0 ? std::min(u.nis, options_.gate_nis) : u.nis;
+  const double nis = options_->gate_nis > 0.0 ? std::min(u.nis, options_->gate_nis) : u.nis;
   state_.nis_window_sum += nis;
-  if (++state_.nis_window_count < options_.nis_window) return;
+  if (++state_.nis_window_count < options_->nis_window) return;
 
   const double mean = state_.nis_window_sum / state_.nis_window_count;
   state_.last_window_mean_nis = mean;
   state_.nis_window_sum = 0.0;
   state_.nis_window_count = 0;
-  state_.consistent = mean <= options_.nis_inconsistent_mean;
+  state_.consistent = mean <= options_->nis_inconsistent_mean;
   if (state_.consistent) return;
 
   ++state_.n_inconsistency_events;
   u.inconsistency_event = true;
-  const Vector9d p0 = options_.initial_covariance().diagonal();
-  if (options_.consistency_action == FilterOptions::ConsistencyAction::kReseed) {
+  const Vector9d p0 = options_->initial_covariance().diagonal();
+  if (options_->consistency_action == FilterOptions::ConsistencyAction::kReseed) {
     state_.S = p0.cwiseSqrt().asDiagonal();
   } else {
-    state_.S *= std::sqrt(options_.inflation_factor);
+    state_.S *= std::sqrt(options_->inflation_factor);
     // Cap each variance at its prior value by scaling its row of S (keeps S lower triangular).
     for (int i = 0; i < 9; ++i) {
       const double var = state_.S.row(i).squaredNorm();
@@ -656,36 +681,38 @@ bool ScalarFilterBase::bias_trend(Eigen::Array3d& rate_nT_per_h,
 }
 
 double ScalarFilterBase::bias_random_walk_floor_nT2_per_hour() const {
-  if (!(options_.bias_floor_rate_sigmas > 0.0) || state_.bias_motion_n < kBiasMotionFloorMinBlocks)
+  if (!(options_->bias_floor_rate_sigmas > 0.0) || state_.bias_motion_n < kBiasMotionFloorMinBlocks)
     return 0.0;
   Eigen::Array3d rate, se2;
   if (!bias_trend(rate, se2)) return 0.0;
   // The pooled standard error (the same physics moves all three axes), as a random walk (q^2 =
   // 3 r^2 L, file comment).
-  const double k = options_.bias_floor_rate_sigmas;
-  const double cap = options_.bias_random_walk_floor_cap_nT_per_sqrt_hour;
-  return std::min(cap * cap, 3.0 * k * k / se2.inverse().sum() * options_.bias_motion_block_hours);
+  const double k = options_->bias_floor_rate_sigmas;
+  const double cap = options_->bias_random_walk_floor_cap_nT_per_sqrt_hour;
+  return std::min(cap * cap, 3.0 * k * k / se2.inverse().sum() * options_->bias_motion_block_hours);
 }
 
 void ScalarFilterBase::track_bias_motion() {
-  if (!(options_.bias_motion_block_hours > 0.0)) return;
-  if (state_.bias_block_start_utime < 0) {
-    state_.bias_block_start_m = state_.moments.m;
-    state_.bias_block_start_n = state_.moments.n;
-    state_.bias_block_start_utime = state_.last_utime;
+  if (!(options_->bias_motion_block_hours > 0.0)) return;
+  // Started: lag1_or_block holds the block start (mark_started()).
+  auto& block_start = std::get<BiasBlockStart>(state_.lag1_or_block);
+  if (block_start.utime < 0) {
+    block_start.m = state_.moments.m;
+    block_start.n = state_.moments.n;
+    block_start.utime = state_.last_utime;
     return;
   }
-  const double block_hours = options_.bias_motion_block_hours;
-  const double elapsed_h = static_cast<double>(state_.last_utime - state_.bias_block_start_utime) /
+  const double block_hours = options_->bias_motion_block_hours;
+  const double elapsed_h = static_cast<double>(state_.last_utime - block_start.utime) /
                            (kMicrosecondsPerSecond * kSecondsPerHour);
   if (elapsed_h < block_hours) return;
-  // The block's own moments: the sums since its start (the lag-1 products are not needed).
+  // The block's own moments: the sums since its start.
   ScalarMoments block;
-  block.m = state_.moments.m - state_.bias_block_start_m;
-  block.n = state_.moments.n - state_.bias_block_start_n;
-  state_.bias_block_start_m = state_.moments.m;
-  state_.bias_block_start_n = state_.moments.n;
-  state_.bias_block_start_utime = state_.last_utime;
+  block.m = state_.moments.m - block_start.m;
+  block.n = state_.moments.n - block_start.n;
+  block_start.m = state_.moments.m;
+  block_start.n = state_.moments.n;
+  block_start.utime = state_.last_utime;
   const Matrix11d M = block.matrix();
   Eigen::Vector3d m;
   if (!block_bias_given_scale(M, state_.x, m)) return;
@@ -718,7 +745,7 @@ void ScalarFilterBase::track_bias_motion() {
   Eigen::Array3d rate, se2;
   if (!bias_trend(rate, se2)) return;
   const double chi2 = (rate.square() / se2).sum();
-  if (!(chi2 > options_.bias_motion_chi2)) {
+  if (!(chi2 > options_->bias_motion_chi2)) {
     state_.bias_random_walk_nT2_per_hour = 0.0;
     return;
   }

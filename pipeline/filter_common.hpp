@@ -134,13 +134,16 @@
 
 #include <cstdint>
 #include <limits>
+#include <memory>
 #include <string>
+#include <variant>
 
 #include <Eigen/Core>
 
 #include "pipeline/calibration_result.hpp"
 #include "pipeline/calibration_types.hpp"
 #include "pipeline/filter_start.hpp"
+#include "pipeline/packed_triangle.hpp"
 
 namespace magcal {
 
@@ -221,56 +224,69 @@ struct FilterOptions {
   Matrix9d initial_covariance() const;
 };
 
+// Where the current bias-motion block started (file comment, bias motion).
+struct BiasBlockStart {
+  PackedSymmetric11 m = PackedSymmetric11::Zero();  // moments.m, .n and the time then
+  int64_t n = 0;
+  int64_t utime = -1;  // -1: no block open
+  bool operator==(const BiasBlockStart& o) const;
+};
+
 // Everything a filter needs to resume exactly (the daemon stores it in SQLite). Restoring a
-// state obtained from state() gives a bit-exact continuation. ~2 KB.
+// state obtained from state() gives a bit-exact continuation. ~3.3 KB: the symmetric 9 x 9
+// matrices are packed (packed_triangle.hpp), small fields are grouped against padding (memory per
+// tracked spacecraft, design.md: < 4 KB with the daemon's tracker).
 struct FilterState {
   Vector9d x = Vector9d::Zero();  // p = [b (nT); D11 D22 D33 D12 D13 D23]
-  Matrix9d S = Matrix9d::Zero();  // lower Cholesky factor of the covariance of x (P = S S^T)
-  bool initialized = false;       // started (from data, a prior, initialize() or reanchor())
-  bool consistent = true;         // last completed NIS window was consistent
-  bool has_time = false;          // a valid sample was seen: first_utime/last_utime are set
-  int64_t first_utime = 0;        // first valid sample
-  int64_t last_utime = 0;         // time x and P refer to (latest valid sample)
+  // Lower Cholesky factor of the covariance of x (P = S S^T). Not packed: the filters use it
+  // every sample, and unpacking it there cost 15-60 % per update (measured).
+  Matrix9d S = Matrix9d::Zero();
+  int64_t first_utime = 0;  // first valid sample
+  int64_t last_utime = 0;   // time x and P refer to (latest valid sample)
   // Time since which the filter has been converged() (ok); -1 if not now.
   int64_t converged_since_utime = -1;
   int64_t n_accepted = 0;          // measurement updates applied
   int64_t n_rejected_invalid = 0;  // NaN/Inf, |h| <= 0, numerical failure
   int64_t n_rejected_gate = 0;     // innovation outside the gate
   int64_t n_inconsistency_events = 0;
-  int64_t n_covariance_repairs = 0;  // initialize()/reanchor() got a P that needed repair
-  double nis_window_sum = 0.0;       // current (incomplete) window
-  int32_t nis_window_count = 0;
+  int64_t n_covariance_repairs = 0;   // initialize()/reanchor() got a P that needed repair
+  double nis_window_sum = 0.0;        // current (incomplete) window
   double last_window_mean_nis = 0.0;  // mean NIS of the last completed window (0: none yet)
+  int32_t nis_window_count = 0;
+  bool initialized = false;  // started (from data, a prior, initialize() or reanchor())
+  bool consistent = true;    // last completed NIS window was consistent
+  bool has_time = false;     // a valid sample was seen: first_utime/last_utime are set
 
   // Adaptive noise: a = (effective white noise / sigma_nT)^2 >= 1, and the exponentially
   // weighted second moment and lag-1 product of the normalised innovations (rho = c1 / c0).
+  bool has_previous_innovation = false;
   double noise_scale2 = 1.0;
   double innovation_c0 = 1.0;
   double innovation_c1 = 0.0;
   double previous_normalised_innovation = 0.0;
-  bool has_previous_innovation = false;
 
   // Moments of the batch problem since the first valid sample (start and observability).
   ScalarMoments moments;
   double fisher_condition = std::numeric_limits<double>::infinity();  // cached, see options
   int32_t samples_since_fisher = 0;
+  // Until the filter has started, the moments' lag-1 products (the start's correlation
+  // inflation); from then on, where the current bias-motion block started. Never both: memory.
+  std::variant<ScalarLag1Moments, BiasBlockStart> lag1_or_block;
 
-  // Reported covariance (file comment): A, the current block's score sum, sum_b G_b G_b^T.
-  Matrix9d anchor_information = Matrix9d::Zero();
+  // Reported covariance (file comment): A + sum_b G_b G_b^T (symmetric, packed; only the sum is
+  // used), the current block's score sum.
+  PackedTriangle<9> anchor_information_and_meat = PackedTriangle<9>::Zero();
   Vector9d score_block = Vector9d::Zero();
   int32_t score_block_n = 0;
-  Matrix9d score_meat = Matrix9d::Zero();
   int32_t score_blocks = 0;
-  // Model error (reanchor(), set_model_error_covariance()): added to the reported covariance.
-  Matrix9d model_error_covariance = Matrix9d::Zero();
+  // Model error (reanchor(), set_model_error_covariance()): added to the reported covariance
+  // (symmetric, packed).
+  PackedTriangle<9> model_error_covariance = PackedTriangle<9>::Zero();
   bool model_error_known = false;  // set by reanchor() / set_model_error_covariance()
 
-  // Bias motion (file comment): the moments at the start of the current block, the running sums
-  // of the block-bias trend and the random-walk variance it implies (nT^2 per hour, isotropic;
+  // Bias motion (file comment; the block start is in lag1_or_block): the running sums of the
+  // block-bias trend and the random-walk variance it implies (nT^2 per hour, isotropic;
   // 0 = static).
-  PackedSymmetric11 bias_block_start_m = PackedSymmetric11::Zero();  // moments.m, .n then
-  int64_t bias_block_start_n = 0;
-  int64_t bias_block_start_utime = -1;  // -1: no block open
   int32_t bias_motion_n = 0;  // solved blocks; sums over them of t (block centre, hours since
   double bias_motion_sum_t_h = 0.0;  // first_utime), t^2, the block bias m, t m, m^2
   double bias_motion_sum_t2_h2 = 0.0;
@@ -337,9 +353,12 @@ CovarianceGuard guard_covariance(Matrix9d& P, Matrix9d& L);
 
 // The part of the EKF and UKF that does not depend on how the innovation statistics are
 // computed. Not polymorphic (no vtable); the filters derive from it and add update().
+// The options are immutable and shared: by the copies of a filter and by every filter built from
+// the same std::shared_ptr (a fleet keeps one copy for all its spacecraft: memory per tracked
+// spacecraft). Copying a filter copies its state; restore() replaces only the state.
 class ScalarFilterBase {
  public:
-  const FilterOptions& filter_options() const { return options_; }
+  const FilterOptions& filter_options() const { return *options_; }
 
   // Start from a given prior with all counters and the evidence reset; the next valid sample is
   // the first one (no prediction before it). The moments start empty: the Fisher condition (and
@@ -374,7 +393,7 @@ class ScalarFilterBase {
   void reset_period();
 
   const FilterState& state() const { return state_; }
-  void restore(const FilterState& s) { state_ = s; }
+  void restore(const FilterState& s);
 
   bool initialized() const { return state_.initialized; }
   bool consistent() const { return state_.consistent; }
@@ -399,8 +418,9 @@ class ScalarFilterBase {
   CalibrationResult snapshot_and_reset_period();
 
  protected:
-  ScalarFilterBase(const FilterOptions& options, const char* method)
-      : options_(options), method_(method) {}
+  // options: not null, valid (asserted by the filters).
+  ScalarFilterBase(std::shared_ptr<const FilterOptions> options, const char* method)
+      : options_(std::move(options)), method_(method) {}
 
   // Shared first half of update(): rejects invalid input (counted, state untouched), collects
   // for the start (returns false with u.status = kCollecting), starts a prior filter, predicts
@@ -415,11 +435,14 @@ class ScalarFilterBase {
                      const Eigen::Vector3d& b_cal, double y_hat, double hph,
                      const Vector9d& Pxz_white);
 
-  FilterOptions options_;
+  std::shared_ptr<const FilterOptions> options_;
   FilterState state_;
   const char* method_;
 
  private:
+  // initialized = true; a filter that had not started drops the start's lag-1 products and
+  // keeps the bias-motion block start in their place.
+  void mark_started();
   void start_from(const FilterStartResult& start);
   void set_covariance(const Matrix9d& P);
   // The covariance from here on is the trusted part A of the reported one; the blocks restart.

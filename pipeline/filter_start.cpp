@@ -22,10 +22,6 @@ constexpr double kDegenerateRatio = 1e-3;     // smallest / next scaled eigenval
 constexpr double kSingularRatio = 1e-14;      // smallest / largest scaled eigenvalue
 constexpr int kMaxLineIterations = 30;
 
-int packed_index(int i, int j) {  // i <= j
-  return i * 11 - i * (i - 1) / 2 + (j - i);
-}
-
 // Inverse of a symmetric positive semi-definite matrix in the diagonally scaled form, and its
 // scaled condition number. False when singular.
 template <int N>
@@ -105,43 +101,39 @@ bool line_start(const Eigen::Matrix<double, 10, 1>& u_p, const Eigen::Matrix<dou
 
 }  // namespace
 
-void ScalarMoments::add(const Eigen::Vector3d& B, double y, double w, bool with_lag1) {
+void ScalarMoments::add(const Eigen::Vector3d& B, double y, double w, ScalarLag1Moments* lag1) {
   Vector11d u;
   u << 2.0 * B(0), 2.0 * B(1), 2.0 * B(2), -B(0) * B(0), -B(1) * B(1), -B(2) * B(2),
       -2.0 * B(0) * B(1), -2.0 * B(0) * B(2), -2.0 * B(1) * B(2), 1.0, y;
   u *= std::sqrt(w);
-  for (int i = 0; i < 11; ++i) m.segment(packed_index(i, i), 11 - i) += u(i) * u.tail(11 - i);
-  if (with_lag1) {
+  for (int i = 0; i < 11; ++i) m.segment(packed_index<11>(i, i), 11 - i) += u(i) * u.tail(11 - i);
+  if (lag1) {
     int k = 0;
     if (n > 0) {
       for (int i = 0; i < 11; ++i) {
-        for (int j = i; j < 11; ++j) m_lag1(k++) += 0.5 * (u(i) * previous(j) + u(j) * previous(i));
+        for (int j = i; j < 11; ++j)
+          lag1->m(k++) += 0.5 * (u(i) * lag1->previous(j) + u(j) * lag1->previous(i));
       }
     }
-    previous = u;
+    lag1->previous = u;
   }
   ++n;
 }
 
-namespace {
-Matrix11d unpack(const PackedSymmetric11& p) {
-  Matrix11d M;
-  for (int i = 0; i < 11; ++i) {
-    for (int j = i; j < 11; ++j) M(i, j) = M(j, i) = p(packed_index(i, j));
-  }
-  return M;
-}
-}  // namespace
-
 Matrix11d ScalarMoments::matrix() const {
-  return unpack(m);
-}
-Matrix11d ScalarMoments::lag1_matrix() const {
-  return unpack(m_lag1);
+  return symmetric_from_packed<11>(m);
 }
 
 bool ScalarMoments::operator==(const ScalarMoments& o) const {
-  return m == o.m && m_lag1 == o.m_lag1 && previous == o.previous && n == o.n;
+  return m == o.m && n == o.n;
+}
+
+Matrix11d ScalarLag1Moments::matrix() const {
+  return symmetric_from_packed<11>(m);
+}
+
+bool ScalarLag1Moments::operator==(const ScalarLag1Moments& o) const {
+  return m == o.m && previous == o.previous;
 }
 
 bool moments_cost(const Matrix11d& M, const Vector9d& theta, double* cost, Matrix9d* info_theta,
@@ -160,7 +152,7 @@ double moments_fisher_condition(const Matrix11d& M, const Vector9d& p) {
   return condition;
 }
 
-FilterStartResult solve_filter_start(const ScalarMoments& moments,
+FilterStartResult solve_filter_start(const ScalarMoments& moments, const ScalarLag1Moments& lag1,
                                      const FilterStartOptions& options) {
   FilterStartResult r;
   if (moments.n < std::max(options.min_samples, 11)) return r;
@@ -243,7 +235,7 @@ FilterStartResult solve_filter_start(const ScalarMoments& moments,
   bias_norm_squared(best, &bsq, nullptr);
   Vector11d c;
   c << -best, bsq, 1.0;
-  const double rho = best_cost > 0.0 ? c.dot(moments.lag1_matrix() * c) / best_cost : 0.0;
+  const double rho = best_cost > 0.0 ? c.dot(lag1.matrix() * c) / best_cost : 0.0;
   r.residual_autocorrelation = rho;
   if (options.correlation_inflation) {
     const double rc = std::clamp(rho, 0.0, options.max_correlation);

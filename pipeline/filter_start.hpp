@@ -1,7 +1,8 @@
 // Starting an online filter from data (estimation.md section 7, "start from data, not from
 // zero"): the whole weighted nonlinear least-squares problem of stage 1 is determined by a
-// fixed-size moment matrix, so a filter can collect it per sample (no allocation, ~1 KB) and
-// solve the batch problem (linear start -> Gauss-Newton/LM) once the data observe the parameters.
+// fixed-size moment matrix, so a filter can collect it per sample (no allocation, ~1 KB with the
+// lag-1 products) and solve the batch problem (linear start -> Gauss-Newton/LM) once the data
+// observe the parameters.
 //
 // With weights fixed from the measured field, w_k = 1 / (4 sigma^2 |B_k|^2 + 6 sigma^4)
 // (scalar_measurement.hpp with y = B), and v_k = [L_k (1x9), 1, y_k], y_k = z_k - mu:
@@ -26,25 +27,33 @@
 #include <Eigen/Core>
 
 #include "pipeline/calibration_types.hpp"
+#include "pipeline/packed_triangle.hpp"
 
 namespace magcal {
 
 using Vector11d = Eigen::Matrix<double, 11, 1>;
 using Matrix11d = Eigen::Matrix<double, 11, 11>;
-using PackedSymmetric11 = Eigen::Matrix<double, 66, 1>;  // upper triangle, row by row
+using PackedSymmetric11 = PackedTriangle<11>;
+
+// The lag-1 products of the moments (file comment): the start's residual correlation needs them,
+// nothing after it (a started filter drops them). Plain data, serialisable.
+struct ScalarLag1Moments {
+  PackedSymmetric11 m = PackedSymmetric11::Zero();  // symmetrised sum sqrt(w w') v^T v'
+  Vector11d previous = Vector11d::Zero();           // sqrt(w) v of the previous sample
+  Matrix11d matrix() const;
+  bool operator==(const ScalarLag1Moments& o) const;
+};
 
 // Moments of the scalar problem (see the file comment). Plain data, serialisable.
 struct ScalarMoments {
-  PackedSymmetric11 m = PackedSymmetric11::Zero();       // sum w v^T v
-  PackedSymmetric11 m_lag1 = PackedSymmetric11::Zero();  // symmetrised sum sqrt(w w') v^T v'
-  Vector11d previous = Vector11d::Zero();                // sqrt(w) v of the previous sample
-  int64_t n = 0;                                         // samples added
+  PackedSymmetric11 m = PackedSymmetric11::Zero();  // sum w v^T v
+  int64_t n = 0;                                    // samples added
 
-  // Adds one sample: B sensor frame (nT), y = z - mu (nT^2), w its weight (1/nT^4).
-  // with_lag1: also accumulate the lag-1 products (needed for the start only).
-  void add(const Eigen::Vector3d& b_sensor_nT, double y_nT2, double weight, bool with_lag1);
+  // Adds one sample: B sensor frame (nT), y = z - mu (nT^2), w its weight (1/nT^4); with lag1,
+  // also its lag-1 products with the previous sample added.
+  void add(const Eigen::Vector3d& b_sensor_nT, double y_nT2, double weight,
+           ScalarLag1Moments* lag1 = nullptr);
   Matrix11d matrix() const;
-  Matrix11d lag1_matrix() const;
   bool operator==(const ScalarMoments& o) const;
 };
 
@@ -86,8 +95,9 @@ struct FilterStartResult {
   int iterations = 0;
 };
 
-// Solves the batch problem from the moments. Does not allocate.
-FilterStartResult solve_filter_start(const ScalarMoments& moments,
+// Solves the batch problem from the moments (lag1: their lag-1 products, collected alongside).
+// Does not allocate.
+FilterStartResult solve_filter_start(const ScalarMoments& moments, const ScalarLag1Moments& lag1,
                                      const FilterStartOptions& options = {});
 
 // Cheap observability pre-check before a start attempt (one 10x10 eigenvalue solve, ~3 us; an

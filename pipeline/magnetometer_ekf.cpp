@@ -7,8 +7,12 @@
 
 namespace magcal {
 
-MagnetometerEkf::MagnetometerEkf(const Options& options) : ScalarFilterBase(options, "ekf") {
-  assert(options.validate().empty());
+MagnetometerEkf::MagnetometerEkf(const Options& options)
+    : MagnetometerEkf(std::make_shared<const Options>(options)) {}
+
+MagnetometerEkf::MagnetometerEkf(std::shared_ptr<const Options> options)
+    : ScalarFilterBase(std::move(options), "ekf") {
+  assert(options_ && this->options().validate().empty());
 }
 
 FilterUpdate MagnetometerEkf::update(const Eigen::Vector3d& b_sensor_nT, double h_norm_nT,

@@ -13,6 +13,7 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
 
 #include <Eigen/Core>
 
@@ -23,10 +24,12 @@ namespace magcal {
 class MagnetometerEkf : public ScalarFilterBase {
  public:
   using Options = FilterOptions;
-  const Options& options() const { return options_; }
+  const Options& options() const { return filter_options(); }
 
-  // options must be valid (Options::validate() empty); asserted.
+  // options must be valid (Options::validate() empty); asserted. This one keeps its own copy;
+  // the second shares `options` with every filter built from the same pointer (a fleet).
   explicit MagnetometerEkf(const Options& options = Options());
+  explicit MagnetometerEkf(std::shared_ptr<const Options> options);
 
   // One sample: b_sensor_nT = measured field (sensor frame), h_norm_nT = |reference field|,
   // utime = sample time (microseconds; the filter predicts by the time since the last sample,

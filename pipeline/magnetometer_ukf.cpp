@@ -40,20 +40,11 @@ std::string UkfOptions::validate() const {
 }
 
 MagnetometerUkf::MagnetometerUkf(const Options& options)
-    : ScalarFilterBase(options, "ukf"),
-      alpha_(options.alpha),
-      beta_(options.beta),
-      kappa_(options.kappa) {
-  assert(options.validate().empty());
-}
+    : MagnetometerUkf(std::make_shared<const Options>(options)) {}
 
-MagnetometerUkf::Options MagnetometerUkf::options() const {
-  Options o;
-  static_cast<FilterOptions&>(o) = filter_options();
-  o.alpha = alpha_;
-  o.beta = beta_;
-  o.kappa = kappa_;
-  return o;
+MagnetometerUkf::MagnetometerUkf(std::shared_ptr<const Options> options)
+    : ScalarFilterBase(std::move(options), "ukf") {
+  assert(options_ && this->options().validate().empty());
 }
 
 FilterUpdate MagnetometerUkf::update(const Eigen::Vector3d& b_sensor_nT, double h_norm_nT,
@@ -78,7 +69,8 @@ FilterUpdate MagnetometerUkf::update(const Eigen::Vector3d& b_sensor_nT, double 
     q(i) = m.squaredNorm();
   }
   // Computed per sample (a few flops), not stored: memory per tracked spacecraft.
-  const auto [lambda, spread, w0m, w0c, wi] = unscented_weights(alpha_, beta_, kappa_);
+  const Options& o = options();
+  const auto [lambda, spread, w0m, w0c, wi] = unscented_weights(o.alpha, o.beta, o.kappa);
   const double s2 = spread * spread;
   const Vector9d z_plus = (z0 - 2.0 * spread * a.array() - s2 * q.array()).matrix();
   const Vector9d z_minus = (z0 + 2.0 * spread * a.array() - s2 * q.array()).matrix();

@@ -18,6 +18,7 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
 #include <string>
 
 #include <Eigen/Core>
@@ -38,20 +39,17 @@ class MagnetometerUkf : public ScalarFilterBase {
  public:
   using Options = UkfOptions;
 
-  // options must be valid (Options::validate() empty); asserted.
+  // options must be valid (Options::validate() empty); asserted. This one keeps its own copy;
+  // the second shares `options` with every filter built from the same pointer (a fleet).
   explicit MagnetometerUkf(const Options& options = Options());
+  explicit MagnetometerUkf(std::shared_ptr<const Options> options);
 
-  // The options it was built with (filter_options() and the three below: one copy is kept,
-  // per tracked spacecraft).
-  Options options() const;
+  const Options& options() const { return static_cast<const Options&>(filter_options()); }
 
   // One sample: b_sensor_nT = measured field (sensor frame), h_norm_nT = |reference field|,
   // utime = sample time (microseconds; the filter predicts by the time since the last sample,
   // dt <= 0 predicts nothing).
   FilterUpdate update(const Eigen::Vector3d& b_sensor_nT, double h_norm_nT, int64_t utime);
-
- private:
-  double alpha_ = 0.0, beta_ = 0.0, kappa_ = 0.0;
 };
 
 }  // namespace magcal

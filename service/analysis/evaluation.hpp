@@ -13,7 +13,8 @@
 //   RMS/CRLB       sqrt(mean over runs and axes of (e_i / sigma_CRLB,i)^2)
 //   convergence    online: time from the first sample after which every bias 1-sigma stayed
 //                  < 10 nT (mean over runs that converged)
-//   memory         offline: samples held x sizeof(CalibrationSample); online: sizeof(FilterState)
+//   memory         offline: samples held x sizeof(CalibrationSample); online: sizeof the filter
+//                  (its FilterState and a pointer to the options, which a fleet shares)
 //   compute        wall time per run of the method (ms)
 // Online methods run with their default settings from a data start over the whole online span,
 // and warm (seeded, state, covariance and noise, from the centered+LM refit of the offline

@@ -5,7 +5,11 @@
 #include <cstring>
 #include <limits>
 
+#include <variant>
+
 #include <Eigen/Cholesky>
+
+#include "pipeline/packed_triangle.hpp"
 
 namespace magcal {
 namespace {
@@ -20,7 +24,10 @@ namespace {
 //   3  the same fields as 2, every section present, nothing after them;
 //   4  (written now) 3 and the bias-motion blocks' sensitivity to D (read as zero from 2 and 3:
 //      their blocks then count as solved, without the correction to the current D).
-// A blob of another version or not starting with "MCF" is refused with a message naming it.
+// A filter keeps only one of the start's lag-1 products and the bias-motion block start (the
+// first until it starts, the other from then on): the one it does not keep is written as zeros
+// (the block's time as -1), and ignored when read. A blob of another version or not starting
+// with "MCF" is refused with a message naming it.
 constexpr uint32_t kFilterBlobMagicBase = 0x4D434600;  // "MCF" + version digit, little-endian
 constexpr int kFilterBlobVersion = 4;
 constexpr int kOldestFilterBlobVersion = 1;
@@ -79,10 +86,47 @@ class BlobReader {
   bool ok_ = true;
 };
 
-// The blob's fields after its magic, in order, for writing (State = const FilterState) and
-// reading (State = FilterState): the one list both directions share.
-template <typename Io, typename State>
-void filter_state_fields(Io& io, State& st, int version) {
+// The blob keeps the layout it had before the filter state was packed: full 9 x 9 matrices, A and
+// the score meat apart, and both the start's lag-1 products and the bias-motion block start,
+// where FilterState holds triangles, A + meat and one of the two (filter_common.hpp). These are
+// the unpacked fields, taken from a state to write it (A + meat as A, the meat zero: the sum is
+// what every release uses) and put into one after reading.
+struct UnpackedFields {
+  Matrix9d anchor_information = Matrix9d::Zero();
+  Matrix9d score_meat = Matrix9d::Zero();
+  Matrix9d model_error_covariance = Matrix9d::Zero();
+  ScalarLag1Moments lag1;  // zero once started
+  BiasBlockStart block;    // empty (no block open) until started
+};
+
+UnpackedFields unpacked_fields(const FilterState& st) {
+  UnpackedFields f;
+  f.anchor_information = symmetric_from_packed<9>(st.anchor_information_and_meat);  // meat: 0
+  f.model_error_covariance = symmetric_from_packed<9>(st.model_error_covariance);
+  if (const auto* lag1 = std::get_if<ScalarLag1Moments>(&st.lag1_or_block)) f.lag1 = *lag1;
+  if (const auto* block = std::get_if<BiasBlockStart>(&st.lag1_or_block)) f.block = *block;
+  return f;
+}
+
+// Symmetric parts (what the filter computes is symmetric: exactly what was written); the
+// alternative of lag1_or_block the state's `initialized` calls for.
+void put_unpacked_fields(const UnpackedFields& f, FilterState& st) {
+  const auto packed_symmetric = [](const Matrix9d& M) {
+    return packed_upper<9>(Matrix9d(0.5 * (M + M.transpose())));
+  };
+  st.anchor_information_and_meat = packed_symmetric(f.anchor_information + f.score_meat);
+  st.model_error_covariance = packed_symmetric(f.model_error_covariance);
+  if (st.initialized) {
+    st.lag1_or_block = f.block;
+  } else {
+    st.lag1_or_block = f.lag1;
+  }
+}
+
+// The blob's fields after its magic, in order, for writing (State = const FilterState, Fields =
+// const UnpackedFields) and reading (both mutable): the one list both directions share.
+template <typename Io, typename State, typename Fields>
+void filter_state_fields(Io& io, State& st, Fields& f, int version) {
   io.flag(st.initialized);
   io.flag(st.consistent);
   io(st.first_utime);
@@ -102,8 +146,8 @@ void filter_state_fields(Io& io, State& st, int version) {
   io(st.previous_normalised_innovation);
   io.flag(st.has_previous_innovation);
   io.each(st.moments.m);
-  io.each(st.moments.m_lag1);
-  io.each(st.moments.previous);
+  io.each(f.lag1.m);
+  io.each(f.lag1.previous);
   io(st.moments.n);
   io(st.fisher_condition);
   io(st.samples_since_fisher);
@@ -112,18 +156,18 @@ void filter_state_fields(Io& io, State& st, int version) {
   io(st.period_residual_sum2_nT2);
   io(st.period_nis_sum);
   if (!io.section()) return;  // the reported covariance's blocks
-  io.each(st.anchor_information);
+  io.each(f.anchor_information);
   io.each(st.score_block);
   io(st.score_block_n);
-  io.each(st.score_meat);
+  io.each(f.score_meat);
   io(st.score_blocks);
   if (!io.section()) return;  // the model error
-  io.each(st.model_error_covariance);
+  io.each(f.model_error_covariance);
   io.flag(st.model_error_known);
   if (!io.section()) return;  // the bias-motion measurement
-  io(st.bias_block_start_utime);
-  io.each(st.bias_block_start_m);
-  io(st.bias_block_start_n);
+  io(f.block.utime);
+  io.each(f.block.m);
+  io(f.block.n);
   io(st.bias_motion_n);
   io(st.bias_motion_sum_t_h);
   io(st.bias_motion_sum_t2_h2);
@@ -381,7 +425,8 @@ storage::FilterState stored_filter_state(const std::string& sat_id, const std::s
   out.n_samples = st.n_accepted;
   BlobWriter writer(out.counters);
   writer(kFilterBlobMagicBase | static_cast<uint32_t>('0' + kFilterBlobVersion));
-  filter_state_fields(writer, st, kFilterBlobVersion);
+  const UnpackedFields fields = unpacked_fields(st);
+  filter_state_fields(writer, st, fields, kFilterBlobVersion);
   return out;
 }
 
@@ -409,7 +454,8 @@ std::string filter_state_from_stored(const storage::FilterState& in, FilterState
   }
   BlobReader reader(b, version);
   reader(magic);
-  filter_state_fields(reader, st, version);
+  UnpackedFields fields;
+  filter_state_fields(reader, st, fields, version);
   if (!reader.ok()) {
     return "filter state blob version " + std::to_string(version) + " ends after " +
            std::to_string(b.size()) + " bytes, inside its fields";
@@ -430,8 +476,11 @@ std::string filter_state_from_stored(const storage::FilterState& in, FilterState
     }
     st.fisher_condition = std::numeric_limits<double>::infinity();
   } else {
+    if (!blob.triangularView<Eigen::StrictlyUpper>().toDenseMatrix().isZero(0.0))
+      return "filter state S is not lower triangular";
     st.S = blob;
   }
+  put_unpacked_fields(fields, st);
   out = st;
   return "";
 }

@@ -33,11 +33,12 @@ constexpr int kReferenceEvery = 10;  // brute-force reference: a start tried eve
 int reference_first_start(const std::vector<SimSample>& data, double sigma_nT) {
   const FilterStartOptions start;
   ScalarMoments m;
+  ScalarLag1Moments lag1;
   for (const SimSample& s : data) {
     const double y = scalar_measurement(s.b_sensor_nT, s.h_norm_nT) - scalar_noise_mean(sigma_nT);
-    m.add(s.b_sensor_nT, y, 1.0 / scalar_noise_variance(s.b_sensor_nT, sigma_nT), true);
+    m.add(s.b_sensor_nT, y, 1.0 / scalar_noise_variance(s.b_sensor_nT, sigma_nT), &lag1);
     if (m.n >= start.min_samples && m.n % kReferenceEvery == 0 &&
-        solve_filter_start(m, start).status == FilterStartStatus::kOk) {
+        solve_filter_start(m, lag1, start).status == FilterStartStatus::kOk) {
       return static_cast<int>(m.n);
     }
   }
@@ -184,7 +185,7 @@ TEST_CASE("Data that never observe p: the pre-check turns every candidate attemp
   int candidates = 0, passed = 0;
   for (const SimSample& s : data) {
     const double y = scalar_measurement(s.b_sensor_nT, s.h_norm_nT) - scalar_noise_mean(sigma);
-    m.add(s.b_sensor_nT, y, 1.0 / scalar_noise_variance(s.b_sensor_nT, sigma), true);
+    m.add(s.b_sensor_nT, y, 1.0 / scalar_noise_variance(s.b_sensor_nT, sigma));
     if (start_attempt_due(m.n, o) != StartAttempt::kIfObservable) continue;
     ++candidates;
     if (start_precheck_condition(m) <= o.start.precheck_margin * o.start.max_condition) ++passed;

@@ -6,6 +6,7 @@
 
 #include <cmath>
 #include <limits>
+#include <variant>
 
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
@@ -225,6 +226,29 @@ TEST_CASE("UKF state save/restore is a bit-exact continuation, reanchor keeps co
   CHECK(a.state().last_utime == s.last_utime);
   CHECK(a.state().nis_window_count == 0);
   CHECK(a.consistent());
+}
+
+TEST_CASE(
+    "UKF saved while collecting for its start resumes bit for bit, started it drops the "
+    "start's lag-1 products") {
+  const auto data = simulate(Geometry::kNadir, paper_parameters(), 4.0, kSigma_nT, 4);
+  const size_t collecting = 40;  // below start.min_samples
+  MagnetometerUkf a;
+  run(a, data, 0, collecting);
+  REQUIRE_FALSE(a.initialized());
+  const auto* lag1 = std::get_if<ScalarLag1Moments>(&a.state().lag1_or_block);
+  REQUIRE(lag1 != nullptr);
+  CHECK(lag1->m.norm() > 0.0);
+  MagnetometerUkf b;
+  b.restore(a.state());
+  run(a, data, collecting);
+  run(b, data, collecting);
+  REQUIRE(a.initialized());
+  CHECK(b.state() == a.state());
+  // The bias-motion block start holds the place of the lag-1 products.
+  const auto* block = std::get_if<BiasBlockStart>(&a.state().lag1_or_block);
+  REQUIRE(block != nullptr);
+  CHECK(block->utime >= data[collecting].utime);
 }
 
 TEST_CASE("UKF update does not allocate") {

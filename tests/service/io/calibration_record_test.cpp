@@ -8,6 +8,7 @@
 #include <cmath>
 #include <limits>
 #include <random>
+#include <variant>
 #include <vector>
 
 #include "pipeline/magnetometer_ukf.hpp"
@@ -284,4 +285,49 @@ TEST_CASE("a filter state blob of an unknown version or format is refused, namin
   v2.counters[0] = '2';
   REQUIRE(filter_state_from_stored(v2, back) == "");
   CHECK(back == from_v3);
+}
+
+TEST_CASE("a filter state saved while collecting for the start keeps the start's lag-1 products",
+          "[filter_state]") {
+  std::mt19937_64 rng(5);
+  std::normal_distribution<double> n(0.0, 1.0);
+  MagnetometerUkf ukf;
+  for (int k = 0; k < 40; ++k) {  // below the start's min_samples
+    const Eigen::Vector3d h = 40000.0 * Eigen::Vector3d(n(rng), n(rng), n(rng)).normalized();
+    ukf.update(h + Eigen::Vector3d(1000.0, 800.0, 900.0), 40000.0,
+               1704067200000000 + k * 10'000'000LL);
+  }
+  REQUIRE_FALSE(ukf.initialized());
+  const auto* lag1 = std::get_if<ScalarLag1Moments>(&ukf.state().lag1_or_block);
+  REQUIRE(lag1 != nullptr);
+  REQUIRE(lag1->m.norm() > 0.0);
+  FilterState back;
+  REQUIRE(filter_state_from_stored(stored_filter_state("SAT-1", "ukf", ukf.state()), back) == "");
+  CHECK(back == ukf.state());
+}
+
+TEST_CASE("a started filter's blob from before the packed state (lag-1 products kept) restores",
+          "[filter_state]") {
+  const FilterState state = run_filter_state();
+  const storage::FilterState stored = stored_filter_state("SAT-1", "ukf", state);
+  // The lag-1 section (66 + 11 doubles after the magic, the 70 bytes of version 1's fields, the
+  // 34 of the noise estimate and the 66 moments) is zero in a started filter's blob now; older
+  // releases wrote the products the start had used.
+  constexpr size_t kLag1Offset = 4 + 70 + 34 + 66 * sizeof(double);
+  constexpr size_t kLag1Bytes = (66 + 11) * sizeof(double);
+  REQUIRE(stored.counters.size() > kLag1Offset + kLag1Bytes);
+  for (size_t i = kLag1Offset; i < kLag1Offset + kLag1Bytes; ++i) CHECK(stored.counters[i] == 0);
+  auto older = stored;
+  for (size_t i = 0; i < kLag1Bytes; ++i)
+    older.counters[kLag1Offset + i] = stored.counters[kLag1Offset - kLag1Bytes + i];
+  FilterState back;
+  REQUIRE(filter_state_from_stored(older, back) == "");
+  CHECK(back == state);
+}
+
+TEST_CASE("a stored factor S with entries above the diagonal is refused", "[filter_state]") {
+  storage::FilterState stored = stored_filter_state("SAT-1", "ukf", run_filter_state());
+  stored.P[1] = 1.0;  // row 0, column 1
+  FilterState back;
+  CHECK(filter_state_from_stored(stored, back) == "filter state S is not lower triangular");
 }
