@@ -54,7 +54,7 @@ struct DaemonConfig {
     // in memory, then spilled) and a restart of magcald would not help; past an hour a person
     // has to look, and exit 3 makes systemd log it and restart (the spill is kept).
     double pg_max_failure_s = 3600.0;
-    // PostgreSQL: during an outage that outlasts max_pending_samples the pending samples go to a
+    // PostgreSQL: during an outage the pending samples go, each commit interval, to a
     // spill file (service/daemon/sample_spill.hpp) instead of stopping intake, and are committed
     // when the database returns (or at the next start). The file is
     // <spill_dir>/magcal-spill-<station id>.spill; spill_dir "" = $STATE_DIRECTORY (systemd's

@@ -79,8 +79,10 @@ void IngestWorker::commit_if_due() {
 }
 
 void IngestWorker::commit() {
-  // An outage that outlasts memory: the batch goes to the spill file, intake goes on.
-  if (intake_.commit_failing()) intake_.spill_pending(false);
+  // Commits failing (a PostgreSQL outage): the batch goes to the spill file at once, written and
+  // fdatasync'ed, so a crash during an outage loses no more than one commit interval, as outside
+  // one (memory is no safe place to wait out an outage); intake goes on.
+  if (intake_.commit_failing()) intake_.spill_pending(true);
   // Two rounds: the samples, then what the owned filters made of them (snapshots, states), so
   // that after commit() everything they produced from committed samples is stored too (not
   // while the spill drains: one slice per call).

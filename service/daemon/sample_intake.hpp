@@ -21,12 +21,12 @@
 // place. Storage broken for [storage] max_failure_s (pg_max_failure_s on PostgreSQL), or a
 // permanent error, throws StorageOutage out of try_commit() and ingest().
 //
-// PostgreSQL outages (issue 19, "Network faults"): once the pending batch reaches
-// max_pending_samples while commits fail, it goes to the spill file (sample_spill.hpp) and
-// intake goes on; the file is committed first when the database returns (a slice of at most
-// 1 s per commit, the pending batch queued behind it in the file until it is empty), and at
-// start when an earlier run left one. Meanwhile the duplicate check does not read the database
-// (the insert, which counts duplicates, decides).
+// PostgreSQL outages (issue 19, "Network faults"): while commits fail, the pending batch goes
+// to the spill file (sample_spill.hpp) at each commit interval and intake goes on; the file is
+// committed first when the database returns (a slice of at most 1 s per commit, the pending batch
+// queued behind it in the file until it is empty), and at start when an earlier run left one.
+// Meanwhile the duplicate check does not read the database (the insert, which counts duplicates,
+// decides).
 //
 // Retention is the one thing the owner decides for it: only the spacecraft's owner deletes, and
 // only behind its filter (allow_retention()), because the owner triggers refits at its own

@@ -1,14 +1,15 @@
 // The spill file (issue 19, "Network faults"): validated samples a station received while its
-// PostgreSQL database was unreachable, once the outage outlasted [storage] max_pending_samples
-// in memory. The worker appends the pending batch here instead of stopping intake, and commits
-// the file back (chunk by chunk, oldest first) when the database returns; a file left behind by a
-// daemon that stopped or was killed during an outage is committed at its next start.
+// PostgreSQL database was unreachable (each commit interval's batch while commits fail, so a
+// crash during an outage loses no more than one interval). The worker appends the pending batch
+// here instead of stopping intake, and commits the file back (chunk by chunk, oldest first) when
+// the database returns; a file left behind by a daemon that stopped or was killed during an outage
+// is committed at its next start.
 //
 // Format (one machine writes and reads it: native byte order, no portability promised):
 //   header  "MGSPILL1", u64 offset of the first record not yet committed, u32 length + the
 //           database it was written for (its name without password, for the log)
 //   record  u32 payload length, u64 FNV-1a of the payload, payload (one storage::StoredSample)
-// Appends are one write and an fdatasync each (a batch of max_pending_samples rows), so a crash
+// Appends are one write and an fdatasync each (a commit interval's batch), so a crash
 // leaves at most a torn last record: at open it is cut off and counted (dropped_records()), with
 // everything after the first record that is short or fails its checksum. The committed offset is
 // written after each chunk reaches the database; a crash between the two only repeats that chunk
