@@ -117,7 +117,7 @@ size_t OwnedSpacecraftTracker::owned_count() {
 void OwnedSpacecraftTracker::take_over(const std::string& sat, SpacecraftTracker& record,
                                        int64_t epoch) {
   OwnedSpacecraft& t = record;
-  t.ukf = MagnetometerUkf(config_.ukf.filter);
+  t.ukf = MagnetometerUkf(fleet_.options());
   t.temperature = TemperatureCorrection{};
   t.anchor_calibration_id = 0;
   t.deferred_reanchor_id = 0;
@@ -178,7 +178,7 @@ void OwnedSpacecraftTracker::give_up(const std::string& sat, OwnedSpacecraft& t)
   t.state_due = t.state_dirty = false;
   t.data_refits.reset();
   t.next_early_refit_samples = 0;
-  t.ukf = MagnetometerUkf(config_.ukf.filter);  // nothing of the old filter is used again
+  t.ukf = MagnetometerUkf(fleet_.options());  // nothing of the old filter is used again
   std::erase(states_due_, sat);
   std::erase(refits_elsewhere_, sat);
   std::erase_if(pending_snapshots_, [&](const PendingSnapshot& p) { return p.sat_id == sat; });

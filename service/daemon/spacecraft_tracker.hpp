@@ -38,6 +38,7 @@
 
 #include <cstdint>
 #include <limits>
+#include <memory>
 #include <optional>
 #include <string>
 #include <unordered_map>
@@ -160,7 +161,9 @@ struct ReceivedSpacecraft {
 struct OwnedSpacecraft {
   static constexpr int64_t kNoTime = std::numeric_limits<int64_t>::min();
 
-  explicit OwnedSpacecraft(const MagnetometerUkf::Options& options) : ukf(options) {}
+  // `options`: the fleet's one copy (a filter's options are not per spacecraft).
+  explicit OwnedSpacecraft(std::shared_ptr<const MagnetometerUkf::Options> options)
+      : ukf(std::move(options)) {}
 
   MagnetometerUkf ukf;
   TemperatureCorrection temperature;  // of the refit anchor_calibration_id names
@@ -212,15 +215,20 @@ struct OwnedSpacecraft {
 // part of the worker takes only its own half (IngestWorker, ingest_worker.hpp).
 struct SpacecraftTracker : ReceivedSpacecraft, OwnedSpacecraft {
   using ReceivedSpacecraft::kNoTime;
-  explicit SpacecraftTracker(const MagnetometerUkf::Options& options) : OwnedSpacecraft(options) {}
+  explicit SpacecraftTracker(std::shared_ptr<const MagnetometerUkf::Options> options)
+      : OwnedSpacecraft(std::move(options)) {}
 };
 
 // Every spacecraft this daemon receives or owns. Shared by the worker's two parts (one thread).
 class SpacecraftFleet {
  public:
   // `counters`: the daemon's (nullptr: none, e.g. a memory benchmark of the trackers alone).
-  explicit SpacecraftFleet(MagnetometerUkf::Options options, DaemonCounters* counters = nullptr)
-      : options_(options), counters_(counters) {}
+  explicit SpacecraftFleet(const MagnetometerUkf::Options& options,
+                           DaemonCounters* counters = nullptr)
+      : options_(std::make_shared<const MagnetometerUkf::Options>(options)), counters_(counters) {}
+
+  // The filters' options, one copy shared by every spacecraft's UKF (memory per spacecraft).
+  const std::shared_ptr<const MagnetometerUkf::Options>& options() const { return options_; }
 
   SpacecraftTracker* find(const std::string& sat_id);
   // Creates the tracker on first use (its counters looked up once, here: the per-sample path
@@ -238,7 +246,7 @@ class SpacecraftFleet {
   static size_t approx_bytes_per_spacecraft();
 
  private:
-  MagnetometerUkf::Options options_;
+  std::shared_ptr<const MagnetometerUkf::Options> options_;
   DaemonCounters* counters_;
   std::unordered_map<std::string, SpacecraftTracker> trackers_;
 };
