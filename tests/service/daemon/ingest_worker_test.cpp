@@ -778,7 +778,7 @@ TEST_CASE("random rogue frames never cost a valid sample", "[ingest_worker][time
 }
 
 TEST_CASE("sequence numbers at the int64 limits do not overflow", "[ingest_worker][time]") {
-  SpacecraftTracker t(MagnetometerUkf::Options{});
+  SpacecraftTracker t(std::make_shared<const MagnetometerUkf::Options>());
   constexpr int64_t kMax = std::numeric_limits<int64_t>::max();
   constexpr int64_t kMin = std::numeric_limits<int64_t>::min();
   CHECK(t.received_seq.observe(kMin + 1) == 0);
@@ -796,7 +796,7 @@ TEST_CASE("one corrupt sequence number implies no missing samples", "[ingest_wor
   // and real gaps elsewhere; only the real gaps count.
   std::mt19937_64 rng(7);
   for (int draw = 0; draw < 200; ++draw) {
-    SpacecraftTracker t(MagnetometerUkf::Options{});
+    SpacecraftTracker t(std::make_shared<const MagnetometerUkf::Options>());
     int64_t seq = static_cast<int64_t>(rng() % 1000);
     int64_t missing = 0, real_gaps = 0;
     for (int k = 0; k < 60; ++k) {
