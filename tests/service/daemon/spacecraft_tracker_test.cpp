@@ -100,7 +100,7 @@ bool has_temperature(TemperatureChannel channel, int k) {
 // Runs the tracker anchored on `refit` over the stream.
 Outcome run(const Scenario& sc, const CalibrationResult& refit,
             TemperatureChannel channel = TemperatureChannel::kEverySample) {
-  SpacecraftTracker t{MagnetometerUkf::Options{}};
+  SpacecraftTracker t{std::make_shared<const MagnetometerUkf::Options>()};
   t.ukf.reanchor(refit.parameters.packed(), refit.covariance, refit.model_error_covariance());
   t.ukf.seed_noise(refit.residual_rms_nT);
   t.temperature.take_from(refit, 1);
