@@ -684,7 +684,7 @@ TEST_CASE("PostgreSQL: the daemon's server processes terminated: it reconnects, 
           "[daemon][fault][postgres]") {
   constexpr int kN = 3000;
   constexpr int kTerminations = 6;
-  const PgScenario sc("magcald_pgfault_terminate", kN, 50'000);  // 60 frames over 3 s
+  const PgScenario sc("magcald_pgfault_terminate", kN, 100'000);  // 60 frames over 6 s
   if (sc.uri.empty()) return;
   const auto& tmp = sc.tmp;
   const std::string out = tmp.file("out.lcm");
@@ -693,9 +693,14 @@ TEST_CASE("PostgreSQL: the daemon's server processes terminated: it reconnects, 
   REQUIRE(d > 0);
   REQUIRE(wait_until([&] { return read_stored(sc.uri).count >= 200; }, 20));
   // Every session on its database but the caller's (the daemon's connections: its worker, its
-  // refit thread), every 0.3 s while the replay goes on: mid-transaction, between, idle.
+  // refit thread), every 0.3 s while the replay goes on: mid-transaction, between, idle. A
+  // terminated connection comes back at its next statement: each round waits for one.
+  const char* const kSessions =
+      "SELECT count(*) FROM pg_stat_activity WHERE datname = current_database() AND "
+      "pid <> pg_backend_pid()";
   int64_t terminated = 0;
   for (int i = 0; i < kTerminations; ++i) {
+    wait_until([&] { return pg_query_int(sc.uri, kSessions) > 0; }, 3);
     terminated += pg_query_int(sc.uri,
                                "SELECT count(pg_terminate_backend(pid)) FROM pg_stat_activity "
                                "WHERE datname = current_database() AND pid <> pg_backend_pid()");

@@ -139,7 +139,11 @@ TEST_CASE("magcald, magcal status, history, refit and serve on PostgreSQL answer
                                    "started_time",
                                    "finished_time",
                                    "lease_expires_time",
-                                   "lease_expires_utime"};
+                                   "lease_expires_utime",
+                                   "heartbeat_time",
+                                   "heartbeat_utime",
+                                   "expires_time",
+                                   "expires_utime"};
   const json rows_sqlite = history(sqlite, dir);
   const json rows_pg = history(pg, dir);
   REQUIRE(count_method(rows_sqlite, "ukf") >= 100);  // one per minute of data, once started
