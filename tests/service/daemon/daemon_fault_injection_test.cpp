@@ -157,6 +157,30 @@ pid_t hold_write_lock(const TempDir& tmp, const std::string& db, int hold_s) {
 // books that balance: every received sample stored, counted as not committed (storage_error),
 // counted as overflow (pushed after the stop), or (PostgreSQL) held by the spill file
 // `spill_file` for the next start.
+// A replay that rode out a lock held past the storage timeout, from its status messages
+// (`out_lcm`): health said so while the lock was held (status every 0.1 s, lock 2 s), and at the
+// end every one of the n samples is stored, nothing pending, the failures counted and retried.
+struct LockRiddenOut {
+  magcal::daemon_status_t last;
+  int unhealthy = 0;  // status messages that said storage was failing
+};
+LockRiddenOut expect_lock_ridden_out(const std::string& out_lcm, int64_t n) {
+  const auto pub = read_published(out_lcm);
+  REQUIRE_FALSE(pub.statuses.empty());
+  LockRiddenOut r{pub.statuses.back(), 0};
+  for (const auto& s : pub.statuses) r.unhealthy += s.storage_healthy ? 0 : 1;
+  CHECK(r.unhealthy >= 5);
+  CHECK(r.last.storage_healthy);
+  CHECK(r.last.received == n);
+  CHECK(r.last.stored == n);
+  CHECK(r.last.rejected == 0);
+  CHECK(r.last.queue_overflow == 0);
+  CHECK(r.last.storage_pending == 0);
+  CHECK(r.last.storage_failures >= 1);
+  CHECK(r.last.storage_retries >= 1);
+  return r;
+}
+
 struct StorageStop {
   int rc = 0;
   double seconds = 0.0;  // from the call to the exit
@@ -227,21 +251,7 @@ TEST_CASE("database locked by another process past the busy timeout: retried, al
   INFO(slurp(tmp.file("magcald.log")));
   INFO(slurp(tmp.file("lock.log")));
   CHECK(rc == 0);
-  const auto pub = read_published(out);
-  REQUIRE_FALSE(pub.statuses.empty());
-  // Health said so while the lock was held (status every 0.1 s, lock 2 s).
-  int unhealthy = 0;
-  for (const auto& s : pub.statuses) unhealthy += s.storage_healthy ? 0 : 1;
-  CHECK(unhealthy >= 5);
-  const auto& last = pub.statuses.back();
-  CHECK(last.storage_healthy);
-  CHECK(last.received == kN);
-  CHECK(last.stored == kN);
-  CHECK(last.rejected == 0);
-  CHECK(last.queue_overflow == 0);
-  CHECK(last.storage_pending == 0);
-  CHECK(last.storage_failures >= 1);
-  CHECK(last.storage_retries >= 1);
+  const auto [last, unhealthy] = expect_lock_ridden_out(out, kN);
   // Nothing was committed while the other process held the lock.
   CHECK(stored_at_release == stored_at_lock);
   const auto st = read_stored(db);
@@ -655,20 +665,7 @@ TEST_CASE("PostgreSQL: samples locked by another session past lock_timeout: retr
   // Named as what it is: the lock not granted in time, kept and retried.
   CHECK_THAT(daemon_log, Catch::Contains("SQLSTATE 55P03"));
   CHECK_THAT(daemon_log, Catch::Contains("works again"));
-  const auto pub = read_published(out);
-  REQUIRE_FALSE(pub.statuses.empty());
-  int unhealthy = 0;
-  for (const auto& st : pub.statuses) unhealthy += st.storage_healthy ? 0 : 1;
-  CHECK(unhealthy >= 5);
-  const auto& last = pub.statuses.back();
-  CHECK(last.storage_healthy);
-  CHECK(last.received == kN);
-  CHECK(last.stored == kN);
-  CHECK(last.rejected == 0);
-  CHECK(last.queue_overflow == 0);
-  CHECK(last.storage_pending == 0);
-  CHECK(last.storage_failures >= 1);
-  CHECK(last.storage_retries >= 1);
+  const auto [last, unhealthy] = expect_lock_ridden_out(out, kN);
   // Nothing was committed while the other session held the lock.
   CHECK(stored_at_lock >= 200);
   CHECK(stored_at_release == stored_at_lock);
