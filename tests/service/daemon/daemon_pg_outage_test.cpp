@@ -9,7 +9,12 @@
 // - killed (SIGKILL) during an outage: the next start commits the spill file it left, exactly;
 // - down past [storage] pg_max_failure_s: exit 3, the pending samples spilled, not lost;
 // - stopped (SIGTERM) during an outage: at once, exit 0, the pending samples spilled;
-// - data-clock refits due during an outage: run after it, each once, as on SQLite.
+// - data-clock refits due during an outage: run after it, each once, as on SQLite;
+// - down when magcald starts: it receives and spills, not ready, both probes saying since when;
+//   once the server is up every sample is stored once, and the refits and UKF snapshots are
+//   those of SQLite; stopped (SIGTERM) before the server came up: exit 0 at once, the next
+//   start commits the spill; a database it cannot use (missing database or role) is still a
+//   start error at once (exit 2).
 // Skipped without the PostgreSQL server programs (with CI=true it fails).
 #include <signal.h>
 
@@ -25,6 +30,7 @@
 
 #include "service/daemon/daemon_config.hpp"
 #include "service/daemon/sample_spill.hpp"
+#include "storage/calibration_history.hpp"
 #include "storage/connection.hpp"
 #include "storage/refit_job_log.hpp"
 #include "storage/sample_window_store.hpp"
@@ -46,6 +52,8 @@ namespace storage = magcal::storage;
 
 const std::string kBin = MAGCAL_BIN_DIR;
 const std::string kSat = "OUTAGE-1";
+// [refit] keys: data-clock refits every data hour.
+const std::string kHourlyRefits = "clock = \"data\"\nevery_hours = 1\n";
 
 // Samples 10 s apart from 300 h ago (within [ingest] max_future_s of the wall clock, and the
 // whole log within the window below).
@@ -108,6 +116,22 @@ std::vector<int64_t> scheduled_refits(const std::string& db) {
   }
   std::sort(out.begin(), out.end());
   CHECK(std::adjacent_find(out.begin(), out.end()) == out.end());
+  return out;
+}
+
+// The data times of kSat's UKF snapshots in `db`, ascending.
+std::vector<int64_t> ukf_snapshot_times(const std::string& db) {
+  storage::OpenOptions read_only;
+  read_only.read_only = true;
+  storage::HistoryQuery q;
+  q.sat_id = kSat;
+  q.method = "ukf";
+  std::vector<int64_t> out;
+  for (const auto& row :
+       storage::open_database(db, read_only)->make_calibration_history()->query(q)) {
+    out.push_back(row.utime);
+  }
+  std::sort(out.begin(), out.end());
   return out;
 }
 
@@ -281,6 +305,21 @@ int64_t check_next_start_commits_spill(const TempDir& dir, const std::string& co
   return held;
 }
 
+// SIGTERM to magcald `pid` during an outage: exit 0 at once (without the spill it would retry
+// for pg_max_failure_s, an hour). Its log.
+std::string stop_during_outage(pid_t pid, const std::string& log_path) {
+  const auto t0 = std::chrono::steady_clock::now();
+  ::kill(pid, SIGTERM);
+  const int rc = wait_exit(pid, 30);
+  const double stop_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const std::string text = slurp(log_path);
+  INFO(text);
+  CHECK(rc == 0);
+  CHECK(stop_s < 10);
+  return text;
+}
+
 TEST_CASE("an idle station is not ready while PostgreSQL is down: its lease rounds fail",
           "[daemon][postgres][outage][integration]") {
   magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
@@ -392,16 +431,8 @@ TEST_CASE("SIGTERM during a PostgreSQL outage: magcald stops at once, its sample
   server->stop();
   REQUIRE(wait_until([&] { return http_get(daemon.port, "/-/ready").status == 503; }, 20));
   const double stored = metric(daemon.port, "magcal_samples_stored_total");
-  // Without the spill the stop would retry for pg_max_failure_s (an hour).
-  const auto t0 = std::chrono::steady_clock::now();
-  ::kill(daemon.pid, SIGTERM);
-  const int rc = wait_exit(daemon.pid, 30);
-  const double stop_s =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  const std::string text = slurp(daemon.log_path);
+  const std::string text = stop_during_outage(daemon.pid, daemon.log_path);
   INFO(text);
-  CHECK(rc == 0);
-  CHECK(stop_s < 10);
   CHECK(text.find("database commit failing: ") != std::string::npos);
   server->start();
   check_next_start_commits_spill(dir, config_text, log, db, static_cast<int64_t>(stored));
@@ -414,14 +445,13 @@ TEST_CASE("data-clock refits that fall due during a PostgreSQL outage run after 
   TempDir dir("magcald_pg_refits");
   // 6000 samples (16.7 h of data) in 24 s: a data hour every 1.4 s of replay.
   const std::string log = paced_log(dir, 6000, 200'000);
-  const std::string hourly = "clock = \"data\"\nevery_hours = 1\n";
-  const std::vector<int64_t> expected = scheduled_refits(reference_db(log, dir, hourly));
+  const std::vector<int64_t> expected = scheduled_refits(reference_db(log, dir, kHourlyRefits));
   REQUIRE(expected.size() >= 12);
 
   const std::string db = server->create_database();
-  const std::string config =
-      write_config(dir, "pg.toml",
-                   "db_path = \"" + db + "\"\nspill_dir = \"" + dir.file("") + "\"\n", 200, hourly);
+  const std::string config = write_config(
+      dir, "pg.toml", "db_path = \"" + db + "\"\nspill_dir = \"" + dir.file("") + "\"\n", 200,
+      kHourlyRefits);
   const PacedDaemon daemon(log, config, dir, 400);
   server->stop();
   std::this_thread::sleep_for(std::chrono::seconds(8));  // ~5 data hours
@@ -434,4 +464,116 @@ TEST_CASE("data-clock refits that fall due during a PostgreSQL outage run after 
   // reaches each due time once the held samples are committed.)
   CHECK(scheduled_refits(db) == expected);
   CHECK(text.find("received=6000 stored=6000 rejected=0") != std::string::npos);
+}
+
+TEST_CASE("PostgreSQL down when magcald starts: it receives, and stores all once the server is up",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_start_down");
+  // 4000 samples (11 h of data) in 80 frames 0.2 s apart: 16 s of replay; data-clock refits
+  // every data hour and the UKF's snapshots, compared with a run into SQLite.
+  const std::string log = paced_log(dir, 4000, 200'000);
+  const std::string reference = reference_db(log, dir, kHourlyRefits);
+  const std::vector<int64_t> expected_refits = scheduled_refits(reference);
+  const std::vector<int64_t> expected_snapshots = ukf_snapshot_times(reference);
+  REQUIRE(expected_refits.size() >= 8);
+  REQUIRE(expected_snapshots.size() >= 100);
+
+  // A new database, never opened: migrated when the server first answers.
+  const std::string db = server->create_database();
+  server->stop();
+  const std::string spill_dir = dir.file("spill");
+  std::filesystem::create_directories(spill_dir);
+  const std::string config =
+      write_config(dir, "pg.toml", "db_path = \"" + db + "\"\nspill_dir = \"" + spill_dir + "\"\n",
+                   200, kHourlyRefits);
+  const PacedDaemon daemon(log, config, dir, 0);  // (0: once it listens)
+  const int port = daemon.port;
+  // It receives: each commit interval's batch goes to the spill file. Alive, not ready, both
+  // probes saying since when the database is unreachable; the API answers 503 (its own
+  // connection waits for the server too).
+  REQUIRE(wait_until([&] { return metric(port, "magcal_samples_spilled_total") >= 1000; }, 20));
+  const std::string since = "unreachable since magcald started at ";
+  const auto ready = http_get(port, "/-/ready");
+  CHECK(ready.status == 503);
+  CHECK(ready.body.find(since) != std::string::npos);
+  const auto healthy = http_get(port, "/-/healthy");
+  CHECK(healthy.status == 200);
+  CHECK(healthy.body.find(since) != std::string::npos);
+  CHECK(healthy.body.find("[storage] pg_max_failure_s = 3600 s") != std::string::npos);
+  CHECK(metric(port, "magcal_samples_stored_total") == 0);
+  CHECK(http_get(port, "/api/v1/spacecraft").status == 503);
+  server->start();
+
+  // Reached: migrated, restored, the spill committed; ready, and the API answers.
+  REQUIRE(wait_until([&] { return http_get(port, "/-/ready").status == 200; }, 30));
+  CHECK(http_get(port, "/-/ready").body.find(since) == std::string::npos);
+  CHECK(http_get(port, "/api/v1/spacecraft").status == 200);
+  const int rc = wait_exit(daemon.pid, 120);
+  const std::string text = slurp(daemon.log_path);
+  INFO(text);
+  REQUIRE(rc == 0);
+  CHECK(text.find("database unreachable at start: magcald receives anyway") != std::string::npos);
+  CHECK(text.find("database commit works again after") != std::string::npos);
+  // Every sample once; the refits and the UKF's snapshots as without the outage.
+  CHECK(stored_samples(db) == 4000);
+  CHECK(text.find("received=4000 stored=4000 rejected=0") != std::string::npos);
+  CHECK(scheduled_refits(db) == expected_refits);
+  CHECK(ukf_snapshot_times(db) == expected_snapshots);
+  CHECK(std::filesystem::is_empty(spill_dir));
+}
+
+TEST_CASE("SIGTERM while PostgreSQL has been down since the start: exit 0, the next start commits",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_start_down_stop");
+  const std::string log = paced_log(dir, 6000, 200'000);
+  const std::string db = server->create_database();
+  storage::open_database(db);  // a database in use: its tables exist
+  server->stop();
+  const std::string config_text =
+      "db_path = \"" + db + "\"\nspill_dir = \"" + dir.file("") + "\"\n";
+  const PacedDaemon daemon(log, write_config(dir, "pg.toml", config_text), dir, 0);
+  REQUIRE(
+      wait_until([&] { return metric(daemon.port, "magcal_samples_spilled_total") >= 500; }, 20));
+  const std::string text = stop_during_outage(daemon.pid, daemon.log_path);
+  INFO(text);
+  CHECK(text.find("database unreachable at start: magcald receives anyway") != std::string::npos);
+  server->start();
+  const int64_t held = check_next_start_commits_spill(dir, config_text, log, db, 0);
+  // All it received went to the file (what was pending at the stop too).
+  CHECK(text.find("received=" + std::to_string(held) + " stored=0 rejected=0") !=
+        std::string::npos);
+}
+
+TEST_CASE("a PostgreSQL database magcald cannot use is a start error at once (exit 2)",
+          "[daemon][postgres][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_start_refused");
+  const std::string log = paced_log(dir, 100, 200'000);
+  const std::string config = write_config(dir, "pg.toml", "spill_dir = \"" + dir.file("") + "\"\n");
+  std::string no_role = server->create_database();
+  no_role.replace(no_role.find("magcal@"), 7, "nobody@");
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {server->uri("no_such_database"), "database \"no_such_database\" does not exist"},
+      {no_role, "role \"nobody\" does not exist"}};
+  for (const auto& [uri, why] : cases) {
+    const auto t0 = std::chrono::steady_clock::now();
+    const int rc = run({kBin + "/magcald", "--config", config, "--db", uri, "--http-listen", "",
+                        "--lcm-url", "file://" + log + "?speed=0"},
+                       dir.file("refused.log"), 30);
+    const double seconds =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    const std::string text = slurp(dir.file("refused.log"));
+    INFO(text);
+    CHECK(rc == 2);
+    CHECK(seconds < 10);
+    CHECK(text.find(why) != std::string::npos);
+    CHECK(text.find("unreachable at start") == std::string::npos);
+    CHECK_FALSE(std::filesystem::exists(
+        dir.file("magcal-spill-" + magcal::default_station_id() + ".spill")));
+  }
 }
