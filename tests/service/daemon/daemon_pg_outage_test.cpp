@@ -24,6 +24,7 @@
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <memory>
 #include <string>
 #include <thread>
 #include <vector>
@@ -524,28 +525,61 @@ TEST_CASE("PostgreSQL down when magcald starts: it receives, and stores all once
   CHECK(std::filesystem::is_empty(spill_dir));
 }
 
+// magcald started while the server is down, on a database in use (its tables exist),
+// replaying 6000 samples in 24 s; `extra` adds [storage] keys.
+struct StartedWhileDown {
+  magcal::test::PgTestServer& server;
+  const TempDir& dir;
+  std::string log, db, config_text;
+  std::unique_ptr<PacedDaemon> daemon;
+
+  StartedWhileDown(magcal::test::PgTestServer& s, const TempDir& d, const std::string& extra)
+      : server(s), dir(d), log(paced_log(d, 6000, 200'000)), db(s.create_database()) {
+    storage::open_database(db);
+    server.stop();
+    config_text = "db_path = \"" + db + "\"\nspill_dir = \"" + dir.file("") + "\"\n" + extra;
+    daemon = std::make_unique<PacedDaemon>(log, write_config(dir, "pg.toml", config_text), dir, 0);
+  }
+
+  // After it ended (its log `text`): it said why it started without the database; with the
+  // server back, the next start commits every sample it received, all in its spill file.
+  void check_next_start_commits_all(const std::string& text) {
+    CHECK(text.find("database unreachable at start: magcald receives anyway") != std::string::npos);
+    server.start();
+    const int64_t held = check_next_start_commits_spill(dir, config_text, log, db, 0);
+    CHECK(text.find("received=" + std::to_string(held) + " stored=0 rejected=0") !=
+          std::string::npos);
+  }
+};
+
 TEST_CASE("SIGTERM while PostgreSQL has been down since the start: exit 0, the next start commits",
           "[daemon][postgres][outage][integration]") {
   magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
   if (server == nullptr) return;
   TempDir dir("magcald_pg_start_down_stop");
-  const std::string log = paced_log(dir, 6000, 200'000);
-  const std::string db = server->create_database();
-  storage::open_database(db);  // a database in use: its tables exist
-  server->stop();
-  const std::string config_text =
-      "db_path = \"" + db + "\"\nspill_dir = \"" + dir.file("") + "\"\n";
-  const PacedDaemon daemon(log, write_config(dir, "pg.toml", config_text), dir, 0);
-  REQUIRE(
-      wait_until([&] { return metric(daemon.port, "magcal_samples_spilled_total") >= 500; }, 20));
-  const std::string text = stop_during_outage(daemon.pid, daemon.log_path);
+  StartedWhileDown started(*server, dir, "");
+  const int port = started.daemon->port;
+  REQUIRE(wait_until([&] { return metric(port, "magcal_samples_spilled_total") >= 500; }, 20));
+  // (What was pending at the stop goes to the file too.)
+  const std::string text = stop_during_outage(started.daemon->pid, started.daemon->log_path);
   INFO(text);
-  CHECK(text.find("database unreachable at start: magcald receives anyway") != std::string::npos);
-  server->start();
-  const int64_t held = check_next_start_commits_spill(dir, config_text, log, db, 0);
-  // All it received went to the file (what was pending at the stop too).
-  CHECK(text.find("received=" + std::to_string(held) + " stored=0 rejected=0") !=
-        std::string::npos);
+  started.check_next_start_commits_all(text);
+}
+
+TEST_CASE("PostgreSQL down from the start past pg_max_failure_s: exit 3, the next start commits",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_start_down_exit");
+  StartedWhileDown started(*server, dir, "pg_max_failure_s = 3\n");
+  const int rc = wait_exit(started.daemon->pid, 30);
+  const std::string text = slurp(started.daemon->log_path);
+  INFO(text);
+  CHECK(rc == 3);
+  CHECK(text.find("[storage] pg_max_failure_s = 3;") != std::string::npos);
+  // Every received sample is in the file: none counted as not committed.
+  CHECK(text.find("were not committed") == std::string::npos);
+  started.check_next_start_commits_all(text);
 }
 
 TEST_CASE("a PostgreSQL database magcald cannot use is a start error at once (exit 2)",
