@@ -68,14 +68,16 @@ int64_t log_start_utime() {
 // The config of every run: no refit computes (too few samples for min_samples: a refit started
 // just before an outage would hold a replay until the database returns, and these tests are
 // about the samples; a due one still leaves its job row, "skipped"), a window that keeps every
-// sample, small commits; `extra` adds keys to [storage], `refit_extra` to [refit].
+// sample, small commits; `extra` adds keys to [storage], `refit_extra` to [refit] (a
+// min_samples there replaces the one above).
 std::string write_config(const TempDir& dir, const std::string& name, const std::string& extra,
                          int commit_every_samples = 200, const std::string& refit_extra = "") {
   const std::string path = dir.file(name);
+  const bool computes = refit_extra.find("min_samples") != std::string::npos;
   std::ofstream(path) << "[storage]\nwindow_hours = 200\ncommit_every_samples = "
                       << commit_every_samples << "\n"
-                      << extra << "[refit]\nmin_samples = 1000000000\n"
-                      << refit_extra;
+                      << extra << "[refit]\n"
+                      << (computes ? "" : "min_samples = 1000000000\n") << refit_extra;
   return path;
 }
 
@@ -134,6 +136,17 @@ std::vector<int64_t> ukf_snapshot_times(const std::string& db) {
   }
   std::sort(out.begin(), out.end());
   return out;
+}
+
+// kSat's refit results in `db` (the history's rows of the offline methods), by time.
+std::vector<storage::CalibrationRecord> refit_rows(const std::string& db) {
+  storage::OpenOptions read_only;
+  read_only.read_only = true;
+  storage::HistoryQuery q;
+  q.sat_id = kSat;
+  auto rows = storage::open_database(db, read_only)->make_calibration_history()->query(q);
+  std::erase_if(rows, [](const auto& r) { return !storage::is_refit_method(r.method); });
+  return rows;
 }
 
 // A log of n samples of kSat, kLogBatch per frame, frames `frame_spacing_us` apart.
@@ -472,13 +485,18 @@ TEST_CASE("PostgreSQL down when magcald starts: it receives, and stores all once
   magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
   if (server == nullptr) return;
   TempDir dir("magcald_pg_start_down");
-  // 4000 samples (11 h of data) in 80 frames 0.2 s apart: 16 s of replay; data-clock refits
-  // every data hour and the UKF's snapshots, compared with a run into SQLite.
+  // 4000 samples (11 h of data) in 80 frames 0.2 s apart: 16 s of replay; refits that compute
+  // (early ones from 300 samples, then every data hour; this log's field leaves them
+  // unobservable, so rejected: the same windows and verdicts are what is compared) and the
+  // UKF's snapshots, compared with a run into SQLite.
   const std::string log = paced_log(dir, 4000, 200'000);
-  const std::string reference = reference_db(log, dir, kHourlyRefits);
+  const std::string refits = kHourlyRefits + "min_samples = 300\n";
+  const std::string reference = reference_db(log, dir, refits);
   const std::vector<int64_t> expected_refits = scheduled_refits(reference);
+  const std::vector<storage::CalibrationRecord> expected_results = refit_rows(reference);
   const std::vector<int64_t> expected_snapshots = ukf_snapshot_times(reference);
   REQUIRE(expected_refits.size() >= 8);
+  REQUIRE(expected_results.size() > expected_refits.size());  // early ones too
   REQUIRE(expected_snapshots.size() >= 100);
 
   // A new database, never opened: migrated when the server first answers.
@@ -486,9 +504,8 @@ TEST_CASE("PostgreSQL down when magcald starts: it receives, and stores all once
   server->stop();
   const std::string spill_dir = dir.file("spill");
   std::filesystem::create_directories(spill_dir);
-  const std::string config =
-      write_config(dir, "pg.toml", "db_path = \"" + db + "\"\nspill_dir = \"" + spill_dir + "\"\n",
-                   200, kHourlyRefits);
+  const std::string config = write_config(
+      dir, "pg.toml", "db_path = \"" + db + "\"\nspill_dir = \"" + spill_dir + "\"\n", 200, refits);
   const PacedDaemon daemon(log, config, dir, 0);  // (0: once it listens)
   const int port = daemon.port;
   // It receives: each commit interval's batch goes to the spill file. Alive, not ready, both
@@ -521,6 +538,17 @@ TEST_CASE("PostgreSQL down when magcald starts: it receives, and stores all once
   CHECK(stored_samples(db) == 4000);
   CHECK(text.find("received=4000 stored=4000 rejected=0") != std::string::npos);
   CHECK(scheduled_refits(db) == expected_refits);
+  const std::vector<storage::CalibrationRecord> results = refit_rows(db);
+  REQUIRE(results.size() == expected_results.size());
+  for (size_t i = 0; i < results.size(); ++i) {
+    const auto& got = results[i];
+    const auto& want = expected_results[i];
+    INFO("refit " << i << " at " << want.utime);
+    CHECK(got.utime == want.utime);
+    CHECK(got.n_samples == want.n_samples);
+    CHECK(got.verdict == want.verdict);
+    for (int k = 0; k < 3; ++k) CHECK(got.bias_nT[k] == Approx(want.bias_nT[k]).margin(1e-9));
+  }
   CHECK(ukf_snapshot_times(db) == expected_snapshots);
   CHECK(std::filesystem::is_empty(spill_dir));
 }
