@@ -554,15 +554,16 @@ TEST_CASE("PostgreSQL down when magcald starts: it receives, and stores all once
 }
 
 // magcald started while the server is down, on a database in use (its tables exist),
-// replaying 6000 samples in 24 s; `extra` adds [storage] keys.
+// replaying `n` samples, 250 a second; `extra` adds [storage] keys.
 struct StartedWhileDown {
   magcal::test::PgTestServer& server;
   const TempDir& dir;
   std::string log, db, config_text;
   std::unique_ptr<PacedDaemon> daemon;
 
-  StartedWhileDown(magcal::test::PgTestServer& s, const TempDir& d, const std::string& extra)
-      : server(s), dir(d), log(paced_log(d, 6000, 200'000)), db(s.create_database()) {
+  StartedWhileDown(magcal::test::PgTestServer& s, const TempDir& d, const std::string& extra,
+                   int n = 6000)
+      : server(s), dir(d), log(paced_log(d, n, 200'000)), db(s.create_database()) {
     storage::open_database(db);
     server.stop();
     config_text = "db_path = \"" + db + "\"\nspill_dir = \"" + dir.file("") + "\"\n" + extra;
@@ -608,6 +609,47 @@ TEST_CASE("PostgreSQL down from the start past pg_max_failure_s: exit 3, the nex
   // Every received sample is in the file: none counted as not committed.
   CHECK(text.find("were not committed") == std::string::npos);
   started.check_next_start_commits_all(text);
+}
+
+TEST_CASE("down at start with an earlier run's spill file: both committed once the server is up",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_start_down_recover");
+  // 2000 samples in 8 s; the first run gives up after 2 s (exit 3), its samples in the file.
+  StartedWhileDown first(*server, dir, "pg_max_failure_s = 2\n", 2000);
+  REQUIRE(wait_exit(first.daemon->pid, 30) == 3);
+  const std::string spill_file =
+      dir.file("magcal-spill-" + magcal::default_station_id() + ".spill");
+  int64_t held = 0;
+  {
+    magcal::SampleSpill left(spill_file, "", int64_t{1} << 30);
+    held = left.held_samples();
+  }
+  REQUIRE(held > 0);
+  std::filesystem::rename(first.daemon->log_path, dir.file("first.log"));  // (the port's line)
+  // Started again, still down: its samples go behind the earlier run's in the file (the gauge
+  // counts its own: in flight for its books).
+  const PacedDaemon again(first.log, write_config(dir, "again.toml", first.config_text), dir, 0);
+  REQUIRE(
+      wait_until([&] { return metric(again.port, "magcal_samples_spilled_total") >= 200; }, 20));
+  const auto during = scrape(again.port);
+  CHECK(during.sum("magcal_spill_samples") == during.sum("magcal_samples_spilled_total"));
+  server->start();
+  const int rc = wait_exit(again.pid, 60);
+  const std::string text = slurp(again.log_path);
+  INFO(text);
+  REQUIRE(rc == 0);
+  // The earlier run's samples first (the same log: this run's copies of them are duplicates),
+  // then this run's; every sample once.
+  CHECK(text.find("holds " + std::to_string(held) + " samples an earlier run received") !=
+        std::string::npos);
+  CHECK(text.find(std::to_string(held) + " samples committed (0 already stored); the ") !=
+        std::string::npos);
+  CHECK(text.find(" this run spilled follow") != std::string::npos);
+  CHECK(text.find("received=2000 ") != std::string::npos);
+  CHECK(stored_samples(first.db) == 2000);
+  CHECK_FALSE(std::filesystem::exists(spill_file));
 }
 
 TEST_CASE("a PostgreSQL database magcald cannot use is a start error at once (exit 2)",
