@@ -595,6 +595,26 @@ TEST_CASE("SIGTERM while PostgreSQL has been down since the start: exit 0, the n
   started.check_next_start_commits_all(text);
 }
 
+TEST_CASE("SIGKILL while PostgreSQL has been down since the start: at most a commit interval lost",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_start_down_kill");
+  StartedWhileDown started(*server, dir, "");
+  const int port = started.daemon->port;
+  REQUIRE(wait_until([&] { return metric(port, "magcal_samples_spilled_total") >= 1200; }, 20));
+  const double received = metric(port, "magcal_samples_received_total");
+  ::kill(started.daemon->pid, SIGKILL);
+  CHECK(wait_exit(started.daemon->pid, 30) == -2);
+  server->start();
+  const int64_t held =
+      check_next_start_commits_spill(dir, started.config_text, started.log, started.db, 0);
+  // As in an outage that began later: what arrived since the last spill (a commit interval,
+  // about 60 samples, plus a frame of 50).
+  INFO("received " << received << ", spilled " << held);
+  CHECK(received - static_cast<double>(held) <= 200);
+}
+
 TEST_CASE("PostgreSQL down from the start past pg_max_failure_s: exit 3, the next start commits",
           "[daemon][postgres][outage][integration]") {
   magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
