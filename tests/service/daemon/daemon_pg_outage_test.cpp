@@ -12,9 +12,10 @@
 // - data-clock refits due during an outage: run after it, each once, as on SQLite;
 // - down when magcald starts: it receives and spills, not ready, both probes saying since when;
 //   once the server is up every sample is stored once, and the refits and UKF snapshots are
-//   those of SQLite; stopped (SIGTERM) before the server came up: exit 0 at once, the next
-//   start commits the spill; a database it cannot use (missing database or role) is still a
-//   start error at once (exit 2).
+//   those of SQLite. Before the server came up: SIGTERM exits 0 at once, SIGKILL loses at most a
+//   commit interval, pg_max_failure_s exits 3, and the next start commits the spill; an earlier
+//   run's spill file is committed ahead of this run's. A database it cannot use (missing
+//   database or role) is still a start error at once (exit 2).
 // Skipped without the PostgreSQL server programs (with CI=true it fails).
 #include <signal.h>
 
