@@ -46,6 +46,13 @@ struct OpenOptions {
   // How long a statement waits on another connection's lock before failing (SQLite's busy
   // timeout, PostgreSQL's lock_timeout): StorageError condition kBusy.
   int busy_timeout_ms = 5000;
+  // PostgreSQL: a server that cannot be reached now (a transient failure: down, starting up,
+  // refusing, timing out, a host name that does not resolve) does not fail the open. The
+  // session is opened, and the schema checked and migrated, at the first statement, which fails
+  // with that transient error until it can (the daemon starts during an outage and rides it out
+  // as one that began later). A permanent failure (authentication, a missing database or role)
+  // still throws here. SQLite: no effect.
+  bool connect_later = false;
 };
 
 // The schema version an open should reach: options.migrate_to, or `latest` when it is -1.

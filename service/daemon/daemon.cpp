@@ -186,7 +186,7 @@ struct Daemon::Impl {
   // in memory), so it stays healthy and /-/ready answers 503 instead; both bodies say why.
   bool healthy() const { return !fatal.load() && (postgres || counters.storage_healthy()); }
   // /-/ready: the database is open (the server only starts after it is) and LCM is live; on
-  // PostgreSQL, and storage is not failing.
+  // PostgreSQL, and storage is not failing (also not while unreachable since the start).
   bool ready() const {
     return lcm_live.load() && !fatal.load() && (!postgres || counters.storage_healthy());
   }
@@ -198,11 +198,16 @@ struct Daemon::Impl {
   // The probes' extra line during a storage failure ("" otherwise).
   std::string storage_outage_note() const {
     if (counters.storage_healthy()) return "";
+    const int64_t since = counters.storage_failing_since_utime.load();
     return fmt::format(
-        "storage failing for {:.0f} s of [storage] {} = {:.0f} s (database {}): {} samples held "
+        "storage failing for {:.0f} s of [storage] {} = {:.0f} s (database {}{}): {} samples held "
         "in memory{}\n",
         storage_failing_s(), config.storage_max_failure_key(), config.storage_max_failure_s(),
-        storage::database_name(config.storage.db_path), counters.storage_pending.load(),
+        storage::database_name(config.storage.db_path),
+        worker->restored() || since == 0
+            ? ""
+            : ", unreachable since magcald started at " + format_iso8601_utc(since),
+        counters.storage_pending.load(),
         postgres ? fmt::format(", {} in the spill file", counters.spill_held.load()) : "");
   }
 
@@ -276,7 +281,7 @@ struct Daemon::Impl {
     // API gets slower answers instead of slowing ingest (BM_DaemonReplayHttp measures both).
     std::thread starter([&] {
       ::setpriority(PRIO_PROCESS, static_cast<id_t>(::gettid()), kServerNice);
-      served = server->serve(config.storage.db_path, &error);
+      served = server->serve(config.storage.db_path, &error, /*connect_later=*/true);
     });
     starter.join();
     if (!served) {
@@ -366,6 +371,19 @@ struct Daemon::Impl {
     guarded("refit", [this] { refit_loop(); });
   }
 
+  void mark_interrupted_jobs() {
+    StorageRetry retry("refit", config.storage_max_failure_s(), counters,
+                       config.storage_max_failure_key());
+    // Only this station's (and unclaimed) jobs: other daemons sharing the database run theirs.
+    const int n = retry.run_blocking([this] {
+      return refit_db->make_refit_job_log()->mark_station_running_interrupted(config.station.id,
+                                                                              wall_utime());
+    });
+    if (n > 0) {
+      spdlog::warn("{} refit job(s) were running when the daemon last stopped: interrupted", n);
+    }
+  }
+
   void refit_loop() {
     const bool wall = !config.data_clock();
     const RefitSchedule schedule{parse_daily_time_utc(config.refit.daily_at_utc).value_or(120),
@@ -373,6 +391,16 @@ struct Daemon::Impl {
     int64_t next_wall = next_scheduled_utime(schedule, wall_utime());
     if (wall) spdlog::info("next scheduled refit {}", format_iso8601_utc(next_wall));
     std::unique_lock lock(refit_mutex);
+    // Nothing before the worker reached the database (unreachable at start: a stop meanwhile
+    // must not wait for it here), and then this station's jobs an earlier run left running are
+    // ended first, so that none of this run's is taken for one.
+    while (!worker->restored() && !refit_stop) {
+      refit_cv.wait_for(lock, std::chrono::milliseconds(200));
+    }
+    if (!worker->restored()) return;
+    lock.unlock();
+    mark_interrupted_jobs();
+    lock.lock();
     while (true) {
       if (!refit_queue.empty() && !(refit_stop && !refit_drain)) {
         const RefitRequest req = refit_queue.front();
@@ -532,13 +560,10 @@ std::string Daemon::open() {
               d.on_refit_due(sat, t, trigger);
             }});
     d.refit_db = storage::open_database(
-        c.storage.db_path, storage::OpenOptions{.busy_timeout_ms = c.storage.busy_timeout_ms});
+        c.storage.db_path,
+        storage::OpenOptions{.busy_timeout_ms = c.storage.busy_timeout_ms, .connect_later = true});
     d.refits = std::make_unique<RefitRunner>(d.config, *d.refit_db);
-    // Only this station's (and unclaimed) jobs: other daemons sharing the database run theirs.
-    if (const int n = d.refit_db->make_refit_job_log()->mark_station_running_interrupted(
-            c.station.id, wall_utime())) {
-      spdlog::warn("{} refit job(s) were running when the daemon last stopped: interrupted", n);
-    }
+    // False: a PostgreSQL server unreachable now, an outage from the start (IngestWorker).
     d.worker->restore();
   } catch (const storage::StorageError& e) {
     // Storage errors mostly name the database themselves; name it once.
@@ -563,8 +588,9 @@ int Daemon::run(const std::atomic<bool>& stop) {
   std::thread refitter([&d] { d.refit_thread(); });
 
   LcmIngest ingest(*d.lcm, c.lcm.samples_channel, c.lcm.batch_channel, *d.queue, d.counters);
-  // The database is open (open()) and the subscription live (the constructor): /-/ready says
-  // so, systemd may start what is ordered after magcald, and the watchdog runs from here.
+  // The database is open (open(); or PostgreSQL unreachable, an outage /-/ready reports) and
+  // the subscription live (the constructor): it receives, systemd may start what is ordered
+  // after magcald, and the watchdog runs from here.
   d.lcm_live.store(true);
   d.systemd.ready();
   const auto end = ingest.run(stop, d.replay, &d.fatal);

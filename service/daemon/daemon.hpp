@@ -3,8 +3,9 @@
 //   caller's thread : LCM receive loop (LcmIngest) -> IngestQueue
 //   worker thread   : IngestQueue -> IngestWorker: SampleIntake (validate, store: every
 //                     station) then OwnedSpacecraftTracker (the owned spacecraft's UKF over the
-//                     stored union, snapshots, refit triggers, leases); daemon_status_t every [service] status_every_s, counters in the log every
-//                     [log] status_every_s, filter states every 30 s
+//                     stored union, snapshots, refit triggers, leases); daemon_status_t every
+//                     [service] status_every_s, counters in the log every [log] status_every_s,
+//                     filter states every 30 s
 //   refit thread    : scheduled refits (wall clock: its own timer, every spacecraft; data
 //                     clock: requests from the worker, each spacecraft on its own data time) on
 //                     its own connection; publishes results and posts accepted
@@ -13,7 +14,8 @@
 //                     its own read-only connection; /metrics from DaemonMetrics, /-/healthy and
 //                     /-/ready from the flags here. Bound by open() before the database is
 //                     opened (a port it cannot bind is an error at start that leaves no file
-//                     behind), served once the database is open, stopped by run().
+//                     behind), served once the database is open (or, on PostgreSQL, found
+//                     unreachable), stopped by run().
 //
 // run() ends when `stop` is set (SIGINT/SIGTERM) or, for a file:// URL, at the end of the log:
 // stop receiving, drain the queue, commit, finish due refits (replay) or the running one
@@ -26,9 +28,18 @@
 // the log; every received sample that was not committed is counted as storage_error and logged
 // (re-running a replay fills them: stored samples come back as counted duplicates).
 //
+// A PostgreSQL server unreachable at start (down, restarting, refusing, timing out, a name that
+// does not resolve; not a permanent refusal such as authentication, a missing database or role,
+// or a foreign schema: those stay a start error, exit 2) does not stop the start: magcald
+// receives and holds or spills the samples as in an outage that began later, /-/ready answers
+// 503 and both probes say since when the database is unreachable, and the worker restores from
+// it (spill, time bases, leases) once it answers (IngestWorker::restore()); the refit thread
+// waits for that. Past [storage] pg_max_failure_s: exit 3, as in any outage.
+//
 // Under systemd (Type=notify, WatchdogSec; service/daemon/systemd_notifier.hpp): READY=1 once
-// open() succeeded and the LCM subscription is live, WATCHDOG=1 from the worker loop, STATUS=
-// with every status message, STOPPING=1 when run() stops receiving and the drain starts.
+// open() succeeded and the LCM subscription is live (it receives: also while the database is
+// unreachable, which /-/ready and STATUS= show), WATCHDOG=1 from the worker loop, STATUS= with
+// every status message, STOPPING=1 when run() stops receiving and the drain starts.
 #pragma once
 
 #include <atomic>
@@ -48,7 +59,8 @@ class Daemon {
   Daemon(const Daemon&) = delete;
   Daemon& operator=(const Daemon&) = delete;
 
-  // Opens the database, IGRF and LCM; empty on success, else one line (the caller exits 2).
+  // Opens the database (a PostgreSQL server unreachable now is no error: see above), IGRF and
+  // LCM; empty on success, else one line (the caller exits 2).
   std::string open();
   // Runs until `stop` or the end of a replayed log; returns the process exit code.
   int run(const std::atomic<bool>& stop);

@@ -9,9 +9,11 @@ namespace magcal {
 IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
                            std::unique_ptr<ReferenceField> field, Hooks hooks)
     : config_(config),
-      db_(storage::open_database(
-          config.storage.db_path,
-          storage::OpenOptions{.busy_timeout_ms = config.storage.busy_timeout_ms})),
+      db_(storage::open_database(config.storage.db_path,
+                                 storage::OpenOptions{
+                                     .busy_timeout_ms = config.storage.busy_timeout_ms,
+                                     .connect_later = true,  // (PostgreSQL: restore() says)
+                                 })),
       samples_(db_->make_sample_window_store()),
       fleet_(config.ukf.filter, &counters),
       intake_(config_, counters, std::move(field), *db_, *samples_, fleet_),
@@ -20,14 +22,41 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
 
 IngestWorker::~IngestWorker() = default;
 
-void IngestWorker::restore() {
+bool IngestWorker::restore() {
+  try {
+    restore_from_database();
+    return true;
+  } catch (const storage::StorageError& e) {
+    // On SQLite every failure here is a start error, and on PostgreSQL a permanent one (a
+    // missing database or role, authentication, a foreign schema); an unreachable server is
+    // an outage that began before the start.
+    if (!config_.postgres() || !e.transient()) throw;
+    const std::string spill = config_.spill_path();
+    // (The error names the database.)
+    spdlog::warn(
+        "database unreachable at start: magcald receives anyway, holds the samples{} and "
+        "commits them once it answers (retried as a failing commit; [storage] {} = {:.0f} s, "
+        "then exit 3): {}",
+        spill.empty() ? "" : " (each commit interval's batch spilled to " + spill + ")",
+        config_.storage_max_failure_key(), config_.storage_max_failure_s(), e.what());
+    intake_.commit_step_failed(e);
+    return false;
+  }
+}
+
+void IngestWorker::restore_from_database() {
   intake_.restore(owner_);
+  restored_ = true;  // (the lease round may commit: commit() must not restore again)
   // A daemon alone takes every spacecraft now; after a restart its own leases at once.
   lease_round();
   if (fleet_.size() > 0) {
     spdlog::info("restored {} spacecraft from {} ({} owned here, of {} live station(s))",
                  fleet_.size(), db_->name(), owner_.owned_count(), owner_.live_stations());
   }
+}
+
+bool IngestWorker::try_restore() {
+  return restored_ || intake_.try_commit_step([this] { restore_from_database(); });
 }
 
 void IngestWorker::lease_round() {
@@ -42,12 +71,14 @@ void IngestWorker::maintain_leases() {
 
 void IngestWorker::leave_fleet() {
   save_filter_states();  // commits first
-  // Storage failing (an outage): the leases and the heartbeat run out by themselves.
-  if (uncommitted()) return;
+  // Storage failing (an outage): the leases and the heartbeat run out by themselves; never
+  // reached: none was taken.
+  if (!restored_ || uncommitted()) return;
   owner_.release_all();
 }
 
 void IngestWorker::track_all_now() {
+  if (!restored_) return;  // nothing owned
   owner_.track_owned(true);
   intake_.retention_at_next_commit();
 }
@@ -68,13 +99,16 @@ void IngestWorker::commit_if_due() {
   const auto now = std::chrono::steady_clock::now();
   intake_.release_first_holds(now);
   if (intake_.has_new_spacecraft()) owner_.register_spacecraft(intake_.take_new_spacecraft());
-  if (now >= owner_.next_lease_round()) lease_round();
+  // Not reached since start: the restore goes first, tried on the commit path's cadence also
+  // with nothing to commit (a station between passes); meanwhile no lease, no filter.
+  const bool restored = try_restore();
+  if (restored && now >= owner_.next_lease_round()) lease_round();
   if (uncommitted()) {
     const double age_ms =
         std::chrono::duration<double, std::milli>(now - intake_.first_pending_time()).count();
     if (age_ms >= config_.storage.commit_every_ms || intake_.pending_samples() == 0) commit();
   }
-  if (!intake_.commit_failing()) owner_.track_owned(false);
+  if (restored && !intake_.commit_failing()) owner_.track_owned(false);
   intake_.run_retention_if_due(false);
 }
 
@@ -83,6 +117,7 @@ void IngestWorker::commit() {
   // fdatasync'ed, so a crash during an outage loses no more than one commit interval, as outside
   // one (memory is no safe place to wait out an outage); intake goes on.
   if (intake_.commit_failing()) intake_.spill_pending(true);
+  if (!try_restore()) return;
   // Two rounds: the samples, then what the owned filters made of them (snapshots, states), so
   // that after commit() everything they produced from committed samples is stored too (not
   // while the spill drains: one slice per call).
@@ -136,7 +171,8 @@ void IngestWorker::save_filter_states() {
   // A saved state must not include samples that are not stored: after a crash they come again
   // (re-replay, recorder dump) and the restored filter would use them twice.
   commit();
-  if (uncommitted()) return;  // storage failing: saved once the commit goes through
+  // Storage failing: saved once the commit goes through (never reached: nothing to save).
+  if (!restored_ || uncommitted()) return;
   owner_.save_dirty_states();
 }
 

@@ -28,8 +28,14 @@
 //
 // Restart (restore()), after a SIGTERM or a crash: the receive side comes back from the stored
 // windows, then the leases this daemon may hold are taken over (owned_spacecraft_tracker.hpp).
+// A PostgreSQL server unreachable at start (issue 19, "Network faults") is an outage from the
+// first moment: samples are received, validated and held or spilled as in any outage, no lease
+// is taken and no filter runs; the restore is the commit path's first step, retried on its
+// cadence, and once it goes through the spill is committed and the worker goes on as usual
+// (past pg_max_failure_s: StorageOutage, as in any outage).
 #pragma once
 
+#include <atomic>
 #include <chrono>
 #include <cstdint>
 #include <memory>
@@ -51,16 +57,22 @@ class IngestWorker {
  public:
   using Hooks = OwnedSpacecraftTracker::Hooks;
 
-  // Opens its own connection to config.storage.db_path (throws storage::StorageError) and, on
-  // PostgreSQL, a spill file left behind (throws SpillError). Counts in `counters` (must outlive
-  // the worker), per spacecraft too, and times each commit.
+  // Opens its own connection to config.storage.db_path (throws storage::StorageError; a
+  // PostgreSQL server that cannot be reached now is not an error: OpenOptions::connect_later)
+  // and, on PostgreSQL, a spill file left behind (throws SpillError). Counts in `counters` (must
+  // outlive the worker), per spacecraft too, and times each commit.
   IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
                std::unique_ptr<ReferenceField> field, Hooks hooks);
   ~IngestWorker();
 
   // Commits a spill file an earlier run left, rebuilds the receive side from the database, then
-  // takes the leases this daemon may own. Call once before process().
-  void restore();
+  // takes the leases this daemon may own. Call once before process(). False when the database
+  // cannot be reached (PostgreSQL, a transient error: logged): the worker starts in the outage
+  // state and restores at the first commit attempt that reaches it. Throws
+  // storage::StorageError otherwise (a start error).
+  bool restore();
+  // From any thread: the database was reached and the restore done (at restore(), or since).
+  bool restored() const { return restored_.load(); }
 
   // Heartbeat, lease renewal, takeovers and handovers (OwnedSpacecraftTracker). commit_if_due()
   // runs it every [fleet] lease_s / 3; public for tests.
@@ -137,6 +149,10 @@ class IngestWorker {
   bool commit_all(bool block);
   // The lease round, then what the intake needs from it.
   void lease_round();
+  // restore()'s work (throws storage::StorageError).
+  void restore_from_database();
+  // restored(), or one attempt to restore when the commit path's retry is due (file comment).
+  bool try_restore();
 
   const DaemonConfig config_;  // a copy: callers may pass a temporary
   std::unique_ptr<storage::Connection> db_;
@@ -144,6 +160,9 @@ class IngestWorker {
   SpacecraftFleet fleet_;
   SampleIntake intake_;
   OwnedSpacecraftTracker owner_;
+  // False while the database has not been reached since start; then the intake is in its
+  // outage state (commit_failing()) and nothing of the owner's runs.
+  std::atomic<bool> restored_{false};
 };
 
 }  // namespace magcal

@@ -63,6 +63,7 @@ SampleIntake::SampleIntake(const DaemonConfig& config, DaemonCounters& counters,
   pending_.reserve(static_cast<size_t>(config.storage.commit_every_samples));
   if (const std::string path = config.spill_path(); !path.empty()) {
     spill_ = std::make_unique<SampleSpill>(path, db_.name(), config.storage.spill_max_bytes);
+    spill_recovered_held_ = spill_->held_samples();
     if (spill_->dropped_records() > 0) {
       counters_.spill_dropped.fetch_add(spill_->dropped_records());
       spdlog::error(
@@ -75,17 +76,21 @@ SampleIntake::SampleIntake(const DaemonConfig& config, DaemonCounters& counters,
 }
 
 void SampleIntake::restore(CommitParticipant& owner) {
-  if (spill_ && spill_->held_samples() > 0) {
+  if (spill_recovered_held_ > 0) {
     // Before the time bases are rebuilt (and the filters re-run): they include these samples.
-    const int64_t held = spill_->held_samples();
+    const int64_t held = spill_recovered_held_;
     spdlog::warn(
         "spill file {} (written for {}) holds {} samples an earlier run received during "
         "a database outage: committing them",
         spill_->path(), spill_->found_database(), held);
+    const int64_t recovered_before = counters_.spill_recovered.load();
     commit_spill(owner, true);
-    spdlog::info("spill file {}: {} samples committed ({} already stored); file removed",
-                 spill_->path(), counters_.spill_recovered.load(),
-                 held - counters_.spill_recovered.load());
+    const int64_t committed = counters_.spill_recovered.load() - recovered_before;
+    spdlog::info("spill file {}: {} samples committed ({} already stored); {}", spill_->path(),
+                 committed, held - committed,
+                 spill_->held_samples() == 0
+                     ? std::string("file removed")
+                     : fmt::format("the {} this run spilled follow", spill_->held_samples()));
   }
   for (const auto& sat : samples_.spacecraft()) restore_spacecraft(sat);
 }
@@ -94,11 +99,16 @@ void SampleIntake::restore_spacecraft(const std::string& sat) {
   const auto newest = samples_.newest_utime(sat);
   if (!newest) return;
   ReceivedSpacecraft& t = spacecraft(sat);  // (its lease row ensured: stored before leases were)
+  t.stored_bound_utime = std::max(t.stored_bound_utime, *newest);
+  data_clock_utime_ = std::max(data_clock_utime_, *newest);
+  // Received since the start, newer than what is stored (the database was unreachable then):
+  // that time base and seq stream go on.
+  if (t.newest_utime != kNoTime && t.newest_utime >= *newest) return;
   t.newest_utime = *newest;
-  t.stored_bound_utime = *newest;
   samples_.read_window(sat, *newest, saturating_add(*newest, 1), read_rows_);
   if (!read_rows_.empty()) t.received_seq.last_seq = read_rows_.back().seq;
-  data_clock_utime_ = std::max(data_clock_utime_, *newest);
+  // First samples held for corroboration meanwhile: now on (or off) a time base.
+  if (!t.held.empty()) resolve_held(sat, t);
 }
 
 ReceivedSpacecraft& SampleIntake::spacecraft(const std::string& sat_id) {
@@ -361,16 +371,8 @@ int64_t SampleIntake::held_samples() {
 }
 
 bool SampleIntake::try_commit(CommitParticipant& owner) {
-  if (!commit_retry_.due()) return false;
-  commit_retry_.attempting();
-  try {
-    commit_pending(owner);
-  } catch (const storage::StorageError& e) {
-    // Samples (and the owner's writes) stay pending.
-    commit_retry_.failed(e);  // throws StorageOutage when storage stays broken
-    return false;
-  }
-  commit_retry_.succeeded();
+  // On a failure the samples (and the owner's writes) stay pending.
+  if (!try_commit_step([&] { commit_pending(owner); })) return false;
   spill_full_ = false;
   return true;
 }
@@ -474,13 +476,16 @@ void SampleIntake::commit_spill(CommitParticipant& owner, bool recovered,
                                 std::chrono::steady_clock::time_point until) {
   const auto chunk = static_cast<size_t>(config_.storage.commit_every_samples);
   // insert_batch sorts each chunk by (sat_id, utime), the fleet's one key order.
-  while (std::chrono::steady_clock::now() < until && spill_->read_chunk(chunk, spill_chunk_) > 0) {
+  while (std::chrono::steady_clock::now() < until && (!recovered || spill_recovered_held_ > 0) &&
+         spill_->read_chunk(recovered ? std::min<size_t>(chunk, spill_recovered_held_) : chunk,
+                            spill_chunk_) > 0) {
     const storage::InsertStats stats =
         samples_.insert_batch(spill_chunk_, &duplicate_rows_, config_.station.id);
     spill_->commit_read();
     owner.samples_committed(spill_chunk_);
     if (recovered) {
       // Received, counted and checked by the run that spilled them.
+      spill_recovered_held_ -= static_cast<int64_t>(spill_chunk_.size());
       counters_.spill_recovered.fetch_add(stats.inserted, std::memory_order_relaxed);
     } else {
       count_stored(spill_chunk_, true);
@@ -492,7 +497,9 @@ void SampleIntake::commit_spill(CommitParticipant& owner, bool recovered,
 }
 
 void SampleIntake::update_spill_gauges() {
-  counters_.spill_held.store(spill_->held_samples(), std::memory_order_relaxed);
+  // This run's samples only (in flight: received = stored + rejected + ... + these).
+  counters_.spill_held.store(spill_->held_samples() - spill_recovered_held_,
+                             std::memory_order_relaxed);
   counters_.spill_bytes.store(spill_->bytes(), std::memory_order_relaxed);
 }
 

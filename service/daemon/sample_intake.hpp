@@ -26,7 +26,9 @@
 // committed first when the database returns (a slice of at most 1 s per commit, the pending batch
 // queued behind it in the file until it is empty), and at start when an earlier run left one.
 // Meanwhile the duplicate check does not read the database (the insert, which counts duplicates,
-// decides).
+// decides). A database unreachable at start is the same outage (IngestWorker::restore()): the
+// commit path fails from the start, and restore() runs as its first successful step; the records
+// an earlier run left stay ahead of this run's in the file and are committed by restore().
 //
 // Retention is the one thing the owner decides for it: only the spacecraft's owner deletes, and
 // only behind its filter (allow_retention()), because the owner triggers refits at its own
@@ -88,11 +90,14 @@ class SampleIntake {
                std::unique_ptr<ReferenceField> field, storage::Connection& db,
                storage::SampleWindowStore& samples, SpacecraftFleet& fleet);
 
-  // At start: commits a spill file an earlier run left (before anything else reads the
-  // window), then every stored spacecraft's time base from its newest stored sample.
+  // At start: commits the records of a spill file an earlier run left (before anything else
+  // reads the window), then every stored spacecraft's time base from its newest stored sample
+  // (unless this run received newer ones meanwhile: the database was unreachable at start).
+  // Throws storage::StorageError.
   void restore(CommitParticipant& owner);
-  // The time base of a spacecraft not received here yet, from its stored window (its owner
-  // took it over); a no-op when nothing is stored.
+  // The time base of a spacecraft from its stored window (its owner took it over without
+  // having received it, or at restore()); a no-op when nothing is stored or what this run
+  // received of it is newer.
   void restore_spacecraft(const std::string& sat_id);
 
   // A new frame starts (a hold needs samples from more than one frame to resolve).
@@ -115,6 +120,26 @@ class SampleIntake {
   // slice first, with the owner's writes in the last transaction. True when it went through.
   // Throws StorageOutage when storage stays broken.
   bool try_commit(CommitParticipant& owner);
+  // One attempt (none during the retry backoff) of `op`, a storage step of the commit path
+  // (try_commit(), or a restore that could not reach the database at start): true when it went
+  // through; while it fails the intake is in the outage state (commit_failing(): batches
+  // spilled). Throws StorageOutage when storage stays broken.
+  template <typename Op>
+  bool try_commit_step(Op&& op) {
+    if (!commit_retry_.due()) return false;
+    commit_retry_.attempting();
+    try {
+      op();
+    } catch (const storage::StorageError& e) {
+      commit_retry_.failed(e);  // throws StorageOutage when storage stays broken
+      return false;
+    }
+    commit_retry_.succeeded();
+    return true;
+  }
+  // A storage step of the commit path failed outside try_commit_step() (the first restore, at
+  // start): the outage state begins. Throws StorageOutage when `e` is permanent.
+  void commit_step_failed(const storage::StorageError& e) { commit_retry_.failed(e); }
   // Samples not committed yet (pending or spilled).
   bool uncommitted() const { return !pending_.empty() || spill_held() > 0; }
   int64_t spill_held() const { return spill_ ? spill_->held_samples() : 0; }
@@ -191,8 +216,8 @@ class SampleIntake {
   ReceivedSpacecraft& spacecraft(const std::string& sat_id);
   void commit_pending(CommitParticipant& owner);
   // Commits the spill file's samples, chunk by chunk, until it is empty or `until` (throws
-  // storage::StorageError; what was committed stays committed). `recovered`: an earlier run's
-  // file (counted apart).
+  // storage::StorageError; what was committed stays committed). `recovered`: only the records
+  // an earlier run left (counted apart), which are ahead of this run's.
   void commit_spill(
       CommitParticipant& owner, bool recovered,
       std::chrono::steady_clock::time_point until = std::chrono::steady_clock::time_point::max());
@@ -213,6 +238,9 @@ class SampleIntake {
   std::vector<storage::StoredSample> pending_;
   std::unique_ptr<SampleSpill> spill_;  // PostgreSQL only (DaemonConfig::spill_path())
   bool spill_full_ = false;             // refused a batch: back-pressure until it is drained
+  // Records at the front of the spill file that an earlier run left, not committed yet
+  // (restore() commits them; received and counted by that run, not this one).
+  int64_t spill_recovered_held_ = 0;
   std::vector<storage::StoredSample> spill_chunk_;  // reused by commit_spill()
   std::vector<storage::StoredSample> read_rows_;    // reused by restore_spacecraft()
   std::vector<size_t> duplicate_rows_;  // of the last insert (reused: no allocation per batch)

@@ -351,10 +351,11 @@ std::unique_ptr<OperationsServer> OperationsServer::bind(const std::string& list
   return std::unique_ptr<OperationsServer>(new OperationsServer(std::move(impl)));
 }
 
-bool OperationsServer::serve(const std::string& db_path, std::string* error) {
+bool OperationsServer::serve(const std::string& db_path, std::string* error, bool connect_later) {
   try {
     storage::OpenOptions options;
     options.read_only = true;
+    options.connect_later = connect_later;
     impl_->db = storage::open_database(db_path, options);
     impl_->db_path = db_path;
   } catch (const storage::StorageError& e) {

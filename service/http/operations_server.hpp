@@ -63,8 +63,9 @@ class OperationsServer {
   // Opens db_path (a file or a PostgreSQL URI) read-only with its own connection (never writes,
   // never creates the file) and serves on its own thread (created here: it and its request
   // threads inherit the calling thread's priority). False and *error set when the database
-  // cannot be opened.
-  bool serve(const std::string& db_path, std::string* error);
+  // cannot be opened. `connect_later` (magcald): a PostgreSQL server that cannot be reached now
+  // does not fail it (storage::OpenOptions::connect_later); the API answers 503 until it can.
+  bool serve(const std::string& db_path, std::string* error, bool connect_later = false);
   int port() const;         // the bound port
   std::string url() const;  // http_url() of the bound address
   void stop();              // idempotent; also in the destructor

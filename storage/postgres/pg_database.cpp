@@ -50,7 +50,8 @@ PgDatabase::PgDatabase(const std::string& uri, const OpenOptions& options)
     : uri_(uri),
       name_(database_name(uri)),
       read_only_(options.read_only),
-      lock_timeout_ms_(options.busy_timeout_ms) {
+      lock_timeout_ms_(options.busy_timeout_ms),
+      open_options_(options) {
   char* error = nullptr;
   PQconninfoOption* parsed = PQconninfoParse(uri.c_str(), &error);
   if (parsed == nullptr || !is_postgres_uri(uri)) {
@@ -62,15 +63,25 @@ PgDatabase::PgDatabase(const std::string& uri, const OpenOptions& options)
                        "invalid PostgreSQL URI " + name_ + ": " + why);
   }
   PQconninfoFree(parsed);
+  try {
+    open_session();
+  } catch (const StorageError& e) {
+    // Unreachable now: the first statement opens the session (OpenOptions::connect_later).
+    if (!options.connect_later || !e.transient()) throw;
+  }
+}
+
+void PgDatabase::open_session() {
   connect();
   try {
     configure();
-    check_and_migrate(options);
+    check_and_migrate(open_options_);
   } catch (...) {
     PQfinish(conn_);
     conn_ = nullptr;
     throw;
   }
+  schema_checked_ = true;
 }
 
 PgDatabase::~PgDatabase() {
@@ -83,6 +94,8 @@ PgDatabase::PgDatabase(PgDatabase&& other) noexcept
       name_(std::move(other.name_)),
       read_only_(other.read_only_),
       lock_timeout_ms_(other.lock_timeout_ms_),
+      open_options_(other.open_options_),
+      schema_checked_(other.schema_checked_),
       open_transactions_(std::exchange(other.open_transactions_, 0)),
       prepared_(std::move(other.prepared_)) {}
 
@@ -94,6 +107,8 @@ PgDatabase& PgDatabase::operator=(PgDatabase&& other) noexcept {
     name_ = std::move(other.name_);
     read_only_ = other.read_only_;
     lock_timeout_ms_ = other.lock_timeout_ms_;
+    open_options_ = other.open_options_;
+    schema_checked_ = other.schema_checked_;
     open_transactions_ = std::exchange(other.open_transactions_, 0);
     prepared_ = std::move(other.prepared_);
   }
@@ -142,6 +157,13 @@ void PgDatabase::ensure_connected() {
                                  name_ + ": connection lost inside a transaction", "08006");
   }
   prepared_.clear();
+  if (!schema_checked_) {
+    // Unreachable at the open (connect_later), or lost during its checks: all of them now.
+    PQfinish(conn_);
+    conn_ = nullptr;
+    open_session();
+    return;
+  }
   if (conn_ != nullptr) {
     PQreset(conn_);
     if (PQstatus(conn_) != CONNECTION_OK) fail("reconnect");

@@ -11,7 +11,7 @@
 // standby being promoted). Everything else (SQL, constraint, permission, a missing database or
 // role, a foreign or newer schema) is permanent. After a lost connection the same PgDatabase
 // reconnects at its next statement outside a transaction, so a caller heals a transient failure by
-// retrying.
+// retrying; with OpenOptions::connect_later that includes a server unreachable at the open.
 //
 // Threads: one PgDatabase (one connection) belongs to one thread at a time; give each thread its
 // own, as with SQLite.
@@ -101,6 +101,9 @@ class PgDatabase final : public Connection {
   void commit_transaction(bool nested) override;
   void end_transaction(bool nested, bool committed) noexcept override;
 
+  // connect(), configure() and check_and_migrate(): what the open does, at the first
+  // statement when the server was unreachable then (OpenOptions::connect_later).
+  void open_session();
   void connect();
   // Reconnects a lost connection, outside a transaction (see the header comment).
   void ensure_connected();
@@ -114,7 +117,9 @@ class PgDatabase final : public Connection {
   std::string name_;
   bool read_only_ = false;
   int lock_timeout_ms_ = 5000;
-  int open_transactions_ = 0;  // transactions and savepoints open on this connection
+  OpenOptions open_options_;
+  bool schema_checked_ = false;  // open_session() went through once
+  int open_transactions_ = 0;    // transactions and savepoints open on this connection
   std::unordered_map<std::string, std::string> prepared_;  // SQL text -> statement name
 };
 

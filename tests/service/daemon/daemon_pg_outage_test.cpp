@@ -9,7 +9,13 @@
 // - killed (SIGKILL) during an outage: the next start commits the spill file it left, exactly;
 // - down past [storage] pg_max_failure_s: exit 3, the pending samples spilled, not lost;
 // - stopped (SIGTERM) during an outage: at once, exit 0, the pending samples spilled;
-// - data-clock refits due during an outage: run after it, each once, as on SQLite.
+// - data-clock refits due during an outage: run after it, each once, as on SQLite;
+// - down when magcald starts: it receives and spills, not ready, both probes saying since when;
+//   once the server is up every sample is stored once, and the refits and UKF snapshots are
+//   those of SQLite. Before the server came up: SIGTERM exits 0 at once, SIGKILL loses at most a
+//   commit interval, pg_max_failure_s exits 3, and the next start commits the spill; an earlier
+//   run's spill file is committed ahead of this run's. A database it cannot use (missing
+//   database or role) is still a start error at once (exit 2).
 // Skipped without the PostgreSQL server programs (with CI=true it fails).
 #include <signal.h>
 
@@ -19,12 +25,14 @@
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <memory>
 #include <string>
 #include <thread>
 #include <vector>
 
 #include "service/daemon/daemon_config.hpp"
 #include "service/daemon/sample_spill.hpp"
+#include "storage/calibration_history.hpp"
 #include "storage/connection.hpp"
 #include "storage/refit_job_log.hpp"
 #include "storage/sample_window_store.hpp"
@@ -46,6 +54,8 @@ namespace storage = magcal::storage;
 
 const std::string kBin = MAGCAL_BIN_DIR;
 const std::string kSat = "OUTAGE-1";
+// [refit] keys: data-clock refits every data hour.
+const std::string kHourlyRefits = "clock = \"data\"\nevery_hours = 1\n";
 
 // Samples 10 s apart from 300 h ago (within [ingest] max_future_s of the wall clock, and the
 // whole log within the window below).
@@ -59,14 +69,16 @@ int64_t log_start_utime() {
 // The config of every run: no refit computes (too few samples for min_samples: a refit started
 // just before an outage would hold a replay until the database returns, and these tests are
 // about the samples; a due one still leaves its job row, "skipped"), a window that keeps every
-// sample, small commits; `extra` adds keys to [storage], `refit_extra` to [refit].
+// sample, small commits; `extra` adds keys to [storage], `refit_extra` to [refit] (a
+// min_samples there replaces the one above).
 std::string write_config(const TempDir& dir, const std::string& name, const std::string& extra,
                          int commit_every_samples = 200, const std::string& refit_extra = "") {
   const std::string path = dir.file(name);
+  const bool computes = refit_extra.find("min_samples") != std::string::npos;
   std::ofstream(path) << "[storage]\nwindow_hours = 200\ncommit_every_samples = "
                       << commit_every_samples << "\n"
-                      << extra << "[refit]\nmin_samples = 1000000000\n"
-                      << refit_extra;
+                      << extra << "[refit]\n"
+                      << (computes ? "" : "min_samples = 1000000000\n") << refit_extra;
   return path;
 }
 
@@ -109,6 +121,33 @@ std::vector<int64_t> scheduled_refits(const std::string& db) {
   std::sort(out.begin(), out.end());
   CHECK(std::adjacent_find(out.begin(), out.end()) == out.end());
   return out;
+}
+
+// The data times of kSat's UKF snapshots in `db`, ascending.
+std::vector<int64_t> ukf_snapshot_times(const std::string& db) {
+  storage::OpenOptions read_only;
+  read_only.read_only = true;
+  storage::HistoryQuery q;
+  q.sat_id = kSat;
+  q.method = "ukf";
+  std::vector<int64_t> out;
+  for (const auto& row :
+       storage::open_database(db, read_only)->make_calibration_history()->query(q)) {
+    out.push_back(row.utime);
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+// kSat's refit results in `db` (the history's rows of the offline methods), by time.
+std::vector<storage::CalibrationRecord> refit_rows(const std::string& db) {
+  storage::OpenOptions read_only;
+  read_only.read_only = true;
+  storage::HistoryQuery q;
+  q.sat_id = kSat;
+  auto rows = storage::open_database(db, read_only)->make_calibration_history()->query(q);
+  std::erase_if(rows, [](const auto& r) { return !storage::is_refit_method(r.method); });
+  return rows;
 }
 
 // A log of n samples of kSat, kLogBatch per frame, frames `frame_spacing_us` apart.
@@ -281,6 +320,21 @@ int64_t check_next_start_commits_spill(const TempDir& dir, const std::string& co
   return held;
 }
 
+// SIGTERM to magcald `pid` during an outage: exit 0 at once (without the spill it would retry
+// for pg_max_failure_s, an hour). Its log.
+std::string stop_during_outage(pid_t pid, const std::string& log_path) {
+  const auto t0 = std::chrono::steady_clock::now();
+  ::kill(pid, SIGTERM);
+  const int rc = wait_exit(pid, 30);
+  const double stop_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const std::string text = slurp(log_path);
+  INFO(text);
+  CHECK(rc == 0);
+  CHECK(stop_s < 10);
+  return text;
+}
+
 TEST_CASE("an idle station is not ready while PostgreSQL is down: its lease rounds fail",
           "[daemon][postgres][outage][integration]") {
   magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
@@ -392,16 +446,8 @@ TEST_CASE("SIGTERM during a PostgreSQL outage: magcald stops at once, its sample
   server->stop();
   REQUIRE(wait_until([&] { return http_get(daemon.port, "/-/ready").status == 503; }, 20));
   const double stored = metric(daemon.port, "magcal_samples_stored_total");
-  // Without the spill the stop would retry for pg_max_failure_s (an hour).
-  const auto t0 = std::chrono::steady_clock::now();
-  ::kill(daemon.pid, SIGTERM);
-  const int rc = wait_exit(daemon.pid, 30);
-  const double stop_s =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  const std::string text = slurp(daemon.log_path);
+  const std::string text = stop_during_outage(daemon.pid, daemon.log_path);
   INFO(text);
-  CHECK(rc == 0);
-  CHECK(stop_s < 10);
   CHECK(text.find("database commit failing: ") != std::string::npos);
   server->start();
   check_next_start_commits_spill(dir, config_text, log, db, static_cast<int64_t>(stored));
@@ -414,14 +460,13 @@ TEST_CASE("data-clock refits that fall due during a PostgreSQL outage run after 
   TempDir dir("magcald_pg_refits");
   // 6000 samples (16.7 h of data) in 24 s: a data hour every 1.4 s of replay.
   const std::string log = paced_log(dir, 6000, 200'000);
-  const std::string hourly = "clock = \"data\"\nevery_hours = 1\n";
-  const std::vector<int64_t> expected = scheduled_refits(reference_db(log, dir, hourly));
+  const std::vector<int64_t> expected = scheduled_refits(reference_db(log, dir, kHourlyRefits));
   REQUIRE(expected.size() >= 12);
 
   const std::string db = server->create_database();
-  const std::string config =
-      write_config(dir, "pg.toml",
-                   "db_path = \"" + db + "\"\nspill_dir = \"" + dir.file("") + "\"\n", 200, hourly);
+  const std::string config = write_config(
+      dir, "pg.toml", "db_path = \"" + db + "\"\nspill_dir = \"" + dir.file("") + "\"\n", 200,
+      kHourlyRefits);
   const PacedDaemon daemon(log, config, dir, 400);
   server->stop();
   std::this_thread::sleep_for(std::chrono::seconds(8));  // ~5 data hours
@@ -434,4 +479,226 @@ TEST_CASE("data-clock refits that fall due during a PostgreSQL outage run after 
   // reaches each due time once the held samples are committed.)
   CHECK(scheduled_refits(db) == expected);
   CHECK(text.find("received=6000 stored=6000 rejected=0") != std::string::npos);
+}
+
+TEST_CASE("PostgreSQL down when magcald starts: it receives, and stores all once the server is up",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_start_down");
+  // 4000 samples (11 h of data) in 80 frames 0.2 s apart: 16 s of replay; refits that compute
+  // (early ones from 300 samples, then every data hour; this log's field leaves them
+  // unobservable, so rejected: the same windows and verdicts are what is compared) and the
+  // UKF's snapshots, compared with a run into SQLite.
+  const std::string log = paced_log(dir, 4000, 200'000);
+  const std::string refits = kHourlyRefits + "min_samples = 300\n";
+  const std::string reference = reference_db(log, dir, refits);
+  const std::vector<int64_t> expected_refits = scheduled_refits(reference);
+  const std::vector<storage::CalibrationRecord> expected_results = refit_rows(reference);
+  const std::vector<int64_t> expected_snapshots = ukf_snapshot_times(reference);
+  REQUIRE(expected_refits.size() >= 8);
+  REQUIRE(expected_results.size() > expected_refits.size());  // early ones too
+  REQUIRE(expected_snapshots.size() >= 100);
+
+  // A new database, never opened: migrated when the server first answers.
+  const std::string db = server->create_database();
+  server->stop();
+  const std::string spill_dir = dir.file("spill");
+  std::filesystem::create_directories(spill_dir);
+  const std::string config = write_config(
+      dir, "pg.toml", "db_path = \"" + db + "\"\nspill_dir = \"" + spill_dir + "\"\n", 200, refits);
+  const PacedDaemon daemon(log, config, dir, 0);  // (0: once it listens)
+  const int port = daemon.port;
+  // It receives: each commit interval's batch goes to the spill file. Alive, not ready, both
+  // probes saying since when the database is unreachable; the API answers 503 (its own
+  // connection waits for the server too).
+  REQUIRE(wait_until([&] { return metric(port, "magcal_samples_spilled_total") >= 1000; }, 20));
+  const std::string since = "unreachable since magcald started at ";
+  const auto ready = http_get(port, "/-/ready");
+  CHECK(ready.status == 503);
+  CHECK(ready.body.find(since) != std::string::npos);
+  const auto healthy = http_get(port, "/-/healthy");
+  CHECK(healthy.status == 200);
+  CHECK(healthy.body.find(since) != std::string::npos);
+  CHECK(healthy.body.find("[storage] pg_max_failure_s = 3600 s") != std::string::npos);
+  CHECK(metric(port, "magcal_samples_stored_total") == 0);
+  CHECK(http_get(port, "/api/v1/spacecraft").status == 503);
+  server->start();
+
+  // Reached: migrated, restored, the spill committed; ready, and the API answers.
+  REQUIRE(wait_until([&] { return http_get(port, "/-/ready").status == 200; }, 30));
+  CHECK(http_get(port, "/-/ready").body.find(since) == std::string::npos);
+  CHECK(http_get(port, "/api/v1/spacecraft").status == 200);
+  const int rc = wait_exit(daemon.pid, 120);
+  const std::string text = slurp(daemon.log_path);
+  INFO(text);
+  REQUIRE(rc == 0);
+  CHECK(text.find("database unreachable at start: magcald receives anyway") != std::string::npos);
+  CHECK(text.find("database commit works again after") != std::string::npos);
+  // Every sample once; the refits and the UKF's snapshots as without the outage.
+  CHECK(stored_samples(db) == 4000);
+  CHECK(text.find("received=4000 stored=4000 rejected=0") != std::string::npos);
+  CHECK(scheduled_refits(db) == expected_refits);
+  const std::vector<storage::CalibrationRecord> results = refit_rows(db);
+  REQUIRE(results.size() == expected_results.size());
+  for (size_t i = 0; i < results.size(); ++i) {
+    const auto& got = results[i];
+    const auto& want = expected_results[i];
+    INFO("refit " << i << " at " << want.utime);
+    CHECK(got.utime == want.utime);
+    CHECK(got.n_samples == want.n_samples);
+    CHECK(got.verdict == want.verdict);
+    for (int k = 0; k < 3; ++k) CHECK(got.bias_nT[k] == Approx(want.bias_nT[k]).margin(1e-9));
+  }
+  CHECK(ukf_snapshot_times(db) == expected_snapshots);
+  CHECK(std::filesystem::is_empty(spill_dir));
+}
+
+// magcald started while the server is down, on a database in use (its tables exist),
+// replaying `n` samples, 250 a second; `extra` adds [storage] keys.
+struct StartedWhileDown {
+  magcal::test::PgTestServer& server;
+  const TempDir& dir;
+  std::string log, db, config_text;
+  std::unique_ptr<PacedDaemon> daemon;
+
+  StartedWhileDown(magcal::test::PgTestServer& s, const TempDir& d, const std::string& extra,
+                   int n = 6000)
+      : server(s), dir(d), log(paced_log(d, n, 200'000)), db(s.create_database()) {
+    storage::open_database(db);
+    server.stop();
+    config_text = "db_path = \"" + db + "\"\nspill_dir = \"" + dir.file("") + "\"\n" + extra;
+    daemon = std::make_unique<PacedDaemon>(log, write_config(dir, "pg.toml", config_text), dir, 0);
+  }
+
+  // After it ended (its log `text`): it said why it started without the database; with the
+  // server back, the next start commits every sample it received, all in its spill file.
+  void check_next_start_commits_all(const std::string& text) {
+    CHECK(text.find("database unreachable at start: magcald receives anyway") != std::string::npos);
+    server.start();
+    const int64_t held = check_next_start_commits_spill(dir, config_text, log, db, 0);
+    CHECK(text.find("received=" + std::to_string(held) + " stored=0 rejected=0") !=
+          std::string::npos);
+  }
+};
+
+TEST_CASE("SIGTERM while PostgreSQL has been down since the start: exit 0, the next start commits",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_start_down_stop");
+  StartedWhileDown started(*server, dir, "");
+  const int port = started.daemon->port;
+  REQUIRE(wait_until([&] { return metric(port, "magcal_samples_spilled_total") >= 500; }, 20));
+  // (What was pending at the stop goes to the file too.)
+  const std::string text = stop_during_outage(started.daemon->pid, started.daemon->log_path);
+  INFO(text);
+  started.check_next_start_commits_all(text);
+}
+
+TEST_CASE("SIGKILL while PostgreSQL has been down since the start: at most a commit interval lost",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_start_down_kill");
+  StartedWhileDown started(*server, dir, "");
+  const int port = started.daemon->port;
+  REQUIRE(wait_until([&] { return metric(port, "magcal_samples_spilled_total") >= 1200; }, 20));
+  const double received = metric(port, "magcal_samples_received_total");
+  ::kill(started.daemon->pid, SIGKILL);
+  CHECK(wait_exit(started.daemon->pid, 30) == -2);
+  server->start();
+  const int64_t held =
+      check_next_start_commits_spill(dir, started.config_text, started.log, started.db, 0);
+  // As in an outage that began later: what arrived since the last spill (a commit interval,
+  // about 60 samples, plus a frame of 50).
+  INFO("received " << received << ", spilled " << held);
+  CHECK(received - static_cast<double>(held) <= 200);
+}
+
+TEST_CASE("PostgreSQL down from the start past pg_max_failure_s: exit 3, the next start commits",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_start_down_exit");
+  StartedWhileDown started(*server, dir, "pg_max_failure_s = 3\n");
+  const int rc = wait_exit(started.daemon->pid, 30);
+  const std::string text = slurp(started.daemon->log_path);
+  INFO(text);
+  CHECK(rc == 3);
+  CHECK(text.find("[storage] pg_max_failure_s = 3;") != std::string::npos);
+  // Every received sample is in the file: none counted as not committed.
+  CHECK(text.find("were not committed") == std::string::npos);
+  started.check_next_start_commits_all(text);
+}
+
+TEST_CASE("down at start with an earlier run's spill file: both committed once the server is up",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_start_down_recover");
+  // 2000 samples in 8 s; the first run gives up after 2 s (exit 3), its samples in the file.
+  StartedWhileDown first(*server, dir, "pg_max_failure_s = 2\n", 2000);
+  REQUIRE(wait_exit(first.daemon->pid, 30) == 3);
+  const std::string spill_file =
+      dir.file("magcal-spill-" + magcal::default_station_id() + ".spill");
+  int64_t held = 0;
+  {
+    magcal::SampleSpill left(spill_file, "", int64_t{1} << 30);
+    held = left.held_samples();
+  }
+  REQUIRE(held > 0);
+  std::filesystem::rename(first.daemon->log_path, dir.file("first.log"));  // (the port's line)
+  // Started again, still down: its samples go behind the earlier run's in the file (the gauge
+  // counts its own: in flight for its books).
+  const PacedDaemon again(first.log, write_config(dir, "again.toml", first.config_text), dir, 0);
+  REQUIRE(
+      wait_until([&] { return metric(again.port, "magcal_samples_spilled_total") >= 200; }, 20));
+  const auto during = scrape(again.port);
+  CHECK(during.sum("magcal_spill_samples") == during.sum("magcal_samples_spilled_total"));
+  server->start();
+  const int rc = wait_exit(again.pid, 60);
+  const std::string text = slurp(again.log_path);
+  INFO(text);
+  REQUIRE(rc == 0);
+  // The earlier run's samples first (the same log: this run's copies of them are duplicates),
+  // then this run's; every sample once.
+  CHECK(text.find("holds " + std::to_string(held) + " samples an earlier run received") !=
+        std::string::npos);
+  CHECK(text.find(std::to_string(held) + " samples committed (0 already stored); the ") !=
+        std::string::npos);
+  CHECK(text.find(" this run spilled follow") != std::string::npos);
+  CHECK(text.find("received=2000 ") != std::string::npos);
+  CHECK(stored_samples(first.db) == 2000);
+  CHECK_FALSE(std::filesystem::exists(spill_file));
+}
+
+TEST_CASE("a PostgreSQL database magcald cannot use is a start error at once (exit 2)",
+          "[daemon][postgres][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_start_refused");
+  const std::string log = paced_log(dir, 100, 200'000);
+  const std::string config = write_config(dir, "pg.toml", "spill_dir = \"" + dir.file("") + "\"\n");
+  std::string no_role = server->create_database();
+  no_role.replace(no_role.find("magcal@"), 7, "nobody@");
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {server->uri("no_such_database"), "database \"no_such_database\" does not exist"},
+      {no_role, "role \"nobody\" does not exist"}};
+  for (const auto& [uri, why] : cases) {
+    const auto t0 = std::chrono::steady_clock::now();
+    const int rc = run({kBin + "/magcald", "--config", config, "--db", uri, "--http-listen", "",
+                        "--lcm-url", "file://" + log + "?speed=0"},
+                       dir.file("refused.log"), 30);
+    const double seconds =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    const std::string text = slurp(dir.file("refused.log"));
+    INFO(text);
+    CHECK(rc == 2);
+    CHECK(seconds < 10);
+    CHECK(text.find(why) != std::string::npos);
+    CHECK(text.find("unreachable at start") == std::string::npos);
+    CHECK_FALSE(std::filesystem::exists(
+        dir.file("magcal-spill-" + magcal::default_station_id() + ".spill")));
+  }
 }

@@ -199,3 +199,45 @@ TEST_CASE(
   run();
   CHECK(in.store.delete_chunks == chunks);
 }
+
+TEST_CASE("a restore after samples came (the database reached late) keeps the newer time base",
+          "[sample_intake]") {
+  TempDir tmp("magcal_intake_test_late_restore");
+  const auto a = samples(300, "SAT-A");
+  const auto c = samples(300, "SAT-C");
+  const auto d = samples(300, "SAT-D");
+  {
+    Intake earlier(tmp.file("m.db"));  // an earlier run stored the first 200 of each
+    earlier.feed(a, 0, 200);
+    earlier.feed(c, 0, 200);
+    earlier.feed(d, 0, 200);
+  }
+  Intake in(tmp.file("m.db"));
+  auto receive = [&](const std::vector<mag_sample_t>& s, size_t from, size_t to) {
+    for (size_t i = from; i < to; ++i) {
+      in.intake.begin_frame();
+      in.intake.ingest(s[i], "", kT0 + 400LL * 86400 * 1000000);
+    }
+  };
+  // Before the restore: SAT-A newer than its stored samples, SAT-C older, SAT-D two samples,
+  // too few to corroborate a first time base (held).
+  receive(a, 200, 250);
+  receive(c, 100, 110);
+  receive(d, 200, 202);
+  CHECK(in.intake.held_samples() == 2);
+  in.intake.restore(in.owner);
+  CHECK(in.fleet.find("SAT-A")->newest_utime == a[249].utime);
+  CHECK(in.fleet.find("SAT-C")->newest_utime == c[199].utime);
+  CHECK(in.fleet.find("SAT-D")->newest_utime == d[201].utime);
+  CHECK(in.intake.held_samples() == 0);  // on the stored time base: taken
+  // The stored samples are known as such: a repeat is a duplicate, the next one is new.
+  receive(c, 150, 151);
+  receive(c, 200, 201);
+  CHECK(in.counters.rejected_count(RejectReason::kDuplicate) == 1);
+  REQUIRE(in.intake.try_commit(in.owner));
+  CHECK(in.store.count("SAT-A") == 250);
+  CHECK(in.store.count("SAT-C") == 201);
+  CHECK(in.store.count("SAT-D") == 202);
+  // SAT-C's ten older samples were stored before: duplicates at the insert.
+  CHECK(in.counters.rejected_count(RejectReason::kDuplicate) == 11);
+}

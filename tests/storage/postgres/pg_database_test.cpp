@@ -289,6 +289,27 @@ TEST_CASE("PostgreSQL errors: what a retry heals is transient, the rest is not")
     CHECK(query_int(db, "SELECT count(*) FROM meta") == 2);
   }
 
+  SECTION("down at the open: with connect_later the first statement that reaches it opens") {
+    const std::string fresh = server->create_database();
+    server->stop();
+    OpenOptions later;
+    later.connect_later = true;
+    PgDatabase waiting(fresh, later);
+    const StorageError down = error_of([&] { waiting.execute("SELECT 1"); });
+    INFO(down.what());
+    CHECK(down.condition() == StorageError::Condition::kUnavailable);
+    CHECK(down.transient());
+    server->start();
+    // Opened as the open would have: the new database migrated.
+    CHECK(waiting.schema_version() == PgDatabase::latest_schema_version());
+    CHECK(query_int(waiting, "SELECT count(*) FROM samples") == 0);
+    // A permanent refusal is thrown by the open itself.
+    const StorageError missing = open_error(server->uri("no_such_database"), later);
+    INFO(missing.what());
+    CHECK_FALSE(missing.transient());
+    CHECK(missing.kind() == StorageError::Kind::kNotFound);
+  }
+
   SECTION("serialization failure, lock timeout and deadlock are transient") {
     PgDatabase other(uri, [] {
       OpenOptions quick;
