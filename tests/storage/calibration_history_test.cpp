@@ -358,16 +358,9 @@ TEMPLATE_TEST_CASE_METHOD(
 
 TEMPLATE_TEST_CASE("rows stored before the alignment covariance was kept read it as unknown",
                    "[calibrations]", SqliteBackend, PostgresBackend) {
-  const auto all = migrations();  // version N is the same schema on both backends
-  const auto it = std::find_if(all.begin(), all.end(), [](const Migration& m) {
-    return std::string_view(m.name).ends_with("_alignment_covariance");
-  });
-  REQUIRE(it != all.end());
   TestType backend;
   {
-    OpenOptions old;
-    old.migrate_to = it->version - 1;
-    const auto db = backend.open(old);
+    const auto db = backend.open(magcal::test::before_migration("_alignment_covariance"));
     if (!db) return;
     // A row as the previous schema stored it: an alignment without its covariance.
     db->exec(
