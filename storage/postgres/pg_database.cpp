@@ -3,6 +3,7 @@
 #include <libpq-fe.h>
 
 #include <chrono>
+#include <string_view>
 #include <utility>
 
 #include "storage/postgres/pg_calibration_history.hpp"
@@ -14,15 +15,21 @@ namespace {
 
 // libpq's message on one line (it continues lines with "\n\t" hints): a caller prints one line.
 std::string one_line(std::string text) {
-  while (!text.empty() && (text.back() == '\n' || text.back() == ' ')) text.pop_back();
   std::string out;
-  for (size_t i = 0; i < text.size(); ++i) {
-    if (text[i] != '\n') {
-      out += text[i];
-      continue;
+  std::size_t at = 0;
+  while (at < text.size()) {
+    std::size_t end = text.find('\n', at);
+    if (end == std::string::npos) end = text.size();
+    std::size_t first = text.find_first_not_of(" \t", at);
+    std::size_t last = text.find_last_not_of(" \t", end == 0 ? 0 : end - 1);
+    if (first < end && last != std::string::npos && last >= first) {
+      // libpq's continuation lines are sentences ("Is the server running ...?"): one sentence
+      // ends where a line did, unless it ended with punctuation already.
+      if (!out.empty())
+        out += std::string_view(".:;?!").find(out.back()) == std::string::npos ? ". " : " ";
+      out.append(text, first, last - first + 1);
     }
-    while (i + 1 < text.size() && (text[i + 1] == '\t' || text[i + 1] == ' ')) ++i;
-    out += ' ';
+    at = end + 1;
   }
   return out;
 }
