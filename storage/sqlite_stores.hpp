@@ -116,7 +116,8 @@ class SqliteCalibrationHistory final : public CalibrationHistory {
   std::vector<std::string> spacecraft() override;
 
  private:
-  std::vector<CalibrationRecord> newest_refits(std::string_view sat_id, int count) override;
+  std::optional<CalibrationRecord> newest_refit_until(std::string_view sat_id,
+                                                      int64_t until_utime) override;
   static std::string insert_sql();
   CalibrationRecord read_row(Statement& st);
   std::vector<CalibrationRecord> rows(Statement& st);

@@ -263,6 +263,12 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest,
   CHECK(history.latest_accepted_refit("SAT1")->utime == kT0 + 6 * kHour);
   CHECK(history.latest_accepted_refit("SAT1", 11 * kHour, 1000)->utime == kT0 + 2 * kHour);
   CHECK_FALSE(history.latest_accepted_refit("SAT1", 11 * kHour, 5000).has_value());
+  // A refit run again at the newest one's data time (two manual refits of one window): the
+  // previous refit is still the one of the window before, not its twin (a zero "change").
+  history.append(make_record("SAT1", "centered", kT0 + 6 * kHour, 7));
+  CHECK(history.latest_refit("SAT1")->method == "centered");
+  CHECK(history.latest_refit("SAT1")->utime == kT0 + 6 * kHour);
+  CHECK(history.previous_refit("SAT1")->utime == kT0 + 4 * kHour);
   CHECK(is_refit_method("twostep"));
   CHECK(is_refit_method("centered"));
   CHECK_FALSE(is_refit_method("ukf"));

@@ -70,6 +70,32 @@ TEST_CASE("status: the bias change compares the two refits at the last one's T0"
   }
 }
 
+TEST_CASE(
+    "status: a refit run again at the same data time shows the change since the window "
+    "before, not a zero change against its twin") {
+  const std::string path = (std::filesystem::temp_directory_path() /
+                            ("magcal_status_twin_" + std::to_string(::getpid()) + ".db"))
+                               .string();
+  const int64_t six_hours = 21'600'000'000;
+  magcal::FleetStatus fleet;
+  {
+    magcal::storage::Database db(path);
+    const auto history = db.make_calibration_history();
+    history->append(refit(kT0, {1000.0, 800.0, 900.0}));
+    history->append(refit(kT0 + six_hours, {1003.0, 804.0, 900.0}));
+    auto robust = refit(kT0 + six_hours, {1003.5, 804.0, 900.0});  // e.g. `magcal refit --robust`
+    robust.method = "centered";
+    history->append(robust);
+    fleet = magcal::read_status(db, 2 * six_hours);
+  }
+  std::filesystem::remove(path);
+  REQUIRE(fleet.spacecraft.size() == 1);
+  const std::string text = magcal::status_text(fleet, 2 * six_hours);
+  INFO(text);
+  CHECK(text.find("[    +3.50     +4.00     +0.00] nT  (|change| 5.32 nT) since the refit of "
+                  "2020-01-01T00:00:00") != std::string::npos);
+}
+
 TEST_CASE("status: the samples in the window by the station that stored them") {
   const std::string path = (std::filesystem::temp_directory_path() /
                             ("magcal_status_report_" + std::to_string(::getpid()) + ".db"))
