@@ -57,7 +57,7 @@ TEST_CASE("a replay queue blocks instead of dropping", "[ingest_queue]") {
   CHECK(q.overflow_samples() == 0);
 }
 
-TEST_CASE("close drains, then pop_all reports the end; later pushes are refused, not overflow",
+TEST_CASE("close drains, then pop_all reports the end, later pushes are refused, not overflow",
           "[ingest_queue]") {
   IngestQueue q(1000, false);
   q.push(item(3));
