@@ -2,6 +2,7 @@
 
 #include <libpq-fe.h>
 
+#include <algorithm>
 #include <chrono>
 #include <string_view>
 #include <utility>
@@ -14,22 +15,21 @@ namespace magcal::storage {
 namespace {
 
 // libpq's message on one line (it continues lines with "\n\t" hints): a caller prints one line.
-std::string one_line(std::string text) {
+std::string one_line(std::string_view text) {
   std::string out;
-  std::size_t at = 0;
-  while (at < text.size()) {
-    std::size_t end = text.find('\n', at);
-    if (end == std::string::npos) end = text.size();
-    std::size_t first = text.find_first_not_of(" \t", at);
-    std::size_t last = text.find_last_not_of(" \t", end == 0 ? 0 : end - 1);
-    if (first < end && last != std::string::npos && last >= first) {
-      // libpq's continuation lines are sentences ("Is the server running ...?"): one sentence
-      // ends where a line did, unless it ended with punctuation already.
-      if (!out.empty())
-        out += std::string_view(".:;?!").find(out.back()) == std::string::npos ? ". " : " ";
-      out.append(text, first, last - first + 1);
+  while (!text.empty()) {
+    const std::size_t end = std::min(text.find('\n'), text.size());
+    std::string_view line = text.substr(0, end);
+    text.remove_prefix(std::min(end + 1, text.size()));
+    const std::size_t first = line.find_first_not_of(" \t");
+    if (first == std::string_view::npos) continue;
+    line = line.substr(first, line.find_last_not_of(" \t") - first + 1);
+    // libpq's continuation lines are sentences ("Is the server running ...?"): one ends where
+    // a line did, unless it ended with punctuation already.
+    if (!out.empty()) {
+      out += std::string_view(".:;?!").find(out.back()) == std::string_view::npos ? ". " : " ";
     }
-    at = end + 1;
+    out += line;
   }
   return out;
 }
