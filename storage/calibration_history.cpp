@@ -40,15 +40,13 @@ void CalibrationHistory::append_all(std::span<const CalibrationRecord> records) 
 }
 
 std::optional<CalibrationRecord> CalibrationHistory::latest_refit(std::string_view sat_id) {
-  auto refits = newest_refits(sat_id, 1);
-  if (refits.empty()) return std::nullopt;
-  return std::move(refits.front());
+  return newest_refit_until(sat_id, std::numeric_limits<int64_t>::max());
 }
 
 std::optional<CalibrationRecord> CalibrationHistory::previous_refit(std::string_view sat_id) {
-  auto refits = newest_refits(sat_id, 2);
-  if (refits.size() < 2) return std::nullopt;
-  return std::move(refits[1]);
+  const auto latest = latest_refit(sat_id);
+  if (!latest || latest->utime == std::numeric_limits<int64_t>::min()) return std::nullopt;
+  return newest_refit_until(sat_id, latest->utime - 1);
 }
 
 std::optional<CalibrationRecord> CalibrationHistory::latest_accepted_refit(
@@ -163,7 +161,8 @@ SqliteCalibrationHistory::SqliteCalibrationHistory(Database& db)
       get_(db, calibration_row::select_sql("WHERE id = ?1")),
       refits_(db, calibration_row::select_sql(std::string("WHERE sat_id = ?1 AND ") +
                                               calibration_row::kRefitMethods +
-                                              " ORDER BY utime DESC, id DESC LIMIT ?2")),
+                                              " AND utime <= ?2 ORDER BY utime DESC, id DESC "
+                                              "LIMIT 1")),
       accepted_refit_(db,
                       calibration_row::select_sql(
                           std::string("WHERE sat_id = ?1 AND ") + calibration_row::kRefitMethods +
@@ -244,11 +243,11 @@ std::optional<CalibrationRecord> SqliteCalibrationHistory::get(int64_t id) {
   return first(get_);
 }
 
-std::vector<CalibrationRecord> SqliteCalibrationHistory::newest_refits(std::string_view sat_id,
-                                                                       int count) {
+std::optional<CalibrationRecord> SqliteCalibrationHistory::newest_refit_until(
+    std::string_view sat_id, int64_t until_utime) {
   auto use = refits_.use();
-  refits_.bind(1, sat_id).bind(2, int64_t{count});
-  return rows(refits_);
+  refits_.bind(1, sat_id).bind(2, until_utime);
+  return first(refits_);
 }
 
 std::optional<CalibrationRecord> SqliteCalibrationHistory::latest_accepted_refit(

@@ -117,14 +117,17 @@ class CalibrationHistory {
   virtual std::optional<CalibrationRecord> latest_accepted_refit(std::string_view sat_id,
                                                                  int64_t min_window_span_utime,
                                                                  int min_samples) = 0;
-  // The refit before the newest one (any verdict).
+  // The newest refit with an earlier data time than the newest one (any verdict): the window
+  // before. Refits at the newest one's data time (a manual refit run again) are skipped, as
+  // they fit the same window.
   std::optional<CalibrationRecord> previous_refit(std::string_view sat_id);
   // Spacecraft with at least one stored result, sorted.
   virtual std::vector<std::string> spacecraft() = 0;
 
  protected:
-  // The newest `count` refits of sat_id (any verdict), newest first.
-  virtual std::vector<CalibrationRecord> newest_refits(std::string_view sat_id, int count) = 0;
+  // The newest refit of sat_id (any verdict) at or before until_utime (data time).
+  virtual std::optional<CalibrationRecord> newest_refit_until(std::string_view sat_id,
+                                                              int64_t until_utime) = 0;
 };
 
 }  // namespace magcal::storage

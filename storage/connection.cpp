@@ -58,6 +58,30 @@ std::vector<std::string> database_secrets(const std::string& db) {
   return secrets;
 }
 
+// The scheme of a URI-like --db value that is neither a PostgreSQL URI nor meant as a file:
+// "WORD://..." (any scheme: an SQLite path never looks like that), or "WORD:..." where WORD is a
+// near miss of postgres ("postgres:/x", "postgresql:x", "pgsql:"). Returned as typed, with its
+// colon and slashes ("postgressql://"); "" when the value is none of these.
+std::string mistyped_uri_scheme(const std::string& db) {
+  std::size_t end = 0;
+  while (end < db.size() && (std::isalnum(static_cast<unsigned char>(db[end])) || db[end] == '+' ||
+                             db[end] == '-' || db[end] == '.')) {
+    ++end;
+  }
+  if (end == 0 || end >= db.size() || db[end] != ':' ||
+      !std::isalpha(static_cast<unsigned char>(db[0]))) {
+    return "";
+  }
+  std::string word = db.substr(0, end);
+  std::transform(word.begin(), word.end(), word.begin(),
+                 [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+  const std::size_t path = db.find_first_not_of('/', end + 1);
+  const std::string typed = db.substr(0, path == std::string::npos ? db.size() : path);
+  const bool like_postgres = word.starts_with("pg") || word.starts_with("postg");
+  if (db.compare(end, 3, "://") == 0 || like_postgres) return typed;
+  return "";
+}
+
 // "host=... dbname=...": libpq's keyword form, which magcal does not take (a --db value is a
 // URI or a file path), recognised by a first word that is one of libpq's common keywords.
 bool is_libpq_keyword_string(const std::string& db) {
@@ -98,6 +122,12 @@ std::unique_ptr<Connection> open_database(const std::string& db, const OpenOptio
     throw StorageError(StorageError::Kind::kInvalidArgument,
                        "'" + database_name(db) +
                            "': write the URI scheme in lower case (postgresql:// or postgres://)");
+  }
+  if (const std::string scheme = mistyped_uri_scheme(db); !scheme.empty()) {
+    throw StorageError(StorageError::Kind::kInvalidArgument,
+                       "unknown database URI scheme '" + scheme +
+                           "': use postgresql:// (or postgres://) for PostgreSQL, or a file path "
+                           "for SQLite");
   }
   if (is_libpq_keyword_string(db)) {
     throw StorageError(StorageError::Kind::kInvalidArgument,

@@ -131,8 +131,9 @@ std::vector<Lease> SqliteLeaseStore::renew_all(std::string_view owner, int64_t n
 }
 
 std::optional<StationBeat> SqliteLeaseStore::heartbeat(std::string_view station,
-                                                       std::string_view instance, int64_t now_utime,
-                                                       int64_t ttl_utime) {
+                                                       std::string_view instance,
+                                                       const StationSettings& settings,
+                                                       int64_t now_utime, int64_t ttl_utime) {
   check_request(station, ttl_utime);
   std::optional<StationBeat> before;
   {
@@ -143,7 +144,13 @@ std::optional<StationBeat> SqliteLeaseStore::heartbeat(std::string_view station,
     }
   }
   auto use = heartbeat_.use();
-  heartbeat_.bind(1, station).bind(2, now_utime).bind(3, ttl_utime).bind(4, instance).execute();
+  heartbeat_.bind(1, station).bind(2, now_utime).bind(3, ttl_utime).bind(4, instance);
+  if (settings.text.empty()) {
+    heartbeat_.bind_null(5).bind_null(6);
+  } else {
+    heartbeat_.bind(5, settings.text).bind(6, settings.hash);
+  }
+  heartbeat_.execute();
   return before;
 }
 
@@ -164,8 +171,12 @@ std::vector<StationRow> SqliteLeaseStore::stations() {
   std::vector<StationRow> out;
   auto use = stations_.use();
   while (stations_.step()) {
-    out.push_back(StationRow{stations_.column_text(0), stations_.column_text(1),
-                             stations_.column_int64(2), stations_.column_int64(3)});
+    StationRow& row = out.emplace_back(
+        StationRow{stations_.column_text(0), stations_.column_text(1), stations_.column_int64(2),
+                   stations_.column_int64(3), std::nullopt});
+    if (!stations_.is_null(4)) {
+      row.settings = StationSettings{stations_.column_text(4), stations_.column_text(5)};
+    }
   }
   return out;
 }

@@ -32,6 +32,14 @@ struct StationBeat {
   int64_t expires_utime = 0;
 };
 
+// The settings a station's results depend on, as it declares them in its heartbeat: canonical
+// text and its hash (service/io/station_settings.hpp makes and compares them; storage keeps
+// them as given).
+struct StationSettings {
+  std::string text;
+  std::string hash;
+};
+
 // A station's row as `magcal status` lists it: live until expires_utime (a clean stop ends it at
 // once, a daemon that died at its last heartbeat + [fleet] lease_s).
 struct StationRow {
@@ -39,6 +47,8 @@ struct StationRow {
   std::string instance;
   int64_t heartbeat_utime = 0;
   int64_t expires_utime = 0;
+  // nullopt: unknown (a row written before schema version 9, or a beat that declared none).
+  std::optional<StationSettings> settings;
   bool live_at(int64_t now_utime) const { return now_utime < expires_utime; }
 };
 
@@ -103,11 +113,13 @@ class LeaseStore {
   virtual std::vector<Lease> renew_all(std::string_view owner, int64_t now_utime,
                                        int64_t ttl_utime) = 0;
 
-  // The daemons sharing the database (table `stations`): `station` (this process: `instance`)
-  // is live until now + ttl. Returns the row as it was before (nullopt: the first beat ever), so
-  // a daemon sees another live process beating under its id.
+  // The daemons sharing the database (table `stations`): `station` (this process: `instance`,
+  // with its `settings`; an empty text stores none) is live until now + ttl. Returns the row as
+  // it was before (nullopt: the first beat ever), so a daemon sees another live process beating
+  // under its id.
   virtual std::optional<StationBeat> heartbeat(std::string_view station, std::string_view instance,
-                                               int64_t now_utime, int64_t ttl_utime) = 0;
+                                               const StationSettings& settings, int64_t now_utime,
+                                               int64_t ttl_utime) = 0;
   // Ends `station`'s heartbeat at now (a clean stop: the others rebalance at once).
   virtual void leave(std::string_view station, int64_t now_utime) = 0;
   // The stations live at now, sorted.

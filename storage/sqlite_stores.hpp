@@ -116,7 +116,8 @@ class SqliteCalibrationHistory final : public CalibrationHistory {
   std::vector<std::string> spacecraft() override;
 
  private:
-  std::vector<CalibrationRecord> newest_refits(std::string_view sat_id, int count) override;
+  std::optional<CalibrationRecord> newest_refit_until(std::string_view sat_id,
+                                                      int64_t until_utime) override;
   static std::string insert_sql();
   CalibrationRecord read_row(Statement& st);
   std::vector<CalibrationRecord> rows(Statement& st);
@@ -153,7 +154,8 @@ class SqliteLeaseStore final : public LeaseStore {
   std::vector<Lease> renew_all(std::string_view owner, int64_t now_utime,
                                int64_t ttl_utime) override;
   std::optional<StationBeat> heartbeat(std::string_view station, std::string_view instance,
-                                       int64_t now_utime, int64_t ttl_utime) override;
+                                       const StationSettings& settings, int64_t now_utime,
+                                       int64_t ttl_utime) override;
   void leave(std::string_view station, int64_t now_utime) override;
   std::vector<std::string> live_stations(int64_t now_utime) override;
   std::vector<StationRow> stations() override;

@@ -63,13 +63,15 @@ inline constexpr const char* kLeaseRenewAll =
     "RETURNING sat_id, owner, epoch, acquired_utime, expires_utime";
 
 inline constexpr const char* kStationHeartbeat =
-    "INSERT INTO stations (station, heartbeat_utime, expires_utime, instance) "
-    "VALUES (?1, ?2, ?2 + ?3, ?4) "
+    "INSERT INTO stations (station, heartbeat_utime, expires_utime, instance, settings, "
+    "settings_hash) VALUES (?1, ?2, ?2 + ?3, ?4, ?5, ?6) "
     "ON CONFLICT (station) DO UPDATE SET heartbeat_utime = excluded.heartbeat_utime, "
-    "expires_utime = excluded.expires_utime, instance = excluded.instance";
+    "expires_utime = excluded.expires_utime, instance = excluded.instance, "
+    "settings = excluded.settings, settings_hash = excluded.settings_hash";
 // Sorted by the bytes of the id on both backends (COLLATE "C" on PostgreSQL, as SQLite's BINARY).
 inline constexpr const char* kStationList =
-    "SELECT station, instance, heartbeat_utime, expires_utime FROM stations ORDER BY station";
+    "SELECT station, instance, heartbeat_utime, expires_utime, settings, settings_hash "
+    "FROM stations ORDER BY station";
 inline constexpr const char* kStationBeat =
     "SELECT instance, heartbeat_utime, expires_utime FROM stations WHERE station = ?1";
 

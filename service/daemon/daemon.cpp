@@ -229,6 +229,7 @@ struct Daemon::Impl {
     t.spill_recovered = counters.spill_recovered.load(std::memory_order_relaxed);
     t.spill_dropped = counters.spill_dropped.load(std::memory_order_relaxed);
     t.leases_lost = counters.leases_lost.load(std::memory_order_relaxed);
+    t.fleet_settings_mismatch = counters.fleet_settings_mismatch.load(std::memory_order_relaxed);
     counters.spacecraft.for_each([&t](const SpacecraftCounters& c) {
       http::DaemonMetrics::SpacecraftTotals s;
       s.sat_label = c.sat_label;

@@ -10,12 +10,15 @@
 #include <fstream>
 #include <functional>
 #include <map>
+#include <set>
 #include <sstream>
 
+#include <fmt/format.h>
 #include <toml++/toml.h>
 
 #include "service/daemon/refit_scheduler.hpp"
 #include "service/http/operations_server.hpp"
+#include "service/io/fnv1a.hpp"
 #include "storage/connection.hpp"
 
 namespace magcal {
@@ -23,92 +26,131 @@ namespace {
 
 // A setter reads one TOML value into the config; returns an error ("expected ...") or "".
 using Setter = std::function<std::string(const toml::node&)>;
-using Section = std::map<std::string, Setter>;
+// The value as the station's settings text shows it (service/io/station_settings.hpp).
+using Shower = std::function<std::string()>;
+struct Binding {
+  Setter set;
+  Shower show;
+};
+using Section = std::map<std::string, Binding>;
 
-Setter bind(std::string& out) {
-  return [&out](const toml::node& n) -> std::string {
-    auto v = n.value_exact<std::string>();
-    if (!v) return "expected a string";
-    out = *v;
-    return "";
-  };
+// Shortest text that reads back as the same double ("6", "0.25", "1e-06").
+std::string show_double(double v) {
+  return fmt::format("{}", v);
 }
-Setter bind(double& out) {
-  return [&out](const toml::node& n) -> std::string {
-    auto v = n.value<double>();  // integers are accepted for floats
-    if (!v || !n.is_number()) return "expected a number";
-    if (!std::isfinite(*v)) return "expected a finite number";
-    out = *v;
-    return "";
-  };
+
+Binding bind(std::string& out) {
+  return {[&out](const toml::node& n) -> std::string {
+            auto v = n.value_exact<std::string>();
+            if (!v) return "expected a string";
+            out = *v;
+            return "";
+          },
+          [&out] { return out; }};
 }
-Setter bind(int& out) {
-  return [&out](const toml::node& n) -> std::string {
-    auto v = n.value_exact<int64_t>();
-    if (!v) return "expected an integer";
-    if (*v < INT32_MIN || *v > INT32_MAX) return "integer out of range";
-    out = static_cast<int>(*v);
-    return "";
-  };
+Binding bind(double& out) {
+  return {[&out](const toml::node& n) -> std::string {
+            auto v = n.value<double>();  // integers are accepted for floats
+            if (!v || !n.is_number()) return "expected a number";
+            if (!std::isfinite(*v)) return "expected a finite number";
+            out = *v;
+            return "";
+          },
+          [&out] { return show_double(out); }};
 }
-Setter bind(int64_t& out) {
-  return [&out](const toml::node& n) -> std::string {
-    auto v = n.value_exact<int64_t>();
-    if (!v) return "expected an integer";
-    out = *v;
-    return "";
-  };
+Binding bind(int& out) {
+  return {[&out](const toml::node& n) -> std::string {
+            auto v = n.value_exact<int64_t>();
+            if (!v) return "expected an integer";
+            if (*v < INT32_MIN || *v > INT32_MAX) return "integer out of range";
+            out = static_cast<int>(*v);
+            return "";
+          },
+          [&out] { return std::to_string(out); }};
 }
-Setter bind(bool& out) {
-  return [&out](const toml::node& n) -> std::string {
-    auto v = n.value_exact<bool>();
-    if (!v) return "expected true or false";
-    out = *v;
-    return "";
-  };
+Binding bind(int64_t& out) {
+  return {[&out](const toml::node& n) -> std::string {
+            auto v = n.value_exact<int64_t>();
+            if (!v) return "expected an integer";
+            out = *v;
+            return "";
+          },
+          [&out] { return std::to_string(out); }};
+}
+Binding bind(bool& out) {
+  return {[&out](const toml::node& n) -> std::string {
+            auto v = n.value_exact<bool>();
+            if (!v) return "expected true or false";
+            out = *v;
+            return "";
+          },
+          [&out] { return std::string(out ? "true" : "false"); }};
 }
 template <typename E>
-Setter bind_enum(E& out, std::map<std::string, E> names) {
-  return [&out, names](const toml::node& n) -> std::string {
-    auto v = n.value_exact<std::string>();
-    std::string all;
-    for (const auto& [k, e] : names) all += (all.empty() ? "" : ", ") + ("\"" + k + "\"");
-    if (!v || !names.count(*v)) return "expected one of " + all;
-    out = names.at(*v);
-    return "";
-  };
+Binding bind_enum(E& out, std::map<std::string, E> names) {
+  return {[&out, names](const toml::node& n) -> std::string {
+            auto v = n.value_exact<std::string>();
+            std::string all;
+            for (const auto& [k, e] : names) all += (all.empty() ? "" : ", ") + ("\"" + k + "\"");
+            if (!v || !names.count(*v)) return "expected one of " + all;
+            out = names.at(*v);
+            return "";
+          },
+          [&out, names] {
+            for (const auto& [k, e] : names)
+              if (e == out) return k;
+            return std::string("?");
+          }};
 }
-Setter bind_string_list(std::vector<std::string>& out) {
-  return [&out](const toml::node& n) -> std::string {
-    const auto* arr = n.as_array();
-    if (!arr) return "expected an array of strings";
-    std::vector<std::string> values;
-    for (const auto& e : *arr) {
-      auto v = e.value_exact<std::string>();
-      if (!v || v->empty()) return "expected an array of non-empty strings";
-      values.push_back(*v);
-    }
-    out = std::move(values);
-    return "";
-  };
+// Lists of up to this many names show as the names; longer ones as a count and a hash.
+constexpr size_t kMaxListedNames = 8;
+
+Binding bind_string_list(std::vector<std::string>& out) {
+  return {[&out](const toml::node& n) -> std::string {
+            const auto* arr = n.as_array();
+            if (!arr) return "expected an array of strings";
+            std::vector<std::string> values;
+            for (const auto& e : *arr) {
+              auto v = e.value_exact<std::string>();
+              if (!v || v->empty()) return "expected an array of non-empty strings";
+              values.push_back(*v);
+            }
+            out = std::move(values);
+            return "";
+          },
+          // As a set: the order in the file does not matter.
+          [&out] {
+            std::vector<std::string> sorted = out;
+            std::sort(sorted.begin(), sorted.end());
+            sorted.erase(std::unique(sorted.begin(), sorted.end()), sorted.end());
+            std::string joined;
+            for (const auto& name : sorted) joined += (joined.empty() ? "" : ",") + name;
+            if (sorted.size() <= kMaxListedNames) return "[" + joined + "]";
+            return fmt::format("{} names, fnv1a {:016x}", sorted.size(), fnv1a_64(joined));
+          }};
 }
-Setter bind_vector9(Vector9d& out) {
-  return [&out](const toml::node& n) -> std::string {
-    const auto* arr = n.as_array();
-    if (!arr || arr->size() != 9) {
-      return "expected an array of 9 numbers [b1 b2 b3 D11 D22 D33 D12 D13 D23]";
-    }
-    Vector9d v;
-    for (size_t i = 0; i < 9; ++i) {
-      auto x = (*arr)[i].value<double>();
-      if (!x || !(*arr)[i].is_number() || !std::isfinite(*x) || *x < 0.0) {
-        return "expected 9 finite numbers >= 0";
-      }
-      v(static_cast<int>(i)) = *x;
-    }
-    out = v;
-    return "";
-  };
+Binding bind_vector9(Vector9d& out) {
+  return {[&out](const toml::node& n) -> std::string {
+            const auto* arr = n.as_array();
+            if (!arr || arr->size() != 9) {
+              return "expected an array of 9 numbers [b1 b2 b3 D11 D22 D33 D12 D13 D23]";
+            }
+            Vector9d v;
+            for (size_t i = 0; i < 9; ++i) {
+              auto x = (*arr)[i].value<double>();
+              if (!x || !(*arr)[i].is_number() || !std::isfinite(*x) || *x < 0.0) {
+                return "expected 9 finite numbers >= 0";
+              }
+              v(static_cast<int>(i)) = *x;
+            }
+            out = v;
+            return "";
+          },
+          [&out] {
+            std::string shown;
+            for (int i = 0; i < 9; ++i) shown += (i == 0 ? "[" : ", ") + show_double(out(i));
+            return shown + "]";
+          }};
 }
 
 std::map<std::string, Section> key_table(DaemonConfig& c) {
@@ -240,6 +282,39 @@ std::string check_channel(const std::string& key, const std::string& name) {
   return "";
 }
 
+// Keys that change no estimate, verdict or stored sample: where data comes from and where it
+// goes, how and when it is committed, what an outage may cost, logging, the operations server,
+// the station's own name. Every other key affects results (a new key does too, until listed
+// here): the owner of a spacecraft applies them, so stations sharing spacecraft must agree.
+bool affects_results(const std::string& section, const std::string& key) {
+  static const std::set<std::string> kOperationalSections = {"lcm", "log", "http", "station"};
+  static const std::set<std::string> kOperationalKeys = {"storage.db_path",
+                                                         "storage.retention_margin_hours",
+                                                         "storage.commit_every_samples",
+                                                         "storage.commit_every_ms",
+                                                         "storage.busy_timeout_ms",
+                                                         "storage.max_failure_s",
+                                                         "storage.max_pending_samples",
+                                                         "storage.pg_max_failure_s",
+                                                         "storage.spill_dir",
+                                                         "storage.spill_max_bytes",
+                                                         "service.queue_capacity_samples",
+                                                         "service.status_every_s"};
+  return kOperationalSections.count(section) == 0 &&
+         kOperationalKeys.count(section + "." + key) == 0;
+}
+
+// The IGRF model a station computes the reference field with: its content, not its path (the
+// same file may sit elsewhere on another host).
+std::string igrf_identity(const std::string& coefficients_file) {
+  if (coefficients_file.empty()) return "built-in IGRF-14";
+  std::ifstream in(coefficients_file, std::ios::binary);
+  std::stringstream content;
+  content << in.rdbuf();
+  if (!in) return "unreadable " + coefficients_file;
+  return fmt::format("file fnv1a {:016x}", fnv1a_64(content.str()));
+}
+
 }  // namespace
 
 std::string default_station_id() {
@@ -267,6 +342,18 @@ std::string DaemonConfig::spill_path() const {
                 ? ch
                 : '_';
   return dir + "/" + name + ".spill";
+}
+
+std::map<std::string, std::string> DaemonConfig::result_settings() const {
+  DaemonConfig copy = *this;  // key_table() binds for writing too
+  std::map<std::string, std::string> out;
+  for (const auto& [section, keys] : key_table(copy)) {
+    for (const auto& [key, binding] : keys) {
+      if (affects_results(section, key)) out[section + "." + key] = binding.show();
+    }
+  }
+  out["igrf.coefficients_file"] = igrf_identity(igrf.coefficients_file);
+  return out;
 }
 
 std::string DaemonConfig::validate() const {
@@ -374,7 +461,7 @@ ConfigLoad parse_daemon_config(const std::string& toml_text, const std::string& 
         out.error = origin + ": unknown key [" + section + "] " + name;
         return out;
       }
-      if (auto e = kit->second(node); !e.empty()) {
+      if (auto e = kit->second.set(node); !e.empty()) {
         out.error = origin + ": [" + section + "] " + name + ": " + e;
         return out;
       }

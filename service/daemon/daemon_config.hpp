@@ -5,6 +5,7 @@
 #pragma once
 
 #include <cstdint>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -151,6 +152,10 @@ struct DaemonConfig {
 
   // Empty when every value is valid; else one line naming the key.
   std::string validate() const;
+  // The settings results depend on, "section.key" -> value, for the station's settings text
+  // (service/io/station_settings.hpp): every key but the operational ones (the LCM channels,
+  // commit cadence, failure limits, spill, log, http, station id); the IGRF file by its content.
+  std::map<std::string, std::string> result_settings() const;
 
   bool data_clock() const { return refit.clock == "data"; }
   // db_path is a PostgreSQL URI (a fleet's database).

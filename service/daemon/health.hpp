@@ -155,6 +155,9 @@ struct DaemonCounters {
   // Spacecraft leases lost to another daemon (this one stalled past the lease, or the database
   // was unreachable for that long): their filters stopped here and went on there.
   std::atomic<int64_t> leases_lost{0};
+  // Live stations of the fleet whose result-affecting settings differ from this one's (a gauge,
+  // FleetSettingsWatch).
+  std::atomic<int32_t> fleet_settings_mismatch{0};
   // Wall time (utime) since when some storage path has been failing; 0 while none is.
   std::atomic<int64_t> storage_failing_since_utime{0};
   // The spill file (PostgreSQL outages, service/daemon/sample_spill.hpp): samples written to it,

@@ -11,7 +11,8 @@ bool IngestQueue::push(IngestItem&& item) {
     // An item larger than the whole queue is still admitted into an empty queue.
     not_full_.wait(lock, [&] { return closed_ || depth_ == 0 || depth_ + n <= capacity_; });
   }
-  if (closed_ || (depth_ > 0 && depth_ + n > capacity_)) {
+  if (closed_) return false;
+  if (depth_ > 0 && depth_ + n > capacity_) {
     overflow_ += n;
     return false;
   }

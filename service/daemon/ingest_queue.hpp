@@ -28,8 +28,10 @@ class IngestQueue {
   explicit IngestQueue(int64_t capacity_samples, bool block_when_full = false)
       : capacity_(capacity_samples), block_(block_when_full) {}
 
-  // false: the queue was full (and not blocking) or closed; the item was not queued and its
-  // samples are counted in overflow_samples().
+  // false: the item was not queued. When the queue was full (and not blocking) its samples are
+  // counted in overflow_samples(); when it was closed (magcald stops on a fatal error, and a
+  // blocked replay push returns) they are not: the daemon counts what it received and did not
+  // commit as storage_error, and that frame is such.
   bool push(IngestItem&& item);
 
   // Waits up to timeout_ms for items; moves everything queued into `out` (appended).

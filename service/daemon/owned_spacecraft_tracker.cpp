@@ -13,6 +13,7 @@
 #include "pipeline/acceptance_gates.hpp"
 #include "pipeline/time_utc.hpp"
 #include "service/io/calibration_record.hpp"
+#include "service/io/station_settings.hpp"
 
 namespace magcal {
 namespace {
@@ -94,7 +95,8 @@ OwnedSpacecraftTracker::OwnedSpacecraftTracker(const DaemonConfig& config, Daemo
       leases_(db.make_lease_store()),
       fleet_(fleet),
       intake_(intake),
-      instance_(random_instance_id()) {
+      instance_(random_instance_id()),
+      settings_watch_(config.station.id, station_settings(config.result_settings()), counters) {
   if (config.data_clock()) {
     const auto minute = parse_daily_time_utc(config.refit.daily_at_utc);
     data_schedule_ = RefitSchedule{minute.value_or(120), config.refit.every_hours};
@@ -208,7 +210,7 @@ void OwnedSpacecraftTracker::maintain_leases() {
   const std::string& me = config_.station.id;
   std::vector<std::pair<std::string, int64_t>> acquired;  // (sat, epoch), taken over below
   try {
-    const auto before = leases_->heartbeat(me, instance_, now, ttl);
+    const auto before = leases_->heartbeat(me, instance_, settings_watch_.mine(), now, ttl);
     if (before && before->instance != instance_ && before->expires_utime > now) {
       if (last_beat_utime_ != 0) {
         // It beat since this process did: it is alive.
@@ -224,6 +226,7 @@ void OwnedSpacecraftTracker::maintain_leases() {
           me, format_iso8601_utc(before->expires_utime), config_.fleet.lease_s / 3);
     }
     last_beat_utime_ = now;
+    settings_watch_.check(leases_->stations(), now);
     for (const auto& sat : unregistered_) leases_->ensure(sat);
     unregistered_.clear();
     std::unordered_map<std::string, int64_t> renewed;

@@ -49,6 +49,7 @@
 
 #include "pipeline/calibration_result.hpp"
 #include "service/daemon/daemon_config.hpp"
+#include "service/daemon/fleet_settings_watch.hpp"
 #include "service/daemon/health.hpp"
 #include "service/daemon/refit_scheduler.hpp"
 #include "service/daemon/sample_intake.hpp"
@@ -223,6 +224,8 @@ class OwnedSpacecraftTracker final : public CommitParticipant {
   size_t live_stations_ = 1;     // at the last lease round (1: alone, no other station writes)
   const std::string instance_;   // this process in the stations table (random per start)
   int64_t last_beat_utime_ = 0;  // 0: not beaten yet
+  // This station's settings, declared in its heartbeat; the other live stations' compared.
+  FleetSettingsWatch settings_watch_;
   // The last lease round failed on storage: counted as a failing storage path (storage_healthy()
   // false: /-/ready 503 on PostgreSQL) until a round succeeds, also on a station with nothing to
   // commit.

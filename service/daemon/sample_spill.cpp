@@ -9,21 +9,14 @@
 
 #include <fmt/format.h>
 
+#include "service/io/fnv1a.hpp"
+
 namespace magcal {
 namespace {
 
 constexpr char kMagic[8] = {'M', 'G', 'S', 'P', 'I', 'L', 'L', '1'};
 constexpr size_t kRecordHeaderBytes = sizeof(uint32_t) + sizeof(uint64_t);
 constexpr uint8_t kHasDirection = 1, kHasAttitude = 2, kHasPosition = 4;
-
-uint64_t fnv1a(const char* data, size_t n) {
-  uint64_t h = 0xcbf29ce484222325ULL;
-  for (size_t i = 0; i < n; ++i) {
-    h ^= static_cast<unsigned char>(data[i]);
-    h *= 0x100000001b3ULL;
-  }
-  return h;
-}
 
 template <typename T>
 void put(std::vector<char>& out, const T& v) {
@@ -166,7 +159,7 @@ void SampleSpill::open_existing() {
     }
     buffer_.resize(n);
     if (!read_exact(at + static_cast<int64_t>(kRecordHeaderBytes), buffer_.data(), n) ||
-        fnv1a(buffer_.data(), n) != sum || !decode(buffer_.data(), n, row)) {
+        fnv1a_64({buffer_.data(), n}) != sum || !decode(buffer_.data(), n, row)) {
       break;
     }
     at += static_cast<int64_t>(kRecordHeaderBytes + n);
@@ -221,7 +214,7 @@ bool SampleSpill::append(std::span<const storage::StoredSample> rows) {
     buffer_.resize(at + kRecordHeaderBytes);
     encode(s, buffer_);
     const auto n = static_cast<uint32_t>(buffer_.size() - at - kRecordHeaderBytes);
-    const uint64_t sum = fnv1a(buffer_.data() + at + kRecordHeaderBytes, n);
+    const uint64_t sum = fnv1a_64({buffer_.data() + at + kRecordHeaderBytes, n});
     std::memcpy(buffer_.data() + at, &n, sizeof n);
     std::memcpy(buffer_.data() + at + sizeof n, &sum, sizeof sum);
   }
@@ -272,7 +265,7 @@ size_t SampleSpill::read_chunk(size_t max_rows, std::vector<storage::StoredSampl
     }
     buffer_.resize(n);
     if (!read_exact(at + static_cast<int64_t>(kRecordHeaderBytes), buffer_.data(), n) ||
-        fnv1a(buffer_.data(), n) != sum || !decode(buffer_.data(), n, out.emplace_back())) {
+        fnv1a_64({buffer_.data(), n}) != sum || !decode(buffer_.data(), n, out.emplace_back())) {
       errno = EIO;
       fail("record changed since it was written");
     }

@@ -45,6 +45,7 @@ struct Families {
   prometheus::Family<prometheus::Counter>* spill_dropped;
   prometheus::Family<prometheus::Gauge>* owned;
   prometheus::Family<prometheus::Counter>* leases_lost;
+  prometheus::Family<prometheus::Gauge>* fleet_settings_mismatch;
 };
 
 // Every family of the contract, registered in one place for the daemon and `magcal serve`.
@@ -155,6 +156,13 @@ Families register_families(prometheus::Registry& r, const std::string& version) 
                            "Spacecraft leases lost to another daemon (this one stalled past the "
                            "lease, or the database was unreachable for that long)")
                        .Register(r);
+  f.fleet_settings_mismatch =
+      &BuildGauge()
+           .Name("magcal_fleet_settings_mismatch")
+           .Help(
+               "Live stations of the fleet whose result-affecting settings differ from this "
+               "daemon's (the results of a spacecraft then depend on which station owns it)")
+           .Register(r);
   BuildGauge()
       .Name("magcal_build_info")
       .Help("Build of magcal (value 1)")
@@ -226,6 +234,7 @@ DaemonMetrics::DaemonMetrics(const std::string& version, const std::string& stat
   spill_dropped_ = &f.spill_dropped->Add({});
   owned_ = f.owned;
   leases_lost_ = &f.leases_lost->Add({});
+  fleet_settings_mismatch_ = &f.fleet_settings_mismatch->Add({});
 }
 
 DaemonMetrics::~DaemonMetrics() = default;
@@ -268,6 +277,7 @@ void DaemonMetrics::apply_totals(const Totals& t) {
   raise_to(*spill_recovered_, t.spill_recovered);
   raise_to(*spill_dropped_, t.spill_dropped);
   raise_to(*leases_lost_, t.leases_lost);
+  fleet_settings_mismatch_->Set(static_cast<double>(t.fleet_settings_mismatch));
 
   for (const SpacecraftTotals& sc : t.spacecraft) {
     SpacecraftSeries& m = series(sc.sat_label);

@@ -39,6 +39,9 @@
 //   magcal_build_info{version}              1
 //   magcal_spacecraft_owned{sat}            1 while this daemon holds the spacecraft's lease
 //   magcal_leases_lost_total                leases lost to another daemon (stalled, cut off)
+//   magcal_fleet_settings_mismatch          live stations whose result-affecting settings
+//                                           differ from this daemon's (0: the fleet agrees;
+//                                           service/io/station_settings.hpp)
 //   magcal_station_info{station}            1, the daemon's [station] id (design.md "Fleet"):
 //                                           an info metric, joined in queries
 //                                           (`* on(instance) group_left(station)`) rather than
@@ -107,6 +110,7 @@ class DaemonMetrics {
     int64_t spill_recovered = 0;
     int64_t spill_dropped = 0;
     int64_t leases_lost = 0;
+    int64_t fleet_settings_mismatch = 0;
     std::vector<SpacecraftTotals> spacecraft;
     // Commit latency: one count per bucket of the constructor's bounds plus +Inf (not
     // cumulative), and the sum of the observations, s. Empty = none observed.
@@ -158,6 +162,7 @@ class DaemonMetrics {
   prometheus::Counter* spill_dropped_;
   prometheus::Family<prometheus::Gauge>* owned_;
   prometheus::Counter* leases_lost_;
+  prometheus::Gauge* fleet_settings_mismatch_;
 
   std::mutex mutex_;  // the totals source and scrapes
   std::unordered_map<std::string, std::unique_ptr<SpacecraftSeries>> series_;

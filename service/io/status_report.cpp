@@ -1,7 +1,9 @@
 #include "service/io/status_report.hpp"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <map>
 #include <set>
 
 #include "pipeline/temperature_model.hpp"
@@ -93,6 +95,40 @@ std::string by_station_line(const std::vector<storage::StationCount>& counts) {
   return named ? line : "";
 }
 
+// StationStatus::settings_differ_from and settings_differences of every live station.
+void mark_settings_differences(std::vector<StationStatus>& stations) {
+  // Live stations that declare settings, grouped by their text.
+  std::map<std::string, std::vector<const StationStatus*>> groups;
+  for (const auto& st : stations) {
+    if (st.live && st.row.settings) groups[st.row.settings->text].push_back(&st);
+  }
+  if (groups.size() < 2) return;
+  size_t largest = 0, with_largest = 0;
+  for (const auto& [text, members] : groups) largest = std::max(largest, members.size());
+  for (const auto& [text, members] : groups) with_largest += members.size() == largest;
+  for (auto& st : stations) {
+    if (!st.live || !st.row.settings) continue;
+    const std::string& mine = st.row.settings->text;
+    const std::string* theirs = nullptr;
+    if (with_largest == 1) {
+      for (const auto& [text, members] : groups)
+        if (members.size() == largest && text != mine) theirs = &text;
+    } else {
+      for (const auto& other : stations) {
+        if (other.live && other.row.settings && other.row.settings->text != mine) {
+          theirs = &other.row.settings->text;
+          break;
+        }
+      }
+    }
+    if (theirs == nullptr) continue;  // of the majority
+    for (const StationStatus* other : groups.at(*theirs))
+      st.settings_differ_from.push_back(other->row.station);
+    st.settings_differences =
+        settings_differences(parse_station_settings(mine), parse_station_settings(*theirs));
+  }
+}
+
 }  // namespace
 
 FleetStatus read_status(storage::Connection& db, int64_t window_utime) {
@@ -139,6 +175,7 @@ FleetStatus read_status(storage::Connection& db, int64_t window_utime) {
     st.row = std::move(row);
     fleet.stations.push_back(std::move(st));
   }
+  mark_settings_differences(fleet.stations);
   return fleet;
 }
 
@@ -178,14 +215,29 @@ nlohmann::json status_json(const FleetStatus& fleet, int64_t window_utime) {
     list.push_back(std::move(j));
   }
   nlohmann::json stations = nlohmann::json::array();
+  const auto value_json = [](const std::optional<std::string>& v) {
+    return v ? nlohmann::json(*v) : nlohmann::json(nullptr);
+  };
   for (const auto& st : fleet.stations) {
-    stations.push_back({{"station", st.row.station},
-                        {"live", st.live},
-                        {"heartbeat_time", format_iso8601_utc(st.row.heartbeat_utime)},
-                        {"heartbeat_utime", st.row.heartbeat_utime},
-                        {"expires_time", format_iso8601_utc(st.row.expires_utime)},
-                        {"expires_utime", st.row.expires_utime},
-                        {"spacecraft_owned", st.spacecraft_owned}});
+    nlohmann::json differ = nullptr;
+    if (!st.settings_differ_from.empty()) {
+      nlohmann::json keys = nlohmann::json::array();
+      for (const auto& d : st.settings_differences) {
+        keys.push_back(
+            {{"key", d.key}, {"here", value_json(d.here)}, {"there", value_json(d.there)}});
+      }
+      differ = {{"from", st.settings_differ_from}, {"keys", std::move(keys)}};
+    }
+    stations.push_back(
+        {{"station", st.row.station},
+         {"live", st.live},
+         {"heartbeat_time", format_iso8601_utc(st.row.heartbeat_utime)},
+         {"heartbeat_utime", st.row.heartbeat_utime},
+         {"expires_time", format_iso8601_utc(st.row.expires_utime)},
+         {"expires_utime", st.row.expires_utime},
+         {"spacecraft_owned", st.spacecraft_owned},
+         {"settings_hash", st.row.settings ? nlohmann::json(st.row.settings->hash) : nullptr},
+         {"settings_differ", std::move(differ)}});
   }
   return nlohmann::json{{"spacecraft", list}, {"stations", stations}};
 }
@@ -268,6 +320,14 @@ std::string status_text(const FleetStatus& fleet, int64_t window_utime) {
         append_printf(&text, "  %-16s live, last beat %s, owns %lld spacecraft\n",
                       st.row.station.c_str(), format_iso8601_utc(st.row.heartbeat_utime).c_str(),
                       static_cast<long long>(st.spacecraft_owned));
+        if (!st.settings_differ_from.empty()) {
+          // Its results differ from those of the others for the spacecraft it owns.
+          std::string from;
+          for (const auto& name : st.settings_differ_from)
+            from += (from.empty() ? "" : ", ") + name;
+          append_printf(&text, "  %-16s SETTINGS DIFFER from %s: %s\n", "", from.c_str(),
+                        describe_differences(st.settings_differences).c_str());
+        }
       } else {
         append_printf(&text, "  %-16s gone since %s\n", st.row.station.c_str(),
                       format_iso8601_utc(st.row.expires_utime).c_str());

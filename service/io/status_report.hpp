@@ -12,6 +12,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "service/io/station_settings.hpp"
 #include "storage/calibration_history.hpp"
 #include "storage/connection.hpp"
 #include "storage/lease_store.hpp"
@@ -41,6 +42,12 @@ struct StationStatus {
   storage::StationRow row;
   bool live = false;
   int64_t spacecraft_owned = 0;  // leases it holds at the time of the read
+  // A live station whose result-affecting settings (service/io/station_settings.hpp) differ
+  // from the fleet's: from the live stations sharing the most common settings, or, when no
+  // settings are the most common, from the first other live station (and those sharing its
+  // settings). Empty: not marked (it agrees with the majority, is gone, or declares none).
+  std::vector<std::string> settings_differ_from;
+  std::vector<SettingDifference> settings_differences;  // here: this station's, there: theirs
 };
 
 struct FleetStatus {
@@ -61,7 +68,8 @@ FleetStatus read_status(storage::Connection& db, int64_t window_utime);
 // last_ukf, last_refit (history objects or null), last_refit_job,
 // bias_change_since_previous_refit_nT}], "stations": [{station, live, heartbeat_time,
 // heartbeat_utime, expires_time, expires_utime (wall clock: live until then; a clean stop ends
-// it at once), spacecraft_owned}]}.
+// it at once), spacecraft_owned, settings_hash (null: none declared), settings_differ (null, or
+// {from: [station], keys: [{key, here, there}]}: StationStatus)}]}.
 nlohmann::json status_json(const FleetStatus& fleet, int64_t window_utime);
 // The exact stdout of `magcal status --json` (dumped with indent 2 and a final newline).
 std::string status_json_text(const FleetStatus& fleet, int64_t window_utime);

@@ -153,12 +153,15 @@ std::optional<CalibrationRecord> PgCalibrationHistory::get(int64_t id) {
   return std::move(found.front());
 }
 
-std::vector<CalibrationRecord> PgCalibrationHistory::newest_refits(std::string_view sat_id,
-                                                                   int count) {
+std::optional<CalibrationRecord> PgCalibrationHistory::newest_refit_until(std::string_view sat_id,
+                                                                          int64_t until_utime) {
   PgParams p;
-  p.add(sat_id).add(int64_t{count});
-  return rows(calibration_row::select_sql(kRefitFilter + " ORDER BY utime DESC, id DESC LIMIT $2"),
-              p);
+  p.add(sat_id).add(until_utime);
+  auto found = rows(calibration_row::select_sql(
+                        kRefitFilter + " AND utime <= $2 ORDER BY utime DESC, id DESC LIMIT 1"),
+                    p);
+  if (found.empty()) return std::nullopt;
+  return std::move(found.front());
 }
 
 std::optional<CalibrationRecord> PgCalibrationHistory::latest_accepted_refit(

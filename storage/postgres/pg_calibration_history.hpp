@@ -31,7 +31,8 @@ class PgCalibrationHistory final : public CalibrationHistory {
   std::vector<std::string> spacecraft() override;
 
  private:
-  std::vector<CalibrationRecord> newest_refits(std::string_view sat_id, int count) override;
+  std::optional<CalibrationRecord> newest_refit_until(std::string_view sat_id,
+                                                      int64_t until_utime) override;
   // The rows of a calibration_row::select_sql() statement.
   std::vector<CalibrationRecord> rows(const std::string& sql, const PgParams& params);
   std::vector<std::string> reasons(const std::string& json);

@@ -2,7 +2,9 @@
 
 #include <libpq-fe.h>
 
+#include <algorithm>
 #include <chrono>
+#include <string_view>
 #include <utility>
 
 #include "storage/postgres/pg_calibration_history.hpp"
@@ -13,16 +15,21 @@ namespace magcal::storage {
 namespace {
 
 // libpq's message on one line (it continues lines with "\n\t" hints): a caller prints one line.
-std::string one_line(std::string text) {
-  while (!text.empty() && (text.back() == '\n' || text.back() == ' ')) text.pop_back();
+std::string one_line(std::string_view text) {
   std::string out;
-  for (size_t i = 0; i < text.size(); ++i) {
-    if (text[i] != '\n') {
-      out += text[i];
-      continue;
+  while (!text.empty()) {
+    const std::size_t end = std::min(text.find('\n'), text.size());
+    std::string_view line = text.substr(0, end);
+    text.remove_prefix(std::min(end + 1, text.size()));
+    const std::size_t first = line.find_first_not_of(" \t");
+    if (first == std::string_view::npos) continue;
+    line = line.substr(first, line.find_last_not_of(" \t") - first + 1);
+    // libpq's continuation lines are sentences ("Is the server running ...?"): one ends where
+    // a line did, unless it ended with punctuation already.
+    if (!out.empty()) {
+      out += std::string_view(".:;?!").find(out.back()) == std::string_view::npos ? ". " : " ";
     }
-    while (i + 1 < text.size() && (text[i + 1] == '\t' || text[i + 1] == ' ')) ++i;
-    out += ' ';
+    out += line;
   }
   return out;
 }

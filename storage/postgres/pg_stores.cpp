@@ -681,8 +681,9 @@ std::vector<Lease> PgLeaseStore::renew_all(std::string_view owner, int64_t now_u
 }
 
 std::optional<StationBeat> PgLeaseStore::heartbeat(std::string_view station,
-                                                   std::string_view instance, int64_t now_utime,
-                                                   int64_t ttl_utime) {
+                                                   std::string_view instance,
+                                                   const StationSettings& settings,
+                                                   int64_t now_utime, int64_t ttl_utime) {
   check_request(station, ttl_utime);
   std::optional<StationBeat> before;
   {
@@ -695,6 +696,11 @@ std::optional<StationBeat> PgLeaseStore::heartbeat(std::string_view station,
   static const std::string sql = dollar_params(columns::kStationHeartbeat);
   PgParams p;
   p.add(station).add(now_utime).add(ttl_utime).add(instance);
+  if (settings.text.empty()) {
+    p.add_null().add_null();
+  } else {
+    p.add(settings.text).add(settings.hash);
+  }
   db_.execute_prepared(sql, p);
   return before;
 }
@@ -721,8 +727,12 @@ std::vector<StationRow> PgLeaseStore::stations() {
   const PgResult r = db_.execute_prepared(sql, PgParams{}, PgFormat::kBinary);
   std::vector<StationRow> out;
   for (int row = 0; row < r.rows(); ++row) {
-    out.push_back(StationRow{r.get_text(row, 0), r.get_text(row, 1), r.get_int64(row, 2),
-                             r.get_int64(row, 3)});
+    StationRow& station =
+        out.emplace_back(StationRow{r.get_text(row, 0), r.get_text(row, 1), r.get_int64(row, 2),
+                                    r.get_int64(row, 3), std::nullopt});
+    if (!r.is_null(row, 4)) {
+      station.settings = StationSettings{r.get_text(row, 4), r.get_text(row, 5)};
+    }
   }
   return out;
 }

@@ -122,7 +122,8 @@ class PgLeaseStore final : public LeaseStore {
   std::vector<Lease> renew_all(std::string_view owner, int64_t now_utime,
                                int64_t ttl_utime) override;
   std::optional<StationBeat> heartbeat(std::string_view station, std::string_view instance,
-                                       int64_t now_utime, int64_t ttl_utime) override;
+                                       const StationSettings& settings, int64_t now_utime,
+                                       int64_t ttl_utime) override;
   void leave(std::string_view station, int64_t now_utime) override;
   std::vector<std::string> live_stations(int64_t now_utime) override;
   std::vector<StationRow> stations() override;

@@ -263,6 +263,12 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest,
   CHECK(history.latest_accepted_refit("SAT1")->utime == kT0 + 6 * kHour);
   CHECK(history.latest_accepted_refit("SAT1", 11 * kHour, 1000)->utime == kT0 + 2 * kHour);
   CHECK_FALSE(history.latest_accepted_refit("SAT1", 11 * kHour, 5000).has_value());
+  // A refit run again at the newest one's data time (two manual refits of one window): the
+  // previous refit is still the one of the window before, not its twin (a zero "change").
+  history.append(make_record("SAT1", "centered", kT0 + 6 * kHour, 7));
+  CHECK(history.latest_refit("SAT1")->method == "centered");
+  CHECK(history.latest_refit("SAT1")->utime == kT0 + 6 * kHour);
+  CHECK(history.previous_refit("SAT1")->utime == kT0 + 4 * kHour);
   CHECK(is_refit_method("twostep"));
   CHECK(is_refit_method("centered"));
   CHECK_FALSE(is_refit_method("ukf"));
@@ -358,16 +364,9 @@ TEMPLATE_TEST_CASE_METHOD(
 
 TEMPLATE_TEST_CASE("rows stored before the alignment covariance was kept read it as unknown",
                    "[calibrations]", SqliteBackend, PostgresBackend) {
-  const auto all = migrations();  // version N is the same schema on both backends
-  const auto it = std::find_if(all.begin(), all.end(), [](const Migration& m) {
-    return std::string_view(m.name).ends_with("_alignment_covariance");
-  });
-  REQUIRE(it != all.end());
   TestType backend;
   {
-    OpenOptions old;
-    old.migrate_to = it->version - 1;
-    const auto db = backend.open(old);
+    const auto db = backend.open(magcal::test::before_migration("_alignment_covariance"));
     if (!db) return;
     // A row as the previous schema stored it: an alignment without its covariance.
     db->exec(

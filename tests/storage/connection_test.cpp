@@ -1,9 +1,12 @@
 // open_database() and the names it gives a --db value (storage/connection.hpp): a password in a
 // PostgreSQL URI never reaches a message, not even when libpq quotes the URI back in its own
 // parse error; libpq's key=value form and an upper-case scheme are refused, never created as an
-// SQLite file of that name. No server is needed: every case fails before connecting.
+// SQLite file of that name, nor is a mistyped scheme; libpq's multi-line errors read as one
+// line of sentences. No server is needed: every case fails before or at connecting.
 #include <filesystem>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include <catch2/catch.hpp>
 
@@ -66,4 +69,39 @@ TEST_CASE("libpq's key=value form and an upper-case scheme are refused, no file 
   CHECK(upper_message.find("lower case") != std::string::npos);
   CHECK(upper_message.find("s3cret") == std::string::npos);
   CHECK_FALSE(std::filesystem::exists(upper));
+}
+
+TEST_CASE("a mistyped URI scheme is named, not taken for an SQLite path") {
+  for (const auto& [db, scheme] : std::vector<std::pair<std::string, std::string>>{
+           {"postgressql://magcal@h/m", "postgressql://"},
+           {"postgres:/x", "postgres:/"},
+           {"postgresql:/x", "postgresql:/"},
+           {"postgresql:x", "postgresql:"},
+           {"pgsql://h/m", "pgsql://"},
+           {"mysql://h/m", "mysql://"},
+           {"sqlite:///tmp/m.db", "sqlite:///"}}) {
+    const std::string message = open_error(db);
+    INFO(db << " -> " << message);
+    CHECK(message == "unknown database URI scheme '" + scheme +
+                         "': use postgresql:// (or postgres://) for PostgreSQL, or a file path "
+                         "for SQLite");
+    CHECK_FALSE(std::filesystem::exists(db));
+  }
+  // A relative path with a colon in its first name stays a file path (its folder is missing).
+  for (const std::string path : {"run:2-nonexistent-magcal/x.db", "c:nonexistent-magcal/x.db"}) {
+    const std::string message = open_error(path);
+    INFO(path << " -> " << message);
+    CHECK(message.find("unknown database URI scheme") == std::string::npos);
+    CHECK(message.find("x.db") != std::string::npos);
+  }
+}
+
+TEST_CASE("libpq's multi-line error is one line of sentences") {
+  // Nothing listens on port 1: refused at once, with libpq's hint on a continuation line.
+  const std::string message = open_error("postgresql://magcal@127.0.0.1:1/m");
+  INFO(message);
+  CHECK(message.find('\n') == std::string::npos);
+  CHECK(message.find('\t') == std::string::npos);
+  CHECK(message.find("Connection refused. Is the server running") != std::string::npos);
+  CHECK(message.back() != ' ');
 }

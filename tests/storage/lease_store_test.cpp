@@ -3,11 +3,13 @@
 // racing for the same leases on their own connections.
 #include "storage/lease_store.hpp"
 
+#include <algorithm>
 #include <catch2/catch.hpp>
 #include <map>
 #include <string>
 #include <vector>
 
+#include "storage/migrations.hpp"
 #include "tests/storage/storage_backends.hpp"
 
 using namespace magcal::storage;
@@ -213,25 +215,25 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest,
 
   // Stations: live until their heartbeat's time to live runs out, or they leave.
   CHECK(leases->live_stations(kT0).empty());
-  CHECK_FALSE(leases->heartbeat("A", "a1", kT0, kTtl).has_value());  // the first beat
-  leases->heartbeat("B", "b1", kT0 + 5 * kSecond, kTtl);
+  CHECK_FALSE(leases->heartbeat("A", "a1", {}, kT0, kTtl).has_value());  // the first beat
+  leases->heartbeat("B", "b1", {}, kT0 + 5 * kSecond, kTtl);
   CHECK(leases->live_stations(kT0 + 6 * kSecond) == std::vector<std::string>{"A", "B"});
   CHECK(leases->live_stations(kT0 + kTtl) == std::vector<std::string>{"B"});
   // Beats again: live again; the row as it was comes back (a second process under one id would
   // see the other's instance there).
-  const auto before = leases->heartbeat("A", "a2", kT0 + kTtl, kTtl);
+  const auto before = leases->heartbeat("A", "a2", {}, kT0 + kTtl, kTtl);
   REQUIRE(before.has_value());
   CHECK(before->instance == "a1");
   CHECK(before->heartbeat_utime == kT0);
   CHECK(before->expires_utime == kT0 + kTtl);
-  CHECK(leases->heartbeat("A", "a2", kT0 + kTtl + 1, kTtl)->instance == "a2");
+  CHECK(leases->heartbeat("A", "a2", {}, kT0 + kTtl + 1, kTtl)->instance == "a2");
   CHECK(leases->live_stations(kT0 + kTtl + 1) == std::vector<std::string>{"A", "B"});
   leases->leave("B", kT0 + kTtl + 2);
   CHECK(leases->live_stations(kT0 + kTtl + 2) == std::vector<std::string>{"A"});
-  CHECK_THROWS_AS(leases->heartbeat("C", "c1", kT0, 0), StorageError);
+  CHECK_THROWS_AS(leases->heartbeat("C", "c1", {}, kT0, 0), StorageError);
   // Every row stays listed, the one that left with its end (the same order on both backends:
   // "a" sorts after "B" by bytes).
-  leases->heartbeat("a", "x1", kT0, kTtl);
+  leases->heartbeat("a", "x1", {}, kT0, kTtl);
   const auto rows = leases->stations();
   REQUIRE(rows.size() == 3);
   CHECK(rows[0].station == "A");
@@ -242,4 +244,51 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest,
   CHECK(rows[1].expires_utime == kT0 + kTtl + 2);
   CHECK_FALSE(rows[1].live_at(kT0 + kTtl + 2));
   CHECK(rows[2].station == "a");
+}
+
+TEMPLATE_TEST_CASE_METHOD(BackendTest,
+                          "a station's settings round-trip through its heartbeat, and a beat "
+                          "without settings reads as unknown",
+                          "[leases]", SqliteBackend, PostgresBackend) {
+  if (!this->db) return;
+  const auto leases = this->db->make_lease_store();
+  // Text as the daemon writes it (service/io/station_settings.hpp): lines, '=' and quotes kept.
+  const StationSettings a{"refit.every_hours=6\nukf.cold_start=data\nx.list=[S1,\"S 2\"]\n",
+                          "0123456789abcdef"};
+  leases->heartbeat("A", "a1", a, kT0, kTtl);
+  leases->heartbeat("B", "b1", {}, kT0, kTtl);
+  auto rows = leases->stations();
+  REQUIRE(rows.size() == 2);
+  REQUIRE(rows[0].settings.has_value());
+  CHECK(rows[0].settings->text == a.text);
+  CHECK(rows[0].settings->hash == a.hash);
+  CHECK_FALSE(rows[1].settings.has_value());
+  // Each beat writes what the process declares now (a restart with another config).
+  const StationSettings a2{"refit.every_hours=0\n", "fedcba9876543210"};
+  leases->heartbeat("A", "a2", a2, kT0 + kSecond, kTtl);
+  leases->heartbeat("B", "b1", a, kT0 + kSecond, kTtl);
+  rows = leases->stations();
+  REQUIRE(rows.size() == 2);
+  CHECK(rows[0].settings->text == a2.text);
+  CHECK(rows[0].settings->hash == a2.hash);
+  REQUIRE(rows[1].settings.has_value());
+  CHECK(rows[1].settings->text == a.text);
+}
+
+TEMPLATE_TEST_CASE("a stations row from before the settings columns reads as unknown settings",
+                   "[leases]", SqliteBackend, PostgresBackend) {
+  TestType backend;
+  {
+    const auto db = backend.open(magcal::test::before_migration("_station_settings"));
+    if (!db) return;
+    db->exec(
+        "INSERT INTO stations (station, heartbeat_utime, expires_utime, instance) "
+        "VALUES ('gs-old', 5, 10, 'i1')");
+  }
+  const auto db = backend.open_again();  // migrates to the newest schema
+  const auto rows = db->make_lease_store()->stations();
+  REQUIRE(rows.size() == 1);
+  CHECK(rows[0].station == "gs-old");
+  CHECK(rows[0].expires_utime == 10);
+  CHECK_FALSE(rows[0].settings.has_value());
 }

@@ -11,20 +11,24 @@
 //   backend.new_database()       // instead of open(): the path or URI of a new, empty database
 //                                // for code that opens it itself (a worker, magcald); "": skipped
 //   query_int(*db, sql)          // the one integer a query returns (a count), either backend
+//   before_migration("_name")    // options that open at the schema before migration NNNN_name
 #pragma once
 
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
 #include <filesystem>
 #include <functional>
 #include <memory>
 #include <string>
+#include <string_view>
 #include <thread>
 #include <vector>
 
 #include "storage/connection.hpp"
 #include "storage/database.hpp"
+#include "storage/migrations.hpp"
 #include "storage/postgres/pg_database.hpp"
 #include "storage/statement.hpp"
 #include "tests/storage/postgres/pg_test_server.hpp"
@@ -83,6 +87,19 @@ class PostgresBackend {
  private:
   std::string uri_;
 };
+
+// Opens at the schema just before the migration whose name ends with `name_suffix` (version N
+// is the same schema on both backends), to write rows as an older magcal stored them.
+inline storage::OpenOptions before_migration(std::string_view name_suffix) {
+  const auto all = storage::migrations();
+  const auto it = std::find_if(all.begin(), all.end(), [&](const storage::Migration& m) {
+    return std::string_view(m.name).ends_with(name_suffix);
+  });
+  REQUIRE(it != all.end());
+  storage::OpenOptions options;
+  options.migrate_to = it->version - 1;
+  return options;
+}
 
 inline int64_t query_int(storage::Connection& db, const std::string& sql) {
   if (auto* sqlite = dynamic_cast<storage::Database*>(&db)) {

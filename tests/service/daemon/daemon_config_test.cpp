@@ -6,6 +6,8 @@
 
 #include <cmath>
 #include <cstdlib>
+#include <filesystem>
+#include <fstream>
 #include <set>
 #include <string>
 
@@ -270,6 +272,69 @@ TEST_CASE("the fleet example configs parse, share one database and differ in the
     CHECK(c.refit.min_samples == a.refit.min_samples);
     CHECK(c.refit.early_growth == a.refit.early_growth);
     CHECK(c.refit.robust == a.refit.robust);
+    CHECK(c.result_settings() == a.result_settings());  // so their results do not depend on
+                                                        // which station owns a spacecraft
   }
   CHECK(ids.size() == stations.size());
+}
+
+TEST_CASE("the settings results depend on: every key but the operational ones, as text",
+          "[daemon_config]") {
+  const auto settings = [](const std::string& toml) {
+    const auto load = parse_daemon_config(toml, "test");
+    REQUIRE(load.error == "");
+    return load.config.result_settings();
+  };
+  const auto d = settings("");
+  CHECK(d.at("refit.every_hours") == "0");
+  CHECK(d.at("refit.clock") == "wall");
+  CHECK(d.at("refit.robust") == "false");
+  CHECK(d.at("storage.window_hours") == "12");
+  CHECK(d.at("fleet.lease_s") == "30");
+  CHECK(d.at("fleet.reorder_delay_s") == "60");
+  CHECK(d.at("ukf.cold_start") == "data");
+  CHECK(d.at("ukf.sigma_nT") == "3");
+  CHECK(d.at("sensor.range_nT") == "100000");
+  CHECK(d.at("igrf.coefficients_file") == "built-in IGRF-14");
+  CHECK(d.at("service.whitelist") == "[]");
+  CHECK(d.count("ukf.process_noise") == 1);
+  CHECK(d.count("gates.max_bias_nT") == 1);
+  CHECK(d.count("ingest.max_future_s") == 1);
+  // Where data comes from and goes, commit cadence, failure limits, logging: not results.
+  for (const char* key :
+       {"station.id", "lcm.url", "lcm.samples_channel", "http.listen", "log.level",
+        "storage.db_path", "storage.spill_dir", "storage.commit_every_ms",
+        "storage.pg_max_failure_s", "service.queue_capacity_samples"}) {
+    INFO(key);
+    CHECK(d.count(key) == 0);
+  }
+  // Operational keys changed: the same settings.
+  CHECK(settings("[station]\nid = \"gs-x\"\n[log]\nlevel = \"debug\"\n[http]\nlisten = \"\"\n"
+                 "[storage]\nspill_dir = \"/tmp\"\ncommit_every_ms = 100\n") == d);
+  // One result-affecting key changed: that key alone differs.
+  auto six = settings("[refit]\nevery_hours = 6\n");
+  CHECK(six.at("refit.every_hours") == "6");
+  six["refit.every_hours"] = "0";
+  CHECK(six == d);
+  CHECK(settings("[ukf]\nsigma_nT = 2.5\n").at("ukf.sigma_nT") == "2.5");
+  CHECK(settings("[ukf]\ncold_start = \"zero\"\n").at("ukf.cold_start") == "zero");
+  // A whitelist is a set: its order in the file does not matter.
+  CHECK(settings("[service]\nwhitelist = [\"B\", \"A\"]\n").at("service.whitelist") == "[A,B]");
+  CHECK(settings("[service]\nwhitelist = [\"A\", \"B\", \"A\"]\n").at("service.whitelist") ==
+        "[A,B]");
+  // The IGRF file by its content, not its path.
+  const std::string dir = std::filesystem::temp_directory_path() /
+                          ("magcal_igrf_identity_" + std::to_string(::getpid()));
+  std::filesystem::create_directories(dir);
+  for (const char* name : {"a.txt", "b.txt"}) std::ofstream(dir + "/" + name) << "g 1 0 -29404.8\n";
+  const auto igrf = [&](const std::string& name) {
+    return settings("[igrf]\ncoefficients_file = \"" + dir + "/" + name + "\"\n")
+        .at("igrf.coefficients_file");
+  };
+  const std::string a = igrf("a.txt");
+  CHECK(a.rfind("file fnv1a ", 0) == 0);
+  CHECK(igrf("b.txt") == a);
+  std::ofstream(dir + "/b.txt") << "g 1 0 -29404.9\n";
+  CHECK(igrf("b.txt") != a);
+  std::filesystem::remove_all(dir);
 }

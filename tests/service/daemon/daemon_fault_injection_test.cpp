@@ -154,9 +154,9 @@ pid_t hold_write_lock(const TempDir& tmp, const std::string& db, int hold_s) {
 }
 
 // A magcald that must stop because storage stays broken: exit 3, the reason in its log, and
-// books that balance: every received sample stored, counted as not committed (storage_error),
-// counted as overflow (pushed after the stop), or (PostgreSQL) held by the spill file
-// `spill_file` for the next start.
+// books that balance: every received sample stored, counted as not committed (storage_error,
+// also the frame a blocked replay push was handing over at the stop), or (PostgreSQL) held by
+// the spill file `spill_file` for the next start. A replay's queue blocks: nothing overflows.
 // A replay that rode out a lock held past the storage timeout, from its status messages
 // (`out_lcm`): health said so while the lock was held (status every 0.1 s, lock 2 s), and at the
 // end every one of the n samples is stored, nothing pending, the failures counted and retried.
@@ -212,6 +212,7 @@ StorageStop expect_storage_stop(pid_t d, const std::string& log_file, const std:
   CHECK(r.not_committed + r.spilled > 0);
   CHECK(r.last.rejected == r.not_committed + rejected(r.last, "duplicate"));
   CHECK(r.last.received == r.last.stored + r.last.rejected + r.last.queue_overflow + r.spilled);
+  CHECK(r.last.queue_overflow == 0);
   CHECK_FALSE(r.last.storage_healthy);
   CHECK(r.last.storage_failures >= 1);
   return r;
@@ -765,7 +766,10 @@ TEST_CASE("PostgreSQL: a permanent error (INSERT revoked, table dropped): exit 3
       CHECK(stop.seconds < 10.0);
       CHECK(stop.last.storage_retries == 0);
       CHECK(stop.spilled > 0);
-      CHECK(stop.not_committed == 0);
+      // At most the frame the replay was handing over when the daemon stopped: it never
+      // reached the worker, so it is not in the spill but counted as not committed (the
+      // re-run below fills it).
+      CHECK(stop.not_committed <= kBatch);
 
       // The next start commits the spill first: with the privilege given back it does, and the
       // same replay fills the rest, every sample once; with the table gone it refuses to start,

@@ -37,6 +37,8 @@
 #include "storage/sample_window_store.hpp"
 #include "tests/service/cli_test_support.hpp"
 #include "tests/service/daemon_test_support.hpp"
+#include "tests/service/http_test_support.hpp"
+#include "tests/service/prometheus_text.hpp"
 #include "tests/storage/postgres/pg_test_server.hpp"
 
 namespace {
@@ -533,4 +535,94 @@ TEST_CASE("two magcald with one station id: both stop with the reason, none keep
   // lease under the next epoch, so the first one's fenced writes fail (lease_store_test: the
   // old epoch's holds() is false once reclaimed).
   CHECK(slurp(log_b).find("owned here (lease epoch 2)") != std::string::npos);
+}
+
+TEST_CASE(
+    "stations whose result-affecting settings differ: warned, counted and marked, not refused",
+    "[daemon][fleet][integration]") {
+  TempDir dir("magcald_settings");
+  // 20 s of telemetry at speed 1: both daemons are still replaying when the checks are done.
+  const std::string log = dir.file("sat.lcm");
+  magcal::test::write_batch_log(log, kSat, 1'767'225'600LL * kSecond, 100 * magcal::test::kLogBatch,
+                                200'000);
+  for (const bool differ : {true, false}) {
+    INFO((differ ? "[refit] every_hours 0 at gs-a, 6 at gs-b" : "equal settings"));
+    const std::string config_a = dir.file("a.toml"), config_b = dir.file("b.toml");
+    std::ofstream(config_a) << "[fleet]\nlease_s = " << kLease_s << "\n";
+    std::ofstream(config_b) << "[fleet]\nlease_s = " << kLease_s << "\n"
+                            << (differ ? "[refit]\nevery_hours = 6\n" : "")
+                            << "[log]\nlevel = \"debug\"\n";  // not a result: not compared
+    const std::string db = dir.file(differ ? "differ.db" : "equal.db");
+    const std::string log_a = dir.file(differ ? "differ_a.log" : "equal_a.log");
+    const std::string log_b = dir.file(differ ? "differ_b.log" : "equal_b.log");
+    const auto start = [&](const std::string& config, const std::string& station,
+                           const std::string& out) {
+      return spawn({kBin + "/magcald", "--config", config, "--db", db, "--station", station,
+                    "--http-listen", "127.0.0.1:0", "--lcm-url", "file://" + log + "?speed=1"},
+                   out);
+    };
+    const pid_t a = start(config_a, "gs-a", log_a);
+    REQUIRE(a > 0);
+    const int port_a = magcal::test::wait_http_port(log_a, 10);
+    // gs-b starts later: gs-a sees a new live station at a later lease round, gs-b at its start.
+    const pid_t b = start(config_b, "gs-b", log_b);
+    REQUIRE(b > 0);
+    const int port_b = magcal::test::wait_http_port(log_b, 10);
+    REQUIRE(port_a > 0);
+    REQUIRE(port_b > 0);
+    const auto mismatch = [](int port) {
+      const auto p =
+          magcal::test::parse_prometheus_text(magcal::test::http_get(port, "/metrics").body);
+      return p.value("magcal_fleet_settings_mismatch").value_or(-1.0);
+    };
+    // Both have seen the other live (their gauges are set at each lease round, kLease_s / 3).
+    const auto connection = storage::open_database(db);
+    REQUIRE(wait_until(
+        [&] { return connection->make_lease_store()->live_stations(wall_utime()).size() == 2; },
+        10));
+    std::this_thread::sleep_for(
+        std::chrono::milliseconds(static_cast<int>(kLease_s / 3 * 1000 * 2)));
+    const std::string warning_a =
+        "settings differ from station gs-b: refit.every_hours 0 here, 6 there; results of a "
+        "spacecraft depend on which station owns it";
+    const std::string warning_b =
+        "settings differ from station gs-a: refit.every_hours 6 here, 0 there";
+    const auto status = magcal::test::run_magcal("status --db " + db, dir);
+    const auto status_json = magcal::test::run_magcal("status --json --db " + db, dir);
+    const double gauge_a = mismatch(port_a), gauge_b = mismatch(port_b);
+    REQUIRE(::kill(a, SIGTERM) == 0);
+    REQUIRE(::kill(b, SIGTERM) == 0);
+    CHECK(wait_exit(a, 15) == 0);  // a mixed fleet runs: a rolling config change passes here
+    CHECK(wait_exit(b, 15) == 0);
+    const std::string text_a = slurp(log_a), text_b = slurp(log_b);
+    INFO("gs-a:\n" << text_a << "\ngs-b:\n" << text_b << "\nstatus:\n" << status.out << status.err);
+    REQUIRE(status.exit_code == 0);
+    REQUIRE(status_json.exit_code == 0);
+    const auto stations = nlohmann::json::parse(status_json.out)["stations"];
+    REQUIRE(stations.size() == 2);
+    if (differ) {
+      CHECK(text_a.find(warning_a) != std::string::npos);
+      CHECK(text_b.find(warning_b) != std::string::npos);
+      // Once per station, not at every lease round.
+      CHECK(text_a.find("settings differ") == text_a.rfind("settings differ"));
+      CHECK(gauge_a == 1.0);
+      CHECK(gauge_b == 1.0);
+      // One against one: no majority, so both are marked, each against the other.
+      CHECK(status.out.find("SETTINGS DIFFER from gs-b: refit.every_hours 0 here, 6 there\n") !=
+            std::string::npos);
+      CHECK(status.out.find("SETTINGS DIFFER from gs-a: refit.every_hours 6 here, 0 there\n") !=
+            std::string::npos);
+      CHECK(stations[1]["settings_differ"]["keys"] ==
+            nlohmann::json::parse(R"([{"key": "refit.every_hours", "here": "6", "there": "0"}])"));
+      CHECK(stations[0]["settings_hash"] != stations[1]["settings_hash"]);
+    } else {
+      CHECK(text_a.find("settings differ") == std::string::npos);
+      CHECK(text_b.find("settings differ") == std::string::npos);
+      CHECK(gauge_a == 0.0);
+      CHECK(gauge_b == 0.0);
+      CHECK(status.out.find("SETTINGS DIFFER") == std::string::npos);
+      CHECK(stations[0]["settings_differ"].is_null());
+      CHECK(stations[0]["settings_hash"] == stations[1]["settings_hash"]);
+    }
+  }
 }

@@ -48,7 +48,7 @@ struct StationB {
   explicit StationB(const std::string& path)
       : db(storage::open_database(path)), leases(db->make_lease_store()) {
     const int64_t now = wall_now_utime();
-    leases->heartbeat("B", "b-instance", now, kHour_utime);
+    leases->heartbeat("B", "b-instance", {}, now, kHour_utime);
     leases->ensure("SAT-1");
     epoch = leases->try_acquire("SAT-1", "B", now, kHour_utime).value().epoch;
   }

@@ -274,7 +274,7 @@ TEST_CASE("a daemon's refit runs once for the fleet: claimed under its station, 
   const int64_t now = std::chrono::duration_cast<std::chrono::microseconds>(
                           std::chrono::system_clock::now().time_since_epoch())
                           .count();
-  storage::SqliteLeaseStore(db).heartbeat("station-B", "b1", now, 3'600'000'000LL);
+  storage::SqliteLeaseStore(db).heartbeat("station-B", "b1", {}, now, 3'600'000'000LL);
   const auto b_job = jobs.claim("PAPER-1", "scheduled", t_ref, 1, "station-B");
   REQUIRE(b_job.has_value());
   RefitOutcome out = runner.run("PAPER-1", t_ref, "scheduled", t_ref);

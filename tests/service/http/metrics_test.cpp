@@ -79,6 +79,7 @@ TEST_CASE("daemon metrics: the contract's names, the counted values, valid text"
     t.spill_recovered = 17;
     t.spill_dropped = 1;
     t.leases_lost = 2;
+    t.fleet_settings_mismatch = 1;
     t.spacecraft = {a, b};
     t.commit_bucket_counts = buckets;
     t.commit_sum_s = 7.0062;
@@ -112,12 +113,14 @@ TEST_CASE("daemon metrics: the contract's names, the counted values, valid text"
       {"magcal_spill_dropped_records_total", "counter"},
       {"magcal_spacecraft_owned", "gauge"},
       {"magcal_leases_lost_total", "counter"},
+      {"magcal_fleet_settings_mismatch", "gauge"},
       {"magcal_build_info", "gauge"},
       {"magcal_station_info", "gauge"}};
   CHECK(p.types == expected_types);
   CHECK(p.value("magcal_spacecraft_owned", {{"sat", "SAT-A"}}) == 1.0);
   CHECK(p.value("magcal_spacecraft_owned", {{"sat", "SAT-B"}}) == 0.0);  // another daemon's
   CHECK(p.value("magcal_leases_lost_total") == 2.0);
+  CHECK(p.value("magcal_fleet_settings_mismatch") == 1.0);
 
   CHECK(p.value("magcal_samples_received_total", {{"sat", "SAT-A"}}) == 300.0);
   CHECK(p.sum("magcal_samples_received_total") == 307.0);

@@ -8,6 +8,7 @@
 #include <catch2/catch.hpp>
 #include <chrono>
 #include <filesystem>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -67,6 +68,32 @@ TEST_CASE("status: the bias change compares the two refits at the last one's T0"
     CHECK(magcal::status_text({.spacecraft = {s}, .stations = {}}, window).find("degC") ==
           std::string::npos);
   }
+}
+
+TEST_CASE(
+    "status: a refit run again at the same data time shows the change since the window "
+    "before, not a zero change against its twin") {
+  const std::string path = (std::filesystem::temp_directory_path() /
+                            ("magcal_status_twin_" + std::to_string(::getpid()) + ".db"))
+                               .string();
+  const int64_t six_hours = 21'600'000'000;
+  magcal::FleetStatus fleet;
+  {
+    magcal::storage::Database db(path);
+    const auto history = db.make_calibration_history();
+    history->append(refit(kT0, {1000.0, 800.0, 900.0}));
+    history->append(refit(kT0 + six_hours, {1003.0, 804.0, 900.0}));
+    auto robust = refit(kT0 + six_hours, {1003.5, 804.0, 900.0});  // e.g. `magcal refit --robust`
+    robust.method = "centered";
+    history->append(robust);
+    fleet = magcal::read_status(db, 2 * six_hours);
+  }
+  std::filesystem::remove(path);
+  REQUIRE(fleet.spacecraft.size() == 1);
+  const std::string text = magcal::status_text(fleet, 2 * six_hours);
+  INFO(text);
+  CHECK(text.find("[    +3.50     +4.00     +0.00] nT  (|change| 5.32 nT) since the refit of "
+                  "2020-01-01T00:00:00") != std::string::npos);
 }
 
 TEST_CASE("status: the samples in the window by the station that stored them") {
@@ -139,9 +166,9 @@ TEST_CASE("status: the stations sharing the database, live or gone, with what ea
   {
     magcal::storage::Database db(path);
     const auto leases = db.make_lease_store();
-    leases->heartbeat("gs-b", "b1", now - 600 * second, 30 * second);  // died 10 min ago
-    leases->heartbeat("gs-a", "a1", now, 3600 * second);
-    leases->heartbeat("gs-c", "c1", now, 3600 * second);
+    leases->heartbeat("gs-b", "b1", {}, now - 600 * second, 30 * second);  // died 10 min ago
+    leases->heartbeat("gs-a", "a1", {}, now, 3600 * second);
+    leases->heartbeat("gs-c", "c1", {}, now, 3600 * second);
     leases->leave("gs-c", now);  // a clean stop: gone at once
     REQUIRE(leases->try_acquire("S1", "gs-a", now, 3600 * second));
     REQUIRE(leases->try_acquire("S2", "gs-a", now, 3600 * second));
@@ -182,4 +209,80 @@ TEST_CASE("status: the stations sharing the database, live or gone, with what ea
   CHECK(j[1]["live"] == false);
   CHECK(j[1]["expires_utime"] == now - 570 * second);
   CHECK(j[2]["expires_utime"] == now);
+}
+
+TEST_CASE("status: live stations whose settings differ from the majority's are marked") {
+  const std::string path = (std::filesystem::temp_directory_path() /
+                            ("magcal_status_settings_" + std::to_string(::getpid()) + ".db"))
+                               .string();
+  const int64_t second = 1'000'000;
+  const int64_t now = std::chrono::duration_cast<std::chrono::microseconds>(
+                          std::chrono::system_clock::now().time_since_epoch())
+                          .count();
+  const auto common = magcal::station_settings({{"refit.every_hours", "0"}, {"ukf.alpha", "1"}});
+  const auto other = magcal::station_settings({{"refit.every_hours", "6"}, {"ukf.alpha", "1"}});
+  const auto read = [&](const std::function<void(magcal::storage::LeaseStore&)>& beat) {
+    magcal::FleetStatus fleet;
+    {
+      magcal::storage::Database db(path);
+      beat(*db.make_lease_store());
+      fleet = magcal::read_status(db, 3600 * second);
+    }
+    std::filesystem::remove(path);
+    return fleet;
+  };
+
+  SECTION("two agree, one differs: the one is marked, against the two") {
+    const auto fleet = read([&](magcal::storage::LeaseStore& leases) {
+      leases.heartbeat("gs-a", "a1", common, now, 3600 * second);
+      leases.heartbeat("gs-b", "b1", other, now, 3600 * second);
+      leases.heartbeat("gs-c", "c1", common, now, 3600 * second);
+      // Gone, with yet other settings: not compared (a stopped station owns nothing).
+      leases.heartbeat("gs-d", "d1", magcal::station_settings({{"refit.every_hours", "9"}}),
+                       now - 600 * second, 30 * second);
+    });
+    REQUIRE(fleet.stations.size() == 4);
+    CHECK(fleet.stations[0].settings_differ_from.empty());
+    CHECK(fleet.stations[2].settings_differ_from.empty());
+    CHECK(fleet.stations[3].settings_differ_from.empty());
+    const auto& b = fleet.stations[1];
+    CHECK(b.settings_differ_from == std::vector<std::string>{"gs-a", "gs-c"});
+    REQUIRE(b.settings_differences.size() == 1);
+    CHECK(b.settings_differences[0].key == "refit.every_hours");
+
+    const std::string text = magcal::status_text(fleet, 3600 * second);
+    CHECK(text.find(", owns 0 spacecraft\n                   SETTINGS DIFFER from gs-a, gs-c: "
+                    "refit.every_hours 6 here, 0 there\n  gs-c ") != std::string::npos);
+    CHECK(text.find("SETTINGS DIFFER") == text.rfind("SETTINGS DIFFER"));  // only gs-b
+    const auto j = magcal::status_json(fleet, 3600 * second)["stations"];
+    CHECK(j[0]["settings_differ"].is_null());
+    CHECK(j[0]["settings_hash"] == common.hash);
+    CHECK(j[1]["settings_hash"] == other.hash);
+    CHECK(j[1]["settings_differ"]["from"] == nlohmann::json{"gs-a", "gs-c"});
+    CHECK(j[1]["settings_differ"]["keys"] ==
+          nlohmann::json::parse(R"([{"key": "refit.every_hours", "here": "6", "there": "0"}])"));
+  }
+  SECTION("one against one: no majority, both are marked, each against the other") {
+    const auto fleet = read([&](magcal::storage::LeaseStore& leases) {
+      leases.heartbeat("gs-a", "a1", common, now, 3600 * second);
+      leases.heartbeat("gs-b", "b1", other, now, 3600 * second);
+    });
+    REQUIRE(fleet.stations.size() == 2);
+    CHECK(fleet.stations[0].settings_differ_from == std::vector<std::string>{"gs-b"});
+    CHECK(fleet.stations[1].settings_differ_from == std::vector<std::string>{"gs-a"});
+    CHECK(magcal::status_text(fleet, 3600 * second)
+              .find("SETTINGS DIFFER from gs-b: refit.every_hours 0 here, 6 there\n") !=
+          std::string::npos);
+  }
+  SECTION("equal settings, or a station that declares none: nothing is marked") {
+    const auto fleet = read([&](magcal::storage::LeaseStore& leases) {
+      leases.heartbeat("gs-a", "a1", common, now, 3600 * second);
+      leases.heartbeat("gs-b", "b1", common, now, 3600 * second);
+      leases.heartbeat("gs-c", "c1", {}, now, 3600 * second);
+    });
+    for (const auto& st : fleet.stations) CHECK(st.settings_differ_from.empty());
+    const std::string text = magcal::status_text(fleet, 3600 * second);
+    CHECK(text.find("SETTINGS DIFFER") == std::string::npos);
+    CHECK(magcal::status_json(fleet, 3600 * second)["stations"][2]["settings_hash"].is_null());
+  }
 }
