@@ -223,6 +223,7 @@ void SampleIntake::ingest(const mag_sample_t& s, const std::string& batch_sat_id
   count_missing(t, s.seq);
   // Telemetry cannot come from the future (beyond clock skew): a corrupt time tag.
   const int64_t now = receive_utime > 0 ? receive_utime : wall_utime();
+  t.received_wall_utime = now;
   if (s.utime > saturating_add(now, config_.max_future_utime())) {
     reject_sample(RejectReason::kFutureTime, sat, s);
     return;
