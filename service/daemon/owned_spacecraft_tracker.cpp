@@ -262,9 +262,10 @@ void OwnedSpacecraftTracker::maintain_leases() {
     // Ownership follows reception (the owner of a spacecraft only this station receives reads
     // back nothing of other stations): of the free leases, those received here within the last
     // lease time are taken first, up to the share in received ones (the excess of others is
-    // handed over below); the others up to the share. A lease another live station handed over
-    // is left to its receivers for one round (taken at the next if still free); one whose
-    // holder died or left is taken at once (failover).
+    // handed over below); the others up to the share. A free lease not received here is left
+    // to its receivers for a lease round (lease_s / 3: each takes it at its next round) unless
+    // its holder died or stopped (failover: taken at once). A spacecraft's first lease counts as
+    // handed over by its receiver.
     const int64_t received_since = saturating_sub(now, ttl);
     auto received_here = [&](const std::string& sat) {
       const SpacecraftTracker* t = fleet_.find(sat);
@@ -275,19 +276,26 @@ void OwnedSpacecraftTracker::maintain_leases() {
       if (t.owned && received_here(sat)) ++held_received;
     });
     std::vector<std::pair<uint64_t, std::string>> free_received, free_other;
-    std::set<std::string> left_to_receivers;
+    std::unordered_map<std::string, int64_t> free_since;
     for (const auto& l : all) {
       if (l.held_at(now)) continue;
       if (received_here(l.sat_id)) {
         free_received.emplace_back(ownership_preference(l.sat_id, me), l.sat_id);
-      } else if (l.owner != me && std::binary_search(live.begin(), live.end(), l.owner) &&
-                 !left_to_receivers_.count(l.sat_id)) {
-        left_to_receivers.insert(l.sat_id);
-      } else {
+        continue;
+      }
+      // (This station's own lease that ran out, e.g. a stall: back at once too.)
+      const bool holder_gone =
+          l.owner == me ||
+          (!l.owner.empty() && !std::binary_search(live.begin(), live.end(), l.owner));
+      const auto seen = free_since_.find(l.sat_id);
+      const int64_t since = seen == free_since_.end() ? now : seen->second;
+      if (holder_gone || now - since >= ttl / 3) {
         free_other.emplace_back(ownership_preference(l.sat_id, me), l.sat_id);
+      } else {
+        free_since.emplace(l.sat_id, since);
       }
     }
-    left_to_receivers_.swap(left_to_receivers);
+    free_since_.swap(free_since);
     auto take = [&](std::vector<std::pair<uint64_t, std::string>>& free, bool received) {
       std::sort(free.rbegin(), free.rend());
       for (size_t i = 0; i < free.size() && (received ? held_received : held) < share &&

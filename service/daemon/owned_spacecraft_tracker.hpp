@@ -45,6 +45,7 @@
 #include <span>
 #include <stdexcept>
 #include <string>
+#include <unordered_map>
 #include <utility>
 #include <vector>
 
@@ -219,9 +220,9 @@ class OwnedSpacecraftTracker final : public CommitParticipant {
   std::vector<std::string> refits_elsewhere_;
 
   std::vector<std::string> unregistered_;  // spacecraft new here: lease rows to ensure
-  // Free leases another live station handed over, not received here: left to their receivers
-  // at the last lease round (maintain_leases()).
-  std::set<std::string> left_to_receivers_;
+  // Free leases not received here, left to their receivers at the last lease round, and since
+  // when (wall time; maintain_leases()).
+  std::unordered_map<std::string, int64_t> free_since_;
   std::chrono::steady_clock::time_point next_lease_round_{};
   std::chrono::steady_clock::time_point next_union_poll_{};
   size_t live_stations_ = 1;     // at the last lease round (1: alone, no other station writes)
