@@ -264,8 +264,8 @@ void OwnedSpacecraftTracker::maintain_leases() {
     // lease time are taken first, up to the share in received ones (the excess of others is
     // handed over below); the others up to the share. A free lease not received here is left
     // to its receivers for a lease round (lease_s / 3: each takes it at its next round) unless
-    // its holder died or stopped (failover: taken at once). A spacecraft's first lease counts as
-    // handed over by its receiver.
+    // its holder died or stopped (failover: taken at once), or no other station is live. A
+    // spacecraft's first lease counts as handed over by its receiver.
     const int64_t received_since = saturating_sub(now, ttl);
     auto received_here = [&](const std::string& sat) {
       const SpacecraftTracker* t = fleet_.find(sat);
@@ -289,7 +289,7 @@ void OwnedSpacecraftTracker::maintain_leases() {
           (!l.owner.empty() && !std::binary_search(live.begin(), live.end(), l.owner));
       const auto seen = free_since_.find(l.sat_id);
       const int64_t since = seen == free_since_.end() ? now : seen->second;
-      if (holder_gone || now - since >= ttl / 3) {
+      if (holder_gone || live.size() <= 1 || now - since >= ttl / 3) {
         free_other.emplace_back(ownership_preference(l.sat_id, me), l.sat_id);
       } else {
         free_since.emplace(l.sat_id, since);
