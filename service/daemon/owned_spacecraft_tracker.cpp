@@ -6,6 +6,7 @@
 #include <cmath>
 #include <limits>
 #include <random>
+#include <tuple>
 #include <unordered_map>
 
 #include <spdlog/spdlog.h>
@@ -258,18 +259,71 @@ void OwnedSpacecraftTracker::maintain_leases() {
       }
     }
     const std::vector<storage::Lease> all = leases_->list();
-    live_stations_ = std::max<size_t>(1, leases_->live_stations(now).size());
+    const std::vector<std::string> live = leases_->live_stations(now);
+    live_stations_ = std::max<size_t>(1, live.size());
     const size_t share = (all.size() + live_stations_ - 1) / live_stations_;
-    // Hand over the ones this station prefers least (the others take them at their next round),
-    // once their snapshots are committed (one attempt: never waits through an outage).
+    // Ownership follows reception (the owner of a spacecraft only this station receives reads
+    // back nothing of other stations): of the free leases, those received here within the last
+    // lease time are taken first, up to the share in received ones (the excess of others is
+    // handed over below); the others up to the share. A free lease not received here is left
+    // to its receivers for a lease round (lease_s / 3: each takes it at its next round) unless
+    // its holder died or stopped (failover: taken at once), or no other station is live. A
+    // spacecraft's first lease counts as handed over by its receiver.
+    const int64_t received_since = saturating_sub(now, ttl);
+    auto received_here = [&](const std::string& sat) {
+      const SpacecraftTracker* t = fleet_.find(sat);
+      return t != nullptr && t->received_since(received_since);
+    };
+    size_t held_received = 0;
+    fleet_.for_each([&](const std::string& sat, OwnedSpacecraft& t) {
+      if (t.owned && received_here(sat)) ++held_received;
+    });
+    std::vector<std::pair<uint64_t, std::string>> free_received, free_other;
+    std::unordered_map<std::string, int64_t> free_since;
+    for (const auto& l : all) {
+      if (l.held_at(now)) continue;
+      if (received_here(l.sat_id)) {
+        free_received.emplace_back(ownership_preference(l.sat_id, me), l.sat_id);
+        continue;
+      }
+      // (This station's own lease that ran out, e.g. a stall: back at once too.)
+      const bool holder_gone =
+          l.owner == me ||
+          (!l.owner.empty() && !std::binary_search(live.begin(), live.end(), l.owner));
+      const auto seen = free_since_.find(l.sat_id);
+      const int64_t since = seen == free_since_.end() ? now : seen->second;
+      if (holder_gone || live.size() <= 1 || now - since >= ttl / 3) {
+        free_other.emplace_back(ownership_preference(l.sat_id, me), l.sat_id);
+      } else {
+        free_since.emplace(l.sat_id, since);
+      }
+    }
+    free_since_.swap(free_since);
+    auto take = [&](std::vector<std::pair<uint64_t, std::string>>& free, bool received) {
+      std::sort(free.rbegin(), free.rend());
+      for (size_t i = 0; i < free.size() && (received ? held_received : held) < share &&
+                         acquired.size() < kMaxTakeoversPerRound;
+           ++i) {
+        if (const auto lease = leases_->try_acquire(free[i].second, me, now, ttl)) {
+          acquired.emplace_back(free[i].second, lease->epoch);
+          ++held;
+          if (received) ++held_received;
+        }
+      }
+    };
+    take(free_received, true);
+    take(free_other, false);
+    // Over the share: hand over those not received here first, then the ones this station
+    // prefers least (the others take them at their next round), once their snapshots are
+    // committed (one attempt: never waits through an outage).
     if (held > share && links_.commit_all(false)) {
-      std::vector<std::pair<uint64_t, std::string>> mine;
+      std::vector<std::tuple<bool, uint64_t, std::string>> mine;
       fleet_.for_each([&](const std::string& sat, OwnedSpacecraft& t) {
-        if (t.owned) mine.emplace_back(ownership_preference(sat, me), sat);
+        if (t.owned) mine.emplace_back(received_here(sat), ownership_preference(sat, me), sat);
       });
       std::sort(mine.begin(), mine.end());
       for (size_t i = 0; i < mine.size() && held > share; ++i) {
-        const std::string& sat = mine[i].second;
+        const std::string& sat = std::get<2>(mine[i]);
         OwnedSpacecraft& t = *fleet_.find(sat);
         if (t.state_dirty) {
           storage::Transaction tx(db_);
@@ -277,24 +331,11 @@ void OwnedSpacecraftTracker::maintain_leases() {
           tx.commit();
         }
         leases_->release(sat, me, t.lease_epoch, wall_utime());
-        spdlog::info("{}: handed over ({} live stations share {} spacecraft)", sat, live_stations_,
-                     all.size());
+        spdlog::info("{}: handed over ({} live stations share {} spacecraft{})", sat,
+                     live_stations_, all.size(),
+                     std::get<0>(mine[i]) ? "" : "; received elsewhere or not at all");
         give_up(sat, t);
         --held;
-      }
-    } else if (held < share) {
-      std::vector<std::pair<uint64_t, std::string>> free;
-      for (const auto& l : all) {
-        if (l.held_at(now)) continue;
-        free.emplace_back(ownership_preference(l.sat_id, me), l.sat_id);
-      }
-      std::sort(free.rbegin(), free.rend());
-      for (size_t i = 0; i < free.size() && held < share && acquired.size() < kMaxTakeoversPerRound;
-           ++i) {
-        if (const auto lease = leases_->try_acquire(free[i].second, me, now, ttl)) {
-          acquired.emplace_back(free[i].second, lease->epoch);
-          ++held;
-        }
       }
     }
     poll_refits_elsewhere();

@@ -1,6 +1,7 @@
 // Track: the part of the daemon's worker that runs only for the spacecraft this daemon owns
 // (design.md "Fleet"). The daemon holding a spacecraft's lease (LeaseStore, maintain_leases()
-// every [fleet] lease_s / 3; the live daemons share the spacecraft evenly) reads back the union
+// every [fleet] lease_s / 3; the live daemons share the spacecraft evenly, each preferring those
+// it receives itself) reads back the union
 // of all stations' stored samples in time order, [fleet] reorder_delay_s of data time behind the
 // newest (track_union()), and runs them through the UKF: snapshots every `snapshot_every_s` of
 // DATA time, on a grid every owner shares (history row + calibration_t), and the refit triggers
@@ -44,6 +45,7 @@
 #include <span>
 #include <stdexcept>
 #include <string>
+#include <unordered_map>
 #include <utility>
 #include <vector>
 
@@ -219,6 +221,9 @@ class OwnedSpacecraftTracker final : public CommitParticipant {
   std::vector<std::string> refits_elsewhere_;
 
   std::vector<std::string> unregistered_;  // spacecraft new here: lease rows to ensure
+  // Free leases not received here, left to their receivers at the last lease round, and since
+  // when (wall time; maintain_leases()).
+  std::unordered_map<std::string, int64_t> free_since_;
   std::chrono::steady_clock::time_point next_lease_round_{};
   std::chrono::steady_clock::time_point next_union_poll_{};
   size_t live_stations_ = 1;     // at the last lease round (1: alone, no other station writes)

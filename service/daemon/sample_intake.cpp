@@ -46,6 +46,11 @@ uint64_t pending_key(const std::string& sat_id, int64_t utime) {
 
 }  // namespace
 
+void SampleIntake::begin_frame() {
+  ++frame_counter_;
+  frame_wall_utime_ = wall_utime();
+}
+
 SampleIntake::SampleIntake(const DaemonConfig& config, DaemonCounters& counters,
                            std::unique_ptr<ReferenceField> field, storage::Connection& db,
                            storage::SampleWindowStore& samples, SpacecraftFleet& fleet)
@@ -233,6 +238,8 @@ void SampleIntake::ingest(const mag_sample_t& s, const std::string& batch_sat_id
   count_missing(t, s.seq);
   // Telemetry cannot come from the future (beyond clock skew): a corrupt time tag.
   const int64_t now = receive_utime > 0 ? receive_utime : wall_utime();
+  // (This daemon's clock, whatever the frame's receive time says: the lease rounds compare it.)
+  t.received_wall_utime = frame_wall_utime_ > 0 ? frame_wall_utime_ : wall_utime();
   if (s.utime > saturating_add(now, config_.max_future_utime())) {
     reject_sample(RejectReason::kFutureTime, sat, s);
     return;

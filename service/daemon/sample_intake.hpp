@@ -101,7 +101,7 @@ class SampleIntake {
   void restore_spacecraft(const std::string& sat_id);
 
   // A new frame starts (a hold needs samples from more than one frame to resolve).
-  void begin_frame() { ++frame_counter_; }
+  void begin_frame();
   // Validates and ingests one sample of the frame.
   void ingest(const mag_sample_t& s, const std::string& batch_sat_id, int64_t receive_utime);
   // Spacecraft new to this process since the last call, received or restored (their lease
@@ -254,8 +254,9 @@ class SampleIntake {
   // in that order; one entry per spacecraft (its first hold), dropped once due.
   std::vector<std::pair<std::string, std::chrono::steady_clock::time_point>> first_holds_;
   int64_t data_clock_utime_ = std::numeric_limits<int64_t>::min();
-  int64_t frame_counter_ = 0;    // frames begun (a hold needs more than one to resolve)
-  bool resolving_held_ = false;  // resolve_held() is running (no re-entry)
+  int64_t frame_counter_ = 0;     // frames begun (a hold needs more than one to resolve)
+  int64_t frame_wall_utime_ = 0;  // this daemon's wall clock when the frame began
+  bool resolving_held_ = false;   // resolve_held() is running (no re-entry)
   bool other_stations_live_ = false;
 
   // Retention: spacecraft whose edge advanced, the newest edge of any (the data-time cadence).

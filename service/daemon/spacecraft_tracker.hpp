@@ -131,6 +131,9 @@ struct ReceivedSpacecraft {
   // station; in a fleet the owner counts the union's: OwnedSpacecraft::union_seq).
   SeqGapCounter received_seq;
   int64_t advances = 0;  // accepted samples that moved newest_utime forward
+  // Wall time this station last received a valid sample of it (kNoTime: never): the owner side
+  // prefers the spacecraft this station receives (OwnedSpacecraftTracker::maintain_leases).
+  int64_t received_wall_utime = kNoTime;
   // Retention (SampleIntake::run_retention): the owner's filter time while this daemon owns
   // the spacecraft (kNoTime: not owned here, nothing is deleted), and a lower bound of what
   // is stored (kNoTime: unknown): a cutoff at or below it has nothing to delete.
@@ -152,6 +155,10 @@ struct ReceivedSpacecraft {
   // Copies `s` into the hold (sat_id left empty); the caller makes room first.
   void hold(const mag_sample_t& s, int64_t receive_utime, int64_t frame);
   bool holds_utime(int64_t utime) const;
+  // A valid sample of it was received here at or after this wall time.
+  bool received_since(int64_t wall_utime) const {
+    return received_wall_utime != kNoTime && received_wall_utime >= wall_utime;
+  }
 };
 
 // What the holder of a spacecraft's lease keeps of it (OwnedSpacecraftTracker,

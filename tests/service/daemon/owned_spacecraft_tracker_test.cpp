@@ -7,6 +7,7 @@
 
 #include <chrono>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "service/daemon/ingest_worker.hpp"
@@ -75,13 +76,13 @@ struct TwoStations {
   }
 };
 
-void feed(IngestWorker& w, const std::vector<mag_sample_t>& s) {
-  for (size_t i = 0; i < s.size(); i += kLogBatch) {
+void feed(IngestWorker& w, const std::vector<mag_sample_t>& s, size_t per_frame = kLogBatch) {
+  for (size_t i = 0; i < s.size(); i += per_frame) {
     IngestItem item;
     item.from_batch = true;
     item.batch_sat_id = s[i].sat_id;
     item.samples.assign(s.begin() + static_cast<long>(i),
-                        s.begin() + static_cast<long>(std::min(s.size(), i + kLogBatch)));
+                        s.begin() + static_cast<long>(std::min(s.size(), i + per_frame)));
     item.receive_utime = wall_now_utime();
     w.process(item);
   }
@@ -170,4 +171,82 @@ TEST_CASE("a refit still running elsewhere at the takeover re-anchors the new ow
   const auto stored = db->make_filter_state_store()->load("SAT-1", "ukf");
   REQUIRE(stored);
   CHECK(stored->anchor_calibration_id == id);
+}
+
+TEST_CASE("ownership follows reception: each station owns what it receives, also after a failover",
+          "[owned_spacecraft_tracker][fleet]") {
+  TempDir tmp("magcal_owner_test_reception");
+  const std::string db = tmp.file("m.db");
+  constexpr int kSats = 10;  // A receives the even ones, B the odd ones
+  constexpr double kLease_s = 2.0;
+  auto config = [&](const std::string& station) {
+    DaemonConfig c = station_config(db, station);
+    c.fleet.lease_s = kLease_s;
+    return c;
+  };
+  int next_sample = 0;
+  int newest_sample[2] = {-1, -1};  // by parity
+  // 20 new samples of each of the station's spacecraft, received now (frames of 5: a new
+  // spacecraft's first frame alone does not set its time).
+  auto receive = [&](IngestWorker& w, int parity) {
+    std::vector<mag_sample_t> s;
+    for (int i = 0; i < 20; ++i) {
+      for (int k = parity; k < kSats; k += 2) {
+        s.push_back(turning_field_sample("SAT-" + std::to_string(k), kT0, next_sample + i));
+      }
+    }
+    std::stable_sort(s.begin(), s.end(),
+                     [](const auto& x, const auto& y) { return x.sat_id < y.sat_id; });
+    feed(w, s, 5);
+    next_sample += 20;
+    newest_sample[parity] = next_sample - 1;
+  };
+  auto owners = [&](IngestWorker& a, IngestWorker* b) {
+    std::string text;
+    for (int k = 0; k < kSats; ++k) {
+      const std::string sat = "SAT-" + std::to_string(k);
+      text += a.owns(sat) ? 'A' : b != nullptr && b->owns(sat) ? 'B' : '-';
+    }
+    return text;
+  };
+  DaemonCounters counters_a, counters_b;
+  IngestWorker a(config("A"), counters_a, std::make_unique<ReferenceField>(), {});
+  auto b = std::make_unique<IngestWorker>(
+      config("B"), counters_b, std::make_unique<ReferenceField>(), IngestWorker::Hooks{});
+  b->restore();
+  receive(*b, 1);
+  a.restore();
+  receive(a, 0);
+  a.maintain_leases();
+  b->maintain_leases();
+  CHECK(owners(a, b.get()) == "ABABABABAB");
+
+  // B dies (no clean stop): once its leases ran out, A takes its spacecraft over at its next
+  // lease round, though it does not receive them.
+  b.reset();
+  std::this_thread::sleep_for(std::chrono::duration<double>(kLease_s * 1.1));
+  a.maintain_leases();
+  CHECK(owners(a, nullptr) == "AAAAAAAAAA");
+
+  // B comes back and receives its spacecraft again: A, over its share, hands over those it does
+  // not receive, and B takes them.
+  DaemonCounters counters_b2;
+  b = std::make_unique<IngestWorker>(config("B"), counters_b2, std::make_unique<ReferenceField>(),
+                                     IngestWorker::Hooks{});
+  b->restore();
+  receive(*b, 1);
+  receive(a, 0);
+  a.maintain_leases();
+  b->maintain_leases();
+  CHECK(owners(a, b.get()) == "ABABABABAB");
+  // Each owner's filter has taken its spacecraft's union to the newest sample.
+  a.track_all_now();
+  b->track_all_now();
+  for (int k = 0; k < kSats; ++k) {
+    const std::string sat = "SAT-" + std::to_string(k);
+    IngestWorker& owner = k % 2 == 0 ? a : *b;
+    INFO(sat);
+    CHECK(owner.fleet().find(sat)->filtered_utime ==
+          turning_field_sample(sat, kT0, newest_sample[k % 2]).utime);
+  }
 }
