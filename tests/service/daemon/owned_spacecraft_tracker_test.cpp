@@ -249,4 +249,11 @@ TEST_CASE("ownership follows reception: each station owns what it receives, also
     CHECK(owner.fleet().find(sat)->filtered_utime ==
           turning_field_sample(sat, kT0, newest_sample[k % 2]).utime);
   }
+
+  // B's input ends (its replay ended, or it stops), then A leaves the fleet: B, draining, takes
+  // none of A's spacecraft, though they are free and no other station is live; it keeps its own.
+  b->input_ended();
+  a.leave_fleet();
+  b->maintain_leases();
+  CHECK(owners(*b, nullptr) == "-B-B-B-B-B");
 }
