@@ -305,9 +305,12 @@ namespace {
 // A UKF as the daemon runs it for a new spacecraft on its embedded defaults: `ok` waits for a
 // refit's model error, and twostep refits of all samples so far at 1 000 samples, then each
 // sqrt(2) more until the first full window (4 000), re-anchor it when accepted (with their
-// residual rms as its noise seed), as service/daemon/ingest_worker.cpp does.
-void replay_with_refits(const std::vector<TruthSample>& data, Outcome& o, int& refits,
-                        int& refits_accepted) {
+// residual rms as its noise seed, and its bias rate), as service/daemon/ingest_worker.cpp does.
+struct RefitCounts {
+  int run = 0, accepted = 0, with_bias_rate = 0;
+};
+
+void replay_with_refits(const std::vector<TruthSample>& data, Outcome& o, RefitCounts& refits) {
   MagnetometerUkf::Options options;
   options.ok_needs_model_error = true;
   MagnetometerUkf ukf(options);
@@ -320,11 +323,13 @@ void replay_with_refits(const std::vector<TruthSample>& data, Outcome& o, int& r
     if (next_refit <= 4000.5 && static_cast<double>(window.size()) >= std::round(next_refit)) {
       next_refit *= std::sqrt(2.0);
       const CalibrationResult refit = calibrate_batch(window, BatchCalibrationOptions{});
-      ++refits;
+      ++refits.run;
+      refits.with_bias_rate += refit.has_bias_rate;
       if (refit.accepted) {
-        ++refits_accepted;
+        ++refits.accepted;
         ukf.reanchor(refit.parameters.packed(), refit.covariance, refit.model_error_covariance());
         ukf.seed_noise(refit.residual_rms_nT);
+        ukf.seed_bias_rate(refit.bias_rate_nT_per_h, refit.bias_rate_covariance);
       }
     }
     if ((k + 1) % 90 == 0) judge_snapshot(ukf, data[k], data.front().sample.utime, o);
@@ -343,13 +348,13 @@ void replay_with_refits(const std::vector<TruthSample>& data, Outcome& o, int& r
 TEST_CASE(
     "Side-panel sensor, constant bias, daemon refits: no false bias motion, ok within 3 sigma") {
   Outcome total;
-  int refits = 0, refits_accepted = 0;
+  RefitCounts refits;
   for (uint64_t seed : {1, 2, 3}) {
     Scenario sc = paper_day(seed, 24.0);
     sc.sensor.installation_deg = Eigen::Vector3d(30.0, 90.0, -50.0);
     sc.sensor.internal_misalignment_mrad.setZero();
     Outcome o;
-    replay_with_refits(simulate_with_truth(sc), o, refits, refits_accepted);
+    replay_with_refits(simulate_with_truth(sc), o, refits);
     report(("side panel, seed " + std::to_string(seed)).c_str(), o);
     add(total, o);
     total.beyond_3_sigma += o.beyond_3_sigma;
@@ -360,25 +365,24 @@ TEST_CASE(
   // The first full-window refit comes at 11.1 h; after it the weakly observed axis's sigma (the
   // refit's model error, ~9 nT) stays near the 10 nT bound: ok for much of the time, not all.
   CHECK(total.ok > total.snapshots / 3);
-  WARN("side panel, 3 seeds: " << per_axis(total) << "; refits accepted " << refits_accepted
-                               << " of " << refits);
-  REQUIRE(refits_accepted == refits);  // the refits are fine: the filter must not contradict them
+  WARN("side panel, 3 seeds: " << per_axis(total) << "; refits accepted " << refits.accepted
+                               << " of " << refits.run);
+  REQUIRE(refits.accepted ==
+          refits.run);  // the refits are fine: the filter must not contradict them
   CHECK(total.beyond_3_sigma == 0);
 }
 
 // The drifts of the test above (0.3-3 nT/h, the same three streams) through the daemon's path:
 // early refits of all samples so far re-anchor the UKF, whose `ok` waits for a refit's model error
 // (replay_with_refits). A batch fit over a window in which the bias moves estimates the bias
-// averaged over that window, with a covariance that says nothing of the motion, and the re-anchor
-// treats it as the current bias: measured (45 draws x 24 h), 1253 ok snapshots, beyond 3 sigma
-// per axis 19 / 156 / 130, worst 7.0 sigma (z, at the 4 000-sample refit: sigma 0.39 nT for a bias
-// that moved 5 nT over that refit's window); every refit accepted. Aging the refit's estimate
-// from its window's midpoint to now by the filter's bias random walk (measured, or the floor)
-// gave 3 / 170 / 68, worst 4.7 sigma: the floor is too small for what the trend test cannot
-// exclude on y. Still open (issue 20 item 3): the bars are CHECK_NOFAIL.
+// averaged over that window, with a covariance that says nothing of the motion; re-anchored on it,
+// the UKF was ok up to 7.0 sigma off (1253 ok, beyond 3 sigma per axis 19 / 156 / 130). Refits of
+// 6 h and more now fit a bias rate when BIC takes it (pipeline/temperature_model.hpp) and publish
+// the bias at the window's end; the UKF predicts the bias with that rate until the next re-anchor
+// (seed_bias_rate()).
 TEST_CASE("Linear bias drift, daemon refits: ok snapshots within 3 sigma of the current bias") {
   Outcome total;
-  int refits = 0, refits_accepted = 0;
+  RefitCounts refits;
   std::string misses;
   for (uint64_t stream : {20, 21, 22}) {
     std::mt19937_64 rng(stream);
@@ -386,16 +390,45 @@ TEST_CASE("Linear bias drift, daemon refits: ok snapshots within 3 sigma of the 
         rng, log_uniform_rate,
         [&](uint64_t seed, const Eigen::Vector3d& r, const std::vector<TruthSample>& data) {
           Outcome o;
-          replay_with_refits(data, o, refits, refits_accepted);
+          replay_with_refits(data, o, refits);
           misses += draw_with_misses(stream, seed, r, o);
           add(total, o);
         });
   }
   WARN("drift 0.3-3 nT/h, daemon refits: UKF "
-       << per_axis(total) << "; refits accepted " << refits_accepted << " of " << refits
-       << "; draws with ok snapshots beyond 3 sigma:" << misses);
-  CHECK(total.ok > 0);
-  CHECK(total.moving_messages > 0);  // the fast draws are named not_converged for the motion
-  for (int i = 0; i < 3; ++i) CHECK_NOFAIL(total.beyond_3_sigma_per_axis(i) <= total.ok / 100);
-  CHECK_NOFAIL(total.worst < 4.0);
+       << per_axis(total) << "; refits accepted " << refits.accepted << " of " << refits.run << ", "
+       << refits.with_bias_rate
+       << " with a bias rate; draws with ok snapshots beyond 3 sigma:" << misses);
+  CHECK(total.ok > total.snapshots / 10);
+  for (int i = 0; i < 3; ++i) CHECK(total.beyond_3_sigma_per_axis(i) <= total.ok / 100);
+  CHECK(total.worst < 4.0);
+  CHECK(refits.with_bias_rate > 0);
+}
+
+// The control of the case above: a constant bias, and a drift of 0.1 nT/h per axis (2.4 nT a
+// day, random signs), 10 seeds x 24 h each through the same refits. Bar: as honest as the drifts
+// (no axis beyond 3 sigma in more than 1 % of the ok snapshots), ok most of the time, and no bias
+// rate on the constant bias.
+TEST_CASE("Constant bias and 0.1 nT/h drift, daemon refits: ok within 3 sigma, no false rate") {
+  std::mt19937_64 rng(23);
+  for (double rate_nT_per_h : {0.0, 0.1}) {
+    Outcome total;
+    RefitCounts refits;
+    std::string misses;
+    for (uint64_t seed = 1; seed <= 10; ++seed) {
+      Eigen::Vector3d r;
+      for (int i = 0; i < 3; ++i) r(i) = (rng() % 2 ? 1.0 : -1.0) * rate_nT_per_h;
+      Outcome o;
+      replay_with_refits(simulate_drift(seed, 24.0, r, false), o, refits);
+      misses += draw_with_misses(0, seed, r, o);
+      add(total, o);
+    }
+    WARN("drift " << rate_nT_per_h << " nT/h, daemon refits: UKF " << per_axis(total)
+                  << "; refits accepted " << refits.accepted << " of " << refits.run << ", "
+                  << refits.with_bias_rate << " with a bias rate" << misses);
+    for (int i = 0; i < 3; ++i) CHECK(total.beyond_3_sigma_per_axis(i) <= total.ok / 100);
+    CHECK(total.worst < 4.0);
+    CHECK(total.ok > total.snapshots / 2);
+    if (rate_nT_per_h == 0.0) CHECK(refits.with_bias_rate == 0);
+  }
 }
