@@ -102,6 +102,17 @@ CalibrationResult as_bias_rate(CalibrationResult result) {
   return result;
 }
 
+CalibrationResult at_utime(CalibrationResult result, int64_t utime) {
+  if (!result.has_bias_rate) return result;
+  const double dt_h = static_cast<double>(utime - result.window_end_utime) / 3.6e9;
+  const double dc_h =
+      0.5 * static_cast<double>(result.window_end_utime - result.window_start_utime) / 3.6e9;
+  result.parameters.bias_nT += result.bias_rate_nT_per_h * dt_h;
+  result.covariance.topLeftCorner<3, 3>() +=
+      result.bias_rate_covariance * ((dc_h + dt_h) * (dc_h + dt_h) - dc_h * dc_h);
+  return result;
+}
+
 SampleSet temperature_corrected_samples(const SampleSet& samples, const Eigen::Matrix3d& D,
                                         const Eigen::Vector3d& k_nT_per_C,
                                         double reference_temperature_C) {

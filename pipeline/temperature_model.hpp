@@ -121,6 +121,13 @@ SampleSet with_hours_before_window_end(const SampleSet& samples, double* span_h)
 // bias_rate_nT_per_h, no temperature model.
 CalibrationResult as_bias_rate(CalibrationResult result);
 
+// A result with a bias rate as the bias at utime (after its window's end): b + r dt, its bias
+// covariance grown by var(r) ((dc + dt)^2 - dc^2), dc the time from the window's centre to its
+// end (the fit's b and r are uncorrelated about the mean time of the samples: the centre for
+// evenly spread samples). Unchanged without a rate. For the daemon's re-anchor, whose filter has
+// run past the refit's window.
+CalibrationResult at_utime(CalibrationResult result, int64_t utime);
+
 // The samples with the temperature term removed: B' = B - (I + D)^-1 k (T - T0), so that
 // (I + D) B' - b0 = (I + D) B - b(T). Every stage after the stage-1 solve (residual evidence,
 // bootstrap, alignment) works on these. Samples without a temperature are copied unchanged.
