@@ -107,7 +107,7 @@ TEST_CASE("a failed refit publishes no NaN", "[calibration_record]") {
   }
 }
 
-TEST_CASE("the bias temperature model goes through the history record and back",
+TEST_CASE("the bias temperature model and the bias rate go through the history record and back",
           "[calibration_record]") {
   auto r = finite_result();
   r.has_temperature_model = true;
@@ -116,13 +116,21 @@ TEST_CASE("the bias temperature model goes through the history record and back",
   Eigen::Matrix3d cov;
   cov << 4e-4, 1e-5, -2e-6, 1e-5, 9e-4, 3e-6, -2e-6, 3e-6, 2.5e-5;
   r.temperature_coefficient_covariance = cov;
+  // (A refit has one or the other; the record keeps each on its own.)
+  r.has_bias_rate = true;
+  r.bias_rate_nT_per_h = Eigen::Vector3d(-2.75, 0.5, 1.25);
+  r.bias_rate_covariance = 100.0 * cov;
   const storage::CalibrationRecord rec = record_from_result("SAT-1", r);
   CHECK(rec.has_temperature_model == 1);
+  CHECK(rec.has_bias_rate == 1);
   const CalibrationResult back = result_from_record(rec);
   CHECK(back.has_temperature_model);
   CHECK(back.reference_temperature_C == r.reference_temperature_C);
   CHECK(back.temperature_coefficient_nT_per_C == r.temperature_coefficient_nT_per_C);
   CHECK(back.temperature_coefficient_covariance == cov);
+  CHECK(back.has_bias_rate);
+  CHECK(back.bias_rate_nT_per_h == r.bias_rate_nT_per_h);
+  CHECK(back.bias_rate_covariance == r.bias_rate_covariance);
   CHECK(back.parameters.bias_nT == r.parameters.bias_nT);
 
   // calibration_t has no temperature fields (a fixed contract): its bias is the bias at T0.
@@ -132,31 +140,13 @@ TEST_CASE("the bias temperature model goes through the history record and back",
   SECTION("a refit without the model says it has none; a filter says nothing") {
     auto plain = finite_result();
     CHECK(record_from_result("SAT-1", plain).has_temperature_model == 0);
+    CHECK(record_from_result("SAT-1", plain).has_bias_rate == 0);
     plain.method = "ukf";
     CHECK(record_from_result("SAT-1", plain).has_temperature_model == -1);
+    CHECK(record_from_result("SAT-1", plain).has_bias_rate == -1);
     CHECK_FALSE(result_from_record(record_from_result("SAT-1", plain)).has_temperature_model);
+    CHECK_FALSE(result_from_record(record_from_result("SAT-1", plain)).has_bias_rate);
   }
-}
-
-TEST_CASE("the bias rate goes through the history record and back", "[calibration_record]") {
-  auto r = finite_result();
-  r.has_bias_rate = true;
-  r.bias_rate_nT_per_h = Eigen::Vector3d(-2.75, 0.5, 1.25);
-  Eigen::Matrix3d cov;
-  cov << 0.0289, -1e-4, 2e-5, -1e-4, 0.0025, 3e-6, 2e-5, 3e-6, 9e-4;
-  r.bias_rate_covariance = cov;
-  const storage::CalibrationRecord rec = record_from_result("SAT-1", r);
-  CHECK(rec.has_bias_rate == 1);
-  const CalibrationResult back = result_from_record(rec);
-  CHECK(back.has_bias_rate);
-  CHECK(back.bias_rate_nT_per_h == r.bias_rate_nT_per_h);
-  CHECK(back.bias_rate_covariance == cov);
-
-  auto plain = finite_result();
-  CHECK(record_from_result("SAT-1", plain).has_bias_rate == 0);
-  plain.method = "ukf";
-  CHECK(record_from_result("SAT-1", plain).has_bias_rate == -1);
-  CHECK_FALSE(result_from_record(record_from_result("SAT-1", plain)).has_bias_rate);
 }
 
 TEST_CASE("a stored sample's temperature comes back with it (refit windows, UKF re-runs)",
