@@ -625,10 +625,13 @@ void residual_evidence(const SampleSet& samples, const BatchCalibrationOptions& 
 }
 
 // One fit of the samples; temperature: the temperature model is a candidate, about its mean.
+// bias_rate: the samples' temperature_C is the time before the window's end
+// (with_hours_before_window_end()), and a temperature model taken is published as a bias rate.
 CalibrationResult calibrate_batch_window(const SampleSet& samples,
                                          const BatchCalibrationOptions& options,
                                          const CalibrationResult* previous_accepted,
-                                         const TemperatureSpread* temperature) {
+                                         const TemperatureSpread* temperature,
+                                         bool bias_rate = false) {
   CalibrationResult r;
   r.method = to_string(options.method);
   r.n_samples = static_cast<int>(samples.size());
@@ -661,14 +664,20 @@ CalibrationResult calibrate_batch_window(const SampleSet& samples,
       rec.covariance + s1.refused_extension_shift * s1.refused_extension_shift.transpose();
   r.covariance_white_noise = recover_parameters(s1.theta, &s1.covariance_white).covariance;
 
+  if (bias_rate) r = as_bias_rate(std::move(r));
+
   // Every later stage sees the samples as the published model explains them: with the fitted
-  // temperature term removed.
+  // temperature (or bias rate) term removed.
   SampleSet temperature_corrected;
   if (r.has_temperature_model) {
     temperature_corrected = temperature_corrected_samples(
         samples, r.parameters.D, r.temperature_coefficient_nT_per_C, r.reference_temperature_C);
+  } else if (r.has_bias_rate) {
+    temperature_corrected =
+        temperature_corrected_samples(samples, r.parameters.D, r.bias_rate_nT_per_h, 0.0);
   }
-  const SampleSet& corrected = r.has_temperature_model ? temperature_corrected : samples;
+  const SampleSet& corrected =
+      r.has_temperature_model || r.has_bias_rate ? temperature_corrected : samples;
 
   GateInputs gate_inputs;
   if (options.method == BatchCalibrationOptions::Method::kTwoStep && options.bias_correction) {
@@ -732,6 +741,19 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
       if (r.has_temperature_model) return r;
     }
   }
+  // The bias rate only with the sensor-model extension beside it (twostep): the centered solution
+  // took the paper sensor's nonlinearity and hysteresis for a rate (paper scenario, 12 h, 10 seeds:
+  // bias MSE 4.1 -> 8.1 nT^2).
+  if (options.bias_rate_model && options.method == BatchCalibrationOptions::Method::kTwoStep) {
+    double span_h = 0.0;
+    const SampleSet timed = with_hours_before_window_end(samples, &span_h);
+    if (span_h >= kMinBiasRateWindow_h) {
+      const TemperatureSpread spread = temperature_spread(timed);
+      CalibrationResult r =
+          calibrate_batch_window(timed, options, previous_accepted, &spread, true);
+      if (r.has_bias_rate) return r;
+    }
+  }
   return calibrate_batch_window(samples, options, previous_accepted, nullptr);
 }
 }  // namespace
@@ -793,6 +815,7 @@ CalibrationResult calibrate_batch_robust(const SampleSet& samples,
   outlier_pass.method = BatchCalibrationOptions::Method::kTwoStep;  // the IRLS is in the LM
   outlier_pass.model_extension = false;
   outlier_pass.temperature_model = false;
+  outlier_pass.bias_rate_model = false;
   outlier_pass.bias_correction = false;
   outlier_pass.alignment = false;
   outlier_pass.gates = false;

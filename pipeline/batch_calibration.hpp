@@ -66,6 +66,10 @@ struct BatchCalibrationOptions {
   // usable spread. When only some do, a result with the model rests on those alone (n_samples
   // and the window count them); without it, on all samples.
   bool temperature_model = true;
+  // twostep: also fit a linear bias rate (pipeline/temperature_model.hpp: time as the covariate)
+  // and keep it when BIC prefers it, on windows of at least kMinBiasRateWindow_h where no
+  // temperature model is taken. The published bias is then that at the window's end.
+  bool bias_rate_model = true;
   // Hard geometry limits (beyond them no estimate is reported: kUnobservable). The acceptance
   // gates have their own, stricter, thresholds for "computed but not trusted".
   double min_coverage_eigenvalue = 1e-4;  // smallest eigenvalue of mean(d d^T), d = B/|B|

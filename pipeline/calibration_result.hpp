@@ -93,6 +93,17 @@ struct CalibrationResult {
     return temperature_coefficient_covariance.diagonal().cwiseMax(0.0).cwiseSqrt();
   }
 
+  // Linear bias rate (a drifting sensor), when the data support it (BIC) and no temperature model
+  // was taken: b(t) = bias_nT + r (t - window end), r per axis in nT/h; `parameters.bias_nT` and
+  // `covariance` are then those of the bias at the window's end (the current bias: what a filter
+  // re-anchored by this refit and an operator need). Covariance of r in (nT/h)^2.
+  bool has_bias_rate = false;
+  Eigen::Vector3d bias_rate_nT_per_h = Eigen::Vector3d::Zero();
+  Eigen::Matrix3d bias_rate_covariance = Eigen::Matrix3d::Zero();
+  Eigen::Vector3d bias_rate_sigma_nT_per_h() const {
+    return bias_rate_covariance.diagonal().cwiseMax(0.0).cwiseSqrt();
+  }
+
   // Batch refits that took the extension: p_9 - p, where the 9-parameter model's optimum lies on
   // this window relative to the published p (what an estimator without the extension, such as
   // the online filters, converges to instead). Zero otherwise.

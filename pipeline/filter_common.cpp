@@ -117,7 +117,9 @@ bool FilterState::operator==(const FilterState& o) const {
          bias_motion_sum_tJ_nT_h == o.bias_motion_sum_tJ_nT_h &&
          bias_motion_sum_Jd_nT == o.bias_motion_sum_Jd_nT &&
          bias_motion_sum_tJd_nT_h == o.bias_motion_sum_tJd_nT_h &&
-         bias_random_walk_nT2_per_hour == o.bias_random_walk_nT2_per_hour;
+         bias_random_walk_nT2_per_hour == o.bias_random_walk_nT2_per_hour &&
+         refit_bias_rate_nT_per_h == o.refit_bias_rate_nT_per_h &&
+         refit_bias_random_walk_nT2_per_hour == o.refit_bias_random_walk_nT2_per_hour;
 }
 
 const char* to_string(FilterUpdateStatus s) {
@@ -280,6 +282,13 @@ void ScalarFilterBase::set_model_error_covariance(const Matrix9d& model_error_co
   state_.model_error_known = true;
 }
 
+void ScalarFilterBase::seed_bias_rate(const Eigen::Vector3d& rate_nT_per_h,
+                                      const Eigen::Matrix3d& rate_covariance) {
+  state_.refit_bias_rate_nT_per_h = rate_nT_per_h;
+  state_.refit_bias_random_walk_nT2_per_hour =
+      3.0 * rate_covariance.diagonal() * options_->bias_motion_block_hours;
+}
+
 void ScalarFilterBase::seed_noise(double measurement_noise_nT, double residual_autocorrelation) {
   if (std::isfinite(residual_autocorrelation)) {
     state_.innovation_c0 = 1.0;
@@ -409,7 +418,7 @@ CalibrationResult ScalarFilterBase::snapshot() const {
     r.message = "waiting for the first refit to measure the model error";
   } else if (!(bias_sigma.array() < options_->converged_bias_sigma_nT).all()) {
     r.status = CalibrationStatus::kNotConverged;
-    if (state_.bias_random_walk_nT2_per_hour > 0.0) {
+    if (bias_random_walk_nT_per_sqrt_hour() > 0.0) {
       std::snprintf(buf, sizeof buf,
                     "bias 1-sigma above %.3g nT: the bias moves (random walk %.3g nT/sqrt(h) "
                     "measured) faster than the data observe it",
@@ -461,9 +470,12 @@ bool ScalarFilterBase::begin_update(FilterUpdate& u, const Eigen::Vector3d& b_se
     if (state_.initialized) {
       const double dt_s =
           static_cast<double>(saturating_sub(utime, state_.last_utime)) / kMicrosecondsPerSecond;
+      state_.x.head<3>() += state_.refit_bias_rate_nT_per_h * (dt_s / kSecondsPerHour);
       Vector9d q = process_noise_diagonal(options_->process_noise_per_sqrt_hour, dt_s);
+      const double isotropic_nT2_per_hour =
+          std::max(state_.bias_random_walk_nT2_per_hour, bias_random_walk_floor_nT2_per_hour());
       q.head<3>().array() +=
-          std::max(state_.bias_random_walk_nT2_per_hour, bias_random_walk_floor_nT2_per_hour()) *
+          state_.refit_bias_random_walk_nT2_per_hour.array().max(isotropic_nT2_per_hour) *
           (dt_s / kSecondsPerHour);
       if ((q.array() > 0.0).any()) {
         // P + Q re-factorised (one 9x9 LLT is cheaper than nine serial rank-1 updates).
@@ -744,6 +756,7 @@ void ScalarFilterBase::track_bias_motion() {
   if (state_.bias_motion_n < kBiasMotionMinBlocks) return;
   Eigen::Array3d rate, se2;
   if (!bias_trend(rate, se2)) return;
+  rate -= state_.refit_bias_rate_nT_per_h.array();  // the motion the filter already predicts
   const double chi2 = (rate.square() / se2).sum();
   if (!(chi2 > options_->bias_motion_chi2)) {
     state_.bias_random_walk_nT2_per_hour = 0.0;
@@ -757,7 +770,8 @@ void ScalarFilterBase::track_bias_motion() {
 }
 
 double ScalarFilterBase::bias_random_walk_nT_per_sqrt_hour() const {
-  return std::sqrt(state_.bias_random_walk_nT2_per_hour);
+  return std::sqrt(std::max(state_.bias_random_walk_nT2_per_hour,
+                            state_.refit_bias_random_walk_nT2_per_hour.maxCoeff()));
 }
 
 void ScalarFilterBase::update_convergence_time() {

@@ -301,6 +301,10 @@ struct FilterState {
   Eigen::Vector3d bias_motion_sum_Jd_nT = Eigen::Vector3d::Zero();
   Eigen::Vector3d bias_motion_sum_tJd_nT_h = Eigen::Vector3d::Zero();
   double bias_random_walk_nT2_per_hour = 0.0;
+  // The bias rate of the refit the filter is anchored on, nT/h, and its uncertainty as a random
+  // walk per axis (seed_bias_rate()).
+  Eigen::Vector3d refit_bias_rate_nT_per_h = Eigen::Vector3d::Zero();
+  Eigen::Vector3d refit_bias_random_walk_nT2_per_hour = Eigen::Vector3d::Zero();
 
   // Snapshot period (since the start or reset_period()).
   int64_t period_start_utime = 0;
@@ -385,6 +389,14 @@ class ScalarFilterBase {
   // refit's noise_scale, or its residual rms). Bounded below by sigma_nT. Ignored if not > 0.
   // residual_autocorrelation (the refit's lag-1 value, if finite) seeds the correlation
   // estimate behind the covariance inflation.
+  // The bias rate a refit measured (nT/h per axis, with its covariance; call after reanchor()):
+  // until the next seed the prediction moves the bias by it, the process noise takes its
+  // uncertainty as the random walk of the same block-to-block excess (q^2 = 3 var(r) L per axis,
+  // file comment), and the bias-motion trend is measured relative to it. The filter's own trend
+  // cannot do this: it restarts its evidence slowly and resolves only ~2 nT/h on a weakly observed
+  // axis (filter_slow_bias_test, daemon refits: ok up to 7 sigma off without it, 2 with it).
+  // Zero rates (a refit without a rate model) clear it.
+  void seed_bias_rate(const Eigen::Vector3d& rate_nT_per_h, const Eigen::Matrix3d& rate_covariance);
   void seed_noise(double measurement_noise_nT,
                   double residual_autocorrelation = std::numeric_limits<double>::quiet_NaN());
   // Forget everything (the next valid sample starts over).

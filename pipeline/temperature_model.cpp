@@ -1,8 +1,10 @@
 #include "pipeline/temperature_model.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <limits>
+#include <utility>
 
 #include <Eigen/Dense>
 
@@ -70,6 +72,45 @@ void temperature_coefficient_from_terms(const Vector4d& a, const Matrix4d& a_cov
   const Eigen::Matrix3d to_k = (Eigen::Matrix3d::Identity() + D).inverse();
   *k_nT_per_C = to_k * a.head<3>();
   *k_covariance = to_k * a_covariance.topLeftCorner<3, 3>() * to_k.transpose();
+}
+
+SampleSet with_hours_before_window_end(const SampleSet& samples, double* span_h) {
+  SampleSet out = samples;
+  *span_h = 0.0;
+  if (samples.empty()) return out;
+  const auto [first, last] = std::minmax_element(
+      samples.begin(), samples.end(),
+      [](const CalibrationSample& a, const CalibrationSample& b) { return a.utime < b.utime; });
+  const int64_t end_utime = last->utime;
+  *span_h = static_cast<double>(end_utime - first->utime) / 3.6e9;
+  for (CalibrationSample& s : out) {
+    s.temperature_C = static_cast<double>(s.utime - end_utime) / 3.6e9;
+  }
+  return out;
+}
+
+CalibrationResult as_bias_rate(CalibrationResult result) {
+  if (!result.has_temperature_model) return result;
+  result = at_temperature(std::move(result), 0.0);
+  result.has_bias_rate = true;
+  result.bias_rate_nT_per_h = result.temperature_coefficient_nT_per_C;
+  result.bias_rate_covariance = result.temperature_coefficient_covariance;
+  result.has_temperature_model = false;
+  result.reference_temperature_C = std::numeric_limits<double>::quiet_NaN();
+  result.temperature_coefficient_nT_per_C.setZero();
+  result.temperature_coefficient_covariance.setZero();
+  return result;
+}
+
+CalibrationResult at_utime(CalibrationResult result, int64_t utime) {
+  if (!result.has_bias_rate) return result;
+  const double dt_h = static_cast<double>(utime - result.window_end_utime) / 3.6e9;
+  const double dc_h =
+      0.5 * static_cast<double>(result.window_end_utime - result.window_start_utime) / 3.6e9;
+  result.parameters.bias_nT += result.bias_rate_nT_per_h * dt_h;
+  result.covariance.topLeftCorner<3, 3>() +=
+      result.bias_rate_covariance * ((dc_h + dt_h) * (dc_h + dt_h) - dc_h * dc_h);
+  return result;
 }
 
 SampleSet temperature_corrected_samples(const SampleSet& samples, const Eigen::Matrix3d& D,

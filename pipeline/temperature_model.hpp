@@ -101,6 +101,33 @@ Eigen::Vector3d temperature_shift_per_C(const Eigen::Matrix3d& D,
 // (the refit's change gate, `magcal status`): each is the bias at its own window's T0.
 CalibrationResult at_temperature(CalibrationResult result, double temperature_C);
 
+// Linear bias rate (issue 20 item 3): b(t) = b_end + r (t - t_end) is the temperature model with
+// time in hours before the window's end in place of the temperature (the same columns, the same
+// BIC choice; batch_calibration.cpp makes it a candidate when no temperature model is taken). A
+// refit over a window in which the bias moves otherwise estimates the window's mean bias, with a
+// covariance that says nothing of the motion: measured through the daemon's early refits (45
+// drifts of 0.3-3 nT/h x 24 h), ok snapshots up to 7 sigma off the current bias.
+// The model is a candidate only on windows of at least kMinBiasRateWindow_h. Measured on the paper
+// sensor with a constant bias: on 2.8 h windows BIC took it in 1 of 5 seeds (rate sigma 2-4 nT/h,
+// so no use against the drifts it is for); at 6 h and more the rate sigma is <= ~0.3 nT/h.
+constexpr double kMinBiasRateWindow_h = 6.0;
+
+// The samples with temperature_C replaced by the time before the last sample, hours (<= 0): the
+// covariate of the bias rate model. The window's span, h, in *span_h.
+SampleSet with_hours_before_window_end(const SampleSet& samples, double* span_h);
+
+// A fit of with_hours_before_window_end() samples that took the temperature model, published as
+// a bias rate: the bias at the window's end (at_temperature(result, 0)), the coefficient as
+// bias_rate_nT_per_h, no temperature model.
+CalibrationResult as_bias_rate(CalibrationResult result);
+
+// A result with a bias rate as the bias at utime (after its window's end): b + r dt, its bias
+// covariance grown by var(r) ((dc + dt)^2 - dc^2), dc the time from the window's centre to its
+// end (the fit's b and r are uncorrelated about the mean time of the samples: the centre for
+// evenly spread samples). Unchanged without a rate. For the daemon's re-anchor, whose filter has
+// run past the refit's window.
+CalibrationResult at_utime(CalibrationResult result, int64_t utime);
+
 // The samples with the temperature term removed: B' = B - (I + D)^-1 k (T - T0), so that
 // (I + D) B' - b0 = (I + D) B - b(T). Every stage after the stage-1 solve (residual evidence,
 // bootstrap, alignment) works on these. Samples without a temperature are copied unchanged.

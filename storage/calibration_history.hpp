@@ -72,6 +72,15 @@ struct CalibrationRecord {
   std::array<double, 6> temperature_coefficient_cov{};
   // Online results that applied a refit's model: that refit's id (0: none, or a refit's own).
   int64_t temperature_model_refit_id = 0;
+  // Linear bias rate (schema 9): b(t) = bias_nT + r (t - window_end_utime), so bias_nT is the
+  // bias at the window's end. -1 unknown / not modelled (NULL), 0 a refit whose data did not
+  // support it, 1 modelled (then the fields below are set).
+  int has_bias_rate = -1;
+  std::array<double, 3> bias_rate_nT_per_h{std::numeric_limits<double>::quiet_NaN(),
+                                           std::numeric_limits<double>::quiet_NaN(),
+                                           std::numeric_limits<double>::quiet_NaN()};
+  // Covariance of r, (nT/h)^2: xx yy zz xy xz yz (pack_symmetric).
+  std::array<double, 6> bias_rate_cov{};
   std::string software_version;  // empty: this build's MAGCAL_VERSION
   int64_t created_utime = 0;     // 0: wall-clock now
 };

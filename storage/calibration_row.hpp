@@ -29,8 +29,10 @@ inline constexpr const char* kInsertColumns =
     "has_nonlinearity, k3_x, k3_y, k3_z, nis_mean, measurement_noise_nT, model_error, "
     "alignment_covariance_rad2, has_temperature_model, reference_temperature_C, "
     "temperature_coefficient_x_nT_per_C, temperature_coefficient_y_nT_per_C, "
-    "temperature_coefficient_z_nT_per_C, temperature_coefficient_cov, temperature_model_refit_id";
-inline constexpr int kInsertValues = 55;
+    "temperature_coefficient_z_nT_per_C, temperature_coefficient_cov, temperature_model_refit_id, "
+    "has_bias_rate, bias_rate_x_nT_per_h, bias_rate_y_nT_per_h, bias_rate_z_nT_per_h, "
+    "bias_rate_cov";
+inline constexpr int kInsertValues = 60;
 // `SELECT <kSelectColumns> FROM calibrations ...`: id, then kInsertColumns.
 inline std::string select_sql(std::string_view tail) {
   return std::string("SELECT id, ") + kInsertColumns + " FROM calibrations " + std::string(tail);
@@ -127,6 +129,18 @@ void write(const CalibrationRecord& r, const std::string& reasons_json, Sink& ou
   } else {
     out.null();
   }
+  const bool bias_rate = r.has_bias_rate == 1;
+  if (r.has_bias_rate >= 0) {
+    out.integer(bias_rate ? 1 : 0);
+  } else {
+    out.null();
+  }
+  for (int i = 0; i < 3; ++i) out.real(bias_rate ? r.bias_rate_nT_per_h[i] : kUnknown);
+  if (bias_rate) {
+    out.doubles(r.bias_rate_cov);
+  } else {
+    out.null();
+  }
 }
 
 // A row of `SELECT select_sql(...)` read back. Row:
@@ -185,6 +199,14 @@ CalibrationRecord read(Row& row, Reasons&& reasons) {
       doubles_from_blob(nullptr, 0, r.temperature_coefficient_cov, cov);  // NULL: corrupt
     }
     r.temperature_model_refit_id = row.is_null(55) ? 0 : row.integer(55);
+  }
+  r.has_bias_rate = row.is_null(56) ? -1 : (row.integer(56) != 0 ? 1 : 0);
+  if (r.has_bias_rate == 1) {
+    for (int i = 0; i < 3; ++i) r.bias_rate_nT_per_h[i] = row.real(57 + i);
+    const std::string cov = what("bias_rate_cov");
+    if (!row.blob(60, r.bias_rate_cov, cov)) {
+      doubles_from_blob(nullptr, 0, r.bias_rate_cov, cov);  // NULL: corrupt
+    }
   }
   return r;
 }

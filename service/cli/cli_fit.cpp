@@ -242,6 +242,12 @@ void print_text(const CalibrationResult& r, double compute_ms, double convergenc
     line("temp_coeff_nT/C", fmt::format("{:12.4f} {:12.4f} {:12.4f}", k.x(), k.y(), k.z()));
     line("temp_coeff_sigma", fmt::format("{:12.4f} {:12.4f} {:12.4f}", ks.x(), ks.y(), ks.z()));
   }
+  if (r.has_bias_rate) {  // bias_nT is then the bias at the window's end
+    const Eigen::Vector3d& rate = r.bias_rate_nT_per_h;
+    const Eigen::Vector3d rs = r.bias_rate_sigma_nT_per_h();
+    line("bias_rate_nT/h", fmt::format("{:12.4f} {:12.4f} {:12.4f}", rate.x(), rate.y(), rate.z()));
+    line("bias_rate_sigma", fmt::format("{:12.4f} {:12.4f} {:12.4f}", rs.x(), rs.y(), rs.z()));
+  }
   if (r.has_alignment) {
     const Eigen::Matrix3d& R = r.alignment.R_sensor_from_body;
     for (int i = 0; i < 3; ++i) {

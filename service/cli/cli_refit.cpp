@@ -101,6 +101,14 @@ int run_refit(const RefitArgs& args) {
           "nT/degC\n",
           r.reference_temperature_C, k.x(), k.y(), k.z(), ks.x(), ks.y(), ks.z());
     }
+    if (r.has_bias_rate) {  // bias_nT is then the bias at the window's end
+      const Eigen::Vector3d& rate = r.bias_rate_nT_per_h;
+      const Eigen::Vector3d rs = r.bias_rate_sigma_nT_per_h();
+      std::cout << fmt::format(
+          "  bias at the window's end; bias rate [{:.3f}, {:.3f}, {:.3f}] +- [{:.3f}, {:.3f}, "
+          "{:.3f}] nT/h\n",
+          rate.x(), rate.y(), rate.z(), rs.x(), rs.y(), rs.z());
+    }
   }
   return (r.status == CalibrationStatus::kOk || r.status == CalibrationStatus::kRejected)
              ? kExitOk

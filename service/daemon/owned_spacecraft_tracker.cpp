@@ -12,6 +12,7 @@
 #include <spdlog/spdlog.h>
 
 #include "pipeline/acceptance_gates.hpp"
+#include "pipeline/temperature_model.hpp"
 #include "pipeline/time_utc.hpp"
 #include "service/io/calibration_record.hpp"
 #include "service/io/station_settings.hpp"
@@ -839,7 +840,12 @@ void OwnedSpacecraftTracker::reanchor(const std::string& sat, OwnedSpacecraft& t
   // used its model extension, that scale describes a smaller (extended-model) residual, and a
   // filter seeded with it finds itself inconsistent and re-opens its covariance (measured:
   // noise 3.7 nT seeded vs 6.5 nT seen, NIS 3-5, then a 20 nT drift on the orbit normal).
-  t.ukf.reanchor(refit.parameters.packed(), refit.covariance, refit.model_error_covariance());
+  // A refit with a bias rate gives the bias at its window's end: moved to the filter's time, and
+  // the filter predicts the bias with that rate from there (seed_bias_rate(); zero clears it).
+  const CalibrationResult anchor =
+      at_utime(refit, std::max(t.ukf.state().last_utime, refit.window_end_utime));
+  t.ukf.reanchor(anchor.parameters.packed(), anchor.covariance, refit.model_error_covariance());
+  t.ukf.seed_bias_rate(refit.bias_rate_nT_per_h, refit.bias_rate_covariance);
   // Its bias is the bias at the refit's T0 when the refit has a temperature model: from now on
   // the samples are corrected to T0 (and without one, no longer corrected).
   t.temperature.take_from(refit, calibration_id);

@@ -22,14 +22,16 @@ namespace {
 //      the reported covariance's blocks, the model error and the bias motion were appended in
 //      later releases and may be absent (read as their defaults);
 //   3  the same fields as 2, every section present, nothing after them;
-//   4  (written now) 3 and the bias-motion blocks' sensitivity to D (read as zero from 2 and 3:
-//      their blocks then count as solved, without the correction to the current D).
+//   4  3 and the bias-motion blocks' sensitivity to D (read as zero from 2 and 3: their blocks
+//      then count as solved, without the correction to the current D);
+//   5  (written now) 4 and the anchor refit's bias rate and its random walk (read as zero from
+//      2-4: the filter then predicts no drift until the next re-anchor).
 // A filter keeps only one of the start's lag-1 products and the bias-motion block start (the
 // first until it starts, the other from then on): the one it does not keep is written as zeros
 // (the block's time as -1), and ignored when read. A blob of another version or not starting
 // with "MCF" is refused with a message naming it.
 constexpr uint32_t kFilterBlobMagicBase = 0x4D434600;  // "MCF" + version digit, little-endian
-constexpr int kFilterBlobVersion = 4;
+constexpr int kFilterBlobVersion = 5;
 constexpr int kOldestFilterBlobVersion = 1;
 
 class BlobWriter {
@@ -180,6 +182,9 @@ void filter_state_fields(Io& io, State& st, Fields& f, int version) {
   io.each(st.bias_motion_sum_tJ_nT_h);
   io.each(st.bias_motion_sum_Jd_nT);
   io.each(st.bias_motion_sum_tJd_nT_h);
+  if (version < 5) return;
+  io.each(st.refit_bias_rate_nT_per_h);
+  io.each(st.refit_bias_random_walk_nT2_per_hour);
 }
 
 }  // namespace
@@ -247,6 +252,15 @@ storage::CalibrationRecord record_from_result(const std::string& sat_id,
         rec.temperature_coefficient_cov[k++] = r.temperature_coefficient_covariance(i, j);
     }
   }
+  if (r.has_bias_rate)
+    rec.has_bias_rate = 1;
+  else if (storage::is_refit_method(r.method))
+    rec.has_bias_rate = 0;
+  if (r.has_bias_rate) {
+    for (int i = 0; i < 3; ++i)
+      rec.bias_rate_nT_per_h[static_cast<size_t>(i)] = r.bias_rate_nT_per_h(i);
+    Eigen::Map<Vector6d>(rec.bias_rate_cov.data()) = pack_symmetric(r.bias_rate_covariance);
+  }
   return rec;
 }
 
@@ -307,6 +321,12 @@ CalibrationResult result_from_record(const storage::CalibrationRecord& rec) {
         r.temperature_coefficient_covariance(j, i) = rec.temperature_coefficient_cov[k++];
       }
     }
+  }
+  r.has_bias_rate = rec.has_bias_rate == 1;
+  if (r.has_bias_rate) {
+    for (int i = 0; i < 3; ++i)
+      r.bias_rate_nT_per_h(i) = rec.bias_rate_nT_per_h[static_cast<size_t>(i)];
+    r.bias_rate_covariance = unpack_symmetric(Eigen::Map<const Vector6d>(rec.bias_rate_cov.data()));
   }
   return r;
 }

@@ -52,6 +52,11 @@ nlohmann::json calibration_result_to_json(const CalibrationResult& result,
     j["temperature_coefficient_sigma_nT_per_C"] =
         json_vector(result.temperature_coefficient_sigma_nT_per_C());
   }
+  if (result.has_bias_rate) {  // bias_nT is the bias at window_end_utime
+    j["bias_rate_nT_per_h"] = json_vector(result.bias_rate_nT_per_h);
+    j["bias_rate_sigma_nT_per_h"] = json_vector(result.bias_rate_sigma_nT_per_h());
+    j["bias_rate_covariance"] = json_matrix(result.bias_rate_covariance);
+  }
   if (result.has_alignment) {
     const Eigen::Matrix3d& R = result.alignment.R_sensor_from_body;
     const Eigen::Matrix3d& covariance = result.alignment.angle_covariance_rad2;

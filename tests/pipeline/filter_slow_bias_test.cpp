@@ -4,6 +4,7 @@
 // bias b(t, T) = b0 + k_T (T - T0) + k_drift t (sensor_model.hpp), not of b0 or the window mean.
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <random>
 #include <string>
 #include <vector>
@@ -191,25 +192,58 @@ std::string per_axis(const Outcome& o) {
          " nT/sqrt(h), " + std::to_string(o.moving_messages) + " messages name the motion";
 }
 
-// Both filters over 5 seeds x 24 h, kDrawsPerSeed drifts per seed: rate drawn by rate_nT_per_h
-// (per axis), random per-axis signs.
-template <class Draw>
-std::pair<Outcome, Outcome> replay_drifts(std::mt19937_64& rng, Draw rate_nT_per_h) {
+// Calls replay_one(seed, rate, data) for 5 seeds x kDrawsPerSeed drifts of 24 h: rate drawn by
+// rate_nT_per_h (per axis), random per-axis signs.
+template <class Draw, class Replay>
+void for_each_drift(std::mt19937_64& rng, Draw rate_nT_per_h, Replay replay_one) {
   constexpr int kDrawsPerSeed = 3;
   std::uniform_real_distribution<double> unit(0.0, 1.0);
-  Outcome ekf, ukf;
   for (uint64_t seed : {1, 2, 3, 4, 5}) {
     for (int draw = 0; draw < kDrawsPerSeed; ++draw) {
       Eigen::Vector3d r;
       for (int i = 0; i < 3; ++i) r(i) = (unit(rng) < 0.5 ? -1.0 : 1.0) * rate_nT_per_h(rng);
-      const auto data = simulate_drift(seed, 24.0, r, false);
-      MagnetometerEkf e;
-      MagnetometerUkf u;
-      replay(e, data, ekf);
-      replay(u, data, ukf);
+      replay_one(seed, r, simulate_drift(seed, 24.0, r, false));
     }
   }
+}
+
+// One line for a draw with ok snapshots beyond 3 sigma (empty otherwise): where the misses are.
+std::string draw_with_misses(uint64_t stream, uint64_t seed, const Eigen::Vector3d& rate,
+                             const Outcome& o) {
+  if (o.beyond_3_sigma_per_axis.sum() == 0) return "";
+  char line[200];
+  std::snprintf(line, sizeof line,
+                "\n  stream %d seed %d, drift (%.2f, %.2f, %.2f) nT/h: %d ok, beyond 3 sigma per "
+                "axis %d %d %d, worst %.2f",
+                static_cast<int>(stream), static_cast<int>(seed), rate(0), rate(1), rate(2), o.ok,
+                o.beyond_3_sigma_per_axis(0), o.beyond_3_sigma_per_axis(1),
+                o.beyond_3_sigma_per_axis(2), o.worst);
+  return line;
+}
+
+// Both filters over the drifts of for_each_drift; misses: the UKF's draws with ok snapshots
+// beyond 3 sigma (draw_with_misses).
+template <class Draw>
+std::pair<Outcome, Outcome> replay_drifts(uint64_t stream, std::mt19937_64& rng, Draw rate_nT_per_h,
+                                          std::string& misses) {
+  Outcome ekf, ukf;
+  for_each_drift(
+      rng, rate_nT_per_h,
+      [&](uint64_t seed, const Eigen::Vector3d& r, const std::vector<TruthSample>& data) {
+        MagnetometerEkf e;
+        MagnetometerUkf u;
+        Outcome o;
+        replay(e, data, ekf);
+        replay(u, data, o);
+        misses += draw_with_misses(stream, seed, r, o);
+        add(ukf, o);
+      });
   return {ekf, ukf};
+}
+
+// 0.3-3 nT/h, log-uniform.
+double log_uniform_rate(std::mt19937_64& rng) {
+  return 0.3 * std::pow(10.0, std::uniform_real_distribution<double>(0.0, 1.0)(rng));
 }
 
 }  // namespace
@@ -226,14 +260,22 @@ std::pair<Outcome, Outcome> replay_drifts(std::mt19937_64& rng, Draw rate_nT_per
 // on the orbit normal alone (x, z drifting slowly) is below what the block biases resolve on that
 // axis (their trend's standard error there is ~2 nT/h), and the isotropic floor (0.5 nT/sqrt(h))
 // is far too small for an axis whose sigma is ~9 nT: ok snapshots up to ~3.9 sigma off on y.
+// The misses are 4 of the 45 draws, all with y drifting -1.9 to -2.9 nT/h: the constant-bias
+// control is itself 1.5-2.4 sigma off on y at 15-19 h (the 9-parameter model's error, the same
+// orbit in every seed, unknown to a filter without a refit), and the lag adds 1-1.5 sigma. Measured
+// and not kept: blocks weighted by their information (as solved) leave the trend's standard error
+// on y at 2-4 nT/h; at the current D it is 0.7-0.8 nT/h, but the control's z then shows a trend of
+// 0.40 +- 0.10 nT/h from the day's geometry (chi2 16-18 with the D uncertainty in it) before the
+// 2.6 nT/h y draw is seen (block 10, 21 h, after its first miss at 15.75 h); widening the bias
+// sigma by what the trend cannot exclude (se x the estimate's age) leaves no ok snapshot at all.
 TEST_CASE("Linear bias drift alone: ok snapshots within 3 sigma of the current bias, per axis") {
   Outcome ekf, ukf, ekf_slow, ukf_slow;
+  std::string misses, slow_misses;
   for (uint64_t stream : {20, 21, 22}) {
     std::mt19937_64 rng(stream);
-    std::uniform_real_distribution<double> unit(0.0, 1.0);
-    const auto [e, u] =
-        replay_drifts(rng, [&](std::mt19937_64& g) { return 0.3 * std::pow(10.0, unit(g)); });
-    const auto [e_slow, u_slow] = replay_drifts(rng, [](std::mt19937_64&) { return 0.1; });
+    const auto [e, u] = replay_drifts(stream, rng, log_uniform_rate, misses);
+    const auto [e_slow, u_slow] = replay_drifts(
+        stream, rng, [](std::mt19937_64&) { return 0.1; }, slow_misses);
     WARN("stream " << stream << ", drift 0.3-3 nT/h: UKF " << per_axis(u));
     add(ekf, e);
     add(ukf, u);
@@ -242,6 +284,7 @@ TEST_CASE("Linear bias drift alone: ok snapshots within 3 sigma of the current b
   }
   WARN("drift 0.3-3 nT/h: EKF " << per_axis(ekf) << "; UKF " << per_axis(ukf));
   WARN("drift 0.1 nT/h: EKF " << per_axis(ekf_slow) << "; UKF " << per_axis(ukf_slow));
+  WARN("UKF draws with ok snapshots beyond 3 sigma:" << misses << slow_misses);
   for (const Outcome* o : {&ekf, &ukf, &ekf_slow, &ukf_slow}) {
     CHECK(o->beyond_3_sigma_per_axis(0) <= o->ok / 100);
     CHECK(o->beyond_3_sigma_per_axis(2) <= o->ok / 100);
@@ -262,9 +305,12 @@ namespace {
 // A UKF as the daemon runs it for a new spacecraft on its embedded defaults: `ok` waits for a
 // refit's model error, and twostep refits of all samples so far at 1 000 samples, then each
 // sqrt(2) more until the first full window (4 000), re-anchor it when accepted (with their
-// residual rms as its noise seed), as service/daemon/ingest_worker.cpp does.
-void replay_with_refits(const std::vector<TruthSample>& data, Outcome& o, int& refits,
-                        int& refits_accepted) {
+// residual rms as its noise seed, and its bias rate), as service/daemon/ingest_worker.cpp does.
+struct RefitCounts {
+  int run = 0, accepted = 0, with_bias_rate = 0;
+};
+
+void replay_with_refits(const std::vector<TruthSample>& data, Outcome& o, RefitCounts& refits) {
   MagnetometerUkf::Options options;
   options.ok_needs_model_error = true;
   MagnetometerUkf ukf(options);
@@ -277,11 +323,13 @@ void replay_with_refits(const std::vector<TruthSample>& data, Outcome& o, int& r
     if (next_refit <= 4000.5 && static_cast<double>(window.size()) >= std::round(next_refit)) {
       next_refit *= std::sqrt(2.0);
       const CalibrationResult refit = calibrate_batch(window, BatchCalibrationOptions{});
-      ++refits;
+      ++refits.run;
+      refits.with_bias_rate += refit.has_bias_rate;
       if (refit.accepted) {
-        ++refits_accepted;
+        ++refits.accepted;
         ukf.reanchor(refit.parameters.packed(), refit.covariance, refit.model_error_covariance());
         ukf.seed_noise(refit.residual_rms_nT);
+        ukf.seed_bias_rate(refit.bias_rate_nT_per_h, refit.bias_rate_covariance);
       }
     }
     if ((k + 1) % 90 == 0) judge_snapshot(ukf, data[k], data.front().sample.utime, o);
@@ -300,13 +348,13 @@ void replay_with_refits(const std::vector<TruthSample>& data, Outcome& o, int& r
 TEST_CASE(
     "Side-panel sensor, constant bias, daemon refits: no false bias motion, ok within 3 sigma") {
   Outcome total;
-  int refits = 0, refits_accepted = 0;
+  RefitCounts refits;
   for (uint64_t seed : {1, 2, 3}) {
     Scenario sc = paper_day(seed, 24.0);
     sc.sensor.installation_deg = Eigen::Vector3d(30.0, 90.0, -50.0);
     sc.sensor.internal_misalignment_mrad.setZero();
     Outcome o;
-    replay_with_refits(simulate_with_truth(sc), o, refits, refits_accepted);
+    replay_with_refits(simulate_with_truth(sc), o, refits);
     report(("side panel, seed " + std::to_string(seed)).c_str(), o);
     add(total, o);
     total.beyond_3_sigma += o.beyond_3_sigma;
@@ -317,8 +365,70 @@ TEST_CASE(
   // The first full-window refit comes at 11.1 h; after it the weakly observed axis's sigma (the
   // refit's model error, ~9 nT) stays near the 10 nT bound: ok for much of the time, not all.
   CHECK(total.ok > total.snapshots / 3);
-  WARN("side panel, 3 seeds: " << per_axis(total) << "; refits accepted " << refits_accepted
-                               << " of " << refits);
-  REQUIRE(refits_accepted == refits);  // the refits are fine: the filter must not contradict them
+  WARN("side panel, 3 seeds: " << per_axis(total) << "; refits accepted " << refits.accepted
+                               << " of " << refits.run);
+  REQUIRE(refits.accepted ==
+          refits.run);  // the refits are fine: the filter must not contradict them
   CHECK(total.beyond_3_sigma == 0);
+}
+
+// The drifts of the test above (0.3-3 nT/h, the same three streams) through the daemon's path:
+// early refits of all samples so far re-anchor the UKF, whose `ok` waits for a refit's model error
+// (replay_with_refits). A batch fit over a window in which the bias moves estimates the bias
+// averaged over that window, with a covariance that says nothing of the motion; re-anchored on it,
+// the UKF was ok up to 7.0 sigma off (1253 ok, beyond 3 sigma per axis 19 / 156 / 130). Refits of
+// 6 h and more now fit a bias rate when BIC takes it (pipeline/temperature_model.hpp) and publish
+// the bias at the window's end; the UKF predicts the bias with that rate until the next re-anchor
+// (seed_bias_rate()).
+TEST_CASE("Linear bias drift, daemon refits: ok snapshots within 3 sigma of the current bias") {
+  Outcome total;
+  RefitCounts refits;
+  std::string misses;
+  for (uint64_t stream : {20, 21, 22}) {
+    std::mt19937_64 rng(stream);
+    for_each_drift(
+        rng, log_uniform_rate,
+        [&](uint64_t seed, const Eigen::Vector3d& r, const std::vector<TruthSample>& data) {
+          Outcome o;
+          replay_with_refits(data, o, refits);
+          misses += draw_with_misses(stream, seed, r, o);
+          add(total, o);
+        });
+  }
+  WARN("drift 0.3-3 nT/h, daemon refits: UKF "
+       << per_axis(total) << "; refits accepted " << refits.accepted << " of " << refits.run << ", "
+       << refits.with_bias_rate
+       << " with a bias rate; draws with ok snapshots beyond 3 sigma:" << misses);
+  CHECK(total.ok > total.snapshots / 10);
+  for (int i = 0; i < 3; ++i) CHECK(total.beyond_3_sigma_per_axis(i) <= total.ok / 100);
+  CHECK(total.worst < 4.0);
+  CHECK(refits.with_bias_rate > 0);
+}
+
+// The control of the case above: a constant bias, and a drift of 0.1 nT/h per axis (2.4 nT a
+// day, random signs), 10 seeds x 24 h each through the same refits. Bar: as honest as the drifts
+// (no axis beyond 3 sigma in more than 1 % of the ok snapshots), ok most of the time, and no bias
+// rate on the constant bias.
+TEST_CASE("Constant bias and 0.1 nT/h drift, daemon refits: ok within 3 sigma, no false rate") {
+  std::mt19937_64 rng(23);
+  for (double rate_nT_per_h : {0.0, 0.1}) {
+    Outcome total;
+    RefitCounts refits;
+    std::string misses;
+    for (uint64_t seed = 1; seed <= 10; ++seed) {
+      Eigen::Vector3d r;
+      for (int i = 0; i < 3; ++i) r(i) = (rng() % 2 ? 1.0 : -1.0) * rate_nT_per_h;
+      Outcome o;
+      replay_with_refits(simulate_drift(seed, 24.0, r, false), o, refits);
+      misses += draw_with_misses(0, seed, r, o);
+      add(total, o);
+    }
+    WARN("drift " << rate_nT_per_h << " nT/h, daemon refits: UKF " << per_axis(total)
+                  << "; refits accepted " << refits.accepted << " of " << refits.run << ", "
+                  << refits.with_bias_rate << " with a bias rate" << misses);
+    for (int i = 0; i < 3; ++i) CHECK(total.beyond_3_sigma_per_axis(i) <= total.ok / 100);
+    CHECK(total.worst < 4.0);
+    CHECK(total.ok > total.snapshots / 2);
+    if (rate_nT_per_h == 0.0) CHECK(refits.with_bias_rate == 0);
+  }
 }

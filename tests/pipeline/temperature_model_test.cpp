@@ -15,6 +15,7 @@
 
 #include "pipeline/batch_calibration.hpp"
 #include "pipeline/scenario.hpp"
+#include "pipeline/sensor_model.hpp"
 #include "pipeline/simulator.hpp"
 #include "pipeline/temperature_model.hpp"
 
@@ -258,4 +259,84 @@ TEST_CASE("centered solution with the temperature columns: k_T within its sigmas
               bias.total, coefficient.within, coefficient.total);
   CHECK(bias.within == bias.total);
   CHECK(coefficient.within == coefficient.total);
+}
+
+namespace {
+
+struct DriftSet {
+  SampleSet samples;
+  Eigen::Vector3d bias_at_end_nT;  // the true bias at the last sample
+};
+
+// The paper scenario with a linear bias drift (nT/h per axis), no temperature effect.
+DriftSet simulate_drift(uint64_t seed, const Eigen::Vector3d& drift_nT_per_h, double hours) {
+  Scenario sc = *scenario_preset("paper");
+  sc.seed = seed;
+  sc.duration_s = hours * 3600.0;
+  sc.sensor.drift_nT_per_day = 24.0 * drift_nT_per_h;
+  REQUIRE(sc.validate().empty());
+  Simulator sim(sc);
+  DriftSet out;
+  SimulatedSample s;
+  while (sim.next(&s)) out.samples.push_back(s.calibration_sample());
+  const CalibrationSample& last = out.samples.back();
+  out.bias_at_end_nT = SensorModel(sc.sensor).bias_nT(
+      static_cast<double>(last.utime - sc.epoch_utime) * 1e-6, last.temperature_C);
+  return out;
+}
+
+}  // namespace
+
+// The bias rate model (time as the covariate of the temperature model's columns): a drift of
+// 0.3-3 nT/h per axis (log-uniform, random signs) over a 12 h paper window is fitted, its rate and
+// the bias at the window's end within 3 sigma of the truth; on a constant bias the model stays off.
+TEST_CASE("bias drift, paper 12 h: the rate and the bias at the window's end within 3 sigma") {
+  const int runs = 12;
+  std::mt19937_64 rng(21);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  Coverage bias, rate;
+  int with_rate = 0, accepted = 0;
+  for (int run = 0; run < runs; ++run) {
+    Eigen::Vector3d r;
+    for (int i = 0; i < 3; ++i)
+      r(i) = (unit(rng) < 0.5 ? -1.0 : 1.0) * 0.3 * std::pow(10.0, unit(rng));
+    const DriftSet set = simulate_drift(6000 + run, r, 12.0);
+    const CalibrationResult fit = calibrate_batch(set.samples, BatchCalibrationOptions{});
+    INFO("run " << run << ": " << fit.message << ", drift " << r.transpose() << " nT/h");
+    REQUIRE(fit.status == CalibrationStatus::kOk);
+    CHECK(fit.has_bias_rate);
+    CHECK_FALSE(fit.has_temperature_model);
+    if (!fit.has_bias_rate) continue;
+    ++with_rate;
+    accepted += fit.accepted ? 1 : 0;
+    bias.add(fit.parameters.bias_nT - set.bias_at_end_nT, fit.bias_sigma_nT());
+    rate.add(fit.bias_rate_nT_per_h - r, fit.bias_rate_sigma_nT_per_h());
+  }
+  std::printf(
+      "paper 12 h, drift 0.3-3 nT/h, x %d: rate model in %d, accepted %d; bias at the end and "
+      "rate within 3 sigma: %d / %d, %d / %d (RMS z %.2f, %.2f)\n",
+      runs, with_rate, accepted, bias.within, bias.total, rate.within, rate.total, bias.rms_z(),
+      rate.rms_z());
+  // Measured over 80 runs: 240 / 240 and 239 / 240 within 3 sigma (RMS z 0.88, 1.06). A miss is
+  // allowed here as in the temperature case (0.27 % of draws).
+  CHECK(bias.within + rate.within >= bias.total + rate.total - 1);
+  CHECK(bias.rms_z() <= 1.5);
+  CHECK(rate.rms_z() <= 1.5);
+}
+
+// Measured: 0 of 300 (6, 12 and 24 h x 100 seeds).
+TEST_CASE("constant bias, paper 12 h and 24 h: the bias rate model stays off") {
+  int with_rate = 0, fits = 0;
+  for (double hours : {12.0, 24.0}) {
+    for (int run = 0; run < 12; ++run) {
+      const DriftSet set = simulate_drift(7000 + run, Eigen::Vector3d::Zero(), hours);
+      const CalibrationResult fit = calibrate_batch(set.samples, BatchCalibrationOptions{});
+      INFO(hours << " h, run " << run << ": " << fit.message);
+      REQUIRE(fit.status == CalibrationStatus::kOk);
+      ++fits;
+      with_rate += fit.has_bias_rate ? 1 : 0;
+    }
+  }
+  std::printf("paper constant bias, 12 h and 24 h, x %d: bias rate model in %d\n", fits, with_rate);
+  CHECK(with_rate == 0);
 }

@@ -102,6 +102,9 @@ void check_round_trip(const CalibrationRecord& got, const CalibrationRecord& wan
   CHECK(same(got.temperature_coefficient_nT_per_C, want.temperature_coefficient_nT_per_C));
   CHECK(same(got.temperature_coefficient_cov, want.temperature_coefficient_cov));
   CHECK(got.temperature_model_refit_id == want.temperature_model_refit_id);
+  CHECK(got.has_bias_rate == want.has_bias_rate);
+  CHECK(same(got.bias_rate_nT_per_h, want.bias_rate_nT_per_h));
+  CHECK(same(got.bias_rate_cov, want.bias_rate_cov));
   CHECK(got.software_version == want.software_version);
   CHECK(got.created_utime == want.created_utime);
 }
@@ -167,6 +170,9 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest, "every field of a record round-trips bit 
   r.temperature_coefficient_nT_per_C = {1.25, -0.5, 1e-3 / 3.0};
   r.temperature_coefficient_cov = {4e-4, 1e-5, -2e-6, 9e-4, 3e-6, 2.5e-5};
   r.temperature_model_refit_id = refit_id;
+  r.has_bias_rate = 1;
+  r.bias_rate_nT_per_h = {-2.75, 0.125, 1e-3 / 7.0};
+  r.bias_rate_cov = {0.0289, 0.0025, 9e-4, -1e-4, 2e-5, 3e-6};
   const int64_t id = history->append(r);
   const auto got = history->get(id);
   REQUIRE(got);

@@ -107,7 +107,7 @@ TEST_CASE("a failed refit publishes no NaN", "[calibration_record]") {
   }
 }
 
-TEST_CASE("the bias temperature model goes through the history record and back",
+TEST_CASE("the bias temperature model and the bias rate go through the history record and back",
           "[calibration_record]") {
   auto r = finite_result();
   r.has_temperature_model = true;
@@ -116,13 +116,21 @@ TEST_CASE("the bias temperature model goes through the history record and back",
   Eigen::Matrix3d cov;
   cov << 4e-4, 1e-5, -2e-6, 1e-5, 9e-4, 3e-6, -2e-6, 3e-6, 2.5e-5;
   r.temperature_coefficient_covariance = cov;
+  // (A refit has one or the other; the record keeps each on its own.)
+  r.has_bias_rate = true;
+  r.bias_rate_nT_per_h = Eigen::Vector3d(-2.75, 0.5, 1.25);
+  r.bias_rate_covariance = 100.0 * cov;
   const storage::CalibrationRecord rec = record_from_result("SAT-1", r);
   CHECK(rec.has_temperature_model == 1);
+  CHECK(rec.has_bias_rate == 1);
   const CalibrationResult back = result_from_record(rec);
   CHECK(back.has_temperature_model);
   CHECK(back.reference_temperature_C == r.reference_temperature_C);
   CHECK(back.temperature_coefficient_nT_per_C == r.temperature_coefficient_nT_per_C);
   CHECK(back.temperature_coefficient_covariance == cov);
+  CHECK(back.has_bias_rate);
+  CHECK(back.bias_rate_nT_per_h == r.bias_rate_nT_per_h);
+  CHECK(back.bias_rate_covariance == r.bias_rate_covariance);
   CHECK(back.parameters.bias_nT == r.parameters.bias_nT);
 
   // calibration_t has no temperature fields (a fixed contract): its bias is the bias at T0.
@@ -132,9 +140,12 @@ TEST_CASE("the bias temperature model goes through the history record and back",
   SECTION("a refit without the model says it has none; a filter says nothing") {
     auto plain = finite_result();
     CHECK(record_from_result("SAT-1", plain).has_temperature_model == 0);
+    CHECK(record_from_result("SAT-1", plain).has_bias_rate == 0);
     plain.method = "ukf";
     CHECK(record_from_result("SAT-1", plain).has_temperature_model == -1);
+    CHECK(record_from_result("SAT-1", plain).has_bias_rate == -1);
     CHECK_FALSE(result_from_record(record_from_result("SAT-1", plain)).has_temperature_model);
+    CHECK_FALSE(result_from_record(record_from_result("SAT-1", plain)).has_bias_rate);
   }
 }
 
@@ -208,7 +219,11 @@ FilterState run_filter_state() {
     const Eigen::Vector3d h = 40000.0 * Eigen::Vector3d(n(rng), n(rng), n(rng)).normalized();
     ukf.update(h + b + 3.0 * Eigen::Vector3d(n(rng), n(rng), n(rng)), 40000.0,
                1704067200000000 + k * 10'000'000LL);
-    if (k == 150) ukf.reanchor(ukf.x(), ukf.P(), model_error * model_error.transpose());
+    if (k == 150) {
+      ukf.reanchor(ukf.x(), ukf.P(), model_error * model_error.transpose());
+      ukf.seed_bias_rate(Eigen::Vector3d(0.5, -1.5, 0.25),
+                         Eigen::Vector3d(0.01, 0.04, 0.0025).asDiagonal().toDenseMatrix());
+    }
   }
   REQUIRE(ukf.initialized());
   REQUIRE(ukf.state().bias_motion_n == 2);
@@ -246,11 +261,11 @@ TEST_CASE("a filter state blob of an unknown version or format is refused, namin
   storage::FilterState stored = stored_filter_state("SAT-1", "ukf", run_filter_state());
   FilterState back;
   REQUIRE(stored.counters.size() > 4);
-  CHECK(stored.counters[0] == '4');  // "MCF" + version, little-endian: the version comes first
+  CHECK(stored.counters[0] == '5');  // "MCF" + version, little-endian: the version comes first
   auto newer = stored;
   newer.counters[0] = '7';
   CHECK(filter_state_from_stored(newer, back) ==
-        "filter state blob version 7: this magcal reads 1 to 4");
+        "filter state blob version 7: this magcal reads 1 to 5");
   auto foreign = stored;
   foreign.counters[3] = 'X';
   CHECK(filter_state_from_stored(foreign, back).starts_with("not a magcal filter state"));
@@ -261,11 +276,22 @@ TEST_CASE("a filter state blob of an unknown version or format is refused, namin
   longer.counters.push_back(0);
   CHECK(filter_state_from_stored(longer, back).find("1 bytes after its fields") !=
         std::string::npos);
+  // Version 4 is version 5 without the anchor refit's bias rate (2 x 3 doubles at the end): it
+  // restores with those zero, everything else as written.
+  FilterState from_v5;
+  REQUIRE(filter_state_from_stored(stored, from_v5) == "");
+  auto v4 = stored;
+  v4.counters[0] = '4';
+  v4.counters.resize(v4.counters.size() - 6 * sizeof(double));
+  FilterState from_v4;
+  REQUIRE(filter_state_from_stored(v4, from_v4) == "");
+  FilterState expected_v4 = from_v5;
+  expected_v4.refit_bias_rate_nT_per_h.setZero();
+  expected_v4.refit_bias_random_walk_nT2_per_hour.setZero();
+  CHECK(from_v4 == expected_v4);
   // Version 3 is version 4 without the blocks' sensitivity to D (3 x 6 x 2 + 3 x 2 doubles at
   // the end): it restores with those sums zero, everything else as written.
-  FilterState from_v4;
-  REQUIRE(filter_state_from_stored(stored, from_v4) == "");
-  auto v3 = stored;
+  auto v3 = v4;
   v3.counters[0] = '3';
   v3.counters.resize(v3.counters.size() - (36 + 6) * sizeof(double));
   FilterState from_v3;
