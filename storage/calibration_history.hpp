@@ -72,7 +72,7 @@ struct CalibrationRecord {
   std::array<double, 6> temperature_coefficient_cov{};
   // Online results that applied a refit's model: that refit's id (0: none, or a refit's own).
   int64_t temperature_model_refit_id = 0;
-  // Linear bias rate (schema 9): b(t) = bias_nT + r (t - window_end_utime), so bias_nT is the
+  // Linear bias rate (schema 10): b(t) = bias_nT + r (t - window_end_utime), so bias_nT is the
   // bias at the window's end. -1 unknown / not modelled (NULL), 0 a refit whose data did not
   // support it, 1 modelled (then the fields below are set).
   int has_bias_rate = -1;

@@ -1,4 +1,4 @@
--- magcal schema (PostgreSQL twin of storage/migrations/0009_bias_rate.sql): the linear bias rate
+-- magcal schema (PostgreSQL twin of storage/migrations/0010_bias_rate.sql): the linear bias rate
 -- of a refit. NULL means not modelled.
 ALTER TABLE calibrations ADD COLUMN has_bias_rate bigint;
 ALTER TABLE calibrations ADD COLUMN bias_rate_x_nT_per_h double precision;
