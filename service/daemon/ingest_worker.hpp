@@ -82,8 +82,8 @@ class IngestWorker {
   void leave_fleet();
   // From any thread: this daemon holds sat_id's lease.
   bool owns(const std::string& sat_id) const { return owner_.owns(sat_id); }
-  // From any thread: LCM input ended; no free lease is taken from now on
-  // (OwnedSpacecraftTracker::stop_taking_leases).
+  // From any thread: LCM input ended; from now on only the free leases of spacecraft received
+  // here are taken (OwnedSpacecraftTracker::stop_taking_leases).
   void input_ended() { owner_.stop_taking_leases(); }
   // The owner's filters take every stored sample, without the reorder delay (end of a replay,
   // shutdown); their snapshots and refit triggers as usual.

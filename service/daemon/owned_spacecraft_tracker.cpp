@@ -312,10 +312,8 @@ void OwnedSpacecraftTracker::maintain_leases() {
         }
       }
     };
-    if (taking_leases_.load()) {
-      take(free_received, true);
-      take(free_other, false);
-    }
+    take(free_received, true);
+    if (taking_leases_.load()) take(free_other, false);
     // Over the share: hand over those not received here first, then the ones this station
     // prefers least (the others take them at their next round), once their snapshots are
     // committed (one attempt: never waits through an outage).

@@ -114,9 +114,10 @@ class OwnedSpacecraftTracker final : public CommitParticipant {
   // Live stations at the last lease round (1: alone).
   size_t live_stations() const { return live_stations_; }
   // From any thread: this daemon's LCM input has ended (end of a replay, a stop): from the next
-  // lease round it takes no free lease (a draining daemon that took those of a station that
-  // stopped before it would read back and filter them only to hand them over again at its own
-  // stop), and still renews, reclaims and hands over its own.
+  // lease round it takes only the free leases of spacecraft it received itself (what it still
+  // drains), none of those another station handed over or left (a draining daemon that took a
+  // stopped station's would read back and filter them only to hand them over again at its own
+  // stop); it still renews, reclaims and hands over its own.
   void stop_taking_leases() { taking_leases_.store(false); }
   // At a clean stop, with everything committed: hands every owned spacecraft back and ends the
   // heartbeat, so the other daemons take over at once instead of after the lease time.
@@ -240,7 +241,7 @@ class OwnedSpacecraftTracker final : public CommitParticipant {
   // false: /-/ready 503 on PostgreSQL) until a round succeeds, also on a station with nothing to
   // commit.
   bool lease_round_failing_ = false;
-  std::atomic<bool> taking_leases_{true};  // false once LCM input ended (stop_taking_leases())
+  std::atomic<bool> taking_leases_{true};  // false once LCM input ended: received ones only
   bool tracking_ = false;  // track_owned() is running (a flush inside it must not re-enter)
   std::vector<storage::StoredSample> union_rows_;   // reused by track_owned()
   std::vector<size_t> union_row_ends_;              // reused by track_owned()

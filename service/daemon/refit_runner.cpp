@@ -90,7 +90,8 @@ bool RefitRunner::accept_corroborated_change(const std::string& sat_id,
   for (const auto& r : last->rejection_reasons)
     if (!is_change(r)) return false;
   const CalibrationResult corroborating =
-      at_temperature(result_from_record(*last), mean_temperature_C(window_));
+      at_utime(at_temperature(result_from_record(*last), mean_temperature_C(window_)),
+               result.window_end_utime);
   GateOptions only_change = options_.gate_options;
   only_change.residual_enabled = only_change.observability_enabled = false;
   only_change.coverage_enabled = only_change.bounds_enabled = false;
@@ -215,11 +216,14 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
     // window (the first hours of a spacecraft, or after a gap: span below 90 % of
     // window_hours) has wider true errors and must not become the yardstick of later full
     // refits; with none yet, the refit is judged on its own evidence (change gate skipped).
+    // A yardstick with a bias rate is moved by it to this window's end (where this refit
+    // publishes its bias): a drifting sensor's refits differ by the drift, not by a jump.
     std::optional<CalibrationResult> previous;
     if (const auto rec = history_->latest_accepted_refit(
             sat_id, static_cast<int64_t>(kFullWindowFraction * config_.window_utime()),
             config_.refit.min_samples)) {
-      previous = at_temperature(result_from_record(*rec), mean_temperature_C(window_));
+      previous = at_utime(at_temperature(result_from_record(*rec), mean_temperature_C(window_)),
+                          rows_.empty() ? t_ref : rows_.back().utime);
     }
     out.result = calibrate_batch(window_, options_, previous ? &*previous : nullptr);
     out.result.utime = t_ref;  // the time the refit refers to: its scheduled window end

@@ -125,7 +125,9 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
       "temperature_coefficient_y_nT_per_C,temperature_coefficient_z_nT_per_C,"
       "temperature_coefficient_sigma_x_nT_per_C,temperature_coefficient_sigma_y_nT_per_C,"
       "temperature_coefficient_sigma_z_nT_per_C,temperature_model_refit_id,"
-      "alignment_determined_name,alignment_determined_deg\n";
+      "alignment_determined_name,alignment_determined_deg,has_bias_rate,bias_rate_x_nT_per_h,"
+      "bias_rate_y_nT_per_h,bias_rate_z_nT_per_h,bias_rate_sigma_x_nT_per_h,"
+      "bias_rate_sigma_y_nT_per_h,bias_rate_sigma_z_nT_per_h\n";
   for (const auto& r : rows) {
     std::string line = history_time(r.utime) + ',' + std::to_string(r.utime) + ',' +
                        csv_quoted(r.sat_id) + ',' + csv_quoted(r.method) + ',' +
@@ -193,6 +195,14 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
     } else {
       line += ",,";
     }
+    // Appended (issue 20): the linear bias rate; bias_x_nT.. are then at window_end_utime.
+    line += ',' + (r.has_bias_rate >= 0 ? std::to_string(r.has_bias_rate) : "");
+    const bool drifting = r.has_bias_rate == 1;
+    for (const double v : r.bias_rate_nT_per_h) line += ',' + (drifting ? csv_number(v) : "");
+    const Eigen::Vector3d rate_sigma =
+        drifting ? result_from_record(r).bias_rate_sigma_nT_per_h()
+                 : Eigen::Vector3d::Constant(std::numeric_limits<double>::quiet_NaN());
+    for (int i = 0; i < 3; ++i) line += ',' + csv_number(rate_sigma(i));
     text += line + '\n';
   }
   return text;
@@ -214,6 +224,10 @@ std::string history_table_text(const std::vector<storage::CalibrationRecord>& ro
     // The bias of a result with a temperature model is the bias at its T0 (k_T: JSON and CSV).
     if (r.has_temperature_model == 1)
       append_printf(&text, "  (bias at T0 = %.2f degC)", r.reference_temperature_C);
+    // The bias of a result with a bias rate is the bias at its window's end (the rate: JSON, CSV).
+    if (r.has_bias_rate == 1)
+      append_printf(&text, "  (bias at the window's end, moving %.2f %.2f %.2f nT/h)",
+                    r.bias_rate_nT_per_h[0], r.bias_rate_nT_per_h[1], r.bias_rate_nT_per_h[2]);
     text += '\n';
   }
   return text;

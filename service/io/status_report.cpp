@@ -20,17 +20,19 @@ namespace {
 // The last refit's bias minus the previous one's. Where both model the bias temperature, the
 // previous one is taken at the last one's T0 first (at_temperature, as the refit's change gate
 // compares them): at 1.5 nT/degC a 10 degC change of the window's mean temperature is a 15 nT
-// "change" of a sensor that did not change.
+// "change" of a sensor that did not change. A previous refit with a bias rate is moved by it to
+// the last one's window end (at_utime, as the change gate does): the change is then what the
+// rate did not predict.
 std::optional<std::array<double, 3>> bias_change(const SpacecraftStatus& s) {
   if (!s.last_refit || !s.previous_refit) return std::nullopt;
   const storage::CalibrationRecord& last = *s.last_refit;
   const bool same_temperature =
       last.has_temperature_model == 1 && s.previous_refit->has_temperature_model == 1;
+  CalibrationResult previous_refit = result_from_record(*s.previous_refit);
+  if (same_temperature)
+    previous_refit = at_temperature(previous_refit, last.reference_temperature_C);
   const Eigen::Vector3d previous =
-      same_temperature
-          ? at_temperature(result_from_record(*s.previous_refit), last.reference_temperature_C)
-                .parameters.bias_nT
-          : Eigen::Vector3d(s.previous_refit->bias_nT.data());
+      at_utime(previous_refit, last.window_end_utime).parameters.bias_nT;
   std::array<double, 3> d;
   for (size_t i = 0; i < 3; ++i) d[i] = last.bias_nT[i] - previous(static_cast<Eigen::Index>(i));
   return d;
@@ -78,6 +80,14 @@ void append_estimate(std::string* text, const char* label, const storage::Calibr
                   "", r.reference_temperature_C, r.temperature_coefficient_nT_per_C[0],
                   r.temperature_coefficient_nT_per_C[1], r.temperature_coefficient_nT_per_C[2],
                   sigma(0), sigma(1), sigma(2), source.c_str());
+  }
+  if (r.has_bias_rate == 1) {
+    const Eigen::Vector3d sigma = result_from_record(r).bias_rate_sigma_nT_per_h();
+    append_printf(text,
+                  "  %-16s bias at the window's end; rate [%.3f %.3f %.3f] +- [%.3f %.3f %.3f] "
+                  "nT/h\n",
+                  "", r.bias_rate_nT_per_h[0], r.bias_rate_nT_per_h[1], r.bias_rate_nT_per_h[2],
+                  sigma(0), sigma(1), sigma(2));
   }
 }
 
@@ -310,6 +320,9 @@ std::string status_text(const FleetStatus& fleet, int64_t window_utime) {
       if (s.last_refit->has_temperature_model == 1 && s.previous_refit->has_temperature_model == 1)
         append_printf(&text, "  %-16s both at %.2f degC (the last refit's T0)\n", "",
                       s.last_refit->reference_temperature_C);
+      if (s.previous_refit->has_bias_rate == 1)
+        append_printf(&text, "  %-16s the previous refit moved by its bias rate to %s\n", "",
+                      format_iso8601_utc(s.last_refit->window_end_utime).c_str());
     }
   }
   if (!fleet.stations.empty()) {

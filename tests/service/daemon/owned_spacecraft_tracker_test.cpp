@@ -251,9 +251,16 @@ TEST_CASE("ownership follows reception: each station owns what it receives, also
   }
 
   // B's input ends (its replay ended, or it stops), then A leaves the fleet: B, draining, takes
-  // none of A's spacecraft, though they are free and no other station is live; it keeps its own.
+  // none of A's spacecraft, though they are free and no other station is live; it keeps its own,
+  // and a spacecraft it received whose lease is free it still takes (what it drains).
+  // (A fast replay's worker runs its lease round after the input has ended: a spacecraft new
+  // at B, received before the end, is B's then.)
+  std::vector<mag_sample_t> newcomer;
+  for (int i = 0; i < 20; ++i) newcomer.push_back(turning_field_sample("SAT-NEW", kT0, i));
+  feed(*b, newcomer, 5);
   b->input_ended();
   a.leave_fleet();
   b->maintain_leases();
-  CHECK(owners(*b, nullptr) == "-B-B-B-B-B");
+  CHECK(owners(a, b.get()) == "-B-B-B-B-B");
+  CHECK(b->owns("SAT-NEW"));
 }

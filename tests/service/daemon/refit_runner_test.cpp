@@ -45,6 +45,29 @@ TruthParameters store_simulation(storage::Connection& db, const Scenario& sc,
   return sim.truth();
 }
 
+// An accepted full-window (12 h) twostep refit ending at end_utime with the true D and the given
+// bias, with a full window's variances: the change gate's reference.
+CalibrationResult full_window_reference(const TruthParameters& truth,
+                                        const Eigen::Vector3d& bias_nT, int64_t end_utime) {
+  CalibrationResult reference;
+  reference.method = "twostep";
+  reference.utime = reference.window_end_utime = end_utime;
+  reference.window_start_utime = end_utime - 12 * 3'600'000'000LL;
+  reference.n_samples = 4320;
+  Vector9d p;
+  const Eigen::Matrix3d& D = truth.D;
+  p << bias_nT, D(0, 0), D(1, 1), D(2, 2), D(0, 1), D(0, 2), D(1, 2);
+  reference.parameters = CalibrationParameters::from_packed(p);
+  Vector9d variance;
+  variance << 0.8, 9.0, 0.5, 1e-8, 1e-8, 1e-8, 1e-8, 1e-8, 1e-8;
+  reference.covariance = variance.asDiagonal();
+  reference.residual_rms_nT = 3.0;
+  reference.status = CalibrationStatus::kOk;
+  reference.accepted = true;
+  reference.converged = true;
+  return reference;
+}
+
 Scenario paper_scenario(uint64_t seed, double hours) {
   Scenario sc = *scenario_preset("paper");
   sc.seed = seed;
@@ -185,22 +208,8 @@ TEST_CASE("refits: a reference with a temperature model is compared at this wind
       const int64_t hour = 3'600'000'000LL;
       const int64_t t_ref = sc.epoch_utime + 12 * hour - 10'000'000LL;
 
-      CalibrationResult reference;  // an accepted full-window refit of the day before
-      reference.method = "twostep";
-      reference.utime = reference.window_end_utime = t_ref - 24 * hour;
-      reference.window_start_utime = reference.utime - 12 * hour;
-      reference.n_samples = 4320;
-      Vector9d p;
-      const Eigen::Matrix3d& D = truth.D;
-      p << truth.bias_nT, D(0, 0), D(1, 1), D(2, 2), D(0, 1), D(0, 2), D(1, 2);
-      reference.parameters = CalibrationParameters::from_packed(p);
-      Vector9d variance;
-      variance << 0.8, 9.0, 0.5, 1e-8, 1e-8, 1e-8, 1e-8, 1e-8, 1e-8;  // a full window's
-      reference.covariance = variance.asDiagonal();
-      reference.residual_rms_nT = 3.0;
-      reference.status = CalibrationStatus::kOk;
-      reference.accepted = true;
-      reference.converged = true;
+      // An accepted full-window refit of the day before.
+      CalibrationResult reference = full_window_reference(truth, truth.bias_nT, t_ref - 24 * hour);
       if (modelled) {
         reference.has_temperature_model = true;
         reference.reference_temperature_C = 20.0;
@@ -220,6 +229,54 @@ TEST_CASE("refits: a reference with a temperature model is compared at this wind
       const bool change_gate = reasons.find("bias_change") != std::string::npos;
       // Without the model the reference is the bias at another temperature: the 15 nT offset
       // is (rightly, for all it knows) a change.
+      CHECK(change_gate != modelled);
+      if (modelled) CHECK(out.accepted());
+    }
+  }
+}
+
+TEST_CASE("refits: a reference with a bias rate is moved by it to this window's end") {
+  // The bias drifts (1.5, -2, 1) nT/h; the accepted reference refit of the day before modelled
+  // the rate and published the bias at its window's end. This window's bias at its end is 24 h
+  // of drift, (36, -48, 24) nT, from the reference's: beyond the change gate's 10 nT floor, and
+  // no jump of the sensor.
+  const Eigen::Vector3d rate_nT_per_h(1.5, -2.0, 1.0);
+  for (const bool modelled : {true, false}) {
+    DYNAMIC_SECTION((modelled ? "the reference has the rate" : "the reference has none")) {
+      test::TempDir dir("magcal_refit_drift");
+      DaemonConfig config;
+      config.storage.db_path = dir.file("drift.db");
+      storage::Database db(config.storage.db_path);
+      Scenario sc = paper_scenario(3, 12.0);
+      sc.sensor.drift_nT_per_day = 24.0 * rate_nT_per_h;
+      int64_t seq = 0;
+      const TruthParameters truth = store_simulation(db, sc, "DRIFT-1", &seq);
+      const int64_t hour = 3'600'000'000LL;
+      const int64_t t_ref = sc.epoch_utime + 12 * hour - 10'000'000LL;
+
+      // An accepted full-window refit of the day before; b0 is the bias at the scenario epoch,
+      // and the reference's window ended 12 h before it.
+      CalibrationResult reference =
+          full_window_reference(truth, truth.bias_nT - 12.0 * rate_nT_per_h, t_ref - 24 * hour);
+      if (modelled) {
+        reference.has_bias_rate = true;
+        reference.bias_rate_nT_per_h = rate_nT_per_h;
+        reference.bias_rate_covariance = Eigen::Matrix3d::Identity() * 0.01;
+      }
+      storage::SqliteCalibrationHistory(db).append(record_from_result("DRIFT-1", reference));
+
+      RefitRunner runner(config, db);
+      const RefitOutcome out = runner.run("DRIFT-1", t_ref, "scheduled", t_ref);
+      REQUIRE(out.kind == RefitOutcome::Kind::kComputed);
+      const CalibrationResult& r = out.result;
+      std::string reasons;
+      for (const auto& reason : r.rejection_reasons) reasons += reason + "; ";
+      INFO("bias " << r.parameters.bias_nT.transpose() << " sigma " << r.bias_sigma_nT().transpose()
+                   << " rate " << r.bias_rate_nT_per_h.transpose() << " reasons: " << reasons);
+      CHECK(r.has_bias_rate);  // this window's own fit sees the drift
+      const bool change_gate = reasons.find("bias_change") != std::string::npos;
+      // Without the rate the reference is the bias of a day before: 48 nT is (rightly, for all
+      // it knows) a change.
       CHECK(change_gate != modelled);
       if (modelled) CHECK(out.accepted());
     }

@@ -165,6 +165,45 @@ TEST_CASE("parse_history_request names the bad parameter with the caller's prefi
   REQUIRE(error == "unknown method 'lsq' (ukf, ekf, centered, twostep)");
 }
 
+namespace {
+
+// The history CSV's lines split at every comma (its numeric and flag fields hold none); every
+// line has the header's field count.
+std::vector<std::vector<std::string>> csv_fields(const std::string& csv) {
+  std::vector<std::vector<std::string>> table;
+  for (size_t start = 0; start < csv.size();) {
+    const size_t end = csv.find('\n', start);
+    std::vector<std::string> fields;
+    const std::string line = csv.substr(start, end - start);
+    for (size_t f = 0;;) {
+      const size_t comma = line.find(',', f);
+      fields.push_back(line.substr(f, comma - f));
+      if (comma == std::string::npos) break;
+      f = comma + 1;
+    }
+    table.push_back(fields);
+    start = end + 1;
+  }
+  for (const auto& row : table) REQUIRE(row.size() == table.at(0).size());
+  return table;
+}
+
+size_t csv_column(const std::vector<std::vector<std::string>>& table, const std::string& name) {
+  const auto it = std::find(table.at(0).begin(), table.at(0).end(), name);
+  REQUIRE(it != table[0].end());
+  return static_cast<size_t>(it - table[0].begin());
+}
+
+// The table's lines, without their newlines.
+std::vector<std::string> text_lines(const std::string& text) {
+  std::vector<std::string> lines;
+  for (size_t from = 0, nl; (nl = text.find('\n', from)) != std::string::npos; from = nl + 1)
+    lines.push_back(text.substr(from, nl - from));
+  return lines;
+}
+
+}  // namespace
+
 TEST_CASE("history JSON and CSV: the bias temperature model, and whose it is") {
   // A refit with the model, a UKF snapshot that applied it, a refit without it, an old row.
   storage::CalibrationRecord refit;
@@ -209,30 +248,9 @@ TEST_CASE("history JSON and CSV: the bias temperature model, and whose it is") {
     }
   }
 
-  const std::string csv = history_csv_text(all);
-  std::vector<std::vector<std::string>> table;
-  size_t start = 0;
-  while (start < csv.size()) {
-    const size_t end = csv.find('\n', start);
-    std::vector<std::string> fields;
-    const std::string line = csv.substr(start, end - start);
-    size_t f = 0;
-    while (true) {
-      const size_t comma = line.find(',', f);
-      fields.push_back(line.substr(f, comma - f));
-      if (comma == std::string::npos) break;
-      f = comma + 1;
-    }
-    table.push_back(fields);
-    start = end + 1;
-  }
+  const auto table = csv_fields(history_csv_text(all));
   REQUIRE(table.size() == 5);
-  auto column = [&](const std::string& name) {
-    const auto it = std::find(table[0].begin(), table[0].end(), name);
-    REQUIRE(it != table[0].end());
-    return static_cast<size_t>(it - table[0].begin());
-  };
-  for (const auto& row : table) REQUIRE(row.size() == table[0].size());
+  auto column = [&](const std::string& name) { return csv_column(table, name); };
   CHECK(table[1][column("has_temperature_model")] == "1");
   CHECK(table[1][column("reference_temperature_C")] == "12.5");
   CHECK(table[1][column("temperature_coefficient_x_nT_per_C")] == "1.5");
@@ -245,13 +263,50 @@ TEST_CASE("history JSON and CSV: the bias temperature model, and whose it is") {
   CHECK(table[4][column("has_temperature_model")].empty());
 
   // The table's bias of a modelled row says it is the bias at T0; the others say nothing.
-  const std::string text = history_table_text(all);
-  std::vector<std::string> lines;
-  for (size_t from = 0, nl; (nl = text.find('\n', from)) != std::string::npos; from = nl + 1)
-    lines.push_back(text.substr(from, nl - from));
+  const auto lines = text_lines(history_table_text(all));
   REQUIRE(lines.size() == 5);
   CHECK(lines[1].ends_with("(bias at T0 = 12.50 degC)"));
   CHECK(lines[2].ends_with("(bias at T0 = 12.50 degC)"));
   CHECK(lines[3].find("bias at T0") == std::string::npos);
   CHECK(lines[4].find("bias at T0") == std::string::npos);
+}
+
+TEST_CASE("history JSON, CSV and table: a refit's bias rate") {
+  // A refit with a rate, one whose data did not support it, an old row.
+  storage::CalibrationRecord drifting;
+  drifting.sat_id = "S";
+  drifting.method = "twostep";
+  drifting.utime = kT0;
+  drifting.has_bias_rate = 1;
+  drifting.bias_rate_nT_per_h = {1.5, -2.0, 0.25};
+  drifting.bias_rate_cov = {0.0625, 0.25, 1.0, 1e-3, 0.0, 0.0};  // xx yy zz xy xz yz
+  storage::CalibrationRecord steady = drifting;
+  steady.utime = kT0 + 60'000'000;
+  steady.has_bias_rate = 0;
+  storage::CalibrationRecord old_row = steady;
+  old_row.has_bias_rate = -1;
+  const std::vector<storage::CalibrationRecord> all = {drifting, steady, old_row};
+
+  const auto json = nlohmann::json::parse(history_json_text(all));
+  REQUIRE(json.size() == 3);
+  CHECK(json[0]["bias_rate_nT_per_h"] == nlohmann::json({1.5, -2.0, 0.25}));
+  CHECK(json[0]["bias_rate_sigma_nT_per_h"] == nlohmann::json({0.25, 0.5, 1.0}));
+  for (const size_t k : {1u, 2u}) CHECK_FALSE(json[k].contains("bias_rate_nT_per_h"));
+
+  const auto table = csv_fields(history_csv_text(all));
+  REQUIRE(table.size() == 4);
+  auto column = [&](const std::string& name) { return csv_column(table, name); };
+  CHECK(table[1][column("has_bias_rate")] == "1");
+  CHECK(table[1][column("bias_rate_y_nT_per_h")] == "-2");
+  CHECK(table[1][column("bias_rate_sigma_z_nT_per_h")] == "1");
+  CHECK(table[2][column("has_bias_rate")] == "0");
+  CHECK(table[2][column("bias_rate_x_nT_per_h")].empty());
+  CHECK(table[3][column("has_bias_rate")].empty());
+
+  // The table's bias of a drifting row says it is the bias at the window's end.
+  const auto lines = text_lines(history_table_text(all));
+  REQUIRE(lines.size() == 4);
+  CHECK(lines[1].ends_with("(bias at the window's end, moving 1.50 -2.00 0.25 nT/h)"));
+  CHECK(lines[2].find("window's end") == std::string::npos);
+  CHECK(lines[3].find("window's end") == std::string::npos);
 }

@@ -70,6 +70,35 @@ TEST_CASE("status: the bias change compares the two refits at the last one's T0"
   }
 }
 
+TEST_CASE("status: a previous refit with a bias rate is moved by it to the last one's window end") {
+  // A sensor drifting (1, -2, 0.5) nT/h, refitted 6 h apart, each bias at its window's end.
+  const int64_t six_hours = 21'600'000'000;
+  SpacecraftStatus s;
+  s.sat_id = "S";
+  s.previous_refit = refit(kT0, {1000.0, 800.0, 900.0});
+  s.previous_refit->window_end_utime = kT0;
+  s.previous_refit->window_start_utime = kT0 - 2 * six_hours;
+  s.last_refit = refit(kT0 + six_hours, {1006.0, 788.0, 905.0});  // 2 nT on z beyond the drift
+  s.last_refit->window_end_utime = kT0 + six_hours;
+  SECTION("the previous refit has the rate: the change is what it did not predict") {
+    s.previous_refit->has_bias_rate = 1;
+    s.previous_refit->bias_rate_nT_per_h = {1.0, -2.0, 0.5};
+    const auto j = magcal::status_json({.spacecraft = {s}, .stations = {}}, 2 * six_hours);
+    const auto& d = j["spacecraft"][0]["bias_change_since_previous_refit_nT"];
+    CHECK(d[0].get<double>() == Approx(0.0).margin(1e-9));
+    CHECK(d[1].get<double>() == Approx(0.0).margin(1e-9));
+    CHECK(d[2].get<double>() == Approx(2.0));
+    CHECK(magcal::status_text({.spacecraft = {s}, .stations = {}}, 2 * six_hours)
+              .find("the previous refit moved by its bias rate to 2020-01-01T06:00:00") !=
+          std::string::npos);
+  }
+  SECTION("without a rate: the plain difference") {
+    const auto j = magcal::status_json({.spacecraft = {s}, .stations = {}}, 2 * six_hours);
+    CHECK(j["spacecraft"][0]["bias_change_since_previous_refit_nT"][1].get<double>() ==
+          Approx(-12.0));
+  }
+}
+
 TEST_CASE(
     "status: a refit run again at the same data time shows the change since the window "
     "before, not a zero change against its twin") {
