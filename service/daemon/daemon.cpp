@@ -596,7 +596,7 @@ int Daemon::run(const std::atomic<bool>& stop) {
   d.systemd.ready();
   const auto end = ingest.run(stop, d.replay, &d.fatal);
   d.lcm_live.store(false);
-  d.worker->input_ended();
+  d.worker->input_ended(end == LcmIngest::End::kEndOfLog);
   // The drain (bounded by [storage] max_failure_s) runs under TimeoutStopSec, not the watchdog.
   d.systemd.stopping();
   spdlog::info("{}; draining {} queued samples",

@@ -79,6 +79,15 @@ void IngestWorker::leave_fleet() {
 
 void IngestWorker::track_all_now() {
   if (!restored_) return;  // nothing owned
+  // A replay can end before its next lease round (every lease_s / 3; a fast replay takes
+  // seconds): the free leases of the spacecraft it received are taken now, up to its share
+  // (which the other stations' spacecraft, registered since its last round, may have raised),
+  // so that their filters run before it stops, not at some daemon's next start.
+  if (replay_ended_.load()) {
+    do {
+      lease_round();
+    } while (owner_.next_lease_round() == std::chrono::steady_clock::time_point{});  // more
+  }
   owner_.track_owned(true);
   intake_.retention_at_next_commit();
 }

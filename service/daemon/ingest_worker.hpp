@@ -83,8 +83,12 @@ class IngestWorker {
   // From any thread: this daemon holds sat_id's lease.
   bool owns(const std::string& sat_id) const { return owner_.owns(sat_id); }
   // From any thread: LCM input ended; from now on only the free leases of spacecraft received
-  // here are taken (OwnedSpacecraftTracker::stop_taking_leases).
-  void input_ended() { owner_.stop_taking_leases(); }
+  // here are taken (OwnedSpacecraftTracker::stop_taking_leases). At the end of a replay
+  // (`end_of_log`), track_all_now() takes them first.
+  void input_ended(bool end_of_log) {
+    owner_.stop_taking_leases();
+    replay_ended_.store(end_of_log);
+  }
   // The owner's filters take every stored sample, without the reorder delay (end of a replay,
   // shutdown); their snapshots and refit triggers as usual.
   void track_all_now();
@@ -166,6 +170,7 @@ class IngestWorker {
   // False while the database has not been reached since start; then the intake is in its
   // outage state (commit_failing()) and nothing of the owner's runs.
   std::atomic<bool> restored_{false};
+  std::atomic<bool> replay_ended_{false};  // input_ended()
 };
 
 }  // namespace magcal

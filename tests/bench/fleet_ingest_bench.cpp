@@ -8,7 +8,11 @@
 //   pg_3_overlap    three daemons, each spacecraft's passes dealt round-robin to the stations
 //                   (pass p of spacecraft s to station (s + p) mod 3), each pass also carrying
 //                   the previous pass's last kOverlapSamples samples, which the previous station
-//                   delivered too: those copies are duplicates (stored once, counted)
+//                   delivered too: those copies are duplicates (stored once, counted). The
+//                   three replays (speed=0) drift apart in data time by more than
+//                   [fleet] reorder_delay_s, so an owner's filter passes samples another station
+//                   stores late (counted in missing_by_seq): fewer UKF snapshots than pg_1 (live
+//                   stations receive in step); pg_3_disjoint stores as many as pg_1.
 // The fleet: <spacecraft> spacecraft (default 1 000, the design's nightly-refit fleet), one
 // sample per 10 s each, passes of 10 minutes (60 samples, one mag_batch_t frame with the
 // reference field in it), <samples per spacecraft> each (default 720: 2 h, so that most samples

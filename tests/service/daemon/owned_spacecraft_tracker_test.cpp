@@ -258,9 +258,49 @@ TEST_CASE("ownership follows reception: each station owns what it receives, also
   std::vector<mag_sample_t> newcomer;
   for (int i = 0; i < 20; ++i) newcomer.push_back(turning_field_sample("SAT-NEW", kT0, i));
   feed(*b, newcomer, 5);
-  b->input_ended();
+  b->input_ended(true);
   a.leave_fleet();
   b->maintain_leases();
   CHECK(owners(a, b.get()) == "-B-B-B-B-B");
   CHECK(b->owns("SAT-NEW"));
+}
+
+TEST_CASE("a replay's end takes the free leases of what it received before its filters drain",
+          "[owned_spacecraft_tracker][fleet]") {
+  // Two stations on the default lease time (a round every 10 s, longer than this test): B
+  // receives SAT-0 and SAT-1 while only their two leases exist, so its share (one of two) lets
+  // it take one; A then receives SAT-2 and SAT-3, which raises B's share to two, but B's next
+  // round would come only after its replay ended. At the end, B takes its other spacecraft
+  // and filters it to its newest sample (a fast replay's daemon stops sooner than its round).
+  TempDir tmp("magcal_owner_test_replay_end");
+  const std::string db = tmp.file("m.db");
+  DaemonCounters counters_a, counters_b;
+  IngestWorker a(station_config(db, "A"), counters_a, std::make_unique<ReferenceField>(), {});
+  IngestWorker b(station_config(db, "B"), counters_b, std::make_unique<ReferenceField>(), {});
+  a.restore();
+  b.restore();
+  constexpr int kSamples = 40;
+  auto receive = [&](IngestWorker& w, std::vector<std::string> sats) {
+    std::vector<mag_sample_t> s;
+    for (const auto& sat : sats) {
+      for (int k = 0; k < kSamples; ++k) s.push_back(turning_field_sample(sat, kT0, k));
+    }
+    feed(w, s, 5);
+  };
+  receive(b, {"SAT-0", "SAT-1"});
+  REQUIRE(b.owns("SAT-0") != b.owns("SAT-1"));
+  receive(a, {"SAT-2", "SAT-3"});
+  CHECK(a.owns("SAT-2"));
+  CHECK(a.owns("SAT-3"));
+  CHECK(!a.owns("SAT-0"));  // left to its receiver
+  CHECK(!a.owns("SAT-1"));
+
+  b.input_ended(true);
+  b.track_all_now();
+  for (const std::string sat : {"SAT-0", "SAT-1"}) {
+    INFO(sat);
+    CHECK(b.owns(sat));
+    CHECK(b.fleet().find(sat)->filtered_utime ==
+          turning_field_sample(sat, kT0, kSamples - 1).utime);
+  }
 }
