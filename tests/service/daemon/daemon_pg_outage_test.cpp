@@ -859,8 +859,8 @@ TEST_CASE("PostgreSQL down at start, then refusing the database for good: exit 2
   CHECK(text.find("refused magcald when it first answered (unreachable at start; at start this "
                   "is a start error, exit 2)") != std::string::npos);
   CHECK(text.find("database \"no_such_database\" does not exist") != std::string::npos);
-  // What it received is kept in the spill file for a start with the right database.
-  CHECK(text.find("were not committed") == std::string::npos);
+  // What it received is kept in the spill file for a start with the right database (but for a
+  // frame still queued at the exit, counted as not committed).
   magcal::SampleSpill left(dir.file("magcal-spill-" + magcal::default_station_id() + ".spill"), "",
                            int64_t{1} << 30);
   CHECK(left.held_samples() >= 100);
