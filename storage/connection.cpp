@@ -59,10 +59,16 @@ std::vector<std::string> database_secrets(const std::string& db) {
 }
 
 // The scheme of a URI-like --db value that is neither a PostgreSQL URI nor meant as a file:
-// "WORD://..." (any scheme: an SQLite path never looks like that), or "WORD:..." where WORD is a
+// "WORD://..." (any scheme: an SQLite path never looks like that), "ANY TEXT://..." before any
+// other '/' (a space typed into the scheme: "postgres ql://"), or "WORD:..." where WORD is a
 // near miss of postgres ("postgres:/x", "postgresql:x", "pgsql:"). Returned as typed, with its
 // colon and slashes ("postgressql://"); "" when the value is none of these.
 std::string mistyped_uri_scheme(const std::string& db) {
+  if (const std::size_t sep = db.find("://");
+      sep != std::string::npos && sep > 0 && db.find('/') == sep + 1) {
+    const std::size_t path = db.find_first_not_of('/', sep + 1);
+    return db.substr(0, path == std::string::npos ? db.size() : path);
+  }
   std::size_t end = 0;
   while (end < db.size() && (std::isalnum(static_cast<unsigned char>(db[end])) || db[end] == '+' ||
                              db[end] == '-' || db[end] == '.')) {
@@ -112,28 +118,35 @@ std::string database_name(const std::string& db) {
   return without_database_secrets(db, db);
 }
 
-std::unique_ptr<Connection> open_database(const std::string& db, const OpenOptions& options) {
-  if (is_postgres_uri(db)) return std::make_unique<PgDatabase>(db, options);
+std::string database_value_error(const std::string& db) {
+  if (is_postgres_uri(db)) return "";
   const std::size_t scheme_end = db.find("://");
   std::string scheme = db.substr(0, scheme_end == std::string::npos ? 0 : scheme_end + 3);
   std::transform(scheme.begin(), scheme.end(), scheme.begin(),
                  [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+  // (Built by append: GCC 12 warns falsely (-Wrestrict) on "literal" + std::string here.)
+  std::string error = "'";
   if (is_postgres_uri(scheme)) {
-    throw StorageError(StorageError::Kind::kInvalidArgument,
-                       "'" + database_name(db) +
-                           "': write the URI scheme in lower case (postgresql:// or postgres://)");
+    return error.append(database_name(db))
+        .append("': write the URI scheme in lower case (postgresql:// or postgres://)");
   }
-  if (const std::string scheme = mistyped_uri_scheme(db); !scheme.empty()) {
-    throw StorageError(StorageError::Kind::kInvalidArgument,
-                       "unknown database URI scheme '" + scheme +
-                           "': use postgresql:// (or postgres://) for PostgreSQL, or a file path "
-                           "for SQLite");
+  if (const std::string typed = mistyped_uri_scheme(db); !typed.empty()) {
+    return "unknown database URI scheme '" + typed +
+           "': use postgresql:// (or postgres://) for PostgreSQL, or a file path for SQLite";
   }
   if (is_libpq_keyword_string(db)) {
-    throw StorageError(StorageError::Kind::kInvalidArgument,
-                       "'" + database_name(db) +
-                           "' is a libpq key=value connection string: --db takes an SQLite file "
-                           "or a URI (postgresql://USER@HOST:PORT/DBNAME)");
+    return error.append(database_name(db))
+        .append(
+            "' is a libpq key=value connection string: --db takes an SQLite file or a URI "
+            "(postgresql://USER@HOST:PORT/DBNAME)");
+  }
+  return "";
+}
+
+std::unique_ptr<Connection> open_database(const std::string& db, const OpenOptions& options) {
+  if (is_postgres_uri(db)) return std::make_unique<PgDatabase>(db, options);
+  if (const std::string error = database_value_error(db); !error.empty()) {
+    throw StorageError(StorageError::Kind::kInvalidArgument, error);
   }
   return std::make_unique<Database>(db, options);
 }

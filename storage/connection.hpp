@@ -108,9 +108,14 @@ class Connection {
   virtual void end_transaction(bool nested, bool committed) noexcept = 0;
 };
 
+// Why `db` is neither a PostgreSQL URI nor an SQLite file path: a scheme in upper case or
+// mistyped ("postgress://", "postgres ql://"), libpq's key=value form; "" when it is one of them.
+// A mistake in the value (a config or usage error), found without opening anything.
+std::string database_value_error(const std::string& db);
+
 // Opens `db`: a postgresql:// or postgres:// URI is a PostgreSQL database, anything else an
-// SQLite file path (or ":memory:"); a scheme in upper case and libpq's key=value form are refused
-// rather than created as files of that name. Throws StorageError.
+// SQLite file path (or ":memory:"); a value database_value_error() refuses is refused (condition
+// kInvalidArgument) rather than created as a file of that name. Throws StorageError.
 std::unique_ptr<Connection> open_database(const std::string& db, const OpenOptions& options = {});
 
 // RAII transaction, rolled back on destruction unless commit() was called. Inside an already

@@ -12,6 +12,7 @@
 
 #include "pipeline/scenario.hpp"
 #include "service/cli/cli_commands.hpp"
+#include "storage/connection.hpp"
 
 namespace {
 
@@ -58,6 +59,15 @@ CLI::Validator seed_number() {
         return "";
       },
       "SEED");
+}
+
+// --db: an SQLite file or a postgresql:// URI; a mistyped URI scheme is a bad argument (exit 1),
+// not a database that cannot be opened (exit 2).
+CLI::Option* add_db_option(CLI::App* command, std::string& db) {
+  return command->add_option("--db", db, "SQLite database file or postgresql:// URI")
+      ->required()
+      ->check(CLI::Validator(
+          [](std::string& text) { return magcal::storage::database_value_error(text); }, "DB"));
 }
 
 // A finite decimal number (the run_* functions check its range).
@@ -209,14 +219,14 @@ int main(int argc, char** argv) {
 
   RefitArgs refit;
   auto* refit_cmd = app.add_subcommand("refit", "run an offline refit of a stored window now");
-  refit_cmd->add_option("--db", refit.db, "SQLite database file or postgresql:// URI")->required();
+  add_db_option(refit_cmd, refit.db);
   refit_cmd->add_option("--sat", refit.sat, "spacecraft id")->required();
   refit_cmd->add_option("--config", refit.config, "magcald config (gates, sigma, window)");
   refit_cmd->add_flag("--json", refit.json, "print JSON");
 
   HistoryArgs history;
   auto* hist_cmd = app.add_subcommand("history", "query stored calibration results");
-  hist_cmd->add_option("--db", history.db, "SQLite database file or postgresql:// URI")->required();
+  add_db_option(hist_cmd, history.db);
   hist_cmd->add_option("--sat", history.sat, "spacecraft id")->required();
   hist_cmd->add_option("--method", history.method, "ukf|ekf|centered|twostep");
   hist_cmd->add_option("--since", history.since, "ISO 8601 UTC, inclusive");
@@ -230,14 +240,13 @@ int main(int argc, char** argv) {
 
   StatusArgs status;
   auto* status_cmd = app.add_subcommand("status", "per-spacecraft summary");
-  status_cmd->add_option("--db", status.db, "SQLite database file or postgresql:// URI")
-      ->required();
+  add_db_option(status_cmd, status.db);
   status_cmd->add_flag("--json", status.json, "print JSON");
 
   ServeArgs serve;
   auto* serve_cmd = app.add_subcommand(
       "serve", "HTTP operations server over a database (read-only): API, plots page");
-  serve_cmd->add_option("--db", serve.db, "SQLite database file or postgresql:// URI")->required();
+  add_db_option(serve_cmd, serve.db);
   serve_cmd->add_option("--listen", serve.listen,
                         "ADDR:PORT to listen on (default 127.0.0.1:9780; port 0: any free)");
 

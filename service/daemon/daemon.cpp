@@ -3,10 +3,9 @@
 #include <sys/resource.h>
 #include <unistd.h>
 
-#include <cerrno>
 #include <chrono>
 #include <condition_variable>
-#include <cstring>
+#include <cstdlib>
 #include <deque>
 #include <mutex>
 #include <optional>
@@ -67,6 +66,9 @@ struct Daemon::Impl {
   std::unique_ptr<RefitRunner> refits;
   // Type=notify + WatchdogSec (deploy/magcald.service); a no-op outside systemd.
   SystemdNotifier systemd;
+  // Set when a signal stops run(): every storage retry gives up [storage] stop_max_failure_s
+  // later (before systemd's TimeoutStopSec).
+  StopDeadline stop_deadline;
 
   // Refit requests (worker -> refit thread) and the retention floor they imply.
   std::mutex refit_mutex;
@@ -121,6 +123,8 @@ struct Daemon::Impl {
       fail(kExitStorageFailed, fmt::format("storage failed ({} thread): {}", thread, e.what()));
     } catch (const StationConflict& e) {
       fail(kExitUsage, e.what());
+    } catch (const RefusedAtFirstContact& e) {
+      fail(kExitData, e.what());
     } catch (const std::exception& e) {
       fail(kExitThreadDied, fmt::format("{} thread died: {}", thread, e.what()));
     } catch (...) {
@@ -207,8 +211,14 @@ struct Daemon::Impl {
         worker->restored() || since == 0
             ? ""
             : ", unreachable since magcald started at " + format_iso8601_utc(since),
-        counters.storage_pending.load(),
-        postgres ? fmt::format(", {} in the spill file", counters.spill_held.load()) : "");
+        counters.storage_pending.load(), postgres ? spill_note() : "");
+  }
+  // ", N in the spill file" (and an earlier run's there, not committed yet).
+  std::string spill_note() const {
+    const int64_t earlier = counters.spill_held_earlier.load();
+    return fmt::format(
+        ", {} in the spill file{}", counters.spill_held.load(),
+        earlier > 0 ? fmt::format(" (and {} an earlier run left there)", earlier) : "");
   }
 
   http::DaemonMetrics::Totals metric_totals() const {
@@ -224,7 +234,9 @@ struct Daemon::Impl {
     t.storage_failing_s = storage_failing_s();
     t.storage_pending = counters.storage_pending.load(std::memory_order_relaxed);
     t.spilled = counters.spilled.load(std::memory_order_relaxed);
-    t.spill_held = counters.spill_held.load(std::memory_order_relaxed);
+    // Everything the file holds: what an operator watches for (the books count this run's).
+    t.spill_held = counters.spill_held.load(std::memory_order_relaxed) +
+                   counters.spill_held_earlier.load(std::memory_order_relaxed);
     t.spill_bytes = counters.spill_bytes.load(std::memory_order_relaxed);
     t.spill_recovered = counters.spill_recovered.load(std::memory_order_relaxed);
     t.spill_dropped = counters.spill_dropped.load(std::memory_order_relaxed);
@@ -292,6 +304,12 @@ struct Daemon::Impl {
     return "";  // the server logs its URL
   }
 
+  // The refit thread's storage retries.
+  StorageRetry refit_retry() {
+    return StorageRetry("refit", config.storage_max_failure_s(), counters,
+                        config.storage_max_failure_key(), &stop_deadline);
+  }
+
   // Refit thread: one refit, its storage errors retried with backoff (each attempt has its job
   // row); StorageOutage once storage stays broken.
   RefitOutcome run_refit(StorageRetry& retry, const std::string& sat, const RefitRequest& req) {
@@ -306,8 +324,7 @@ struct Daemon::Impl {
   }
 
   void refit_all(const RefitRequest& req) {
-    StorageRetry retry("refit", config.storage_max_failure_s(), counters,
-                       config.storage_max_failure_key());
+    StorageRetry retry = refit_retry();
     // The wall-clock schedule refits the spacecraft this daemon owns (design.md "Fleet"); the
     // others' owners refit theirs.
     std::vector<std::string> sats = req.sat_id.empty()
@@ -373,8 +390,7 @@ struct Daemon::Impl {
   }
 
   void mark_interrupted_jobs() {
-    StorageRetry retry("refit", config.storage_max_failure_s(), counters,
-                       config.storage_max_failure_key());
+    StorageRetry retry = refit_retry();
     // Only this station's (and unclaimed) jobs: other daemons sharing the database run theirs.
     const int n = retry.run_blocking([this] {
       return refit_db->make_refit_job_log()->mark_station_running_interrupted(config.station.id,
@@ -485,8 +501,9 @@ struct Daemon::Impl {
       }
     }
     if (fatal.load()) return;
-    // Drained (end of log or stop): store everything, retrying until max_failure_s (on
-    // PostgreSQL during an outage: spilled for the next start); the owned filters take every
+    // Drained (end of log or stop): store everything, retrying until max_failure_s, or a
+    // signal's stop_max_failure_s (on PostgreSQL during an outage: spilled for the next start,
+    // when the spill file takes them); the owned filters take every
     // stored sample (their refits still run: this thread is the refit thread's client).
     worker->flush_at_stop();
     worker->track_all_now();
@@ -544,14 +561,6 @@ std::string Daemon::open() {
   }
   // The listen socket before the database, for the same reason as LCM.
   if (std::string e = d.bind_server(); !e.empty()) return e;
-  // A spill directory that cannot take the file must show now, not in the middle of an outage.
-  if (const std::string spill = c.spill_path(); !spill.empty()) {
-    const std::string dir = spill.substr(0, spill.rfind('/'));
-    if (::access(dir.c_str(), W_OK | X_OK) != 0) {
-      return "[storage] spill_dir: " + dir + ": not a writable directory (" + std::strerror(errno) +
-             "); the spill file of a PostgreSQL outage goes there";
-    }
-  }
   try {
     d.worker = std::make_unique<IngestWorker>(
         c, d.counters, std::move(field),
@@ -559,7 +568,8 @@ std::string Daemon::open() {
             [&d](const std::string& sat, const CalibrationResult& r) { d.on_snapshot(sat, r); },
             [&d](const std::string& sat, int64_t t, const char* trigger) {
               d.on_refit_due(sat, t, trigger);
-            }});
+            }},
+        &d.stop_deadline);
     d.refit_db = storage::open_database(
         c.storage.db_path,
         storage::OpenOptions{.busy_timeout_ms = c.storage.busy_timeout_ms, .connect_later = true});
@@ -573,7 +583,16 @@ std::string Daemon::open() {
     return what.find(name) != std::string::npos ? "database: " + what
                                                 : "database " + name + ": " + what;
   } catch (const SpillError& e) {
-    return std::string("[storage] spill_dir: ") + e.what();
+    // The worker creates the spill file at once (a directory that cannot take it must show
+    // now, not in the middle of an outage; access() would not tell: root passes it on /sys).
+    const char* state_dir = std::getenv("STATE_DIRECTORY");
+    return fmt::format(
+        "[storage] spill_dir {}: {} (the spill file takes the samples of a PostgreSQL outage; "
+        "spill_max_bytes = 0 runs without one)",
+        !c.storage.spill_dir.empty() ? "'" + c.storage.spill_dir + "'"
+        : state_dir != nullptr       ? std::string("unset ($STATE_DIRECTORY)")
+                                     : std::string("unset (the working directory)"),
+        e.what());
   }
   return d.start_server();
 }
@@ -595,9 +614,12 @@ int Daemon::run(const std::atomic<bool>& stop) {
   d.lcm_live.store(true);
   d.systemd.ready();
   const auto end = ingest.run(stop, d.replay, &d.fatal);
+  // A stop must end before systemd's TimeoutStopSec: storage that fails gives up at this bound.
+  if (end == LcmIngest::End::kStopped) d.stop_deadline.start(c.storage.stop_max_failure_s);
   d.lcm_live.store(false);
   d.worker->input_ended(end == LcmIngest::End::kEndOfLog);
-  // The drain (bounded by [storage] max_failure_s) runs under TimeoutStopSec, not the watchdog.
+  // The drain (bounded by [storage] max_failure_s, and after a signal by stop_max_failure_s)
+  // runs under TimeoutStopSec, not the watchdog.
   d.systemd.stopping();
   spdlog::info("{}; draining {} queued samples",
                d.fatal.load()                     ? "stopped on a fatal error"

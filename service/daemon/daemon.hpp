@@ -20,7 +20,9 @@
 // run() ends when `stop` is set (SIGINT/SIGTERM) or, for a file:// URL, at the end of the log:
 // stop receiving, drain the queue, commit, finish due refits (replay) or the running one
 // (signal), write filter states, publish a last status. Exit codes as in cli_commands.hpp, and
-// the two below.
+// the two below. After a signal, storage that fails is given up [storage] stop_max_failure_s
+// after it (StopDeadline): exit 3 with what was not committed counted, before systemd's
+// TimeoutStopSec would kill it (a PostgreSQL outage without a spill file to take the samples).
 //
 // Never half-alive: storage that stays broken for [storage] max_failure_s (each failed
 // operation kept and retried, service/daemon/storage_retry.hpp), or a worker or refit thread that

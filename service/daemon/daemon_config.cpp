@@ -175,7 +175,8 @@ std::map<std::string, Section> key_table(DaemonConfig& c) {
         {"max_pending_samples", bind(c.storage.max_pending_samples)},
         {"pg_max_failure_s", bind(c.storage.pg_max_failure_s)},
         {"spill_dir", bind(c.storage.spill_dir)},
-        {"spill_max_bytes", bind(c.storage.spill_max_bytes)}}},
+        {"spill_max_bytes", bind(c.storage.spill_max_bytes)},
+        {"stop_max_failure_s", bind(c.storage.stop_max_failure_s)}}},
       {"refit",
        {{"daily_at_utc", bind(c.refit.daily_at_utc)},
         {"every_hours", bind(c.refit.every_hours)},
@@ -298,6 +299,7 @@ bool affects_results(const std::string& section, const std::string& key) {
                                                          "storage.pg_max_failure_s",
                                                          "storage.spill_dir",
                                                          "storage.spill_max_bytes",
+                                                         "storage.stop_max_failure_s",
                                                          "service.queue_capacity_samples",
                                                          "service.status_every_s"};
   return kOperationalSections.count(section) == 0 &&
@@ -364,6 +366,10 @@ std::string DaemonConfig::validate() const {
     if (auto e = check_channel(key, name); !e.empty()) return e;
   }
   if (storage.db_path.empty()) return "[storage] db_path: must not be empty";
+  // A mistyped URI is a bad value (exit 1), not a database that cannot be opened (exit 2).
+  if (const std::string e = storage::database_value_error(storage.db_path); !e.empty()) {
+    return "[storage] db_path: " + e;
+  }
   if (!(storage.window_hours > 0.0)) return "[storage] window_hours: must be > 0";
   if (!(storage.retention_margin_hours >= 0.0)) {
     return "[storage] retention_margin_hours: must be >= 0";
@@ -379,6 +385,7 @@ std::string DaemonConfig::validate() const {
   if (storage.spill_max_bytes < 0) {
     return "[storage] spill_max_bytes: must be >= 0 (0 = no spill file)";
   }
+  if (!(storage.stop_max_failure_s > 0.0)) return "[storage] stop_max_failure_s: must be > 0";
   if (!parse_daily_time_utc(refit.daily_at_utc)) {
     return "[refit] daily_at_utc: expected \"HH:MM\" (UTC), got \"" + refit.daily_at_utc + "\"";
   }

@@ -65,6 +65,16 @@ struct DaemonConfig {
     // 6.5 million samples (~160 bytes each): hours of a busy station.
     std::string spill_dir;
     int64_t spill_max_bytes = int64_t{1} << 30;
+    // At a stop (SIGTERM/SIGINT), storage that still fails is given up this long after the stop
+    // (whatever max_failure_s / pg_max_failure_s allow): exit 3, and the samples neither
+    // committed nor spilled are counted and logged as not committed (storage_error). Without it,
+    // a stop during a PostgreSQL outage with no spill file to take the held samples (spill off,
+    // or full) would retry for pg_max_failure_s, until systemd's SIGKILL at TimeoutStopSec
+    // (90 s in deploy/magcald.service) dropped them without a word. 30 s, plus one attempt in
+    // flight at that moment (a statement on a dead link fails after 30 s: tcp_user_timeout,
+    // storage/postgres/pg_database.cpp), stays well under 90 s; keep it below TimeoutStopSec
+    // minus 40 s.
+    double stop_max_failure_s = 30.0;
   } storage;
   struct Refit {
     std::string daily_at_utc = "02:00";

@@ -161,11 +161,13 @@ struct DaemonCounters {
   // Wall time (utime) since when some storage path has been failing; 0 while none is.
   std::atomic<int64_t> storage_failing_since_utime{0};
   // The spill file (PostgreSQL outages, service/daemon/sample_spill.hpp): samples written to it,
-  // the samples it holds now (not committed yet: in flight, like storage_pending) and its size;
-  // samples committed at start from a file an earlier run left (received by that run), and
-  // records of such a file dropped as torn or corrupt (a crash during a write).
+  // this run's samples it holds now (not committed yet: in flight, like storage_pending), an
+  // earlier run's it holds now (received and counted by that run; committed first once the
+  // database answers) and its size; samples committed at start from a file an earlier run left,
+  // and records of such a file dropped as torn or corrupt (a crash during a write).
   std::atomic<int64_t> spilled{0};
   std::atomic<int64_t> spill_held{0};
+  std::atomic<int64_t> spill_held_earlier{0};
   std::atomic<int64_t> spill_bytes{0};
   std::atomic<int64_t> spill_recovered{0};
   std::atomic<int64_t> spill_dropped{0};

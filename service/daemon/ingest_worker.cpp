@@ -7,7 +7,8 @@
 namespace magcal {
 
 IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
-                           std::unique_ptr<ReferenceField> field, Hooks hooks)
+                           std::unique_ptr<ReferenceField> field, Hooks hooks,
+                           const StopDeadline* stop)
     : config_(config),
       db_(storage::open_database(config.storage.db_path,
                                  storage::OpenOptions{
@@ -16,7 +17,7 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
                                  })),
       samples_(db_->make_sample_window_store()),
       fleet_(config.ukf.filter, &counters),
-      intake_(config_, counters, std::move(field), *db_, *samples_, fleet_),
+      intake_(config_, counters, std::move(field), *db_, *samples_, fleet_, stop),
       owner_(config_, counters, *db_, *samples_, fleet_, intake_, std::move(hooks),
              OwnedSpacecraftTracker::Links{[this](bool block) { return commit_all(block); }}) {}
 
@@ -56,7 +57,20 @@ void IngestWorker::restore_from_database() {
 }
 
 bool IngestWorker::try_restore() {
-  return restored_ || intake_.try_commit_step([this] { restore_from_database(); });
+  return restored_ || intake_.try_commit_step([this] {
+    try {
+      restore_from_database();
+    } catch (const storage::StorageError& e) {
+      // (Not a StorageError: past the commit path's retry, which would call it an outage.)
+      if (!e.transient()) {
+        throw RefusedAtFirstContact(fmt::format(
+            "database {} refused magcald when it first answered (unreachable at start; at start "
+            "this is a start error, exit 2): {}",
+            db_->name(), e.what()));
+      }
+      throw;
+    }
+  });
 }
 
 void IngestWorker::lease_round() {

@@ -32,13 +32,15 @@
 // first moment: samples are received, validated and held or spilled as in any outage, no lease
 // is taken and no filter runs; the restore is the commit path's first step, retried on its
 // cadence, and once it goes through the spill is committed and the worker goes on as usual
-// (past pg_max_failure_s: StorageOutage, as in any outage).
+// (past pg_max_failure_s: StorageOutage, as in any outage; a permanent error then is the start
+// error it would have been: RefusedAtFirstContact).
 #pragma once
 
 #include <atomic>
 #include <chrono>
 #include <cstdint>
 #include <memory>
+#include <stdexcept>
 
 #include "pipeline/calibration_result.hpp"
 #include "service/daemon/daemon_config.hpp"
@@ -53,16 +55,26 @@
 
 namespace magcal {
 
+// The database, unreachable at start, refused the daemon for good when it first answered (a
+// missing database or role, authentication, a schema that is not magcal's): the start error it
+// would have been at start (exit 2), not an outage of a database that worked (exit 3).
+class RefusedAtFirstContact : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
 class IngestWorker {
  public:
   using Hooks = OwnedSpacecraftTracker::Hooks;
 
   // Opens its own connection to config.storage.db_path (throws storage::StorageError; a
   // PostgreSQL server that cannot be reached now is not an error: OpenOptions::connect_later)
-  // and, on PostgreSQL, a spill file left behind (throws SpillError). Counts in `counters` (must
-  // outlive the worker), per spacecraft too, and times each commit.
+  // and, on PostgreSQL, the spill file (throws SpillError). Counts in `counters` (must outlive
+  // the worker), per spacecraft too, and times each commit. Its storage retries give up at
+  // `stop` (nullptr: none; must outlive the worker).
   IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
-               std::unique_ptr<ReferenceField> field, Hooks hooks);
+               std::unique_ptr<ReferenceField> field, Hooks hooks,
+               const StopDeadline* stop = nullptr);
   ~IngestWorker();
 
   // Commits a spill file an earlier run left, rebuilds the receive side from the database, then

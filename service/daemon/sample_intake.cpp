@@ -53,7 +53,8 @@ void SampleIntake::begin_frame() {
 
 SampleIntake::SampleIntake(const DaemonConfig& config, DaemonCounters& counters,
                            std::unique_ptr<ReferenceField> field, storage::Connection& db,
-                           storage::SampleWindowStore& samples, SpacecraftFleet& fleet)
+                           storage::SampleWindowStore& samples, SpacecraftFleet& fleet,
+                           const StopDeadline* stop)
     : config_(config),
       counters_(counters),
       field_(std::move(field)),
@@ -62,9 +63,9 @@ SampleIntake::SampleIntake(const DaemonConfig& config, DaemonCounters& counters,
       samples_(samples),
       fleet_(fleet),
       commit_retry_("commit", config.storage_max_failure_s(), counters,
-                    config.storage_max_failure_key()),
+                    config.storage_max_failure_key(), stop),
       read_retry_("duplicate check", config.storage_max_failure_s(), counters,
-                  config.storage_max_failure_key()) {
+                  config.storage_max_failure_key(), stop) {
   pending_.reserve(static_cast<size_t>(config.storage.commit_every_samples));
   if (const std::string path = config.spill_path(); !path.empty()) {
     spill_ = std::make_unique<SampleSpill>(path, db_.name(), config.storage.spill_max_bytes);
@@ -84,10 +85,14 @@ void SampleIntake::restore(CommitParticipant& owner) {
   if (spill_recovered_held_ > 0) {
     // Before the time bases are rebuilt (and the filters re-run): they include these samples.
     const int64_t held = spill_recovered_held_;
-    spdlog::warn(
-        "spill file {} (written for {}) holds {} samples an earlier run received during "
-        "a database outage: committing them",
-        spill_->path(), spill_->found_database(), held);
+    // Once: while the database stays unreachable restore() is retried on the commit backoff.
+    if (!spill_recovery_logged_) {
+      spill_recovery_logged_ = true;
+      spdlog::warn(
+          "spill file {} (written for {}) holds {} samples an earlier run received during "
+          "a database outage: committing them",
+          spill_->path(), spill_->found_database(), held);
+    }
     const int64_t recovered_before = counters_.spill_recovered.load();
     commit_spill(owner, true);
     const int64_t committed = counters_.spill_recovered.load() - recovered_before;
@@ -504,9 +509,10 @@ void SampleIntake::commit_spill(CommitParticipant& owner, bool recovered,
 }
 
 void SampleIntake::update_spill_gauges() {
-  // This run's samples only (in flight: received = stored + rejected + ... + these).
+  // This run's samples apart (in flight: received = stored + rejected + ... + these).
   counters_.spill_held.store(spill_->held_samples() - spill_recovered_held_,
                              std::memory_order_relaxed);
+  counters_.spill_held_earlier.store(spill_recovered_held_, std::memory_order_relaxed);
   counters_.spill_bytes.store(spill_->bytes(), std::memory_order_relaxed);
 }
 

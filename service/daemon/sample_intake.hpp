@@ -84,11 +84,13 @@ class CommitParticipant {
 
 class SampleIntake {
  public:
-  // Reads and writes `samples` (on `db`, one thread's connection); opens a spill file an
-  // earlier run left (PostgreSQL: throws SpillError). Counts in `counters`.
+  // Reads and writes `samples` (on `db`, one thread's connection); on PostgreSQL opens the spill
+  // file (an earlier run's, or a new one: throws SpillError). Counts in `counters`. Its storage
+  // retries give up at `stop` (nullptr: none).
   SampleIntake(const DaemonConfig& config, DaemonCounters& counters,
                std::unique_ptr<ReferenceField> field, storage::Connection& db,
-               storage::SampleWindowStore& samples, SpacecraftFleet& fleet);
+               storage::SampleWindowStore& samples, SpacecraftFleet& fleet,
+               const StopDeadline* stop = nullptr);
 
   // At start: commits the records of a spill file an earlier run left (before anything else
   // reads the window), then every stored spacecraft's time base from its newest stored sample
@@ -241,6 +243,7 @@ class SampleIntake {
   // Records at the front of the spill file that an earlier run left, not committed yet
   // (restore() commits them; received and counted by that run, not this one).
   int64_t spill_recovered_held_ = 0;
+  bool spill_recovery_logged_ = false;              // restore() said it commits them (once)
   std::vector<storage::StoredSample> spill_chunk_;  // reused by commit_spill()
   std::vector<storage::StoredSample> read_rows_;    // reused by restore_spacecraft()
   std::vector<size_t> duplicate_rows_;  // of the last insert (reused: no allocation per batch)

@@ -97,15 +97,28 @@ bool decode(const char* data, size_t n, storage::StoredSample& s) {
 
 SampleSpill::SampleSpill(std::string path, std::string database, int64_t max_bytes)
     : path_(std::move(path)), database_(std::move(database)), max_bytes_(max_bytes) {
-  if (::access(path_.c_str(), F_OK) == 0) open_existing();
+  try {
+    if (::access(path_.c_str(), F_OK) == 0) open_existing();
+    if (fd_ < 0) create();  // (none, or one that held nothing: removed)
+  } catch (const SpillError&) {
+    if (fd_ >= 0) ::close(fd_);  // (no destructor runs)
+    throw;
+  }
 }
 
 SampleSpill::~SampleSpill() {
-  if (fd_ >= 0) ::close(fd_);  // also releases the lock
+  if (held_ == 0) {
+    close_and_remove();
+  } else if (fd_ >= 0) {
+    ::close(fd_);  // also releases the lock
+  }
 }
 
 void SampleSpill::fail(const std::string& what) const {
-  throw SpillError(fmt::format("spill file {}: {}: {}", path_, what, std::strerror(errno)));
+  const int e = errno;
+  const char* name = ::strerrorname_np(e);
+  throw SpillError(fmt::format("spill file {}: {}: {} ({})", path_, what, std::strerror(e),
+                               name != nullptr ? name : "unknown errno"));
 }
 
 bool SampleSpill::read_exact(int64_t offset, void* out, size_t n) const {
@@ -125,7 +138,8 @@ bool SampleSpill::read_exact(int64_t offset, void* out, size_t n) const {
 void SampleSpill::open_existing() {
   fd_ = ::open(path_.c_str(), O_RDWR | O_CLOEXEC);
   if (fd_ < 0) fail("cannot open");
-  if (::flock(fd_, LOCK_EX | LOCK_NB) != 0) fail("locked by another process (another magcald?)");
+  if (::flock(fd_, LOCK_EX | LOCK_NB) != 0)
+    fail("locked by another process (another magcald with this [station] id and spill_dir?)");
   char magic[sizeof kMagic];
   uint64_t committed = 0;
   uint32_t name_bytes = 0;
@@ -148,6 +162,7 @@ void SampleSpill::open_existing() {
   // the file (records are appended in order, so nothing valid can follow a torn one).
   const off_t size = ::lseek(fd_, 0, SEEK_END);
   if (size < 0) fail("seek");
+  // (An offset past the end, stopped while emptying it after the cut: holds nothing.)
   int64_t at = committed_;
   storage::StoredSample row;
   while (at < size) {
@@ -176,7 +191,8 @@ void SampleSpill::open_existing() {
 void SampleSpill::create() {
   fd_ = ::open(path_.c_str(), O_RDWR | O_CREAT | O_EXCL | O_CLOEXEC, 0640);
   if (fd_ < 0) fail("cannot create");
-  if (::flock(fd_, LOCK_EX | LOCK_NB) != 0) fail("locked by another process (another magcald?)");
+  if (::flock(fd_, LOCK_EX | LOCK_NB) != 0)
+    fail("locked by another process (another magcald with this [station] id and spill_dir?)");
   header_bytes_ =
       static_cast<int64_t>(sizeof kMagic + sizeof(uint64_t) + sizeof(uint32_t) + database_.size());
   const auto offset = static_cast<uint64_t>(header_bytes_);
@@ -218,9 +234,8 @@ bool SampleSpill::append(std::span<const storage::StoredSample> rows) {
     std::memcpy(buffer_.data() + at, &n, sizeof n);
     std::memcpy(buffer_.data() + at + sizeof n, &sum, sizeof sum);
   }
-  // (A new file's header is small against a batch: not counted against the bound.)
-  if (end_ + static_cast<int64_t>(buffer_.size()) > max_bytes_) return false;
-  if (fd_ < 0) create();
+  // (The header is small against a batch: not counted against the bound.)
+  if (bytes() + static_cast<int64_t>(buffer_.size()) > max_bytes_) return false;
   const char* p = buffer_.data();
   size_t left = buffer_.size();
   int64_t at = end_;
@@ -282,10 +297,19 @@ void SampleSpill::commit_read() {
   held_ -= read_count_;
   read_count_ = 0;
   if (committed_ >= end_) {
-    close_and_remove();
+    empty();
     return;
   }
   write_committed_offset();
+}
+
+void SampleSpill::empty() {
+  // The offset first: stopped before the cut, the file holds only committed records.
+  write_committed_offset();
+  if (::ftruncate(fd_, header_bytes_) != 0) fail("cannot cut it back to its header");
+  committed_ = end_ = header_bytes_;
+  write_committed_offset();
+  read_end_ = read_count_ = 0;
 }
 
 void SampleSpill::write_committed_offset() {

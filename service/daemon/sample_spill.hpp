@@ -3,11 +3,15 @@
 // crash during an outage loses no more than one interval). The worker appends the pending batch
 // here instead of stopping intake, and commits the file back (chunk by chunk, oldest first) when
 // the database returns; a file left behind by a daemon that stopped or was killed during an outage
-// is committed at its next start.
+// is committed at its next start. The file is created (or opened) when the daemon starts and
+// stays open, locked and holding nothing until an outage: a spill_dir that cannot take it is a
+// start error, not a surprise in the middle of an outage. It is removed when the daemon ends
+// with nothing in it.
 //
 // Format (one machine writes and reads it: native byte order, no portability promised):
 //   header  "MGSPILL1", u64 offset of the first record not yet committed, u32 length + the
 //           database it was written for (its name without password, for the log)
+//           (holding nothing: the header alone)
 //   record  u32 payload length, u64 FNV-1a of the payload, payload (one storage::StoredSample)
 // Appends are one write and an fdatasync each (a commit interval's batch), so a crash
 // leaves at most a torn last record: at open it is cut off and counted (dropped_records()), with
@@ -29,7 +33,8 @@
 
 namespace magcal {
 
-// The spill file cannot be created, written, read or locked (its path and the OS error).
+// The spill file cannot be created, written, read or locked (its path and the OS error, by
+// strerror and errno name).
 class SpillError : public std::runtime_error {
  public:
   using std::runtime_error::runtime_error;
@@ -42,9 +47,10 @@ class SampleSpill {
   static constexpr uint32_t kMaxPayloadBytes = 1u << 26;
 
   // Opens `path` if it exists (the records after its committed offset are held; a torn or
-  // corrupt tail is cut off and counted), else creates it at the first append(). `database`
-  // is recorded in a new file's header. Throws SpillError.
+  // corrupt tail is cut off and counted), else creates it; either way it stays open and locked.
+  // `database` is recorded in a new file's header. Throws SpillError.
   SampleSpill(std::string path, std::string database, int64_t max_bytes);
+  // Removes the file when it holds nothing.
   ~SampleSpill();
   SampleSpill(const SampleSpill&) = delete;
   SampleSpill& operator=(const SampleSpill&) = delete;
@@ -58,13 +64,13 @@ class SampleSpill {
   // held until commit_read(); reading again without it returns the same records.
   size_t read_chunk(size_t max_rows, std::vector<storage::StoredSample>& out);
   // The records of the last read_chunk() are in the database: no longer held. The file is
-  // removed once it holds nothing. Throws SpillError.
+  // cut back to its header once it holds nothing. Throws SpillError.
   void commit_read();
 
   // Samples in the file not yet committed.
   int64_t held_samples() const { return held_; }
-  // Size of the file (0 when there is none).
-  int64_t bytes() const { return end_; }
+  // Bytes of its records (0 when it holds nothing; the header is not counted).
+  int64_t bytes() const { return end_ - header_bytes_; }
   int64_t max_bytes() const { return max_bytes_; }
   // Records cut off at open (torn or corrupt; a run of such bytes counts as one).
   int64_t dropped_records() const { return dropped_; }
@@ -76,6 +82,8 @@ class SampleSpill {
   void open_existing();
   void create();
   void close_and_remove();
+  // Holding nothing: cut back to the header.
+  void empty();
   void write_committed_offset();
   // pread of exactly `n` bytes at `offset` (false at end of file).
   bool read_exact(int64_t offset, void* out, size_t n) const;

@@ -19,12 +19,21 @@ std::string describe(const storage::StorageError& e) {
 
 }  // namespace
 
+void StopDeadline::start(double bound_s) {
+  bound_s_.store(bound_s);
+  at_.store((Clock::now() +
+             std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(bound_s)))
+                .time_since_epoch()
+                .count());
+}
+
 StorageRetry::StorageRetry(std::string what, double max_failure_s, DaemonCounters& counters,
-                           std::string limit_key)
+                           std::string limit_key, const StopDeadline* stop)
     : what_(std::move(what)),
       max_failure_s_(max_failure_s),
       limit_key_(std::move(limit_key)),
-      counters_(counters) {}
+      counters_(counters),
+      stop_(stop) {}
 
 StorageRetry::~StorageRetry() {
   if (failing_) counters_.storage_path_recovered();
@@ -59,6 +68,14 @@ void StorageRetry::failed(const storage::StorageError& e) {
         "database {} failed for {:.1f} s ([storage] {} = {}; {} attempts), last error ({}): {}",
         what_, failing_s, limit_key_, max_failure_s_, attempts_failed_, describe(e), e.what()));
   }
+  const auto stop_at = stop_ != nullptr ? stop_->at() : Clock::time_point::max();
+  if (now >= stop_at) {
+    throw StorageOutage(fmt::format(
+        "database {} still failing {:.1f} s after the stop ([storage] stop_max_failure_s = {}; "
+        "failing for {:.1f} s, {} attempts), last error ({}): {}",
+        what_, stop_->bound_s() + std::chrono::duration<double>(now - stop_at).count(),
+        stop_->bound_s(), failing_s, attempts_failed_, describe(e), e.what()));
+  }
   // One line per doubling of the backoff, then one every 5 attempts (10 s): a live outage stays
   // visible in the log without flooding it.
   if (backoff_s_ < kMaxBackoff_s || attempts_failed_ % 5 == 0) {
@@ -66,9 +83,11 @@ void StorageRetry::failed(const storage::StorageError& e) {
         "database {} failed ({}; failing for {:.1f} s of {} {}), kept, retry in {:.2f} s: {}",
         what_, describe(e), failing_s, limit_key_, max_failure_s_, backoff_s_, e.what());
   }
-  // Never retry later than the give-up time, so an outage ends on time.
+  // Never retry later than the give-up time, so an outage (or a stop) ends on time.
   const double wait_s = std::min(backoff_s_, std::max(0.0, max_failure_s_ - failing_s));
-  next_ = now + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(wait_s));
+  next_ = std::min(
+      now + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(wait_s)),
+      stop_at);
   backoff_s_ = std::min(2.0 * backoff_s_, kMaxBackoff_s);
 }
 

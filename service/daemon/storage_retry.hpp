@@ -8,8 +8,11 @@
 // PostgreSQL: DaemonConfig::storage_max_failure_s()), or on a permanent error
 // (corrupt or foreign file, constraint), StorageOutage is thrown: the daemon stops receiving,
 // logs why and exits with kExitStorageFailed, so systemd restarts it and an operator is alerted.
+// Once the daemon is stopping on a signal, a StopDeadline shared by its paths gives up sooner:
+// [storage] stop_max_failure_s after the stop.
 #pragma once
 
+#include <atomic>
 #include <chrono>
 #include <stdexcept>
 #include <string>
@@ -27,6 +30,24 @@ class StorageOutage : public std::runtime_error {
   using std::runtime_error::runtime_error;
 };
 
+// When a stop (SIGTERM/SIGINT) gives up on failing storage ([storage] stop_max_failure_s after
+// it): unset while the daemon runs, set once by the stop, read by the StorageRetry of every
+// thread. A failure past it throws StorageOutage whatever the path's own limit, so the drain
+// ends (exit 3, what was not committed counted) before systemd's TimeoutStopSec kills it.
+class StopDeadline {
+ public:
+  using Clock = std::chrono::steady_clock;
+  // From now on, `bound_s` from now.
+  void start(double bound_s);
+  // time_point::max() while unset.
+  Clock::time_point at() const { return Clock::time_point(Clock::duration(at_.load())); }
+  double bound_s() const { return bound_s_.load(); }
+
+ private:
+  std::atomic<double> bound_s_{0.0};
+  std::atomic<Clock::rep> at_{Clock::duration::max().count()};
+};
+
 // One storage path's retry state; used by one thread (the worker's commit, its duplicate
 // check, the refit thread each have their own). The health flag is shared through counters.
 class StorageRetry {
@@ -36,15 +57,17 @@ class StorageRetry {
   static constexpr double kMaxBackoff_s = 2.0;
 
   // `what` names the path in the log ("commit", "duplicate check", "refit"); `limit_key` the
-  // [storage] key max_failure_s came from (DaemonConfig::storage_max_failure_key()).
+  // [storage] key max_failure_s came from (DaemonConfig::storage_max_failure_key()); `stop`
+  // the daemon's (nullptr: none).
   StorageRetry(std::string what, double max_failure_s, DaemonCounters& counters,
-               std::string limit_key = "max_failure_s");
+               std::string limit_key = "max_failure_s", const StopDeadline* stop = nullptr);
   ~StorageRetry();
   StorageRetry(const StorageRetry&) = delete;
   StorageRetry& operator=(const StorageRetry&) = delete;
 
   // Records a failed attempt (logged, counted) and schedules the next one. Throws
-  // StorageOutage when `e` is permanent or the path has now failed for max_failure_s.
+  // StorageOutage when `e` is permanent, the path has now failed for max_failure_s, or the
+  // stop's deadline has passed.
   void failed(const storage::StorageError& e);
   // Records a successful attempt: ends the outage (logged with its length).
   void succeeded();
@@ -87,6 +110,7 @@ class StorageRetry {
   double max_failure_s_;
   std::string limit_key_;
   DaemonCounters& counters_;
+  const StopDeadline* stop_;
   bool failing_ = false;
   Clock::time_point since_{};
   Clock::time_point next_{};

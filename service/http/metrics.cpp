@@ -132,7 +132,7 @@ Families register_families(prometheus::Registry& r, const std::string& version) 
                    .Register(r);
   f.spill_held = &BuildGauge()
                       .Name("magcal_spill_samples")
-                      .Help("Samples in the spill file, not committed yet")
+                      .Help("Samples in the spill file, not committed yet (an earlier run's too)")
                       .Register(r);
   f.spill_bytes =
       &BuildGauge().Name("magcal_spill_bytes").Help("Size of the spill file, bytes").Register(r);

@@ -31,7 +31,8 @@
 //   magcal_storage_pending_samples          received samples held in memory, not committed
 //   magcal_samples_spilled_total            samples written to the spill file (PostgreSQL
 //                                           outages: service/daemon/sample_spill.hpp)
-//   magcal_spill_samples                    samples in the spill file, not committed yet
+//   magcal_spill_samples                    samples in the spill file, not committed yet (an
+//                                           earlier run's too)
 //   magcal_spill_bytes                      size of the spill file
 //   magcal_spill_recovered_samples_total    samples committed at start from a spill file an
 //                                           earlier run left (received by that run)

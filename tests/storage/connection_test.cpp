@@ -79,6 +79,8 @@ TEST_CASE("a mistyped URI scheme is named, not taken for an SQLite path") {
            {"postgresql:x", "postgresql:"},
            {"pgsql://h/m", "pgsql://"},
            {"mysql://h/m", "mysql://"},
+           {"postgres ql://magcal@h/m", "postgres ql://"},
+           {"postgress://magcal@h/m", "postgress://"},
            {"sqlite:///tmp/m.db", "sqlite:///"}}) {
     const std::string message = open_error(db);
     INFO(db << " -> " << message);

@@ -70,6 +70,17 @@ TEST_CASE("numeric options of every subcommand: one clear sentence, usage exit c
   CHECK_FALSE(std::filesystem::exists(csv));  // nothing written by a refused sim
 }
 
+TEST_CASE("a mistyped --db URI scheme is a bad argument: usage exit code, every subcommand") {
+  TempDir dir("magcal_main_db");
+  for (const std::string command : {"status", "history --sat A", "refit --sat A", "serve"}) {
+    const Run r = run_magcal(command + " --db postgress://magcal@127.0.0.1/m", dir);
+    INFO(command << "\nstderr: " << r.err);
+    CHECK(r.exit_code == magcal::kExitUsage);
+    CHECK(std::count(r.err.begin(), r.err.end(), '\n') == 1);
+    CHECK(r.err.find("--db unknown database URI scheme 'postgress://'") != std::string::npos);
+  }
+}
+
 TEST_CASE("numeric options: good values still reach the subcommands") {
   TempDir dir("magcal_main_ok");
   const std::string csv = dir.file("s.csv");

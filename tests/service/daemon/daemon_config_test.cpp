@@ -46,6 +46,7 @@ TEST_CASE("defaults are valid and match design.md", "[daemon_config]") {
   CHECK(c.storage.pg_max_failure_s == 3600.0);
   CHECK(c.storage.spill_dir.empty());
   CHECK(c.storage.spill_max_bytes == int64_t{1} << 30);
+  CHECK(c.storage.stop_max_failure_s == 30.0);
   CHECK(c.storage.busy_timeout_ms == 5000);
   CHECK(c.http.listen == "127.0.0.1:9780");  // design.md: loopback by default
   char host[256] = {};
@@ -68,6 +69,7 @@ TEST_CASE("the example config lists every key with exactly the defaults", "[daem
   CHECK(c.storage.pg_max_failure_s == d.storage.pg_max_failure_s);
   CHECK(c.storage.spill_dir == d.storage.spill_dir);
   CHECK(c.storage.spill_max_bytes == d.storage.spill_max_bytes);
+  CHECK(c.storage.stop_max_failure_s == d.storage.stop_max_failure_s);
   CHECK(c.refit.robust == d.refit.robust);
   CHECK(c.refit.early_growth == d.refit.early_growth);
   CHECK(c.ukf.filter.process_noise_per_sqrt_hour == d.ukf.filter.process_noise_per_sqrt_hour);
@@ -106,6 +108,20 @@ TEST_CASE("the example config lists every key with exactly the defaults", "[daem
   CHECK(c.ingest.max_time_jump_s == d.ingest.max_time_jump_s);
   CHECK(c.ingest.max_future_s == d.ingest.max_future_s);
   CHECK(c.http.listen == d.http.listen);
+}
+
+TEST_CASE("a stop gives up on failing storage well before the unit's TimeoutStopSec kills it",
+          "[daemon_config]") {
+  // The bound plus one PostgreSQL attempt in flight when it passes (30 s on a dead link) and
+  // the rest of the drain must end before systemd's SIGKILL drops the held samples unlogged.
+  std::ifstream unit(MAGCAL_SOURCE_DIR "/deploy/magcald.service");
+  REQUIRE(unit.good());
+  double timeout_stop_s = 0;
+  for (std::string line; std::getline(unit, line);) {
+    if (line.starts_with("TimeoutStopSec=")) timeout_stop_s = std::stod(line.substr(15));
+  }
+  REQUIRE(timeout_stop_s > 0);
+  CHECK(magcal::DaemonConfig{}.storage.stop_max_failure_s + 40.0 <= timeout_stop_s);
 }
 
 TEST_CASE("values are read, integers accepted for floats", "[daemon_config]") {
@@ -174,6 +190,7 @@ TEST_CASE("unknown keys, bad types and bad values name the key", "[daemon_config
       {"[storage]\nspill_max_bytes = -1\n", "[storage] spill_max_bytes: must be >= 0"},
       {"[storage]\nspill_max_bytes = 1.5e9\n", "[storage] spill_max_bytes: expected an integer"},
       {"[storage]\nspill_dir = 7\n", "[storage] spill_dir: expected a string"},
+      {"[storage]\nstop_max_failure_s = 0\n", "[storage] stop_max_failure_s: must be > 0"},
       {"[storage]\nbusy_timeout_ms = -1\n", "[storage] busy_timeout_ms: must be >= 0"},
       {"[storage]\nmax_pending_samples = 100\n",
        "[storage] max_pending_samples: must be >= commit_every_samples"},

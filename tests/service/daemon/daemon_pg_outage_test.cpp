@@ -14,8 +14,14 @@
 //   once the server is up every sample is stored once, and the refits and UKF snapshots are
 //   those of SQLite. Before the server came up: SIGTERM exits 0 at once, SIGKILL loses at most a
 //   commit interval, pg_max_failure_s exits 3, and the next start commits the spill; an earlier
-//   run's spill file is committed ahead of this run's. A database it cannot use (missing
-//   database or role) is still a start error at once (exit 2).
+//   run's spill file is committed ahead of this run's (said once, and counted by the spill
+//   gauge). A database it cannot use (missing database or role) is still a start error at once
+//   (exit 2), and so when the server first answers after being down at start;
+// - stopped (SIGTERM) during an outage without a spill file ([storage] spill_max_bytes = 0):
+//   exit 3 once [storage] stop_max_failure_s has passed, the held samples counted as not
+//   committed (storage_error), never a hang until systemd's SIGKILL;
+// - a spill_dir that cannot take the file (configured or $STATE_DIRECTORY), or a file another
+//   magcald holds: a start error (exit 2) naming the path and errno.
 // Skipped without the PostgreSQL server programs (with CI=true it fails).
 #include <signal.h>
 
@@ -192,6 +198,25 @@ double metric(int port, const std::string& name) {
   return scrape(port).sum(name);
 }
 
+size_t count_of(const std::string& text, const std::string& what) {
+  size_t n = 0;
+  for (size_t at = text.find(what); at != std::string::npos; at = text.find(what, at + 1)) ++n;
+  return n;
+}
+
+// The value of `key`=N in the last "final status:" line of a daemon's log (-1 when absent).
+int64_t final_status(const std::string& text, const std::string& key) {
+  const size_t line = text.rfind("final status:");
+  if (line == std::string::npos) return -1;
+  // (" key=N", or "(key=N" for a reason's count.)
+  size_t at = text.find(key + "=", line);
+  while (at != std::string::npos && text[at - 1] != ' ' && text[at - 1] != '(') {
+    at = text.find(key + "=", at + 1);
+  }
+  if (at == std::string::npos || at > text.find('\n', line)) return -1;
+  return std::stoll(text.substr(at + key.size() + 1));
+}
+
 }  // namespace
 
 TEST_CASE("PostgreSQL restarted mid-replay: no sample lost, magcald rides it out",
@@ -358,8 +383,9 @@ TEST_CASE("an idle station is not ready while PostgreSQL is down: its lease roun
     }
   }
   const std::string db = server->create_database();
-  const std::string config =
-      write_config(dir, "idle.toml", "db_path = \"" + db + "\"\n", 200, "[fleet]\nlease_s = 3\n");
+  const std::string config = write_config(
+      dir, "idle.toml", "db_path = \"" + db + "\"\nspill_dir = \"" + dir.file("") + "\"\n", 200,
+      "[fleet]\nlease_s = 3\n");
   const PacedDaemon daemon(log, config, dir, 10 * magcal::test::kLogBatch);
   CHECK(http_get(daemon.port, "/-/ready").status == 200);
   server->stop();
@@ -650,12 +676,16 @@ TEST_CASE("down at start with an earlier run's spill file: both committed once t
   REQUIRE(held > 0);
   std::filesystem::rename(first.daemon->log_path, dir.file("first.log"));  // (the port's line)
   // Started again, still down: its samples go behind the earlier run's in the file (the gauge
-  // counts its own: in flight for its books).
+  // counts all the file holds; the probes tell the earlier run's apart).
   const PacedDaemon again(first.log, write_config(dir, "again.toml", first.config_text), dir, 0);
   REQUIRE(
       wait_until([&] { return metric(again.port, "magcal_samples_spilled_total") >= 200; }, 20));
   const auto during = scrape(again.port);
-  CHECK(during.sum("magcal_spill_samples") == during.sum("magcal_samples_spilled_total"));
+  CHECK(during.sum("magcal_spill_samples") ==
+        during.sum("magcal_samples_spilled_total") + static_cast<double>(held));
+  CHECK(http_get(again.port, "/-/ready")
+            .body.find(" (and " + std::to_string(held) + " an earlier run left there)") !=
+        std::string::npos);
   server->start();
   const int rc = wait_exit(again.pid, 60);
   const std::string text = slurp(again.log_path);
@@ -665,6 +695,9 @@ TEST_CASE("down at start with an earlier run's spill file: both committed once t
   // then this run's; every sample once.
   CHECK(text.find("holds " + std::to_string(held) + " samples an earlier run received") !=
         std::string::npos);
+  // Said once, though the restore that commits them was tried again and again meanwhile.
+  CHECK(count_of(text, "samples an earlier run received") == 1);
+  CHECK(count_of(text, "database commit failed (") >= 3);
   CHECK(text.find(std::to_string(held) + " samples committed (0 already stored); the ") !=
         std::string::npos);
   CHECK(text.find(" this run spilled follow") != std::string::npos);
@@ -701,4 +734,134 @@ TEST_CASE("a PostgreSQL database magcald cannot use is a start error at once (ex
     CHECK_FALSE(std::filesystem::exists(
         dir.file("magcal-spill-" + magcal::default_station_id() + ".spill")));
   }
+}
+
+TEST_CASE("SIGTERM during a PostgreSQL outage without a spill file: exit 3 within the stop bound",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_nospill_stop");
+  const std::string log = paced_log(dir, 6000, 200'000);
+  const std::string db = server->create_database();
+  // No spill file: the held samples can go nowhere. Without the stop's bound the drain would
+  // retry for pg_max_failure_s (an hour), past systemd's TimeoutStopSec.
+  constexpr double kBound_s = 2.0;
+  const PacedDaemon daemon(
+      log,
+      write_config(dir, "pg.toml",
+                   "db_path = \"" + db + "\"\nspill_max_bytes = 0\nstop_max_failure_s = " +
+                       std::to_string(kBound_s) + "\n"),
+      dir, 400);
+  server->stop();
+  REQUIRE(
+      wait_until([&] { return metric(daemon.port, "magcal_storage_pending_samples") >= 100; }, 20));
+  const auto t0 = std::chrono::steady_clock::now();
+  ::kill(daemon.pid, SIGTERM);
+  const int rc = wait_exit(daemon.pid, 60);
+  const double stop_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  server->start();
+  const std::string text = slurp(daemon.log_path);
+  INFO(text);
+  CHECK(rc == 3);
+  CHECK(stop_s >= kBound_s);
+  CHECK(stop_s < kBound_s + 5);
+  CHECK(text.find("after the stop ([storage] stop_max_failure_s = 2;") != std::string::npos);
+  // The held samples are counted as not committed, in the log and the final counters, and the
+  // books balance: every received sample is stored or counted.
+  const int64_t received = final_status(text, "received");
+  const int64_t stored = final_status(text, "stored");
+  const int64_t not_committed = final_status(text, "storage_error");
+  INFO("received " << received << ", stored " << stored << ", not committed " << not_committed);
+  CHECK(not_committed >= 100);
+  CHECK(received == stored + not_committed);
+  CHECK(final_status(text, "rejected") == not_committed);
+  CHECK(text.find(std::to_string(not_committed) + " received samples were not committed") !=
+        std::string::npos);
+  CHECK(stored_samples(db) == stored);
+}
+
+TEST_CASE("a spill directory that cannot take the file is a start error (exit 2)",
+          "[daemon][postgres][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_bad_spill_dir");
+  const std::string log = paced_log(dir, 100, 200'000);
+  const std::string db = server->create_database();
+  // A regular file where the directory should be: ENOTDIR for root too (a permission is no
+  // test as root: access() and open() both pass it).
+  const std::string not_a_dir = dir.file("plain-file");
+  std::ofstream(not_a_dir) << "x";
+  const std::string file = not_a_dir + "/magcal-spill-" + magcal::default_station_id() + ".spill";
+  auto start = [&](const std::string& extra, const std::string& name) {
+    const std::string log_path = dir.file(name + ".log");
+    const int rc = run({kBin + "/magcald", "--config",
+                        write_config(dir, name + ".toml", "db_path = \"" + db + "\"\n" + extra),
+                        "--http-listen", "", "--lcm-url", "file://" + log + "?speed=0"},
+                       log_path, 30);
+    return std::pair{rc, slurp(log_path)};
+  };
+  SECTION("configured") {
+    const auto [rc, text] = start("spill_dir = \"" + not_a_dir + "\"\n", "configured");
+    INFO(text);
+    CHECK(rc == 2);
+    CHECK(text.find("magcald: [storage] spill_dir '" + not_a_dir + "': spill file " + file +
+                    ": cannot create: Not a directory (ENOTDIR)") != std::string::npos);
+    CHECK(stored_samples(db) == 0);  // (refused before it stored anything)
+  }
+  SECTION("unset: $STATE_DIRECTORY (systemd's StateDirectory)") {
+    ::setenv("STATE_DIRECTORY", not_a_dir.c_str(), 1);
+    const auto [rc, text] = start("", "state_directory");
+    ::unsetenv("STATE_DIRECTORY");
+    INFO(text);
+    CHECK(rc == 2);
+    CHECK(text.find("magcald: [storage] spill_dir unset ($STATE_DIRECTORY): spill file " + file +
+                    ": cannot create: Not a directory (ENOTDIR)") != std::string::npos);
+    CHECK(stored_samples(db) == 0);  // (refused before it stored anything)
+  }
+  SECTION("a second magcald of this station and spill_dir, while the first runs") {
+    // (8 s of replay.)
+    const std::string long_log = dir.file("long.lcm");
+    magcal::test::write_batch_log(long_log, kSat, log_start_utime(), 2000, 200'000);
+    const PacedDaemon first(
+        long_log,
+        write_config(dir, "first.toml",
+                     "db_path = \"" + db + "\"\nspill_dir = \"" + dir.file("") + "\"\n"),
+        dir, 0);
+    const auto [rc, text] = start("spill_dir = \"" + dir.file("") + "\"\n", "second");
+    INFO(text);
+    CHECK(rc == 2);
+    CHECK(text.find("locked by another process (another magcald with this [station] id and "
+                    "spill_dir?)") != std::string::npos);
+    ::kill(first.pid, SIGTERM);
+    CHECK(wait_exit(first.pid, 30) == 0);
+  }
+}
+
+TEST_CASE("PostgreSQL down at start, then refusing the database for good: exit 2, as at start",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_start_down_refused");
+  const std::string log = paced_log(dir, 2000, 200'000);
+  server->stop();
+  const std::string config = write_config(dir, "pg.toml",
+                                          "db_path = \"" + server->uri("no_such_database") +
+                                              "\"\nspill_dir = \"" + dir.file("") + "\"\n");
+  const PacedDaemon daemon(log, config, dir, 0);
+  REQUIRE(
+      wait_until([&] { return metric(daemon.port, "magcal_samples_spilled_total") >= 100; }, 20));
+  server->start();
+  const int rc = wait_exit(daemon.pid, 30);
+  const std::string text = slurp(daemon.log_path);
+  INFO(text);
+  CHECK(rc == 2);
+  CHECK(text.find("refused magcald when it first answered (unreachable at start; at start this "
+                  "is a start error, exit 2)") != std::string::npos);
+  CHECK(text.find("database \"no_such_database\" does not exist") != std::string::npos);
+  // What it received is kept in the spill file for a start with the right database (but for a
+  // frame still queued at the exit, counted as not committed).
+  magcal::SampleSpill left(dir.file("magcal-spill-" + magcal::default_station_id() + ".spill"), "",
+                           int64_t{1} << 30);
+  CHECK(left.held_samples() >= 100);
 }

@@ -76,6 +76,31 @@ TEST_CASE("a bad flag value is blamed on that flag alone") {
   CHECK_THAT(r.text, Catch::Contains("--station: must be 1-64 printable ASCII characters"));
 }
 
+TEST_CASE("a mistyped database URI is a bad value (exit 1), blamed on --db or the key") {
+  TempDir dir("magcald_main_db_uri");
+  int n = 0;
+  for (const std::string scheme : {"postgres ql://", "postgress://"}) {
+    const std::string db = scheme + "magcal@127.0.0.1/m";
+    const std::string flag_log = dir.file("flag" + std::to_string(n) + ".log");
+    const std::string key_log = dir.file("key" + std::to_string(n++) + ".log");
+    Refusal r;
+    r.exit_code = run({kMagcald, "--db", db, "--http-listen", ""}, flag_log, 30);
+    r.text = slurp(flag_log);
+    INFO(r.text);
+    CHECK(r.exit_code == 1);
+    CHECK(std::count(r.text.begin(), r.text.end(), '\n') == 1);
+    CHECK_THAT(r.text, Catch::Contains("magcald: --db: unknown database URI scheme '" + scheme));
+    // The same from the config file.
+    std::ofstream(dir.file("uri.toml")) << "[storage]\ndb_path = \"" << db << "\"\n";
+    r.exit_code =
+        run({kMagcald, "--config", dir.file("uri.toml"), "--http-listen", ""}, key_log, 30);
+    r.text = slurp(key_log);
+    CHECK(r.exit_code == 1);
+    CHECK_THAT(r.text,
+               Catch::Contains("[storage] db_path: unknown database URI scheme '" + scheme));
+  }
+}
+
 TEST_CASE("an LCM URL that cannot be opened: one line of ours with LCM's reason, nothing else") {
   TempDir dir("magcald_main_lcm");
   const std::vector<std::pair<std::string, std::string>> cases = {

@@ -9,6 +9,7 @@
 #include <filesystem>
 #include <fstream>
 #include <limits>
+#include <optional>
 
 #include <catch2/catch.hpp>
 
@@ -76,13 +77,19 @@ std::vector<StoredSample> drain(SampleSpill& spill, size_t chunk) {
 TEST_CASE("spilled samples come back in order, in chunks, and the file goes", "[sample_spill]") {
   TempDir dir("spill");
   const std::string path = dir.file("spill.bin");
-  SampleSpill spill(path, "postgresql://magcal@db/fleet", 1 << 20);
-  CHECK_FALSE(std::filesystem::exists(path));  // created at the first append
+  std::optional<SampleSpill> spill_holder(std::in_place, path, "postgresql://magcal@db/fleet",
+                                          1 << 20);
+  SampleSpill& spill = *spill_holder;
+  // Created at once (a directory that cannot take it shows at start), holding nothing.
+  REQUIRE(std::filesystem::exists(path));
+  const auto header = static_cast<int64_t>(std::filesystem::file_size(path));
+  CHECK(spill.bytes() == 0);
+  CHECK(spill.held_samples() == 0);
   const auto a = samples(0, 100), b = samples(100, 57);
   REQUIRE(spill.append(a));
   REQUIRE(spill.append(b));
   CHECK(spill.held_samples() == 157);
-  CHECK(spill.bytes() == static_cast<int64_t>(std::filesystem::file_size(path)));
+  CHECK(spill.bytes() + header == static_cast<int64_t>(std::filesystem::file_size(path)));
   // A read that is not committed is read again.
   std::vector<StoredSample> part;
   REQUIRE(spill.read_chunk(10, part) == 10);
@@ -93,11 +100,25 @@ TEST_CASE("spilled samples come back in order, in chunks, and the file goes", "[
   for (size_t i = 0; i < back.size(); ++i) check_equal(back[i], i < 100 ? a[i] : b[i - 100]);
   CHECK(spill.held_samples() == 0);
   CHECK(spill.bytes() == 0);
-  CHECK_FALSE(std::filesystem::exists(path));
-  // And it starts a new file after that.
+  // Cut back to its header, still open: it takes the next outage's samples.
+  CHECK(std::filesystem::file_size(path) == static_cast<uintmax_t>(header));
   REQUIRE(spill.append(samples(7, 3)));
-  CHECK(std::filesystem::exists(path));
   CHECK(drain(spill, 100).size() == 3);
+  // Holding nothing, it goes with its holder.
+  spill_holder.reset();
+  CHECK_FALSE(std::filesystem::exists(path));
+}
+
+TEST_CASE("a spill file that cannot be created is an error naming its path and errno",
+          "[sample_spill]") {
+  TempDir dir("spill");
+  // A regular file where the directory should be (as root too, unlike a permission).
+  const std::string not_a_dir = dir.file("plain");
+  std::ofstream(not_a_dir) << "x";
+  const std::string path = not_a_dir + "/spill.bin";
+  CHECK_THROWS_WITH(SampleSpill(path, "db", 1 << 20),
+                    Catch::Contains(path) && Catch::Contains("cannot create") &&
+                        Catch::Contains("Not a directory (ENOTDIR)"));
 }
 
 TEST_CASE("a reopened spill file holds what was not committed", "[sample_spill]") {
@@ -118,7 +139,6 @@ TEST_CASE("a reopened spill file holds what was not committed", "[sample_spill]"
   const auto back = drain(again, 100);
   REQUIRE(back.size() == 18);
   for (size_t i = 0; i < back.size(); ++i) check_equal(back[i], rows[12 + i]);
-  CHECK_FALSE(std::filesystem::exists(path));
 }
 
 TEST_CASE("a torn or corrupt last record is dropped and counted, the rest kept", "[sample_spill]") {
@@ -133,12 +153,17 @@ TEST_CASE("a torn or corrupt last record is dropped and counted, the rest kept",
     return bytes;
   };
   const int64_t nineteen = size_with(19), twenty = size_with(20);
+  // (Its header: the file holding nothing.)
+  const auto header = static_cast<int64_t>([&] {
+    const SampleSpill empty(dir.file("header.bin"), "db", 1 << 20);
+    return std::filesystem::file_size(dir.file("header.bin"));
+  }());
   SECTION("torn: the last record cut short (a crash during its write)") {
     {
       SampleSpill spill(path, "db", 1 << 20);
       REQUIRE(spill.append(rows));
     }
-    std::filesystem::resize_file(path, static_cast<uintmax_t>(twenty - 5));
+    std::filesystem::resize_file(path, static_cast<uintmax_t>(header + twenty - 5));
   }
   SECTION("corrupt: one byte of the last record's payload changed") {
     {
@@ -146,7 +171,7 @@ TEST_CASE("a torn or corrupt last record is dropped and counted, the rest kept",
       REQUIRE(spill.append(rows));
     }
     std::fstream f(path, std::ios::in | std::ios::out | std::ios::binary);
-    f.seekp(twenty - 3);
+    f.seekp(header + twenty - 3);
     f.put('\x5a');
   }
   SECTION("garbage after the last record") {
@@ -160,7 +185,7 @@ TEST_CASE("a torn or corrupt last record is dropped and counted, the rest kept",
   CHECK(spill.dropped_records() == 1);
   CHECK(spill.held_samples() == 19);
   CHECK(spill.bytes() == nineteen);
-  CHECK(std::filesystem::file_size(path) == static_cast<uintmax_t>(nineteen));
+  CHECK(std::filesystem::file_size(path) == static_cast<uintmax_t>(header + nineteen));
   // Appends go on after the last good record.
   REQUIRE(spill.append(std::span(rows).subspan(19)));
   const auto back = drain(spill, 7);

@@ -1,6 +1,6 @@
 // StorageRetry: transient storage errors are retried with bounded exponential backoff while the
 // daemon reports storage unhealthy; permanent errors and outages past max_failure_s end in
-// StorageOutage (the daemon's exit 3).
+// StorageOutage (the daemon's exit 3), and so do failures past a stop's deadline.
 #include "service/daemon/storage_retry.hpp"
 
 #include <catch2/catch.hpp>
@@ -20,6 +20,20 @@ constexpr Condition kCorrupt = Condition::kCorrupt;
 // Conditions, as each backend maps its own codes (storage/storage_error.cpp).
 StorageError injected_error(Condition condition) {
   return StorageError(StorageError::Kind::kEngine, "injected", condition);
+}
+
+// Runs an operation that is always busy until `retry` gives up: its StorageOutage's message.
+std::string outage_when_busy(StorageRetry& retry, int& calls) {
+  try {
+    retry.run_blocking([&] {
+      ++calls;
+      throw injected_error(kBusy);
+    });
+  } catch (const StorageOutage& e) {
+    return e.what();
+  }
+  FAIL("no StorageOutage");
+  return "";
 }
 
 }  // namespace
@@ -66,20 +80,31 @@ TEST_CASE("an outage longer than max_failure_s ends in StorageOutage on time", "
   StorageRetry retry("commit", 0.5, counters);
   int calls = 0;
   const auto t0 = StorageRetry::Clock::now();
-  try {
-    retry.run_blocking([&] {
-      ++calls;
-      throw injected_error(kBusy);
-    });
-    FAIL("no StorageOutage");
-  } catch (const StorageOutage& e) {
-    CHECK_THAT(std::string(e.what()), Catch::Contains("max_failure_s"));
-  }
+  CHECK_THAT(outage_when_busy(retry, calls), Catch::Contains("max_failure_s"));
   const double waited_s = std::chrono::duration<double>(StorageRetry::Clock::now() - t0).count();
   CHECK(waited_s >= 0.5);
   CHECK(waited_s < 1.5);  // the last retry is scheduled at the deadline, not past it
   CHECK(calls >= 4);      // 0.05, 0.1, 0.2, then the rest up to 0.5 s
   CHECK(counters.storage_failures.load() == calls);
+}
+
+TEST_CASE("a stop gives up at its deadline, whatever max_failure_s allows", "[storage_retry]") {
+  DaemonCounters counters;
+  magcal::StopDeadline stop;
+  StorageRetry retry("commit", 3600.0, counters, "pg_max_failure_s", &stop);
+  // Failing before the stop: retried as usual.
+  retry.failed(injected_error(kBusy));
+  CHECK(retry.failing());
+  const auto t0 = StorageRetry::Clock::now();
+  stop.start(0.3);
+  CHECK(stop.at() > t0);
+  int calls = 0;
+  CHECK_THAT(outage_when_busy(retry, calls),
+             Catch::Contains("after the stop ([storage] stop_max_failure_s = 0.3;"));
+  const double waited_s = std::chrono::duration<double>(StorageRetry::Clock::now() - t0).count();
+  CHECK(waited_s >= 0.3);
+  CHECK(waited_s < 1.0);  // the last retry is scheduled at the deadline, not past the backoff
+  CHECK(calls >= 2);
 }
 
 TEST_CASE("the non-blocking form schedules the next attempt and clears health on success",
