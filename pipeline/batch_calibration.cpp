@@ -4,7 +4,10 @@
 #include <cmath>
 #include <cstdio>
 #include <limits>
+#include <optional>
 #include <random>
+#include <tuple>
+#include <utility>
 #include <vector>
 
 #include <Eigen/Eigenvalues>
@@ -241,6 +244,9 @@ struct Stage1Solution {
   // about this reference temperature.
   bool temperature_candidate = false;
   double reference_temperature_C = 0.0;
+  // The candidate's temperature is the time before the window's end
+  // (with_hours_before_window_end()): the model is a bias rate.
+  bool bias_rate = false;
 };
 
 LmOptions lm_options(const BatchCalibrationOptions& options, int min_samples) {
@@ -363,6 +369,26 @@ LmResult refine_with_columns(const SampleSet& samples, const LmOptions& lopt, co
   return fit();
 }
 
+// BIC takes the bias rate on a likelihood that treats the residuals as white; where they are
+// strongly autocorrelated (an unmodelled sensor or field error, which drifts with the orbit),
+// that overstates how well a slow trend is determined. The rate is kept only where it is
+// significant also with its covariance inflated by the AR(1) factor (1 + rho) / (1 - rho) of the
+// residuals' lag-1 autocorrelation rho, at the 0.1 % tail. Measured: the paper sensor drifting
+// 0.3-3 nT/h (12 h, rho 0.01-0.06) scores 320-3000 against 16.3; the ISS recording (450 nT
+// residuals, rho 0.86-0.99) scored 17-39 unscaled, and its two halves' rates, -100 and +31 nT/h
+// on x, disagreed: a trend of the misfit, not of the bias; scaled, at most 2. with_rate: the fit
+// with the rate (its coefficient, marginal covariance and residual autocorrelation).
+bool bias_rate_significant(const LmResult& with_rate) {
+  const double rho = std::clamp(
+      std::isfinite(with_rate.residual_autocorrelation) ? with_rate.residual_autocorrelation : 0.0,
+      0.0, 0.999);
+  const Eigen::Vector3d& rate_nT_per_h = with_rate.temperature_coefficient;
+  const Eigen::LDLT<Eigen::Matrix3d> ldlt(with_rate.temperature_covariance);
+  if (ldlt.info() != Eigen::Success) return false;
+  const double chi2 = rate_nT_per_h.dot(ldlt.solve(rate_nT_per_h));
+  return chi2 * (1.0 - rho) / (1.0 + rho) > chi_square_upper_quantile(3.0, 1e-3);
+}
+
 // Model choice by BIC, twostep, between the 9-parameter fit (base9), the sensor-model extension
 // and the bias temperature model (3 columns, fitted jointly with everything else):
 // - the extension is decided first, with the temperature columns in both its fits when BIC
@@ -372,6 +398,10 @@ LmResult refine_with_columns(const SampleSet& samples, const LmOptions& lopt, co
 // - the temperature model is then kept when BIC prefers it on top of the extension's choice (so
 //   that the orbit-periodic residual of the nonlinearity and hysteresis, which an
 //   orbit-synchronous temperature resembles, is not taken for a temperature effect).
+// A bias rate (s1->bias_rate) is kept only where it is also significant (bias_rate_significant());
+// otherwise the choice is the one without it, exactly as choose_model_by_bic() makes it from
+// base9: where the rate was not first, the extension's choice made here; where it was, one more
+// extension fit (the extension was chosen with the rate's columns beside it).
 void choose_model_by_bic_with_temperature(const SampleSet& samples, const LmOptions& lopt,
                                           const BatchCalibrationOptions& options,
                                           const LmResult& base9, LmResult* lm, Stage1Solution* s1,
@@ -382,6 +412,8 @@ void choose_model_by_bic_with_temperature(const SampleSet& samples, const LmOpti
   };
   LmResult temperature_only = refine_with_columns(samples, lopt, base9, *s1, false, true);
   const bool temperature_first = bic_prefers_temperature(base9, temperature_only);
+  std::optional<std::pair<Stage1Solution, CalibrationResult>> before_choice;
+  if (s1->bias_rate && temperature_first) before_choice.emplace(*s1, *r);
   LmOptions extension_options = lopt;
   if (temperature_first) {
     *lm = temperature_only;
@@ -398,7 +430,14 @@ void choose_model_by_bic_with_temperature(const SampleSet& samples, const LmOpti
                          : (temperature_first ? base9 : *lm);
   LmResult with = extension ? refine_with_columns(samples, lopt, base9, *s1, true, true)
                             : std::move(temperature_only);
-  const bool temperature = bic_prefers_temperature(without, with);
+  const bool temperature =
+      bic_prefers_temperature(without, with) && (!s1->bias_rate || bias_rate_significant(with));
+  if (!temperature && before_choice) {
+    *lm = base9;
+    std::tie(*s1, *r) = std::move(*before_choice);
+    if (options.model_extension) choose_model_by_bic(samples, lopt, base9, lm, s1, r);
+    return;
+  }
   *lm = temperature ? std::move(with) : std::move(without);
   if (lm->status != LmStatus::kOk) return;
   if (temperature) {
@@ -626,7 +665,8 @@ void residual_evidence(const SampleSet& samples, const BatchCalibrationOptions& 
 
 // One fit of the samples; temperature: the temperature model is a candidate, about its mean.
 // bias_rate: the samples' temperature_C is the time before the window's end
-// (with_hours_before_window_end()), and a temperature model taken is published as a bias rate.
+// (with_hours_before_window_end()), and a temperature model taken (only where significant) is
+// published as a bias rate.
 CalibrationResult calibrate_batch_window(const SampleSet& samples,
                                          const BatchCalibrationOptions& options,
                                          const CalibrationResult* previous_accepted,
@@ -654,6 +694,7 @@ CalibrationResult calibrate_batch_window(const SampleSet& samples,
   if (temperature) {
     s1.temperature_candidate = true;
     s1.reference_temperature_C = temperature->mean_C;
+    s1.bias_rate = bias_rate;
   }
   if (!solve_stage1(samples, options, &r, &s1)) return r;
 
@@ -718,23 +759,6 @@ CalibrationResult calibrate_batch_window(const SampleSet& samples,
   return r;
 }
 
-// BIC takes the bias rate on a likelihood that treats the residuals as white; where they are
-// strongly autocorrelated (an unmodelled sensor or field error, which drifts with the orbit),
-// that overstates how well a slow trend is determined. The rate is kept only where it is
-// significant also with its covariance inflated by the AR(1) factor (1 + rho) / (1 - rho) of the
-// residuals' lag-1 autocorrelation rho, at the 0.1 % tail. Measured: the paper sensor drifting
-// 0.3-3 nT/h (12 h, rho 0.01-0.06) scores 320-3000 against 16.3; the ISS recording (450 nT
-// residuals, rho 0.86-0.99) scored 17-39 unscaled, and its two halves' rates, -100 and +31 nT/h
-// on x, disagreed: a trend of the misfit, not of the bias; scaled, at most 2.
-bool bias_rate_significant(const CalibrationResult& r) {
-  const double rho = std::clamp(
-      std::isfinite(r.residual_autocorrelation) ? r.residual_autocorrelation : 0.0, 0.0, 0.999);
-  const Eigen::LDLT<Eigen::Matrix3d> ldlt(r.bias_rate_covariance);
-  if (ldlt.info() != Eigen::Success) return false;
-  const double chi2 = r.bias_rate_nT_per_h.dot(ldlt.solve(r.bias_rate_nT_per_h));
-  return chi2 * (1.0 - rho) / (1.0 + rho) > chi_square_upper_quantile(3.0, 1e-3);
-}
-
 // The temperature model, where the samples allow it (temperature_model_unusable()), is chosen by
 // BIC within one fit; when only some samples carry a temperature, that fit runs on those alone
 // (a sample of unknown temperature has an unknown bias), and is kept only when it takes the
@@ -766,9 +790,7 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
     const SampleSet timed = with_hours_before_window_end(samples, &span_h);
     if (span_h >= kMinBiasRateWindow_h) {
       const TemperatureSpread spread = temperature_spread(timed);
-      CalibrationResult r =
-          calibrate_batch_window(timed, options, previous_accepted, &spread, true);
-      if (r.has_bias_rate && bias_rate_significant(r)) return r;
+      return calibrate_batch_window(timed, options, previous_accepted, &spread, true);
     }
   }
   return calibrate_batch_window(samples, options, previous_accepted, nullptr);

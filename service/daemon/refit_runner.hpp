@@ -75,6 +75,8 @@ class RefitRunner {
   std::string skip_reason(const std::string& sat_id, std::optional<int64_t> t_ref_utime);
 
  private:
+  // skip_reason() for a window of n_in_window samples.
+  std::string too_few_samples_reason(int64_t n_in_window) const;
   // Accepts `result` when it failed only the change gate against `reference` and the previous
   // full-window refit (newer than the reference) failed only that gate too and agrees with it
   // (a real change seen by two windows). True when it changed the verdict.

@@ -283,7 +283,7 @@ TEST_CASE("refits: a reference with a bias rate is moved by it to this window's 
   }
 }
 
-TEST_CASE("an early refit runs once: the same key again is skipped without a job row") {
+TEST_CASE("the first 3 h of a spacecraft: early and short-window refits") {
   test::TempDir dir("magcal_refit_runner_early");
   DaemonConfig config;
   config.storage.db_path = dir.file("early.db");
@@ -292,19 +292,40 @@ TEST_CASE("an early refit runs once: the same key again is skipped without a job
   store_simulation(db, paper_scenario(3, 3.0), "PAPER-1", &seq);
   storage::SqliteSampleWindowStore samples(db);
   const int64_t t_ref = *samples.utime_at_rank("PAPER-1", config.refit.min_samples - 1);
-
   RefitRunner runner(config, db);
-  const RefitOutcome first = runner.run("PAPER-1", t_ref, "first", t_ref);
-  REQUIRE(first.kind == RefitOutcome::Kind::kComputed);
-  CHECK(first.result.n_samples == config.refit.min_samples);  // keyed by its count
-  const RefitOutcome again = runner.run("PAPER-1", t_ref, "first", t_ref);
-  CHECK(again.kind == RefitOutcome::Kind::kSkipped);
-  CHECK(again.job_id == first.job_id);
-  CHECK_THAT(again.message, Catch::Contains("already ran"));
-  storage::SqliteRefitJobLog jobs(db);
-  CHECK(jobs.recent("PAPER-1", 10).size() == 1);
-  // A scheduled refit of the same end is not an early one: it runs.
-  CHECK(runner.run("PAPER-1", t_ref, "scheduled", t_ref).kind == RefitOutcome::Kind::kComputed);
+
+  SECTION("an early refit runs once: the same key again is skipped without a job row") {
+    const RefitOutcome first = runner.run("PAPER-1", t_ref, "first", t_ref);
+    REQUIRE(first.kind == RefitOutcome::Kind::kComputed);
+    CHECK(first.result.n_samples == config.refit.min_samples);  // keyed by its count
+    const RefitOutcome again = runner.run("PAPER-1", t_ref, "first", t_ref);
+    CHECK(again.kind == RefitOutcome::Kind::kSkipped);
+    CHECK(again.job_id == first.job_id);
+    CHECK_THAT(again.message, Catch::Contains("already ran"));
+    storage::SqliteRefitJobLog jobs(db);
+    CHECK(jobs.recent("PAPER-1", 10).size() == 1);
+    // A scheduled refit of the same end is not an early one: it runs.
+    CHECK(runner.run("PAPER-1", t_ref, "scheduled", t_ref).kind == RefitOutcome::Kind::kComputed);
+  }
+
+  SECTION("a window short of [refit] min_samples is skipped with its count, as skip_reason says") {
+    const auto skipped = [&](const std::string& sat, std::optional<int64_t> t_end) {
+      const std::string why = runner.skip_reason(sat, t_end);
+      const RefitOutcome out = runner.run(sat, t_end, "manual", t_end.value_or(0));
+      CHECK(out.kind == RefitOutcome::Kind::kSkipped);
+      CHECK(out.job_outcome == storage::job_outcome::kSkipped);
+      CHECK(out.message == why);
+      return out.message;
+    };
+    const int64_t t_short = *samples.utime_at_rank("PAPER-1", config.refit.min_samples - 2);
+    CHECK(skipped("PAPER-1", t_short) ==
+          std::to_string(config.refit.min_samples - 1) + " samples in the window, " +
+              std::to_string(config.refit.min_samples) + " needed ([refit] min_samples)");
+    CHECK_THAT(skipped("NOPE", std::nullopt), Catch::Contains("no stored samples for 'NOPE'"));
+    // One sample more (t_ref) is enough.
+    CHECK(runner.skip_reason("PAPER-1", t_ref).empty());
+    CHECK(runner.run("PAPER-1", t_ref, "manual", t_ref).kind == RefitOutcome::Kind::kComputed);
+  }
 }
 
 TEST_CASE("a daemon's refit runs once for the fleet: claimed under its station, never twice") {
