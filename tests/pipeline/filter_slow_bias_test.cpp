@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <limits>
 #include <random>
 #include <string>
 #include <vector>
@@ -268,6 +269,18 @@ double log_uniform_rate(std::mt19937_64& rng) {
 // 0.40 +- 0.10 nT/h from the day's geometry (chi2 16-18 with the D uncertainty in it) before the
 // 2.6 nT/h y draw is seen (block 10, 21 h, after its first miss at 15.75 h); widening the bias
 // sigma by what the trend cannot exclude (se x the estimate's age) leaves no ok snapshot at all.
+// Also measured and not kept (UKF, y beyond 3 sigma of the ok snapshots, 37 of 450 without them),
+// each widening the bias covariance where its statistic says the estimate lags: the lag the block
+// scores' sum implies, P sum_b G_b, beyond 2 of its sigmas: 32 of 363; the batch-means t of each
+// bias axis's block scores since the start, |t| > 2: 32 of 411 (the misses' y has |t| 1-2.2, the
+// control's x 2-2.7: the model error makes the scores as persistent as the lag does); its largest
+// |t| on all three axes: 7 of 116, but the control's ok 143 -> 78 and the 0.1 nT/h draws' 1628 ->
+// 987; the estimate's own movement over each 2 h block beyond what its covariance's decrease
+// allows: 23 of 219, the control's ok 143 -> 84. On the orbit normal the control's estimate itself
+// moves like a lagging drift (seed 1: +19 nT off at 16.5 h, +1 nT at 21 h, sigma ~9 nT) as the
+// day's geometry changes what the 9-parameter model misfits: without a refit's model error the
+// filter cannot tell the two apart. The daemon's path (refits measure the model error and the
+// rate) meets the bar (the "Linear bias drift, daemon refits" test below).
 TEST_CASE("Linear bias drift alone: ok snapshots within 3 sigma of the current bias, per axis") {
   Outcome ekf, ukf, ekf_slow, ukf_slow;
   std::string misses, slow_misses;
@@ -430,5 +443,37 @@ TEST_CASE("Constant bias and 0.1 nT/h drift, daemon refits: ok within 3 sigma, n
     CHECK(total.worst < 4.0);
     CHECK(total.ok > total.snapshots / 2);
     if (rate_nT_per_h == 0.0) CHECK(refits.with_bias_rate == 0);
+  }
+}
+
+// Measurement, not a bar (hidden: run it by name): an orbit-synchronous thermal swing without a
+// temperature channel, the paper sensor with +-A nT on every axis (k_T = 1 nT/degC, +-A degC, the
+// orbital period), 4 seeds x 24 h, snapshots every 15 min, against the current bias b(t, T).
+// Library EKF/UKF (no refit) and the UKF through the daemon's refits with every sample's
+// temperature unknown (NaN: no temperature model possible). Issue 20 item 3 is open here: the
+// swing averages out of the 2 h bias-motion blocks and the 9-parameter model absorbs part of it
+// into D, so neither the filters' innovations (noise scale ~5 as on the paper sensor alone) nor
+// the refits' residuals (noise scale 1.05-1.07 -> 1.11-1.12, lag-1 0.01-0.02 -> 0.09-0.11 on 12 h
+// at +-10 nT) separate it from the paper sensor's stationary model error.
+TEST_CASE("Measure: orbit-synchronous bias swing without a temperature channel", "[.measure]") {
+  for (double amplitude_nT : {10.0, 5.0}) {
+    Outcome ekf, ukf, daemon;
+    RefitCounts refits;
+    for (uint64_t seed : {1, 2, 3, 4}) {
+      Scenario sc = paper_day(seed, 24.0);
+      sc.sensor.temperature_amplitude_C = amplitude_nT;
+      sc.sensor.temperature_coefficient_nT_per_C = Eigen::Vector3d(1.0, 1.0, 1.0);
+      std::vector<TruthSample> data = simulate_with_truth(sc);
+      for (TruthSample& d : data) d.sample.temperature_C = std::numeric_limits<double>::quiet_NaN();
+      MagnetometerEkf e;
+      MagnetometerUkf u;
+      replay(e, data, ekf);
+      replay(u, data, ukf);
+      replay_with_refits(data, daemon, refits);
+    }
+    WARN("swing +-" << amplitude_nT << " nT without temperature: library EKF " << per_axis(ekf)
+                    << "; library UKF " << per_axis(ukf) << "; UKF with the daemon's refits "
+                    << per_axis(daemon) << ", refits accepted " << refits.accepted << " of "
+                    << refits.run);
   }
 }
