@@ -459,6 +459,22 @@ struct BlockBiasScatter {
   int blocks = 0;
 };
 
+// sc with an orbit-synchronous swing of +-amplitude_nT on every axis (k_T = 1 nT/degC), simulated
+// with the truth, every sample's temperature unknown (no temperature channel).
+std::vector<TruthSample> simulate_swing_without_temperature(Scenario sc, double amplitude_nT) {
+  sc.sensor.temperature_amplitude_C = amplitude_nT;
+  sc.sensor.temperature_coefficient_nT_per_C = Eigen::Vector3d(1.0, 1.0, 1.0);
+  std::vector<TruthSample> data = simulate_with_truth(sc);
+  for (TruthSample& d : data) d.sample.temperature_C = std::numeric_limits<double>::quiet_NaN();
+  return data;
+}
+
+SampleSet samples_of(const std::vector<TruthSample>& data) {
+  SampleSet out;
+  for (const TruthSample& d : data) out.push_back(d.sample);
+  return out;
+}
+
 BlockBiasScatter block_bias_scatter(const SampleSet& window, const CalibrationResult& refit,
                                     size_t block_samples, double sigma_nT) {
   const CalibrationParameters& p = refit.parameters;
@@ -519,11 +535,7 @@ TEST_CASE("Measure: orbit-synchronous bias swing without a temperature channel",
     Outcome ekf, ukf, daemon;
     RefitCounts refits;
     for (uint64_t seed : {1, 2, 3, 4}) {
-      Scenario sc = paper_day(seed, 24.0);
-      sc.sensor.temperature_amplitude_C = amplitude_nT;
-      sc.sensor.temperature_coefficient_nT_per_C = Eigen::Vector3d(1.0, 1.0, 1.0);
-      std::vector<TruthSample> data = simulate_with_truth(sc);
-      for (TruthSample& d : data) d.sample.temperature_C = std::numeric_limits<double>::quiet_NaN();
+      const auto data = simulate_swing_without_temperature(paper_day(seed, 24.0), amplitude_nT);
       MagnetometerEkf e;
       MagnetometerUkf u;
       replay(e, data, ekf);
@@ -532,14 +544,8 @@ TEST_CASE("Measure: orbit-synchronous bias swing without a temperature channel",
     }
     // 12 h refits (three seeds) and their 30 min block biases.
     for (uint64_t seed : {1, 2, 3}) {
-      Scenario sc = paper_day(seed, 12.0);
-      sc.sensor.temperature_amplitude_C = amplitude_nT;
-      sc.sensor.temperature_coefficient_nT_per_C = Eigen::Vector3d(1.0, 1.0, 1.0);
-      SampleSet window;
-      for (const TruthSample& d : simulate_with_truth(sc)) {
-        window.push_back(d.sample);
-        window.back().temperature_C = std::numeric_limits<double>::quiet_NaN();
-      }
+      const Scenario sc = paper_day(seed, 12.0);
+      const SampleSet window = samples_of(simulate_swing_without_temperature(sc, amplitude_nT));
       const CalibrationResult refit = calibrate_batch(window, BatchCalibrationOptions{});
       const BlockBiasScatter s = block_bias_scatter(window, refit, 180, sc.sensor.noise_sigma_nT);
       WARN("swing +-" << amplitude_nT << " nT, seed " << seed << ", 12 h refit (accepted "
@@ -570,13 +576,7 @@ TEST_CASE("Measure: refit block-bias scatter as a detector of a bias swing", "[.
           Scenario sc = *scenario_preset(preset);
           sc.seed = seed;
           sc.duration_s = hours * 3600.0;
-          sc.sensor.temperature_amplitude_C = amplitude_nT;
-          sc.sensor.temperature_coefficient_nT_per_C = Eigen::Vector3d(1.0, 1.0, 1.0);
-          SampleSet window;
-          for (const TruthSample& d : simulate_with_truth(sc)) {
-            window.push_back(d.sample);
-            window.back().temperature_C = std::numeric_limits<double>::quiet_NaN();
-          }
+          const SampleSet window = samples_of(simulate_swing_without_temperature(sc, amplitude_nT));
           const CalibrationResult refit = calibrate_batch(window, BatchCalibrationOptions{});
           const auto block_samples = static_cast<size_t>(1800.0 / sc.sample_period_s);
           const BlockBiasScatter s =
