@@ -460,6 +460,31 @@ std::vector<TruthSample> simulate_swing_without_temperature(Scenario sc, double 
 
 }  // namespace
 
+// Issue 20 item 3: a +-10 nT orbit-synchronous thermal swing on every axis (k_T = 1 nT/degC) that
+// no sample reports, on a tumbling spacecraft, 4 seeds x 24 h through the daemon's refits. The
+// refits measure the swing from their short blocks (pipeline/bias_variability.hpp) and the
+// re-anchored UKF keeps it as model error; without that the UKF was ok up to 5.4 sigma off (60 /
+// 130 / 0 of 340 ok snapshots beyond 3 sigma per axis). Bar: per axis at most 1 % of the ok
+// snapshots beyond 3 sigma of the current bias, none beyond 4, and still ok most of the time (the
+// swing's size, ~6 nT, is below the 10 nT bound).
+TEST_CASE(
+    "Tumbling, orbit-synchronous bias swing without temperature, daemon refits: ok within "
+    "3 sigma") {
+  Outcome total;
+  RefitCounts refits;
+  for (uint64_t seed : {1, 2, 3, 4}) {
+    Scenario sc = *scenario_preset("tumbling");
+    sc.seed = seed;
+    sc.duration_s = 24.0 * 3600.0;
+    replay_with_refits(simulate_swing_without_temperature(sc, 10.0), total, refits);
+  }
+  WARN("tumbling, +-10 nT swing without temperature, daemon refits: UKF "
+       << per_axis(total) << "; refits accepted " << refits.accepted << " of " << refits.run);
+  for (int i = 0; i < 3; ++i) CHECK(total.beyond_3_sigma_per_axis(i) <= total.ok / 100);
+  CHECK(total.worst < 4.0);
+  CHECK(total.ok > total.snapshots / 2);
+}
+
 // Measurement, not a bar (hidden: run it by name): an orbit-synchronous thermal swing without a
 // temperature channel, +-A nT on every axis (k_T = 1 nT/degC, +-A degC, the orbital period), the
 // paper (nadir) and tumbling scenarios, 4 seeds x 24 h, snapshots every 15 min, against the current
