@@ -84,7 +84,7 @@ BiasVariability measure_bias_variability(const SampleSet& samples, const Calibra
   out.scatter_nT2 = (sum2 - sum.cwiseAbs2() / n) / (n - 1.0);
   out.noise_nT2 /= n;
   const double limit = chi_square_upper_quantile(n - 1.0, options.tail_probability);
-  out.significant = ((n - 1.0) * out.scatter_nT2.array() > limit * out.noise_nT2.array()).any();
+  out.significant = ((n - 1.0) * out.scatter_nT2.array() > limit * out.noise_nT2.array()).all();
   return out;
 }
 
