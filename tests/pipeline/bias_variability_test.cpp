@@ -106,6 +106,7 @@ TEST_CASE("Constant bias, tumbling and nadir: no bias variability") {
     CHECK(alarms == 0);
   }
 }
+
 // Measurement behind the test's threshold (hidden: run it by name): per refit, the chi2 of each
 // axis against the quantiles at 1e-3, 1e-4 and 1e-5, and the excess sd against the truth.
 // MAGCAL_WINDOW_HOURS sets the window (default 12).
