@@ -70,6 +70,9 @@ struct BatchCalibrationOptions {
   // and keep it when BIC prefers it, on windows of at least kMinBiasRateWindow_h where no
   // temperature model is taken. The published bias is then that at the window's end.
   bool bias_rate_model = true;
+  // twostep: on windows of at least kMinBiasRateWindow_h, measure how far the bias moves about its
+  // window average (pipeline/bias_variability.hpp) and add that variance to the covariance.
+  bool bias_variability = true;
   // Hard geometry limits (beyond them no estimate is reported: kUnobservable). The acceptance
   // gates have their own, stricter, thresholds for "computed but not trusted".
   double min_coverage_eigenvalue = 1e-4;  // smallest eigenvalue of mean(d d^T), d = B/|B|

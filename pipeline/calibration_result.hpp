@@ -108,7 +108,15 @@ struct CalibrationResult {
   // this window relative to the published p (what an estimator without the extension, such as
   // the online filters, converges to instead). Zero otherwise.
   Vector9d model_error = Vector9d::Zero();
-  Matrix9d model_error_covariance() const { return model_error * model_error.transpose(); }
+  // Batch refits: the bias's variance about its window average where the window's short-block
+  // biases show it moving (pipeline/bias_variability.hpp), nT^2 per axis; zero otherwise. Already
+  // in `covariance`; the filters re-anchored on the refit keep it as model error. Not persisted.
+  Eigen::Vector3d bias_variability_nT2 = Eigen::Vector3d::Zero();
+  Matrix9d model_error_covariance() const {
+    Matrix9d m = model_error * model_error.transpose();
+    m.diagonal().head<3>() += bias_variability_nT2;
+    return m;
+  }
   // Batch refits whose estimator bias was measured (bootstrap, pipeline/batch_calibration.hpp)
   // and removed from `parameters`: that bias. Zero otherwise. Not persisted.
   Vector9d estimator_bias = Vector9d::Zero();

@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <limits>
 #include <random>
 #include <string>
 #include <vector>
@@ -268,6 +269,18 @@ double log_uniform_rate(std::mt19937_64& rng) {
 // 0.40 +- 0.10 nT/h from the day's geometry (chi2 16-18 with the D uncertainty in it) before the
 // 2.6 nT/h y draw is seen (block 10, 21 h, after its first miss at 15.75 h); widening the bias
 // sigma by what the trend cannot exclude (se x the estimate's age) leaves no ok snapshot at all.
+// Also measured and not kept (UKF, y beyond 3 sigma of the ok snapshots, 37 of 450 without them),
+// each widening the bias covariance where its statistic says the estimate lags: the lag the block
+// scores' sum implies, P sum_b G_b, beyond 2 of its sigmas: 32 of 363; the batch-means t of each
+// bias axis's block scores since the start, |t| > 2: 32 of 411 (the misses' y has |t| 1-2.2, the
+// control's x 2-2.7: the model error makes the scores as persistent as the lag does); its largest
+// |t| on all three axes: 7 of 116, but the control's ok 143 -> 78 and the 0.1 nT/h draws' 1628 ->
+// 987; the estimate's own movement over each 2 h block beyond what its covariance's decrease
+// allows: 23 of 219, the control's ok 143 -> 84. On the orbit normal the control's estimate itself
+// moves like a lagging drift (seed 1: +19 nT off at 16.5 h, +1 nT at 21 h, sigma ~9 nT) as the
+// day's geometry changes what the 9-parameter model misfits: without a refit's model error the
+// filter cannot tell the two apart. The daemon's path (refits measure the model error and the
+// rate) meets the bar (the "Linear bias drift, daemon refits" test below).
 TEST_CASE("Linear bias drift alone: ok snapshots within 3 sigma of the current bias, per axis") {
   Outcome ekf, ukf, ekf_slow, ukf_slow;
   std::string misses, slow_misses;
@@ -430,5 +443,83 @@ TEST_CASE("Constant bias and 0.1 nT/h drift, daemon refits: ok within 3 sigma, n
     CHECK(total.worst < 4.0);
     CHECK(total.ok > total.snapshots / 2);
     if (rate_nT_per_h == 0.0) CHECK(refits.with_bias_rate == 0);
+  }
+}
+
+namespace {
+
+// sc with an orbit-synchronous swing of +-amplitude_nT on every axis (k_T = 1 nT/degC), simulated
+// with the truth, every sample's temperature unknown (no temperature channel).
+std::vector<TruthSample> simulate_swing_without_temperature(Scenario sc, double amplitude_nT) {
+  sc.sensor.temperature_amplitude_C = amplitude_nT;
+  sc.sensor.temperature_coefficient_nT_per_C = Eigen::Vector3d(1.0, 1.0, 1.0);
+  std::vector<TruthSample> data = simulate_with_truth(sc);
+  for (TruthSample& d : data) d.sample.temperature_C = std::numeric_limits<double>::quiet_NaN();
+  return data;
+}
+
+}  // namespace
+
+// Issue 20 item 3: a +-10 nT orbit-synchronous thermal swing on every axis (k_T = 1 nT/degC) that
+// no sample reports, on a tumbling spacecraft, 4 seeds x 24 h through the daemon's refits. The
+// refits measure the swing from their short blocks (pipeline/bias_variability.hpp) and the
+// re-anchored UKF keeps it as model error; without that the UKF was ok up to 5.4 sigma off (60 /
+// 130 / 0 of 340 ok snapshots beyond 3 sigma per axis). Bar: per axis at most 1 % of the ok
+// snapshots beyond 3 sigma of the current bias, none beyond 4, and still ok most of the time (the
+// swing's size, ~6 nT, is below the 10 nT bound).
+TEST_CASE(
+    "Tumbling, orbit-synchronous bias swing without temperature, daemon refits: ok within "
+    "3 sigma") {
+  Outcome total;
+  RefitCounts refits;
+  for (uint64_t seed : {1, 2, 3, 4}) {
+    Scenario sc = *scenario_preset("tumbling");
+    sc.seed = seed;
+    sc.duration_s = 24.0 * 3600.0;
+    replay_with_refits(simulate_swing_without_temperature(sc, 10.0), total, refits);
+  }
+  WARN("tumbling, +-10 nT swing without temperature, daemon refits: UKF "
+       << per_axis(total) << "; refits accepted " << refits.accepted << " of " << refits.run);
+  for (int i = 0; i < 3; ++i) CHECK(total.beyond_3_sigma_per_axis(i) <= total.ok / 100);
+  CHECK(total.worst < 4.0);
+  CHECK(total.ok > total.snapshots / 2);
+}
+
+// Measurement, not a bar (hidden: run it by name): an orbit-synchronous thermal swing without a
+// temperature channel, +-A nT on every axis (k_T = 1 nT/degC, +-A degC, the orbital period), the
+// paper (nadir) and tumbling scenarios, 4 seeds x 24 h, snapshots every 15 min, against the current
+// bias b(t, T). Library EKF/UKF (no refit) and the UKF through the daemon's refits with every
+// sample's temperature unknown (NaN: no temperature model possible). Issue 20 item 3 is open for
+// the filters alone: the swing averages out of the 2 h bias-motion blocks and the 9-parameter model
+// absorbs part of it into D, so the filters' innovations (noise scale ~5 as on the paper sensor
+// alone) do not separate it from the paper sensor's stationary model error (paper, +-10 nT: ok
+// snapshots 7 sigma off). A refit measures it from its short blocks (pipeline/bias_variability.hpp)
+// and the re-anchored filters keep it as model error: tumbling, +-10 nT, the UKF with the refits
+// has 0 / 3 / 0 of 340 ok snapshots beyond 3 sigma per axis, worst 3.3 (without the measurement:
+// 60 / 130 / 0, worst 5.4), the constant bias as before. On nadir the daemon's refits of its first
+// 11 h are too short for the test to see the swing (paper, +-10 nT: ok snapshots up to 19 sigma
+// off, some refits taking the swing for a bias rate).
+TEST_CASE("Measure: orbit-synchronous bias swing without a temperature channel", "[.measure]") {
+  for (const char* preset : {"paper", "tumbling"}) {
+    for (double amplitude_nT : {0.0, 5.0, 10.0}) {
+      Outcome ekf, ukf, daemon;
+      RefitCounts refits;
+      for (uint64_t seed : {1, 2, 3, 4}) {
+        Scenario sc = *scenario_preset(preset);
+        sc.seed = seed;
+        sc.duration_s = 24.0 * 3600.0;
+        const auto data = simulate_swing_without_temperature(sc, amplitude_nT);
+        MagnetometerEkf e;
+        MagnetometerUkf u;
+        replay(e, data, ekf);
+        replay(u, data, ukf);
+        replay_with_refits(data, daemon, refits);
+      }
+      WARN(preset << ", swing +-" << amplitude_nT << " nT without temperature: library EKF "
+                  << per_axis(ekf) << "; library UKF " << per_axis(ukf)
+                  << "; UKF with the daemon's refits " << per_axis(daemon) << ", refits accepted "
+                  << refits.accepted << " of " << refits.run << ", " << refits.with_bias_rate
+                  << " with a bias rate");
+    }
   }
 }
