@@ -6,4 +6,7 @@
 -- tables itself on its first start. The role needs to own the database, nothing more: since
 -- PostgreSQL 15 only the owner may create tables in a new database's public schema.
 CREATE ROLE magcal LOGIN;
+-- A non-superuser admin (CREATEROLE, CREATEDB: the usual managed service) may give a database
+-- only to a role it is a member of; for a superuser this changes nothing.
+GRANT magcal TO CURRENT_USER;
 CREATE DATABASE magcal OWNER magcal;

@@ -200,7 +200,10 @@ const Baseline& baseline() {
                 b->dir.file("sim.log")) == 0);
     {
       std::ofstream out(b->config);
-      out << "[refit]\nclock = \"data\"\nevery_hours = 2\nmin_samples = 1000\n";
+      // The process's own spill directory: ctest runs test cases in parallel from one
+      // directory, and a station's spill file is locked by its daemon.
+      out << "[refit]\nclock = \"data\"\nevery_hours = 2\nmin_samples = 1000\n"
+          << "[storage]\nspill_dir = \"" << b->dir.file("") << "\"\n";
     }
     const std::string db = b->dir.file("alone.db"), daemon_log = b->dir.file("alone.log");
     const int rc = run({kBin + "/magcald", "--config", b->config, "--db", db, "--station", "solo",

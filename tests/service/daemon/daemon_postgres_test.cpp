@@ -109,7 +109,8 @@ TEST_CASE("magcald, magcal status, history, refit and serve on PostgreSQL answer
 
   {
     std::ofstream config(dir.file("d_pg.toml"));
-    config << slurp(dir.file("d.toml")) << "[storage]\ndb_path = \"" << pg << "\"\n";
+    config << slurp(dir.file("d.toml")) << "[storage]\ndb_path = \"" << pg << "\"\nspill_dir = \""
+           << dir.file("") << "\"\n";  // each test's own: ctest runs cases in parallel
   }
   for (const std::string& db : {sqlite, pg}) {
     const std::string daemon_log = dir.file(db == pg ? "magcald_pg.log" : "magcald_sqlite.log");

@@ -188,8 +188,11 @@ TEST_CASE("three stations, one database: one window, one series, each refit once
   const std::string config = dir.file("d.toml");
   {
     std::ofstream out(config);
+    // Each test's own spill directory: ctest runs test cases in parallel from one directory,
+    // and a station's spill file is locked by its daemon.
     out << "[refit]\nclock = \"data\"\nevery_hours = 6\n"
-        << "[fleet]\nlease_s = " << kLease_s << "\nreorder_delay_s = " << kReorderDelay_s << "\n";
+        << "[fleet]\nlease_s = " << kLease_s << "\nreorder_delay_s = " << kReorderDelay_s << "\n"
+        << "[storage]\nspill_dir = \"" << dir.file("") << "\"\n";
   }
 
   // One daemon, the whole log: what the fleet must match.
@@ -435,7 +438,8 @@ TEST_CASE("the live daemons share the spacecraft evenly, and take over those of 
   const std::string config = dir.file("d.toml");
   {
     std::ofstream out(config);
-    out << "[fleet]\nlease_s = " << kLease_s << "\n";
+    out << "[fleet]\nlease_s = " << kLease_s << "\n"
+        << "[storage]\nspill_dir = \"" << dir.file("") << "\"\n";
   }
   const std::string db = server->create_database();
   const std::string names[kStations] = {"gs-a", "gs-b", "gs-c"};

@@ -505,24 +505,34 @@ TEST_CASE("PostgreSQL values: bigint, double precision, bytea and text exactly, 
 TEST_CASE("PostgreSQL: deploy/fleet/create-database.sql makes a database magcald migrates") {
   PgTestServer* server = pg_server_or_skip();
   if (server == nullptr) return;
-  const std::string name = "fleet_example";
-  const std::string sql =
-      std::regex_replace(magcal::test::slurp(MAGCAL_SOURCE_DIR "/deploy/fleet/create-database.sql"),
-                         std::regex("\\bmagcal\\b"), name);
-  REQUIRE(sql.find("CREATE ROLE " + name) != std::string::npos);
-  const std::string file = server->dir() + "/create-database.sql";
-  std::ofstream(file) << sql;
-  const std::string log = server->dir() + "/psql.log";
-  const int rc = magcal::test::run(
-      {server->pg_tool("psql"), server->uri("postgres"), "-v", "ON_ERROR_STOP=1", "-f", file}, log);
-  INFO(magcal::test::slurp(log));
-  REQUIRE(rc == 0);
-  std::string uri = server->uri(name);
-  uri.replace(uri.find("magcal@"), std::string("magcal").size(), name);
-  PgDatabase db(uri);  // connects as the new role and migrates
-  CHECK(db.schema_version() == PgDatabase::latest_schema_version());
-  CHECK(query_int(db,
-                  "SELECT count(*) FROM pg_tables WHERE tablename = 'samples' AND "
-                  "tableowner = '" +
-                      name + "'") == 1);
+  // Run by a superuser, and by an admin with only CREATEROLE and CREATEDB (a managed service).
+  REQUIRE(
+      magcal::test::run({server->pg_tool("psql"), server->uri("postgres"), "-v", "ON_ERROR_STOP=1",
+                         "-c", "CREATE ROLE fleet_admin LOGIN CREATEROLE CREATEDB"},
+                        server->dir() + "/psql_admin.log") == 0);
+  for (const std::string admin : {"magcal", "fleet_admin"}) {
+    const std::string name = admin == "magcal" ? "fleet_example" : "fleet_managed";
+    INFO("run by " << admin);
+    const std::string sql = std::regex_replace(
+        magcal::test::slurp(MAGCAL_SOURCE_DIR "/deploy/fleet/create-database.sql"),
+        std::regex("\\bmagcal\\b"), name);
+    REQUIRE(sql.find("CREATE ROLE " + name) != std::string::npos);
+    const std::string file = server->dir() + "/create-database.sql";
+    std::ofstream(file) << sql;
+    const std::string log = server->dir() + "/psql.log";
+    std::string admin_uri = server->uri("postgres");
+    admin_uri.replace(admin_uri.find("magcal@"), std::string("magcal").size(), admin);
+    const int rc = magcal::test::run(
+        {server->pg_tool("psql"), admin_uri, "-v", "ON_ERROR_STOP=1", "-f", file}, log);
+    INFO(magcal::test::slurp(log));
+    REQUIRE(rc == 0);
+    std::string uri = server->uri(name);
+    uri.replace(uri.find("magcal@"), std::string("magcal").size(), name);
+    PgDatabase db(uri);  // connects as the new role and migrates
+    CHECK(db.schema_version() == PgDatabase::latest_schema_version());
+    CHECK(query_int(db,
+                    "SELECT count(*) FROM pg_tables WHERE tablename = 'samples' AND "
+                    "tableowner = '" +
+                        name + "'") == 1);
+  }
 }
