@@ -1,6 +1,7 @@
 // Acceptance gates (issue 7). Definitions and defaults in the header.
 #include "pipeline/acceptance_gates.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 
@@ -210,6 +211,11 @@ double chi_square_upper_quantile(double dof, double tail_probability) {
   const double a = 2.0 / (9.0 * dof);
   const double c = 1.0 - a + normal_upper_quantile(tail_probability) * std::sqrt(a);
   return dof * c * c * c;
+}
+
+double ar1_variance_factor(double rho, double max_rho) {
+  const double r = std::clamp(std::isfinite(rho) ? rho : 0.0, 0.0, max_rho);
+  return (1.0 + r) / (1.0 - r);
 }
 
 GateVerdict evaluate_gates(const CalibrationResult& result, const GateInputs& inputs,

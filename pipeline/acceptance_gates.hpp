@@ -156,4 +156,9 @@ Eigen::Vector3d direction_coverage_eigenvalues(const SampleSet& samples);
 // Upper chi-square quantile: x with P(chi2_dof > x) = tail_probability (Wilson–Hilferty).
 double chi_square_upper_quantile(double dof, double tail_probability);
 
+// (1 + rho) / (1 - rho): how much the variance of a mean (or a trend) of AR(1) errors with lag-1
+// autocorrelation rho exceeds that of white errors. rho non-finite (unknown) or negative counts as
+// 0; clipped at max_rho (< 1).
+double ar1_variance_factor(double rho, double max_rho = 0.999);
+
 }  // namespace magcal

@@ -380,14 +380,12 @@ LmResult refine_with_columns(const SampleSet& samples, const LmOptions& lopt, co
 // on x, disagreed: a trend of the misfit, not of the bias; scaled, at most 2. with_rate: the fit
 // with the rate (its coefficient, marginal covariance and residual autocorrelation).
 bool bias_rate_significant(const LmResult& with_rate) {
-  const double rho = std::clamp(
-      std::isfinite(with_rate.residual_autocorrelation) ? with_rate.residual_autocorrelation : 0.0,
-      0.0, 0.999);
   const Eigen::Vector3d& rate_nT_per_h = with_rate.temperature_coefficient;
   const Eigen::LDLT<Eigen::Matrix3d> ldlt(with_rate.temperature_covariance);
   if (ldlt.info() != Eigen::Success) return false;
   const double chi2 = rate_nT_per_h.dot(ldlt.solve(rate_nT_per_h));
-  return chi2 * (1.0 - rho) / (1.0 + rho) > chi_square_upper_quantile(3.0, 1e-3);
+  return chi2 / ar1_variance_factor(with_rate.residual_autocorrelation) >
+         chi_square_upper_quantile(3.0, 1e-3);
 }
 
 // Model choice by BIC, twostep, between the 9-parameter fit (base9), the sensor-model extension

@@ -57,9 +57,8 @@ BiasVariability measure_bias_variability(const SampleSet& samples, const Calibra
       fit.has_nonlinearity ? extension_corrected_vectors(in, fit.nonlinearity_k3, fit.hysteresis_nT)
                            : in.y_nT;
   const double scale = std::isfinite(fit.noise_scale) ? std::max(1.0, fit.noise_scale) : 1.0;
-  const double rho = std::clamp(
-      std::isfinite(fit.residual_autocorrelation) ? fit.residual_autocorrelation : 0.0, 0.0, 0.999);
-  const double noise_variance = sigma_nT * sigma_nT * scale * scale * (1.0 + rho) / (1.0 - rho);
+  const double noise_variance =
+      sigma_nT * sigma_nT * scale * scale * ar1_variance_factor(fit.residual_autocorrelation);
 
   Eigen::Vector3d sum = Eigen::Vector3d::Zero(), sum2 = Eigen::Vector3d::Zero();
   const auto block_us = static_cast<int64_t>(options.block_s * kMicrosecondsPerSecond);

@@ -8,6 +8,7 @@
 #include <Eigen/Eigenvalues>
 #include <Eigen/LU>
 
+#include "pipeline/acceptance_gates.hpp"
 #include "pipeline/hac_covariance.hpp"
 #include "pipeline/parameter_recovery.hpp"
 #include "pipeline/scalar_measurement.hpp"
@@ -360,8 +361,7 @@ double ScalarFilterBase::innovation_autocorrelation() const {
 
 double ScalarFilterBase::correlation_inflation() const {
   if (!options_->start.correlation_inflation) return 1.0;
-  const double rho = std::clamp(innovation_autocorrelation(), 0.0, options_->start.max_correlation);
-  return (1.0 + rho) / (1.0 - rho);
+  return ar1_variance_factor(innovation_autocorrelation(), options_->start.max_correlation);
 }
 
 CalibrationResult ScalarFilterBase::snapshot() const {

@@ -5,6 +5,8 @@
 #include <algorithm>
 #include <cmath>
 
+#include "pipeline/acceptance_gates.hpp"
+
 namespace magcal {
 
 namespace {
@@ -265,8 +267,8 @@ TimeOffsetResult estimate_time_offset(const SampleSet& samples, const ReferenceS
       prev = r;
     }
     out.residual_lag1_correlation = c0 > 0.0 ? c1 / c0 : 0.0;
-    const double rho = std::clamp(out.residual_lag1_correlation, 0.0, 0.99);
-    out.sigma_tau_s = out.sigma_tau_white_s * std::sqrt((1.0 + rho) / (1.0 - rho));
+    out.sigma_tau_s =
+        out.sigma_tau_white_s * std::sqrt(ar1_variance_factor(out.residual_lag1_correlation, 0.99));
   } else {
     out.message = "time offset: residual profile flat at the minimum; no uncertainty";
   }
