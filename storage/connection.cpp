@@ -151,6 +151,12 @@ std::unique_ptr<Connection> open_database(const std::string& db, const OpenOptio
   return std::make_unique<Database>(db, options);
 }
 
+Connection::CommitOutcome Connection::commit_outcome(int64_t transaction_id) {
+  throw StorageError(StorageError::Kind::kInvalidArgument,
+                     name() + ": no commit in doubt on this database (transaction " +
+                         std::to_string(transaction_id) + ")");
+}
+
 int migration_target(const OpenOptions& options, int latest) {
   const int target = options.migrate_to < 0 ? latest : options.migrate_to;
   if (target > latest) {

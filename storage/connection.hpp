@@ -53,6 +53,14 @@ struct OpenOptions {
   // as one that began later). A permanent failure (authentication, a missing database or role)
   // still throws here. SQLite: no effect.
   bool connect_later = false;
+  // PostgreSQL: how long a statement waits for the server's reply (0: for ever). A server that
+  // accepts connections but does not answer (frozen, overloaded, or holding every commit for a
+  // synchronous standby that is down) keeps a live TCP connection, so neither the keepalives nor
+  // tcp_user_timeout end the wait. Past this the statement fails transient (kUnavailable,
+  // SQLSTATE 08006) and the connection is set aside until its reply comes (see
+  // PgDatabase::settle_set_aside). Schema migrations are not bounded (a big table may take
+  // minutes). SQLite: no effect.
+  int reply_timeout_ms = 10000;
 };
 
 // The schema version an open should reach: options.migrate_to, or `latest` when it is -1.
@@ -91,6 +99,15 @@ class Connection {
   // needed (an SQLite file read without locks that a writer opened meanwhile: see
   // Database::immutable()); false for every other connection.
   virtual bool changed_since_open() const { return false; }
+
+  // Whether the transaction of a COMMIT in doubt (StorageError::in_doubt_transaction()) took
+  // effect, asked on this connection once the server answers again: a caller that counts what
+  // it committed, or must not write a result twice, asks before it retries. Throws StorageError
+  // (transient) while the server cannot tell yet: unreachable, or the transaction still in
+  // progress (a commit held for a synchronous standby). PostgreSQL only: SQLite never leaves a
+  // commit in doubt (kInvalidArgument).
+  enum class CommitOutcome { kCommitted, kRolledBack };
+  virtual CommitOutcome commit_outcome(int64_t transaction_id);
 
   virtual std::unique_ptr<SampleWindowStore> make_sample_window_store() = 0;
   virtual std::unique_ptr<RefitJobLog> make_refit_job_log() = 0;

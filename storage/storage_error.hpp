@@ -11,6 +11,7 @@
 // samples are counted in InsertStats, "not found" is std::nullopt.
 #pragma once
 
+#include <cstdint>
 #include <stdexcept>
 #include <string>
 
@@ -61,11 +62,19 @@ class StorageError : public std::runtime_error {
   int sqlite_code() const { return sqlite_code_; }
   const std::string& sqlstate() const { return sqlstate_; }
 
+  // A COMMIT that failed without telling whether it took effect (PostgreSQL: no reply in time,
+  // or the connection lost while it was in flight): the transaction's id, which
+  // Connection::commit_outcome() resolves once the server answers; 0 for every other failure
+  // (the transaction was rolled back). Such an error is transient.
+  int64_t in_doubt_transaction() const { return in_doubt_transaction_; }
+  void set_in_doubt_transaction(int64_t transaction_id) { in_doubt_transaction_ = transaction_id; }
+
  private:
   Kind kind_;
   Condition condition_;
   int sqlite_code_ = 0;
   std::string sqlstate_;
+  int64_t in_doubt_transaction_ = 0;
 };
 
 const char* to_string(StorageError::Condition condition);

@@ -294,7 +294,8 @@ struct Daemon::Impl {
     // API gets slower answers instead of slowing ingest (BM_DaemonReplayHttp measures both).
     std::thread starter([&] {
       ::setpriority(PRIO_PROCESS, static_cast<id_t>(::gettid()), kServerNice);
-      served = server->serve(config.storage.db_path, &error, /*connect_later=*/true);
+      const storage::OpenOptions db = config.database_options();
+      served = server->serve(config.storage.db_path, &error, db.connect_later, db.reply_timeout_ms);
     });
     starter.join();
     if (!served) {
@@ -570,9 +571,7 @@ std::string Daemon::open() {
               d.on_refit_due(sat, t, trigger);
             }},
         &d.stop_deadline);
-    d.refit_db = storage::open_database(
-        c.storage.db_path,
-        storage::OpenOptions{.busy_timeout_ms = c.storage.busy_timeout_ms, .connect_later = true});
+    d.refit_db = storage::open_database(c.storage.db_path, c.database_options());
     d.refits = std::make_unique<RefitRunner>(d.config, *d.refit_db);
     // False: a PostgreSQL server unreachable now, an outage from the start (IngestWorker).
     d.worker->restore();

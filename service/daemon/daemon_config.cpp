@@ -176,7 +176,8 @@ std::map<std::string, Section> key_table(DaemonConfig& c) {
         {"pg_max_failure_s", bind(c.storage.pg_max_failure_s)},
         {"spill_dir", bind(c.storage.spill_dir)},
         {"spill_max_bytes", bind(c.storage.spill_max_bytes)},
-        {"stop_max_failure_s", bind(c.storage.stop_max_failure_s)}}},
+        {"stop_max_failure_s", bind(c.storage.stop_max_failure_s)},
+        {"pg_reply_timeout_s", bind(c.storage.pg_reply_timeout_s)}}},
       {"refit",
        {{"daily_at_utc", bind(c.refit.daily_at_utc)},
         {"every_hours", bind(c.refit.every_hours)},
@@ -300,6 +301,7 @@ bool affects_results(const std::string& section, const std::string& key) {
                                                          "storage.spill_dir",
                                                          "storage.spill_max_bytes",
                                                          "storage.stop_max_failure_s",
+                                                         "storage.pg_reply_timeout_s",
                                                          "service.queue_capacity_samples",
                                                          "service.status_every_s"};
   return kOperationalSections.count(section) == 0 &&
@@ -386,6 +388,13 @@ std::string DaemonConfig::validate() const {
     return "[storage] spill_max_bytes: must be >= 0 (0 = no spill file)";
   }
   if (!(storage.stop_max_failure_s > 0.0)) return "[storage] stop_max_failure_s: must be > 0";
+  // (A lock wait ends at busy_timeout_ms as a lock timeout, before it could look like a server
+  // that does not answer.)
+  if (!(storage.pg_reply_timeout_s * 1000.0 > storage.busy_timeout_ms) ||
+      !(storage.pg_reply_timeout_s <= 3600.0)) {
+    return "[storage] pg_reply_timeout_s: must be above busy_timeout_ms (in seconds) and at most "
+           "3600";
+  }
   if (!parse_daily_time_utc(refit.daily_at_utc)) {
     return "[refit] daily_at_utc: expected \"HH:MM\" (UTC), got \"" + refit.daily_at_utc + "\"";
   }

@@ -4,6 +4,7 @@
 // refuses to start. deploy/magcald.example.toml lists every key with its default.
 #pragma once
 
+#include <cmath>
 #include <cstdint>
 #include <map>
 #include <string>
@@ -12,6 +13,7 @@
 #include "pipeline/acceptance_gates.hpp"
 #include "pipeline/magnetometer_ukf.hpp"
 #include "service/daemon/refit_scheduler.hpp"
+#include "storage/connection.hpp"
 
 namespace magcal {
 
@@ -75,6 +77,14 @@ struct DaemonConfig {
     // storage/postgres/pg_database.cpp), stays well under 90 s; keep it below TimeoutStopSec
     // minus 40 s.
     double stop_max_failure_s = 30.0;
+    // PostgreSQL: a statement without the server's reply for this long fails as an outage
+    // (storage::OpenOptions::reply_timeout_ms): a server that accepts connections but does not
+    // answer (frozen, overloaded, or holding every commit for a synchronous standby that is
+    // down) is then ridden out as one that is down, its samples held and spilled, a stop bounded
+    // by stop_max_failure_s. Keep twice it plus 10 s under the unit's WatchdogSec (60 s in
+    // deploy/magcald.service): a commit attempt may wait for a reply, a reconnect (10 s) and a
+    // reply again. The longest statement of a healthy server is a refit's window read (~0.1 s).
+    double pg_reply_timeout_s = 10.0;
   } storage;
   struct Refit {
     std::string daily_at_utc = "02:00";
@@ -177,6 +187,13 @@ struct DaemonConfig {
   }
   const char* storage_max_failure_key() const {
     return postgres() ? "pg_max_failure_s" : "max_failure_s";
+  }
+  // How magcald opens the database: [storage] busy_timeout_ms and pg_reply_timeout_s, and a
+  // PostgreSQL server unreachable now is an outage, not an error (OpenOptions::connect_later).
+  storage::OpenOptions database_options() const {
+    return {.busy_timeout_ms = storage.busy_timeout_ms,
+            .connect_later = true,
+            .reply_timeout_ms = static_cast<int>(std::lround(storage.pg_reply_timeout_s * 1000.0))};
   }
   // The spill file ("" = none: SQLite, or spill_max_bytes = 0). See Storage::spill_dir.
   std::string spill_path() const;

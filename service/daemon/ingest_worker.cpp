@@ -10,11 +10,8 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
                            std::unique_ptr<ReferenceField> field, Hooks hooks,
                            const StopDeadline* stop)
     : config_(config),
-      db_(storage::open_database(config.storage.db_path,
-                                 storage::OpenOptions{
-                                     .busy_timeout_ms = config.storage.busy_timeout_ms,
-                                     .connect_later = true,  // (PostgreSQL: restore() says)
-                                 })),
+      // (A PostgreSQL server unreachable now: restore() says.)
+      db_(storage::open_database(config.storage.db_path, config.database_options())),
       samples_(db_->make_sample_window_store()),
       fleet_(config.ukf.filter, &counters),
       intake_(config_, counters, std::move(field), *db_, *samples_, fleet_, stop),
@@ -177,7 +174,7 @@ void IngestWorker::flush_at_stop() {
   if (intake_.has_spill() && uncommitted()) {
     commit();
     if (intake_.commit_failing() &&
-        (intake_.pending_samples() == 0 || intake_.spill_pending(true))) {
+        (intake_.pending_samples() == 0 || intake_.spill_pending(true, /*at_exit=*/true))) {
       owner_.drop_unstored_writes();
       return;
     }
@@ -187,7 +184,7 @@ void IngestWorker::flush_at_stop() {
 
 int64_t IngestWorker::spill_all_pending() {
   const int64_t n = intake_.pending_samples();
-  return intake_.spill_pending(true) ? n : 0;
+  return intake_.spill_pending(true, /*at_exit=*/true) ? n : 0;
 }
 
 void IngestWorker::save_filter_states() {

@@ -94,6 +94,7 @@ void SampleIntake::restore(CommitParticipant& owner) {
           spill_->path(), spill_->found_database(), held);
     }
     const int64_t recovered_before = counters_.spill_recovered.load();
+    resolve_commit_in_doubt(owner);
     commit_spill(owner, true);
     const int64_t committed = counters_.spill_recovered.load() - recovered_before;
     spdlog::info("spill file {}: {} samples committed ({} already stored); {}", spill_->path(),
@@ -395,6 +396,7 @@ void SampleIntake::commit_pending(CommitParticipant& owner) {
   // owner's writes go with the last chunk (its snapshots are published once stored; a filter
   // state then includes exactly the committed samples).
   const auto chunk = static_cast<size_t>(config_.storage.commit_every_samples);
+  resolve_commit_in_doubt(owner);
   // Spilled samples are older than the pending ones, and the owner's states include them. Until
   // the file is drained the pending batch queues behind it in the file (one order, and memory
   // stays bounded); the owner's writes wait.
@@ -429,15 +431,17 @@ void SampleIntake::commit_pending(CommitParticipant& owner) {
         storage::Transaction tx(db_);
         stats = samples_.insert_batch(rows, &duplicate_rows_, config_.station.id);
         if (last) owner.write();
-        tx.commit();
+        try {
+          tx.commit();
+        } catch (const storage::StorageError& e) {
+          if (e.in_doubt_transaction() != 0) {
+            in_doubt_ = {e.in_doubt_transaction(), CommitInDoubt::Chunk::kPending, n, stats, last};
+          }
+          throw;
+        }
       }
-      owner.samples_committed(rows);
-      count_stored(rows, true);
+      pending_chunk_committed(owner, rows, stats, last);
       done += n;
-      counters_.stored.fetch_add(stats.inserted, std::memory_order_relaxed);
-      // Duplicates the in-memory check could not see (e.g. within one frame).
-      if (stats.duplicates > 0) counters_.reject(RejectReason::kDuplicate, stats.duplicates);
-      if (last) owner.written();
     }
   } catch (const storage::StorageError&) {
     // What was committed leaves the batch; the rest stays pending for the retry.
@@ -449,14 +453,70 @@ void SampleIntake::commit_pending(CommitParticipant& owner) {
   reset_pending_index();
 }
 
-bool SampleIntake::spill_pending(bool at_any_size) {
+void SampleIntake::pending_chunk_committed(CommitParticipant& owner,
+                                           std::span<const storage::StoredSample> rows,
+                                           const storage::InsertStats& stats,
+                                           bool with_owner_writes) {
+  owner.samples_committed(rows);
+  count_stored(rows, true);
+  counters_.stored.fetch_add(stats.inserted, std::memory_order_relaxed);
+  // Duplicates the in-memory check could not see (e.g. within one frame).
+  if (stats.duplicates > 0) counters_.reject(RejectReason::kDuplicate, stats.duplicates);
+  if (with_owner_writes) owner.written();
+}
+
+void SampleIntake::spill_chunk_committed(CommitParticipant& owner,
+                                         const storage::InsertStats& stats, bool spill_recovered) {
+  spill_->commit_read();
+  owner.samples_committed(spill_chunk_);
+  if (spill_recovered) {
+    // Received, counted and checked by the run that spilled them.
+    spill_recovered_held_ -= static_cast<int64_t>(spill_chunk_.size());
+    counters_.spill_recovered.fetch_add(stats.inserted, std::memory_order_relaxed);
+  } else {
+    count_stored(spill_chunk_, true);
+    counters_.stored.fetch_add(stats.inserted, std::memory_order_relaxed);
+    if (stats.duplicates > 0) counters_.reject(RejectReason::kDuplicate, stats.duplicates);
+  }
+  update_spill_gauges();
+}
+
+void SampleIntake::resolve_commit_in_doubt(CommitParticipant& owner) {
+  if (in_doubt_.transaction_id == 0) return;
+  const bool committed = db_.commit_outcome(in_doubt_.transaction_id) ==
+                         storage::Connection::CommitOutcome::kCommitted;
+  spdlog::info("the database commit without a reply (transaction {}) {}", in_doubt_.transaction_id,
+               committed ? "did commit: its samples are stored" : "did not commit: retrying it");
+  const CommitInDoubt doubt = std::exchange(in_doubt_, {});
+  if (!committed) return;
+  if (doubt.chunk == CommitInDoubt::Chunk::kPending) {
+    // (duplicate_rows_ is still that insert's: nothing was inserted since.)
+    pending_chunk_committed(owner,
+                            std::span<const storage::StoredSample>(pending_).first(doubt.rows),
+                            doubt.stats, doubt.with_owner_writes);
+    pending_.erase(pending_.begin(), pending_.begin() + static_cast<std::ptrdiff_t>(doubt.rows));
+    reset_pending_index();
+  } else {
+    // (spill_chunk_ is still the chunk read for it: a read again returns the same records.)
+    spill_chunk_committed(owner, doubt.stats, doubt.chunk == CommitInDoubt::Chunk::kSpillRecovered);
+  }
+}
+
+bool SampleIntake::spill_pending(bool at_any_size, bool at_exit) {
   if (!spill_ || spill_full_ || pending_.empty()) return false;
   if (!at_any_size && static_cast<int64_t>(pending_.size()) < config_.storage.max_pending_samples) {
     return false;
   }
+  // The rows of a commit in doubt stay in memory until it is resolved: they may be stored.
+  const size_t keep =
+      !at_exit && in_doubt_.transaction_id != 0 && in_doubt_.chunk == CommitInDoubt::Chunk::kPending
+          ? in_doubt_.rows
+          : 0;
+  if (keep >= pending_.size()) return false;
+  const auto to_spill = std::span<const storage::StoredSample>(pending_).subspan(keep);
   bool appended = false;
   try {
-    appended = spill_->append(pending_);
+    appended = spill_->append(to_spill);
   } catch (const SpillError& e) {
     spdlog::error("{}", e.what());
   }
@@ -469,16 +529,17 @@ bool SampleIntake::spill_pending(bool at_any_size) {
                     "max_pending_samples intake stops until the database takes them (a "
                     "live feed then overflows its receive queue, counted as "
                     "queue_overflow)",
-                    spill_->path(), pending_.size(), spill_->bytes(), spill_->max_bytes()));
+                    spill_->path(), to_spill.size(), spill_->bytes(), spill_->max_bytes()));
     return false;
   }
-  counters_.spilled.fetch_add(static_cast<int64_t>(pending_.size()), std::memory_order_relaxed);
+  counters_.spilled.fetch_add(static_cast<int64_t>(to_spill.size()), std::memory_order_relaxed);
   warnings_.warn(
       "spill",
       fmt::format("{}: {} pending samples spilled to {} ({} held there, {} bytes)",
                   commit_retry_.failing() ? "database commit failing" : "queued behind the spill",
-                  pending_.size(), spill_->path(), spill_->held_samples(), spill_->bytes()));
-  pending_.clear();
+                  to_spill.size(), spill_->path(), spill_->held_samples(), spill_->bytes()));
+  pending_.erase(pending_.begin() + static_cast<std::ptrdiff_t>(keep), pending_.end());
+  if (at_exit && in_doubt_.chunk == CommitInDoubt::Chunk::kPending) in_doubt_ = {};
   reset_pending_index();
   update_spill_gauges();
   return true;
@@ -491,20 +552,21 @@ void SampleIntake::commit_spill(CommitParticipant& owner, bool recovered,
   while (std::chrono::steady_clock::now() < until && (!recovered || spill_recovered_held_ > 0) &&
          spill_->read_chunk(recovered ? std::min<size_t>(chunk, spill_recovered_held_) : chunk,
                             spill_chunk_) > 0) {
+    storage::Transaction tx(db_);
     const storage::InsertStats stats =
         samples_.insert_batch(spill_chunk_, &duplicate_rows_, config_.station.id);
-    spill_->commit_read();
-    owner.samples_committed(spill_chunk_);
-    if (recovered) {
-      // Received, counted and checked by the run that spilled them.
-      spill_recovered_held_ -= static_cast<int64_t>(spill_chunk_.size());
-      counters_.spill_recovered.fetch_add(stats.inserted, std::memory_order_relaxed);
-    } else {
-      count_stored(spill_chunk_, true);
-      counters_.stored.fetch_add(stats.inserted, std::memory_order_relaxed);
-      if (stats.duplicates > 0) counters_.reject(RejectReason::kDuplicate, stats.duplicates);
+    try {
+      tx.commit();
+    } catch (const storage::StorageError& e) {
+      if (e.in_doubt_transaction() != 0) {
+        in_doubt_ = {
+            e.in_doubt_transaction(),
+            recovered ? CommitInDoubt::Chunk::kSpillRecovered : CommitInDoubt::Chunk::kSpill,
+            spill_chunk_.size(), stats, false};
+      }
+      throw;
     }
-    update_spill_gauges();
+    spill_chunk_committed(owner, stats, recovered);
   }
 }
 

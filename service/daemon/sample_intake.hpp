@@ -159,8 +159,10 @@ class SampleIntake {
            (!spill_ || spill_full_);
   }
   // The pending batch goes to the spill file (all of it, or only once it is at
-  // max_pending_samples); false when it did not (full, or no spill).
-  bool spill_pending(bool at_any_size);
+  // max_pending_samples); false when it did not (full, or no spill). The rows of a commit in
+  // doubt stay in memory, until it is resolved, unless `at_exit`: they go too (the next start's
+  // spill commit finds them stored, if they were).
+  bool spill_pending(bool at_any_size, bool at_exit = false);
 
   // At shutdown, before the last commit: a spacecraft that never got a time base takes it from
   // its held samples, which are then stored; every other sample still held for corroboration of
@@ -225,6 +227,18 @@ class SampleIntake {
       std::chrono::steady_clock::time_point until = std::chrono::steady_clock::time_point::max());
   void update_spill_gauges();
   void run_retention();
+  // The bookkeeping of a committed chunk of the pending batch (its first rows), or of the spill
+  // file (spill_chunk_: `spill_recovered` for an earlier run's records).
+  void pending_chunk_committed(CommitParticipant& owner,
+                               std::span<const storage::StoredSample> rows,
+                               const storage::InsertStats& stats, bool with_owner_writes);
+  void spill_chunk_committed(CommitParticipant& owner, const storage::InsertStats& stats,
+                             bool spill_recovered);
+  // Before the next attempt after a commit in doubt (PostgreSQL: no reply to its COMMIT): asks
+  // the database whether it took effect, and if so does its bookkeeping (its samples then
+  // count as stored, not as duplicates of themselves). Throws storage::StorageError (transient)
+  // while the server cannot tell: the attempt fails as the commit did.
+  void resolve_commit_in_doubt(CommitParticipant& owner);
 
   const DaemonConfig& config_;
   DaemonCounters& counters_;
@@ -247,6 +261,16 @@ class SampleIntake {
   std::vector<storage::StoredSample> spill_chunk_;  // reused by commit_spill()
   std::vector<storage::StoredSample> read_rows_;    // reused by restore_spacecraft()
   std::vector<size_t> duplicate_rows_;  // of the last insert (reused: no allocation per batch)
+  // A commit in doubt (storage::StorageError::in_doubt_transaction(), 0: none): a chunk of
+  // the pending batch (its first `rows` rows, which spill_pending() keeps in memory until it is
+  // resolved), or spill_chunk_ of the spill file.
+  struct CommitInDoubt {
+    int64_t transaction_id = 0;
+    enum class Chunk { kPending, kSpill, kSpillRecovered } chunk = Chunk::kPending;
+    size_t rows = 0;
+    storage::InsertStats stats;
+    bool with_owner_writes = false;
+  } in_doubt_;
   // pending_[0, pending_indexed_) by a hash of (sat_id, utime) -> row; built only when a
   // duplicate check needs it (out-of-order samples), so in-order ingest pays nothing.
   std::unordered_multimap<uint64_t, uint32_t> pending_index_;

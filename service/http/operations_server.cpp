@@ -351,11 +351,13 @@ std::unique_ptr<OperationsServer> OperationsServer::bind(const std::string& list
   return std::unique_ptr<OperationsServer>(new OperationsServer(std::move(impl)));
 }
 
-bool OperationsServer::serve(const std::string& db_path, std::string* error, bool connect_later) {
+bool OperationsServer::serve(const std::string& db_path, std::string* error, bool connect_later,
+                             int reply_timeout_ms) {
   try {
     storage::OpenOptions options;
     options.read_only = true;
     options.connect_later = connect_later;
+    options.reply_timeout_ms = reply_timeout_ms;
     impl_->db = storage::open_database(db_path, options);
     impl_->db_path = db_path;
   } catch (const storage::StorageError& e) {

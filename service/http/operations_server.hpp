@@ -65,7 +65,10 @@ class OperationsServer {
   // threads inherit the calling thread's priority). False and *error set when the database
   // cannot be opened. `connect_later` (magcald): a PostgreSQL server that cannot be reached now
   // does not fail it (storage::OpenOptions::connect_later); the API answers 503 until it can.
-  bool serve(const std::string& db_path, std::string* error, bool connect_later = false);
+  // `reply_timeout_ms`: storage::OpenOptions::reply_timeout_ms (a request on a server that does
+  // not answer fails with 503 then).
+  bool serve(const std::string& db_path, std::string* error, bool connect_later = false,
+             int reply_timeout_ms = 10000);
   int port() const;         // the bound port
   std::string url() const;  // http_url() of the bound address
   void stop();              // idempotent; also in the destructor

@@ -1,9 +1,12 @@
 #include "storage/postgres/pg_database.hpp"
 
 #include <libpq-fe.h>
+#include <poll.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <chrono>
+#include <cmath>
 #include <string_view>
 #include <utility>
 
@@ -34,6 +37,24 @@ std::string one_line(std::string_view text) {
   return out;
 }
 
+// A statement for messages: its first line, at most 60 characters.
+std::string statement_summary(std::string_view sql) {
+  const std::size_t first = sql.find_first_not_of(" \t\n");
+  sql = first == std::string_view::npos ? std::string_view() : sql.substr(first);
+  sql = sql.substr(0, sql.find('\n'));
+  if (sql.size() <= 60) return std::string(sql);
+  return std::string(sql.substr(0, 57)) + "...";
+}
+
+// "10 s", "2.5 s", "250 ms".
+std::string duration_text(double seconds) {
+  if (seconds < 1.0) return std::to_string(std::lround(seconds * 1000.0)) + " ms";
+  std::string text = std::to_string(std::round(seconds * 10.0) / 10.0);
+  text.erase(text.find_last_not_of('0') + 1);
+  if (text.back() == '.') text.pop_back();
+  return text + " s";
+}
+
 int64_t now_utime() {
   return std::chrono::duration_cast<std::chrono::microseconds>(
              std::chrono::system_clock::now().time_since_epoch())
@@ -58,6 +79,7 @@ PgDatabase::PgDatabase(const std::string& uri, const OpenOptions& options)
       name_(database_name(uri)),
       read_only_(options.read_only),
       lock_timeout_ms_(options.busy_timeout_ms),
+      reply_timeout_ms_(options.reply_timeout_ms),
       open_options_(options) {
   char* error = nullptr;
   PQconninfoOption* parsed = PQconninfoParse(uri.c_str(), &error);
@@ -101,9 +123,14 @@ PgDatabase::PgDatabase(PgDatabase&& other) noexcept
       name_(std::move(other.name_)),
       read_only_(other.read_only_),
       lock_timeout_ms_(other.lock_timeout_ms_),
+      reply_timeout_ms_(other.reply_timeout_ms_),
+      set_aside_(std::exchange(other.set_aside_, false)),
+      set_aside_since_(other.set_aside_since_),
+      set_aside_statement_(std::move(other.set_aside_statement_)),
       open_options_(other.open_options_),
       schema_checked_(other.schema_checked_),
       open_transactions_(std::exchange(other.open_transactions_, 0)),
+      transaction_id_(std::exchange(other.transaction_id_, 0)),
       prepared_(std::move(other.prepared_)) {}
 
 PgDatabase& PgDatabase::operator=(PgDatabase&& other) noexcept {
@@ -114,9 +141,14 @@ PgDatabase& PgDatabase::operator=(PgDatabase&& other) noexcept {
     name_ = std::move(other.name_);
     read_only_ = other.read_only_;
     lock_timeout_ms_ = other.lock_timeout_ms_;
+    reply_timeout_ms_ = other.reply_timeout_ms_;
+    set_aside_ = std::exchange(other.set_aside_, false);
+    set_aside_since_ = other.set_aside_since_;
+    set_aside_statement_ = std::move(other.set_aside_statement_);
     open_options_ = other.open_options_;
     schema_checked_ = other.schema_checked_;
     open_transactions_ = std::exchange(other.open_transactions_, 0);
+    transaction_id_ = std::exchange(other.transaction_id_, 0);
     prepared_ = std::move(other.prepared_);
   }
   return *this;
@@ -157,6 +189,7 @@ void PgDatabase::connect() {
 }
 
 void PgDatabase::ensure_connected() {
+  if (set_aside_) settle_set_aside();
   if (conn_ != nullptr && PQstatus(conn_) == CONNECTION_OK) return;
   if (open_transactions_ > 0) {
     // The transaction is gone with the connection: its caller must start over.
@@ -189,7 +222,111 @@ void PgDatabase::configure() {
   std::string settings = "SET extra_float_digits = 3; SET client_encoding = 'UTF8'; ";
   settings += "SET lock_timeout = " + std::to_string(lock_timeout_ms_);
   if (read_only_) settings += "; SET default_transaction_read_only = on";
-  checked(PQexec(conn_, settings.c_str()), settings);
+  // Statements are sent and their replies awaited without blocking (await_reply).
+  if (PQsetnonblocking(conn_, 1) != 0) fail("PQsetnonblocking");
+  checked(await_reply(PQsendQuery(conn_, settings.c_str()), settings), settings);
+}
+
+pg_result* PgDatabase::await_reply(int sent, std::string_view sql) {
+  using clock = std::chrono::steady_clock;
+  const auto start = clock::now();
+  const bool bounded = reply_timeout_ms_ > 0 && !migrating_;
+  const auto deadline = start + std::chrono::milliseconds(reply_timeout_ms_);
+  pg_result* kept = nullptr;
+  const auto failed = [](const pg_result* r) {
+    return PQresultStatus(r) != PGRES_COMMAND_OK && PQresultStatus(r) != PGRES_TUPLES_OK;
+  };
+  int flush = sent == 0 ? -1 : 1;  // PQflush: 1 while output is queued, -1 on failure
+  while (flush >= 0) {
+    if (flush == 1) flush = PQflush(conn_);
+    if (flush < 0) break;
+    if (flush == 0 && !PQisBusy(conn_)) {
+      pg_result* r = PQgetResult(conn_);
+      if (r == nullptr) return kept;  // the whole reply
+      // PQexec's rule: the last result, but an error one is kept over later ones.
+      if (kept != nullptr && failed(kept) && !failed(r)) {
+        PQclear(r);
+      } else {
+        PQclear(kept);
+        kept = r;
+      }
+      continue;
+    }
+    int wait_ms = -1;
+    if (bounded) {
+      const auto left = std::chrono::ceil<std::chrono::milliseconds>(deadline - clock::now());
+      if (left.count() <= 0) {
+        PQclear(kept);
+        set_aside_ = true;
+        set_aside_since_ = start;
+        set_aside_statement_ = statement_summary(sql);
+        throw StorageError(
+            StorageError::Kind::kEngine,
+            name_ + ": no reply within " + duration_text(reply_timeout_ms_ / 1000.0) + " to " +
+                set_aside_statement_ +
+                " (the server accepts the connection but does not answer: frozen or overloaded, "
+                "or holding commits for a synchronous standby that is down)",
+            StorageError::Condition::kUnavailable);
+      }
+      wait_ms = static_cast<int>(left.count());
+    }
+    pollfd fd{PQsocket(conn_), static_cast<short>(POLLIN | (flush == 1 ? POLLOUT : 0)), 0};
+    const int ready = ::poll(&fd, 1, wait_ms);
+    if (ready < 0 && errno != EINTR) break;
+    if (ready > 0 && (fd.revents & (POLLIN | POLLERR | POLLHUP)) != 0 &&
+        PQconsumeInput(conn_) == 0) {
+      break;
+    }
+  }
+  // Not sent, or the connection broke: the server's reply is lost with it.
+  PQclear(kept);
+  const std::string why = one_line(PQerrorMessage(conn_));
+  drop_connection();
+  throw StorageError::postgres(
+      StorageError::Kind::kEngine,
+      name_ + ": " + (why.empty() ? statement_summary(sql) + " failed" : why) + " (SQLSTATE 08006)",
+      "08006");
+}
+
+void PgDatabase::settle_set_aside() {
+  const auto waited = std::chrono::steady_clock::now() - set_aside_since_;
+  // Everything the server sent so far (an error and then the end of the connection come apart).
+  bool alive = true;
+  for (pollfd fd{PQsocket(conn_), POLLIN, 0}; alive;) {
+    alive = PQconsumeInput(conn_) != 0 && PQflush(conn_) >= 0;
+    while (alive && !PQisBusy(conn_)) {
+      pg_result* r = PQgetResult(conn_);
+      // A FATAL error ends the session (the server closes it next).
+      const char* severity = r ? PQresultErrorField(r, PG_DIAG_SEVERITY_NONLOCALIZED) : nullptr;
+      const bool fatal = severity != nullptr && std::string_view(severity) != "ERROR";
+      PQclear(r);
+      if (r == nullptr || fatal) {
+        drop_connection();  // answered at last: a new session from here (no transaction left)
+        return;
+      }
+    }
+    if (::poll(&fd, 1, 0) <= 0 || (fd.revents & (POLLIN | POLLERR | POLLHUP)) == 0) break;
+  }
+  if (alive && PQstatus(conn_) == CONNECTION_OK) {
+    if (waited < kSetAsideLimit) {
+      throw StorageError(
+          StorageError::Kind::kEngine,
+          name_ + ": still no reply to " + set_aside_statement_ + ", sent " +
+              duration_text(std::chrono::duration<double>(waited).count()) +
+              " ago (the server accepts the connection but does not answer); no new session "
+              "before it answers or " +
+              duration_text(static_cast<double>(kSetAsideLimit.count())) + " have passed",
+          StorageError::Condition::kUnavailable);
+    }
+  }
+  drop_connection();  // broke, or waited kSetAsideLimit
+}
+
+void PgDatabase::drop_connection() noexcept {
+  PQfinish(conn_);
+  conn_ = nullptr;
+  set_aside_ = false;
+  prepared_.clear();
 }
 
 void PgDatabase::fail(std::string_view context, const pg_result* result) {
@@ -221,18 +358,23 @@ PgResult PgDatabase::checked(pg_result* raw, std::string_view sql) {
 }
 
 void PgDatabase::exec(std::string_view sql) {
+  simple_query(sql);
+}
+
+PgResult PgDatabase::simple_query(std::string_view sql) {
   ensure_connected();
   const std::string text(sql);
-  checked(PQexec(conn_, text.c_str()), sql);
+  return checked(await_reply(PQsendQuery(conn_, text.c_str()), sql), sql);
 }
 
 PgResult PgDatabase::execute(std::string_view sql, const PgParams& params, PgFormat format) {
   ensure_connected();
   const std::string text(sql);
-  return checked(
-      PQexecParams(conn_, text.c_str(), params.size(), params.types(), params.values(),
-                   params.lengths(), params.formats(), format == PgFormat::kBinary ? 1 : 0),
-      sql);
+  return checked(await_reply(PQsendQueryParams(conn_, text.c_str(), params.size(), params.types(),
+                                               params.values(), params.lengths(), params.formats(),
+                                               format == PgFormat::kBinary ? 1 : 0),
+                             sql),
+                 sql);
 }
 
 PgResult PgDatabase::execute_prepared(std::string_view sql, const PgParams& params,
@@ -242,12 +384,17 @@ PgResult PgDatabase::execute_prepared(std::string_view sql, const PgParams& para
   auto it = prepared_.find(text);
   if (it == prepared_.end()) {
     std::string name = "magcal_" + std::to_string(prepared_.size() + 1);
-    checked(PQprepare(conn_, name.c_str(), text.c_str(), params.size(), params.types()), sql);
+    checked(
+        await_reply(PQsendPrepare(conn_, name.c_str(), text.c_str(), params.size(), params.types()),
+                    sql),
+        sql);
     it = prepared_.emplace(std::move(text), std::move(name)).first;
   }
   return checked(
-      PQexecPrepared(conn_, it->second.c_str(), params.size(), params.values(), params.lengths(),
-                     params.formats(), format == PgFormat::kBinary ? 1 : 0),
+      await_reply(PQsendQueryPrepared(conn_, it->second.c_str(), params.size(), params.values(),
+                                      params.lengths(), params.formats(),
+                                      format == PgFormat::kBinary ? 1 : 0),
+                  sql),
       sql);
 }
 
@@ -258,6 +405,21 @@ int PgDatabase::backend_pid() const {
 bool PgDatabase::in_transaction() const {
   return conn_ != nullptr && PQtransactionStatus(conn_) != PQTRANS_IDLE &&
          PQtransactionStatus(conn_) != PQTRANS_UNKNOWN;
+}
+
+Connection::CommitOutcome PgDatabase::commit_outcome(int64_t transaction_id) {
+  PgParams p;
+  p.add(std::to_string(transaction_id));
+  const PgResult r = execute("SELECT pg_xact_status($1::xid8)", p);
+  if (r.is_null(0, 0)) return CommitOutcome::kRolledBack;  // too old to know
+  const std::string status = r.get_text(0, 0);
+  if (status == "committed") return CommitOutcome::kCommitted;
+  if (status == "aborted") return CommitOutcome::kRolledBack;
+  throw StorageError(StorageError::Kind::kEngine,
+                     name_ + ": the COMMIT of transaction " + std::to_string(transaction_id) +
+                         " is still in progress on the server (held, e.g. for a synchronous "
+                         "standby that is down)",
+                     StorageError::Condition::kUnavailable);
 }
 
 int PgDatabase::latest_schema_version() {
@@ -353,7 +515,13 @@ void PgDatabase::check_and_migrate(const OpenOptions& options) {
   }
   // Each migration in its own transaction under the advisory lock; re-read the version under
   // the lock because another daemon may have migrated meanwhile. The lock is released at
-  // commit, or by the server when a holder dies.
+  // commit, or by the server when a holder dies. Without a reply deadline: a migration of a big
+  // table, or the wait for another daemon's, may take minutes.
+  struct Unbounded {
+    bool& migrating;
+    explicit Unbounded(bool& flag) : migrating(flag) { migrating = true; }
+    ~Unbounded() { migrating = false; }
+  } unbounded(migrating_);
   for (const Migration& m : all) {
     if (m.version > target) break;
     PgTransaction tx(*this);
@@ -388,15 +556,22 @@ bool PgDatabase::begin(Isolation isolation) {
   if (nested) {
     exec("SAVEPOINT magcal_tx_" + std::to_string(open_transactions_));
   } else {
+    // A writer learns its transaction id in the same round trip: a COMMIT without a reply is
+    // then resolved by commit_outcome().
+    transaction_id_ = 0;
     switch (isolation) {
       case Isolation::kReadCommitted:
-        exec("BEGIN");
+        transaction_id_ =
+            simple_query("BEGIN; SELECT pg_current_xact_id()::text::bigint").get_int64(0, 0);
         break;
       case Isolation::kRepeatableRead:
         exec("BEGIN ISOLATION LEVEL REPEATABLE READ");
         break;
       case Isolation::kSerializable:
-        exec("BEGIN ISOLATION LEVEL SERIALIZABLE");
+        transaction_id_ =
+            simple_query(
+                "BEGIN ISOLATION LEVEL SERIALIZABLE; SELECT pg_current_xact_id()::text::bigint")
+                .get_int64(0, 0);
         break;
     }
   }
@@ -416,18 +591,36 @@ void PgDatabase::commit_transaction(bool nested) {
         StorageError::Kind::kEngine,
         name_ + ": cannot commit, an earlier statement of the transaction failed", "25P02");
   }
-  exec(nested ? "RELEASE SAVEPOINT magcal_tx_" + std::to_string(open_transactions_ - 1)
-              : std::string("COMMIT"));
+  if (nested) {
+    exec("RELEASE SAVEPOINT magcal_tx_" + std::to_string(open_transactions_ - 1));
+    return;
+  }
+  const bool sendable = conn_ != nullptr && PQstatus(conn_) == CONNECTION_OK && !set_aside_;
+  try {
+    exec("COMMIT");
+  } catch (StorageError& e) {
+    // Sent, and no reply (none in time, or the connection broke): it may have committed.
+    const bool unanswered = set_aside_ || conn_ == nullptr || PQstatus(conn_) != CONNECTION_OK;
+    if (sendable && unanswered && transaction_id_ != 0) e.set_in_doubt_transaction(transaction_id_);
+    throw;
+  }
 }
 
 void PgDatabase::end_transaction(bool nested, bool committed) noexcept {
   --open_transactions_;
-  if (committed || conn_ == nullptr || PQstatus(conn_) != CONNECTION_OK) return;
+  if (!nested) transaction_id_ = 0;
+  // A connection set aside still owes a reply: the server rolls back what it holds open when
+  // the connection is closed (settle_set_aside).
+  if (committed || set_aside_ || conn_ == nullptr || PQstatus(conn_) != CONNECTION_OK) return;
   const std::string savepoint = "magcal_tx_" + std::to_string(open_transactions_);
   const std::string sql =
       nested ? "ROLLBACK TO SAVEPOINT " + savepoint + "; RELEASE SAVEPOINT " + savepoint
              : "ROLLBACK";
-  PQclear(PQexec(conn_, sql.c_str()));
+  try {
+    PQclear(await_reply(PQsendQuery(conn_, sql.c_str()), sql));
+  } catch (const StorageError&) {
+    // No reply, or the connection broke: the server rolls back when the connection goes.
+  }
 }
 
 std::unique_ptr<SampleWindowStore> PgDatabase::make_sample_window_store() {

@@ -13,6 +13,16 @@
 // reconnects at its next statement outside a transaction, so a caller heals a transient failure by
 // retrying; with OpenOptions::connect_later that includes a server unreachable at the open.
 //
+// A statement without a reply within OpenOptions::reply_timeout_ms fails transient (08006) and
+// its connection is set aside, not closed: no second session is opened while the server still
+// owes the first its reply (a stalled server, or one holding commits for a synchronous standby,
+// would otherwise fill up with magcal backends, one per retry), and every statement meanwhile
+// fails at once. Once the reply comes (or the connection breaks, or kSetAsideLimit has passed:
+// a frozen host may have been replaced by a standby the URI also reaches) the connection is
+// replaced by a fresh one. A COMMIT set aside may still commit: its caller's retry must be
+// idempotent (every magcal write is: ON CONFLICT on the natural keys). No cancel is sent: a
+// cancel would have the server end a synchronous-replication wait by committing locally only.
+//
 // Threads: one PgDatabase (one connection) belongs to one thread at a time; give each thread its
 // own, as with SQLite.
 //
@@ -24,6 +34,7 @@
 // transaction that re-reads the version under the lock: daemons starting together migrate once.
 #pragma once
 
+#include <chrono>
 #include <cstdint>
 #include <memory>
 #include <string>
@@ -76,10 +87,20 @@ class PgDatabase final : public Connection {
   PgResult execute_prepared(std::string_view sql, const PgParams& params = {},
                             PgFormat format = PgFormat::kText);
 
+  // How long a connection whose statement got no reply in time waits aside for that reply before
+  // it is closed and a new session opened (see the header comment).
+  static constexpr std::chrono::seconds kSetAsideLimit{300};
+
   // The server process of this connection (pg_stat_activity.pid, pg_terminate_backend).
   int backend_pid() const;
   // Inside a transaction (PgTransaction, or an explicit BEGIN).
   bool in_transaction() const;
+
+  // pg_xact_status() of the transaction, on this connection once it can be used (a connection
+  // set aside settles first). Its COMMIT may still be in progress (held for a synchronous
+  // standby): transient StorageError then. A transaction too old for the server to know is taken
+  // as rolled back (every magcal write is idempotent: see the header comment).
+  CommitOutcome commit_outcome(int64_t transaction_id) override;
 
   std::unique_ptr<SampleWindowStore> make_sample_window_store() override;
   std::unique_ptr<RefitJobLog> make_refit_job_log() override;
@@ -100,6 +121,8 @@ class PgDatabase final : public Connection {
   bool begin_transaction(TransactionMode mode) override;
   void commit_transaction(bool nested) override;
   void end_transaction(bool nested, bool committed) noexcept override;
+  // One or more statements without parameters (the simple query protocol): the last result.
+  PgResult simple_query(std::string_view sql);
 
   // connect(), configure() and check_and_migrate(): what the open does, at the first
   // statement when the server was unreachable then (OpenOptions::connect_later).
@@ -110,6 +133,16 @@ class PgDatabase final : public Connection {
   void configure();
   void check_and_migrate(const OpenOptions& options);
   PgResult checked(pg_result* result, std::string_view sql);
+  // The reply to a statement just sent (`sent`: what PQsend* returned), read without blocking
+  // past the reply deadline: the last result, or the first error result. Past the deadline the
+  // connection is set aside and a transient StorageError thrown.
+  pg_result* await_reply(int sent, std::string_view sql);
+  // A connection set aside: returns once it is closed (its reply came, it broke, or it waited
+  // kSetAsideLimit), so that a new session may be opened; throws the transient error again while
+  // it still waits.
+  void settle_set_aside();
+  // Closes the connection; the next statement opens a new session.
+  void drop_connection() noexcept;
   [[noreturn]] void fail(std::string_view context, const pg_result* result = nullptr);
 
   pg_conn* conn_ = nullptr;
@@ -117,9 +150,19 @@ class PgDatabase final : public Connection {
   std::string name_;
   bool read_only_ = false;
   int lock_timeout_ms_ = 5000;
+  int reply_timeout_ms_ = 10000;
+  bool migrating_ = false;  // schema migrations wait for their replies without a deadline
+  // A statement sent on conn_ got no reply in time (see the header comment): since when, and
+  // what it was (for messages).
+  bool set_aside_ = false;
+  std::chrono::steady_clock::time_point set_aside_since_;
+  std::string set_aside_statement_;
   OpenOptions open_options_;
   bool schema_checked_ = false;  // open_session() went through once
   int open_transactions_ = 0;    // transactions and savepoints open on this connection
+  // The id of the open top-level write transaction (0: none, or a read snapshot), for a COMMIT
+  // in doubt (StorageError::in_doubt_transaction()).
+  int64_t transaction_id_ = 0;
   std::unordered_map<std::string, std::string> prepared_;  // SQL text -> statement name
 };
 

@@ -70,6 +70,7 @@ TEST_CASE("the example config lists every key with exactly the defaults", "[daem
   CHECK(c.storage.spill_dir == d.storage.spill_dir);
   CHECK(c.storage.spill_max_bytes == d.storage.spill_max_bytes);
   CHECK(c.storage.stop_max_failure_s == d.storage.stop_max_failure_s);
+  CHECK(c.storage.pg_reply_timeout_s == d.storage.pg_reply_timeout_s);
   CHECK(c.refit.robust == d.refit.robust);
   CHECK(c.refit.early_growth == d.refit.early_growth);
   CHECK(c.ukf.filter.process_noise_per_sqrt_hour == d.ukf.filter.process_noise_per_sqrt_hour);
@@ -110,18 +111,40 @@ TEST_CASE("the example config lists every key with exactly the defaults", "[daem
   CHECK(c.http.listen == d.http.listen);
 }
 
+namespace {
+
+// A seconds setting of deploy/magcald.service ("WatchdogSec=60s", "TimeoutStopSec=90"); 0 when
+// absent.
+double unit_seconds(const std::string& key) {
+  std::ifstream unit(MAGCAL_SOURCE_DIR "/deploy/magcald.service");
+  REQUIRE(unit.good());
+  for (std::string line; std::getline(unit, line);) {
+    if (line.starts_with(key + "=")) return std::stod(line.substr(key.size() + 1));
+  }
+  return 0;
+}
+
+}  // namespace
+
 TEST_CASE("a stop gives up on failing storage well before the unit's TimeoutStopSec kills it",
           "[daemon_config]") {
   // The bound plus one PostgreSQL attempt in flight when it passes (30 s on a dead link) and
   // the rest of the drain must end before systemd's SIGKILL drops the held samples unlogged.
-  std::ifstream unit(MAGCAL_SOURCE_DIR "/deploy/magcald.service");
-  REQUIRE(unit.good());
-  double timeout_stop_s = 0;
-  for (std::string line; std::getline(unit, line);) {
-    if (line.starts_with("TimeoutStopSec=")) timeout_stop_s = std::stod(line.substr(15));
-  }
+  const double timeout_stop_s = unit_seconds("TimeoutStopSec");
   REQUIRE(timeout_stop_s > 0);
   CHECK(magcal::DaemonConfig{}.storage.stop_max_failure_s + 40.0 <= timeout_stop_s);
+}
+
+TEST_CASE("a PostgreSQL statement waits for its reply well inside the unit's WatchdogSec",
+          "[daemon_config]") {
+  // A commit attempt on a server that answers nothing may wait for a reply, a reconnect
+  // (connect_timeout, 10 s) and a reply again: the worker loop must still ping the watchdog.
+  const double watchdog_s = unit_seconds("WatchdogSec");
+  REQUIRE(watchdog_s > 0);
+  const magcal::DaemonConfig d;
+  CHECK(2 * d.storage.pg_reply_timeout_s + 10.0 < watchdog_s);
+  CHECK(d.database_options().reply_timeout_ms == 10000);
+  CHECK(d.storage.pg_reply_timeout_s * 1000.0 > d.storage.busy_timeout_ms);
 }
 
 TEST_CASE("values are read, integers accepted for floats", "[daemon_config]") {
@@ -191,6 +214,8 @@ TEST_CASE("unknown keys, bad types and bad values name the key", "[daemon_config
       {"[storage]\nspill_max_bytes = 1.5e9\n", "[storage] spill_max_bytes: expected an integer"},
       {"[storage]\nspill_dir = 7\n", "[storage] spill_dir: expected a string"},
       {"[storage]\nstop_max_failure_s = 0\n", "[storage] stop_max_failure_s: must be > 0"},
+      {"[storage]\npg_reply_timeout_s = 5\n", "[storage] pg_reply_timeout_s: must be above"},
+      {"[storage]\npg_reply_timeout_s = 7200\n", "[storage] pg_reply_timeout_s: must be above"},
       {"[storage]\nbusy_timeout_ms = -1\n", "[storage] busy_timeout_ms: must be >= 0"},
       {"[storage]\nmax_pending_samples = 100\n",
        "[storage] max_pending_samples: must be >= commit_every_samples"},

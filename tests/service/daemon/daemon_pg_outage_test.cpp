@@ -21,7 +21,12 @@
 //   exit 3 once [storage] stop_max_failure_s has passed, the held samples counted as not
 //   committed (storage_error), never a hang until systemd's SIGKILL;
 // - a spill_dir that cannot take the file (configured or $STATE_DIRECTORY), or a file another
-//   magcald holds: a start error (exit 2) naming the path and errno.
+//   magcald holds: a start error (exit 2) naming the path and errno;
+// - a server that accepts connections but does not answer ([storage] pg_reply_timeout_s): one
+//   holding every commit for a synchronous standby that is down, and one frozen (SIGSTOP), are
+//   ridden out as outages (spilled, not ready, alive); the commit in doubt when the standby
+//   returns is found committed, so every sample is stored and counted once and no UKF snapshot
+//   is written twice; a SIGTERM while frozen stops at once, the next start commits the spill.
 // Skipped without the PostgreSQL server programs (with CI=true it fails).
 #include <signal.h>
 
@@ -477,6 +482,97 @@ TEST_CASE("SIGTERM during a PostgreSQL outage: magcald stops at once, its sample
   CHECK(text.find("database commit failing: ") != std::string::npos);
   server->start();
   check_next_start_commits_spill(dir, config_text, log, db, static_cast<int64_t>(stored));
+}
+
+// The [storage] keys of a server that does not answer: a reply deadline of 1 s (above a lock
+// wait of 0.5 s), commits spilled past 1000 pending samples.
+std::string unanswered_config_text(const std::string& db, const TempDir& dir) {
+  return "db_path = \"" + db +
+         "\"\nbusy_timeout_ms = 500\npg_reply_timeout_s = 1\nmax_pending_samples = 1000\n"
+         "spill_dir = \"" +
+         dir.file("") + "\"\n";
+}
+
+// While the server does not answer: alive, not ready, both saying why; samples spilled.
+void check_rides_out_unanswered(const PacedDaemon& daemon) {
+  const int port = daemon.port;
+  REQUIRE(wait_until([&] { return http_get(port, "/-/ready").status == 503; }, 20));
+  const auto healthy = http_get(port, "/-/healthy");
+  CHECK(healthy.status == 200);
+  CHECK(healthy.body.find("storage failing for") != std::string::npos);
+  REQUIRE(wait_until([&] { return metric(port, "magcal_samples_spilled_total") >= 1000; }, 40));
+  CHECK(metric(port, "magcal_queue_overflow_total") == 0);
+}
+
+TEST_CASE("PostgreSQL holding every commit (its synchronous standby down): an outage, nothing lost",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_held");
+  // 6000 samples in 120 frames 0.5 s apart: 60 s of replay.
+  const std::string log = paced_log(dir, 6000, 500'000);
+  const std::string reference = reference_db(log, dir);
+  REQUIRE(stored_samples(reference) == 6000);
+  const std::string db = server->create_database();
+  magcal::test::wait_for_standby_commits(db);
+  const PacedDaemon daemon(log, write_config(dir, "pg.toml", unanswered_config_text(db, dir)), dir,
+                           500);
+  magcal::test::set_absent_synchronous_standby(db, true);
+  check_rides_out_unanswered(daemon);
+  std::this_thread::sleep_for(std::chrono::seconds(5));
+  // The standby back (the list emptied): the held commits complete, one of them in doubt.
+  magcal::test::set_absent_synchronous_standby(db, false);
+  const int rc = wait_exit(daemon.pid, 120);
+  const std::string text = slurp(daemon.log_path);
+  INFO(text);
+  REQUIRE(rc == 0);
+  CHECK(text.find("no reply within 1 s to ") != std::string::npos);
+  CHECK(text.find("did commit: its samples are stored") != std::string::npos);
+  // Every sample once, counted as stored (not as a duplicate of itself), no snapshot twice.
+  CHECK(stored_samples(db) == 6000);
+  CHECK(text.find("received=6000 stored=6000 rejected=0") != std::string::npos);
+  const auto snapshots = ukf_snapshot_times(db);
+  CHECK(snapshots.size() > 3);
+  CHECK(std::adjacent_find(snapshots.begin(), snapshots.end()) == snapshots.end());
+  CHECK(snapshots == ukf_snapshot_times(reference));
+}
+
+TEST_CASE(
+    "a frozen PostgreSQL server (SIGSTOP) is an outage, a stop during it is bounded, none lost",
+    "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_frozen");
+  const std::string log = paced_log(dir, 6000, 500'000);
+  const std::string db = server->create_database();
+  const std::string config_text = unanswered_config_text(db, dir);
+  const PacedDaemon daemon(log, write_config(dir, "pg.toml", config_text), dir, 500);
+  struct Thaw {
+    magcal::test::PgTestServer& server;
+    ~Thaw() { server.freeze(false); }
+  } thaw{*server};
+  server->freeze(true);
+  check_rides_out_unanswered(daemon);
+  const double received = metric(daemon.port, "magcal_samples_received_total");
+  // SIGTERM: the samples go to the spill file, at once.
+  const std::string text = stop_during_outage(daemon.pid, daemon.log_path);
+  INFO(text);
+  CHECK(text.find("no reply within 1 s to ") != std::string::npos);
+  const int64_t received_all = final_status(text, "received");
+  CHECK(received_all >= static_cast<int64_t>(received));
+  server->freeze(false);
+  // The next start (taking none of the log's samples) commits the spill file: every sample the
+  // first run received is stored once.
+  const std::string again =
+      write_config(dir, "again.toml", config_text + "[service]\nwhitelist = [\"SOMEONE-ELSE\"]\n");
+  const std::string again_log = dir.file("magcald_again.log");
+  REQUIRE(run({kBin + "/magcald", "--config", again, "--http-listen", "", "--lcm-url",
+               "file://" + log + "?speed=0"},
+              again_log, 120) == 0);
+  INFO(slurp(again_log));
+  CHECK(stored_samples(db) == received_all);
+  CHECK_FALSE(
+      std::filesystem::exists(dir.file("magcal-spill-" + magcal::default_station_id() + ".spill")));
 }
 
 TEST_CASE("data-clock refits that fall due during a PostgreSQL outage run after it, once each",

@@ -16,6 +16,7 @@
 #include <future>
 #include <limits>
 #include <map>
+#include <optional>
 #include <regex>
 #include <thread>
 #include <vector>
@@ -26,6 +27,7 @@
 #include "storage/migrations.hpp"
 #include "storage/postgres/pg_migrations.hpp"
 #include "storage/statement.hpp"
+#include "tests/process_support.hpp"
 #include "tests/storage/postgres/pg_test_server.hpp"
 
 using namespace magcal::storage;
@@ -396,6 +398,132 @@ TEST_CASE("PostgreSQL errors: what a retry heals is transient, the rest is not")
       CHECK(error_of([&] { tx.commit(); }).sqlstate() == "25P02");
     }
     CHECK(query_int(db, "SELECT count(*) FROM meta") == 3);
+  }
+}
+
+// The sessions of the test's database other than the caller's.
+int64_t other_sessions(PgDatabase& admin) {
+  return query_int(admin,
+                   "SELECT count(*) FROM pg_stat_activity WHERE datname = current_database() AND "
+                   "pid <> pg_backend_pid()");
+}
+
+TEST_CASE("PostgreSQL without a reply: transient at the deadline, one session, commits in doubt") {
+  PgTestServer* server = pg_server_or_skip();
+  if (server == nullptr) return;
+  const std::string uri = server->create_database();
+  OpenOptions quick;
+  quick.reply_timeout_ms = 500;
+  quick.busy_timeout_ms = 200;
+  PgDatabase db(uri, quick);
+  PgDatabase admin(uri);
+  using clock = std::chrono::steady_clock;
+  const auto seconds_since = [](clock::time_point t0) {
+    return std::chrono::duration<double>(clock::now() - t0).count();
+  };
+
+  SECTION("a statement past the deadline fails transient; no second session until it answers") {
+    const int pid = db.backend_pid();
+    const auto t0 = clock::now();
+    const StorageError late = error_of([&] { db.execute("SELECT pg_sleep(2.5)"); });
+    const double waited_s = seconds_since(t0);
+    INFO(late.what());
+    CHECK(waited_s >= 0.45);
+    CHECK(waited_s < 1.5);
+    CHECK(late.transient());
+    CHECK(late.condition() == StorageError::Condition::kUnavailable);
+    CHECK(late.in_doubt_transaction() == 0);
+    CHECK(std::string(late.what()).find("no reply within 500 ms to SELECT pg_sleep(2.5)") !=
+          std::string::npos);
+    // Set aside: every statement fails at once, on no new session.
+    const auto t1 = clock::now();
+    const StorageError waiting = error_of([&] { db.execute("SELECT 1"); });
+    INFO(waiting.what());
+    CHECK(seconds_since(t1) < 0.2);
+    CHECK(waiting.transient());
+    CHECK(std::string(waiting.what()).find("still no reply to SELECT pg_sleep(2.5), sent") !=
+          std::string::npos);
+    CHECK(other_sessions(admin) == 1);
+    // Once it has answered: a new session.
+    std::this_thread::sleep_until(t0 + std::chrono::milliseconds(2700));
+    CHECK(query_int(db, "SELECT 7") == 7);
+    CHECK(db.backend_pid() != pid);
+    CHECK(other_sessions(admin) == 1);
+  }
+
+  SECTION("inside a transaction: nothing of it is committed, the connection is replaced") {
+    {
+      PgTransaction tx(db);
+      db.exec("INSERT INTO meta VALUES ('a', '1')");
+      CHECK(error_of([&] { db.execute("SELECT pg_sleep(1)"); }).transient());
+      CHECK(error_of([&] { tx.commit(); }).in_doubt_transaction() == 0);  // never sent
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(1200));
+    CHECK(query_int(db, "SELECT count(*) FROM meta") == 0);
+  }
+
+  SECTION("a connection set aside that breaks is replaced at once") {
+    const int pid = db.backend_pid();
+    CHECK(error_of([&] { db.execute("SELECT pg_sleep(30)"); }).transient());
+    admin.exec("SELECT pg_terminate_backend(" + std::to_string(pid) + ")");
+    REQUIRE(magcal::test::wait_until([&] { return other_sessions(admin) == 0; }, 10));
+    CHECK(query_int(db, "SELECT 8") == 8);
+    CHECK(db.backend_pid() != pid);
+  }
+
+  SECTION("a COMMIT held for a synchronous standby that is down is in doubt until released") {
+    magcal::test::wait_for_standby_commits(uri);
+    magcal::test::set_absent_synchronous_standby(uri, true);
+    PgDatabase writer(uri, quick);
+    int64_t held = 0;
+    {
+      PgTransaction tx(writer);
+      writer.exec("INSERT INTO meta VALUES ('held', '1')");
+      const auto t0 = clock::now();
+      const StorageError e = error_of([&] { tx.commit(); });
+      INFO(e.what());
+      CHECK(seconds_since(t0) < 1.5);
+      CHECK(e.transient());
+      held = e.in_doubt_transaction();
+      CHECK(held > 0);
+    }
+    // Not known yet, and not visible: the server holds it until the standby confirms.
+    CHECK(error_of([&] { writer.commit_outcome(held); }).transient());
+    CHECK(query_int(admin, "SELECT count(*) FROM meta WHERE key = 'held'") == 0);
+    // A new session (as after kSetAsideLimit) is told it is still in progress: transient too.
+    const StorageError in_progress = error_of([&] { db.commit_outcome(held); });
+    INFO(in_progress.what());
+    CHECK(in_progress.transient());
+    CHECK(std::string(in_progress.what()).find("still in progress") != std::string::npos);
+    magcal::test::set_absent_synchronous_standby(uri, false);
+    std::optional<Connection::CommitOutcome> outcome;
+    REQUIRE(magcal::test::wait_until(
+        [&] {
+          try {
+            outcome = writer.commit_outcome(held);
+          } catch (const StorageError& e) {
+            if (!e.transient()) throw;
+          }
+          return outcome.has_value();
+        },
+        10));
+    CHECK(*outcome == Connection::CommitOutcome::kCommitted);
+    CHECK(query_int(writer, "SELECT count(*) FROM meta WHERE key = 'held'") == 1);
+
+    // A transaction rolled back is told as such.
+    int64_t rolled_back = 0;
+    {
+      PgTransaction tx(writer);
+      rolled_back = query_int(writer, "SELECT pg_current_xact_id()::text::bigint");
+      writer.exec("INSERT INTO meta VALUES ('gone', '1')");
+    }
+    CHECK(writer.commit_outcome(rolled_back) == Connection::CommitOutcome::kRolledBack);
+  }
+
+  SECTION("SQLite has no commit in doubt") {
+    const auto sqlite = open_database(":memory:");
+    CHECK(error_of([&] { sqlite->commit_outcome(1); }).kind() ==
+          StorageError::Kind::kInvalidArgument);
   }
 }
 

@@ -15,16 +15,19 @@
 #include <fcntl.h>
 #include <netinet/in.h>
 #include <pwd.h>
+#include <signal.h>
 #include <sys/socket.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
 #include <algorithm>
+#include <chrono>
 #include <cstdlib>
 #include <filesystem>
 #include <memory>
 #include <stdexcept>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <catch2/catch.hpp>
@@ -137,6 +140,30 @@ class PgTestServer {
   }
 
   const std::string& dir() const { return dir_; }
+
+  // Freezes (SIGSTOP) or thaws (SIGCONT) the server: the postmaster and every process it
+  // started. A frozen server keeps accepting connections (the kernel completes them) and answers
+  // nothing: a hung host whose TCP stack still runs.
+  void freeze(bool frozen) {
+    const std::string pid_text = slurp(data() + "/postmaster.pid");
+    const pid_t postmaster = static_cast<pid_t>(std::atol(pid_text.c_str()));
+    if (postmaster <= 0) throw std::runtime_error("no postmaster.pid in " + data());
+    const int signal = frozen ? SIGSTOP : SIGCONT;
+    // The postmaster first when freezing (it starts no child after that), last when thawing.
+    if (frozen) ::kill(postmaster, signal);
+    for (const auto& entry : std::filesystem::directory_iterator("/proc")) {
+      const std::string name = entry.path().filename();
+      if (name.find_first_not_of("0123456789") != std::string::npos) continue;
+      // /proc/PID/stat: "pid (comm) state ppid ...", comm may hold spaces and parentheses.
+      const std::string stat = slurp(entry.path().string() + "/stat");
+      const size_t after_comm = stat.rfind(')');
+      if (after_comm == std::string::npos) continue;
+      if (std::atol(stat.c_str() + after_comm + 4) == postmaster) {
+        ::kill(static_cast<pid_t>(std::atol(name.c_str())), signal);
+      }
+    }
+    if (!frozen) ::kill(postmaster, signal);
+  }
   std::string pg_tool(const std::string& program) const { return bindir_ + "/" + program; }
 
  private:
@@ -224,6 +251,34 @@ class PgTestServer {
   pid_t watchdog_pid_ = -1;
   int watchdog_input_ = -1;
 };
+
+// Commits of database `uri` wait for a synchronous standby (synchronous_commit on) in the sessions
+// opened from now: the test server has it off on its command line, which a database setting
+// overrides.
+inline void wait_for_standby_commits(const std::string& uri) {
+  storage::PgDatabase admin(uri);
+  admin.exec("SET synchronous_commit = off");  // its own commits never wait
+  const std::string name = admin.execute("SELECT current_database()").get_text(0, 0);
+  admin.exec("ALTER DATABASE " + name + " SET synchronous_commit = on");
+}
+
+// A synchronous standby that does not exist (`absent`) holds every such commit until it is
+// released (false): a server whose standby is down. Applied when a new session sees it.
+inline void set_absent_synchronous_standby(const std::string& uri, bool absent) {
+  storage::PgDatabase admin(uri);
+  admin.exec("SET synchronous_commit = off");
+  admin.exec(absent ? "ALTER SYSTEM SET synchronous_standby_names = 'magcal_absent_standby'"
+                    : "ALTER SYSTEM RESET synchronous_standby_names");
+  admin.exec("SELECT pg_reload_conf()");
+  const std::string want = absent ? "magcal_absent_standby" : "";
+  for (int i = 0; i < 100; ++i) {
+    storage::PgDatabase probe(uri);
+    probe.exec("SET synchronous_commit = off");
+    if (probe.execute("SHOW synchronous_standby_names").get_text(0, 0) == want) return;
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  throw std::runtime_error("synchronous_standby_names not applied after 10 s");
+}
 
 // The server shared by the tests of this process (started at the first call), or nullptr when
 // the PostgreSQL programs are absent (the test is then skipped: return at once).
