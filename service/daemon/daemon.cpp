@@ -581,6 +581,8 @@ std::string Daemon::open() {
     const std::string what = e.what();
     return what.find(name) != std::string::npos ? "database: " + what
                                                 : "database " + name + ": " + what;
+  } catch (const SpillForAnotherDatabase& e) {
+    return e.what();
   } catch (const SpillError& e) {
     // The worker creates the spill file at once (a directory that cannot take it must show
     // now, not in the middle of an outage; access() would not tell: root passes it on /sys).

@@ -70,6 +70,14 @@ SampleIntake::SampleIntake(const DaemonConfig& config, DaemonCounters& counters,
   if (const std::string path = config.spill_path(); !path.empty()) {
     spill_ = std::make_unique<SampleSpill>(path, db_.name(), config.storage.spill_max_bytes);
     spill_recovered_held_ = spill_->held_samples();
+    if (spill_recovered_held_ > 0 && !spill_->found_database().empty() &&
+        spill_->found_database() != db_.name()) {
+      throw SpillForAnotherDatabase(fmt::format(
+          "spill file {} holds {} samples received for database {}, not for [storage] db_path "
+          "{}: start magcald once with that db_path to commit them there, or move the file away "
+          "(it is kept as it is; nothing was committed)",
+          path, spill_recovered_held_, spill_->found_database(), db_.name()));
+    }
     if (spill_->dropped_records() > 0) {
       counters_.spill_dropped.fetch_add(spill_->dropped_records());
       spdlog::error(

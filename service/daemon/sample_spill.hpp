@@ -40,6 +40,14 @@ class SpillError : public std::runtime_error {
   using std::runtime_error::runtime_error;
 };
 
+// A spill file that holds samples received for another database than the one configured now: a
+// start error (committing them into this database would put one station's samples where they
+// were never meant to go; the file is kept as it is).
+class SpillForAnotherDatabase : public SpillError {
+ public:
+  using SpillError::SpillError;
+};
+
 class SampleSpill {
  public:
   // A longer payload is corruption (a sample is ~150 bytes and its sat_id; no LCM frame is

@@ -21,7 +21,8 @@
 //   exit 3 once [storage] stop_max_failure_s has passed, the held samples counted as not
 //   committed (storage_error), never a hang until systemd's SIGKILL;
 // - a spill_dir that cannot take the file (configured or $STATE_DIRECTORY), or a file another
-//   magcald holds: a start error (exit 2) naming the path and errno;
+//   magcald holds, or one written for another database: a start error (exit 2) naming the path
+//   (and errno, or both databases), the file kept;
 // - a server that accepts connections but does not answer ([storage] pg_reply_timeout_s): one
 //   holding every commit for a synchronous standby that is down, and one frozen (SIGSTOP), are
 //   ridden out as outages (spilled, not ready, alive); the commit in doubt when the standby
@@ -800,6 +801,39 @@ TEST_CASE("down at start with an earlier run's spill file: both committed once t
   CHECK(text.find("received=2000 ") != std::string::npos);
   CHECK(stored_samples(first.db) == 2000);
   CHECK_FALSE(std::filesystem::exists(spill_file));
+}
+
+TEST_CASE("a spill file written for another database is a start error, and kept as it is",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_spill_other_db");
+  // A run against database A, down from its start, leaves its samples in the spill file.
+  StartedWhileDown first(*server, dir, "pg_max_failure_s = 2\n", 2000);
+  REQUIRE(wait_exit(first.daemon->pid, 30) == 3);
+  server->start();
+  const std::string spill_file =
+      dir.file("magcal-spill-" + magcal::default_station_id() + ".spill");
+  const auto spill_bytes = std::filesystem::file_size(spill_file);
+  // The next start names database B: refused, nothing committed anywhere, the file untouched.
+  const std::string other = server->create_database();
+  const std::string config_b = write_config(
+      dir, "b.toml", "db_path = \"" + other + "\"\nspill_dir = \"" + dir.file("") + "\"\n");
+  const std::string log_b = dir.file("magcald_b.log");
+  const int rc = run({kBin + "/magcald", "--config", config_b, "--http-listen", "", "--lcm-url",
+                      "file://" + first.log + "?speed=0"},
+                     log_b, 60);
+  const std::string text = slurp(log_b);
+  INFO(text);
+  CHECK(rc == 2);
+  CHECK(text.find("received for database " + storage::database_name(first.db) +
+                  ", not for [storage] db_path " + storage::database_name(other) +
+                  ": start magcald once with that db_path") != std::string::npos);
+  CHECK(std::filesystem::file_size(spill_file) == spill_bytes);
+  CHECK(stored_samples(other) == 0);
+  CHECK(stored_samples(first.db) == 0);
+  // With database A again, they are committed there.
+  check_next_start_commits_spill(dir, first.config_text, first.log, first.db, 0);
 }
 
 TEST_CASE("a PostgreSQL database magcald cannot use is a start error at once (exit 2)",
