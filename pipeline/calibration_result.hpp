@@ -110,7 +110,8 @@ struct CalibrationResult {
   Vector9d model_error = Vector9d::Zero();
   // Batch refits: the bias's variance about its window average where the window's short-block
   // biases show it moving (pipeline/bias_variability.hpp), nT^2 per axis; zero otherwise. Already
-  // in `covariance`; the filters re-anchored on the refit keep it as model error. Not persisted.
+  // in `covariance`; the filters re-anchored on the refit keep it as model error (stored since
+  // schema 11, so also after a restart or a takeover).
   Eigen::Vector3d bias_variability_nT2 = Eigen::Vector3d::Zero();
   Matrix9d model_error_covariance() const {
     Matrix9d m = model_error * model_error.transpose();

@@ -60,6 +60,10 @@ struct CalibrationRecord {
   // Refits (schema 4): p_9 - p, the model error an online filter re-anchored on it takes
   // (CalibrationResult::model_error); zero when none or unknown.
   std::array<double, 9> model_error{};
+  // Refits (schema 11): the bias's variance about its window average where the window's
+  // short-block biases show it moving (CalibrationResult::bias_variability_nT2), nT^2 per axis;
+  // zero when none or unknown.
+  std::array<double, 3> bias_variability_nT2{};
   // Bias temperature model (issue 20): b(T) = bias_nT + k_T (T - reference_temperature_C), so
   // bias_nT is the bias at reference_temperature_C. -1 unknown / not modelled (NULL), 0 a refit
   // whose data did not support it, 1 modelled (then the fields below are set).

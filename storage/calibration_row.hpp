@@ -31,8 +31,8 @@ inline constexpr const char* kInsertColumns =
     "temperature_coefficient_x_nT_per_C, temperature_coefficient_y_nT_per_C, "
     "temperature_coefficient_z_nT_per_C, temperature_coefficient_cov, temperature_model_refit_id, "
     "has_bias_rate, bias_rate_x_nT_per_h, bias_rate_y_nT_per_h, bias_rate_z_nT_per_h, "
-    "bias_rate_cov";
-inline constexpr int kInsertValues = 60;
+    "bias_rate_cov, bias_variability_nT2";
+inline constexpr int kInsertValues = 61;
 // `SELECT <kSelectColumns> FROM calibrations ...`: id, then kInsertColumns.
 inline std::string select_sql(std::string_view tail) {
   return std::string("SELECT id, ") + kInsertColumns + " FROM calibrations " + std::string(tail);
@@ -141,6 +141,12 @@ void write(const CalibrationRecord& r, const std::string& reasons_json, Sink& ou
   } else {
     out.null();
   }
+  if (std::any_of(r.bias_variability_nT2.begin(), r.bias_variability_nT2.end(),
+                  [](double v) { return v != 0.0; })) {
+    out.doubles(r.bias_variability_nT2);
+  } else {
+    out.null();
+  }
 }
 
 // A row of `SELECT select_sql(...)` read back. Row:
@@ -207,6 +213,9 @@ CalibrationRecord read(Row& row, Reasons&& reasons) {
     if (!row.blob(60, r.bias_rate_cov, cov)) {
       doubles_from_blob(nullptr, 0, r.bias_rate_cov, cov);  // NULL: corrupt
     }
+  }
+  if (!row.blob(61, r.bias_variability_nT2, what("bias_variability_nT2"))) {
+    r.bias_variability_nT2 = {};  // NULL: none
   }
   return r;
 }

@@ -235,6 +235,7 @@ storage::CalibrationRecord record_from_result(const std::string& sat_id,
   rec.nis_mean = r.nis_mean;
   rec.measurement_noise_nT = r.measurement_noise_nT;
   for (int i = 0; i < 9; ++i) rec.model_error[static_cast<size_t>(i)] = r.model_error(i);
+  Eigen::Map<Eigen::Vector3d>(rec.bias_variability_nT2.data()) = r.bias_variability_nT2;
   // Refits say whether they modelled the temperature (0 / 1); an online result only has one
   // when it applies its anchor refit's (the caller sets temperature_model_refit_id).
   if (r.has_temperature_model)
@@ -308,6 +309,7 @@ CalibrationResult result_from_record(const storage::CalibrationRecord& rec) {
   r.nis_mean = rec.nis_mean;
   r.measurement_noise_nT = rec.measurement_noise_nT;
   for (int i = 0; i < 9; ++i) r.model_error(i) = rec.model_error[static_cast<size_t>(i)];
+  r.bias_variability_nT2 = Eigen::Map<const Eigen::Vector3d>(rec.bias_variability_nT2.data());
   r.has_temperature_model = rec.has_temperature_model == 1;
   if (r.has_temperature_model) {
     r.reference_temperature_C = rec.reference_temperature_C;

@@ -105,6 +105,7 @@ void check_round_trip(const CalibrationRecord& got, const CalibrationRecord& wan
   CHECK(got.has_bias_rate == want.has_bias_rate);
   CHECK(same(got.bias_rate_nT_per_h, want.bias_rate_nT_per_h));
   CHECK(same(got.bias_rate_cov, want.bias_rate_cov));
+  CHECK(same(got.bias_variability_nT2, want.bias_variability_nT2));
   CHECK(got.software_version == want.software_version);
   CHECK(got.created_utime == want.created_utime);
 }
@@ -173,6 +174,7 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest, "every field of a record round-trips bit 
   r.has_bias_rate = 1;
   r.bias_rate_nT_per_h = {-2.75, 0.125, 1e-3 / 7.0};
   r.bias_rate_cov = {0.0289, 0.0025, 9e-4, -1e-4, 2e-5, 3e-6};
+  r.bias_variability_nT2 = {26.01, 0.1 + 0.2, 1e-300};
   const int64_t id = history->append(r);
   const auto got = history->get(id);
   REQUIRE(got);

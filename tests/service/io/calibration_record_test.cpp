@@ -107,6 +107,21 @@ TEST_CASE("a failed refit publishes no NaN", "[calibration_record]") {
   }
 }
 
+TEST_CASE("a refit's bias variability goes through the history record: the same model error",
+          "[calibration_record]") {
+  // A filter re-anchored on a refit read back from the database (a restart, a takeover) keeps
+  // the same model error as one re-anchored on the fresh refit.
+  auto r = finite_result();
+  r.method = "twostep";
+  r.bias_variability_nT2 = Eigen::Vector3d(26.01, 4.5, 0.0);
+  r.model_error(1) = -2.5;
+  const storage::CalibrationRecord rec = record_from_result("SAT-1", r);
+  const CalibrationResult back = result_from_record(rec);
+  CHECK(back.bias_variability_nT2 == r.bias_variability_nT2);
+  CHECK(back.model_error_covariance() == r.model_error_covariance());
+  CHECK(back.model_error_covariance()(0, 0) == 26.01);
+}
+
 TEST_CASE("the bias temperature model and the bias rate go through the history record and back",
           "[calibration_record]") {
   auto r = finite_result();
