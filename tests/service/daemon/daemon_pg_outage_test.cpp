@@ -510,8 +510,8 @@ TEST_CASE("PostgreSQL holding every commit (its synchronous standby down): an ou
   magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
   if (server == nullptr) return;
   TempDir dir("magcald_pg_held");
-  // 6000 samples in 120 frames 0.5 s apart: 60 s of replay.
-  const std::string log = paced_log(dir, 6000, 500'000);
+  // 6000 samples in 120 frames 0.3 s apart: 36 s of replay, about 15 s of it held.
+  const std::string log = paced_log(dir, 6000, 300'000);
   const std::string reference = reference_db(log, dir);
   REQUIRE(stored_samples(reference) == 6000);
   const std::string db = server->create_database();
