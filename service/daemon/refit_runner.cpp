@@ -263,8 +263,9 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
     out.message = e.what();
     out.storage_error = e;
     // A COMMIT in doubt (PostgreSQL: no reply to it) may have stored the result with its job's
-    // outcome: the job row is left as that commit left it. The retry then finds the refit done,
-    // or its own job still running and carries it on (claim_job), never a second result.
+    // outcome: the job row is left as that commit left it (finish() would only wait on its
+    // lock, and then refuse a row no longer running). The retry then finds the refit done, or
+    // its own job still running and carries it on (claim_job), never a second result.
     if (e.in_doubt_transaction() != 0) return out;
     try {
       jobs_->finish(out.job_id, out.job_outcome, wall_utime(), out.message);

@@ -2,16 +2,21 @@
 // first 8 h of a spacecraft, 2 881 samples) is judged on its own evidence and never becomes the
 // reference of later full-window refits; with honest covariances every full-window refit of a
 // paper-scenario day is accepted, and the evidence columns (schema 3) round-trip.
+#include <algorithm>
 #include <cmath>
 
 #include <catch2/catch.hpp>
 
 #include <chrono>
+#include <thread>
 
 #include "pipeline/scenario.hpp"
 #include "pipeline/simulator.hpp"
 #include "service/daemon/refit_runner.hpp"
 #include "service/io/calibration_record.hpp"
+#include "storage/calibration_history.hpp"
+#include "storage/postgres/pg_database.hpp"
+#include "storage/refit_job_log.hpp"
 #include "storage/sqlite_stores.hpp"
 #include "tests/service/cli_test_support.hpp"
 #include "tests/storage/storage_backends.hpp"
@@ -452,4 +457,86 @@ TEST_CASE("a transient storage error ends a claimed refit's job interrupted: the
   const RefitOutcome manual = runner.run("PAPER-1", t_ref, "manual", t_ref);
   REQUIRE(manual.kind == RefitOutcome::Kind::kError);
   CHECK(jobs->get(manual.job_id)->outcome == storage::job_outcome::kFailed);
+}
+
+TEST_CASE("a refit whose COMMIT gets no reply is not run twice: the retry finds it done") {
+  // The result and its job's outcome in one transaction whose COMMIT a synchronous standby that
+  // is down holds (PostgreSQL): the commit is in doubt, and the job row is left as that commit
+  // leaves it; not given up as interrupted, which would have the retry compute a second result.
+  test::PostgresBackend backend;
+  const std::string uri = backend.new_database();
+  if (uri.empty()) return;
+  // No reply within the deadline (the connection set aside), or the connection lost while the
+  // COMMIT waits (its session terminated: the server then commits it locally).
+  const bool terminated = GENERATE(false, true);
+  storage::OpenOptions quick;
+  quick.busy_timeout_ms = 200;
+  quick.reply_timeout_ms = terminated ? 0 : 500;
+  const auto db = backend.open_again(quick);
+  DaemonConfig config;
+  config.station.id = "station-A";
+  int64_t seq = 0;
+  store_simulation(*db, paper_scenario(7, 4.0), "PAPER-1", &seq);
+  const int64_t t_ref = *db->make_sample_window_store()->newest_utime("PAPER-1");
+  RefitRunner runner(config, *db);
+  const auto observer = backend.open_again();  // (its sessions' commits never wait: it reads)
+  const auto jobs = observer->make_refit_job_log();
+
+  // Only a transaction that stores a result waits for the standby (the claim before it does
+  // not): the trigger makes its commit synchronous.
+  db->exec(
+      "CREATE FUNCTION hold_commit() RETURNS trigger AS $$ BEGIN "
+      "PERFORM set_config('synchronous_commit', 'on', true); RETURN NEW; END $$ "
+      "LANGUAGE plpgsql; "
+      "CREATE TRIGGER hold_commit BEFORE INSERT ON calibrations "
+      "FOR EACH ROW EXECUTE FUNCTION hold_commit();");
+  test::set_absent_synchronous_standby(uri, true);
+  std::thread terminator;
+  if (terminated) {
+    terminator = std::thread([&] {
+      const auto admin = backend.open_again();
+      test::wait_until(
+          [&] {
+            return dynamic_cast<storage::PgDatabase&>(*admin)
+                       .execute(
+                           "SELECT count(pg_terminate_backend(pid)) FROM pg_stat_activity "
+                           "WHERE wait_event = 'SyncRep'")
+                       .get_int64(0, 0) > 0;
+          },
+          30);
+    });
+  }
+  const RefitOutcome held = runner.run("PAPER-1", t_ref, "scheduled", t_ref);
+  if (terminator.joinable()) terminator.join();
+  REQUIRE(held.kind == RefitOutcome::Kind::kError);
+  REQUIRE(held.storage_error.has_value());
+  INFO(held.message);
+  CHECK(held.storage_error->transient());
+  CHECK(held.storage_error->in_doubt_transaction() != 0);
+  test::set_absent_synchronous_standby(uri, false);
+
+  // The held commit completes: the job is done, with its result. The daemon's retry finds the
+  // refit done by this station and computes nothing.
+  REQUIRE(test::wait_until(
+      [&] {
+        const auto job = jobs->get(held.job_id);
+        return job && job->outcome != storage::job_outcome::kRunning;
+      },
+      10));
+  const auto done = jobs->get(held.job_id);
+  CHECK(done->outcome != storage::job_outcome::kInterrupted);
+  CHECK(done->calibration_id.has_value());
+  RefitOutcome retried;
+  REQUIRE(test::wait_until(
+      [&] {
+        retried = runner.run("PAPER-1", t_ref, "scheduled", t_ref);
+        return retried.kind != RefitOutcome::Kind::kError;  // (the connection set aside first)
+      },
+      10));
+  CHECK(retried.kind != RefitOutcome::Kind::kComputed);
+  storage::HistoryQuery q;
+  q.sat_id = "PAPER-1";
+  const auto rows = observer->make_calibration_history()->query(q);
+  CHECK(std::count_if(rows.begin(), rows.end(),
+                      [](const auto& r) { return storage::is_refit_method(r.method); }) == 1);
 }
