@@ -607,7 +607,8 @@ void OwnedSpacecraftTracker::maybe_snapshot(const std::string& sat_id, OwnedSpac
   reject_unless_ok(snap, verdict);
   apply_verdict(snap, verdict);
   t.temperature.describe(snap);  // its bias is the bias at the anchor refit's T0
-  pending_snapshots_.push_back({sat_id, std::move(snap), t.temperature.refit_id});
+  pending_snapshots_.push_back(
+      {sat_id, std::move(snap), t.temperature.refit_id, ++snapshots_made_});
   mark_state_due(sat_id, t);
 }
 
@@ -639,20 +640,29 @@ void OwnedSpacecraftTracker::write() {
     if (const SpacecraftTracker* t = fleet_.find(sat)) due_states_.push_back(stored_state(sat, *t));
   }
   filter_states_->save_all(due_states_);
+  written_snapshot_number_ = pending_snapshots_.empty() ? 0 : pending_snapshots_.back().number;
+  written_states_ = states_due_;
 }
 
 void OwnedSpacecraftTracker::written() {
-  for (const auto& sat : states_due_) {
+  for (const auto& sat : written_states_) {
     if (SpacecraftTracker* t = fleet_.find(sat)) t->state_due = t->state_dirty = false;
+    std::erase(states_due_, sat);
   }
-  states_due_.clear();
-  if (!pending_snapshots_.empty()) {
-    counters_.snapshots.fetch_add(static_cast<int64_t>(pending_snapshots_.size()));
+  written_states_.clear();
+  // (In the order made: those written are a prefix.)
+  const auto end =
+      std::find_if(pending_snapshots_.begin(), pending_snapshots_.end(),
+                   [&](const PendingSnapshot& p) { return p.number > written_snapshot_number_; });
+  if (end != pending_snapshots_.begin()) {
+    counters_.snapshots.fetch_add(static_cast<int64_t>(end - pending_snapshots_.begin()));
     if (hooks_.on_snapshot) {
-      for (const auto& p : pending_snapshots_) hooks_.on_snapshot(p.sat_id, p.result);
+      for (auto p = pending_snapshots_.begin(); p != end; ++p)
+        hooks_.on_snapshot(p->sat_id, p->result);
     }
-    pending_snapshots_.clear();
+    pending_snapshots_.erase(pending_snapshots_.begin(), end);
   }
+  written_snapshot_number_ = 0;
 }
 
 void OwnedSpacecraftTracker::samples_committed(std::span<const storage::StoredSample> rows) {

@@ -216,8 +216,14 @@ class OwnedSpacecraftTracker final : public CommitParticipant {
     std::string sat_id;
     CalibrationResult result;
     int64_t temperature_model_refit_id = 0;  // the refit whose temperature model it applied
+    uint64_t number = 0;                     // in the order they were made
   };
   std::vector<PendingSnapshot> pending_snapshots_;
+  uint64_t snapshots_made_ = 0;
+  // What the last write() wrote: written() marks those written (a commit in doubt is resolved
+  // later, when more may be pending), the snapshots up to this number and these states.
+  uint64_t written_snapshot_number_ = 0;
+  std::vector<std::string> written_states_;
   std::vector<storage::CalibrationRecord> snapshot_records_;  // reused by write()
   std::vector<storage::FilterState> due_states_;              // reused by write()
   std::vector<std::string> states_due_;  // spacecraft whose state goes into the next commit
