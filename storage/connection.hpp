@@ -58,8 +58,8 @@ struct OpenOptions {
   // synchronous standby that is down) keeps a live TCP connection, so neither the keepalives nor
   // tcp_user_timeout end the wait. Past this the statement fails transient (kUnavailable,
   // SQLSTATE 08006) and the connection is set aside until its reply comes (see
-  // PgDatabase::settle_set_aside). Schema migrations are not bounded (a big table may take
-  // minutes). SQLite: no effect.
+  // PgDatabase::settle_set_aside). A schema migration that outlasts it goes on in the server.
+  // SQLite: no effect.
   int reply_timeout_ms = 10000;
 };
 

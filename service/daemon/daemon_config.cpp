@@ -388,12 +388,16 @@ std::string DaemonConfig::validate() const {
     return "[storage] spill_max_bytes: must be >= 0 (0 = no spill file)";
   }
   if (!(storage.stop_max_failure_s > 0.0)) return "[storage] stop_max_failure_s: must be > 0";
-  // (A lock wait ends at busy_timeout_ms as a lock timeout, before it could look like a server
-  // that does not answer.)
-  if (!(storage.pg_reply_timeout_s * 1000.0 > storage.busy_timeout_ms) ||
-      !(storage.pg_reply_timeout_s <= 3600.0)) {
-    return "[storage] pg_reply_timeout_s: must be above busy_timeout_ms (in seconds) and at most "
-           "3600";
+  if (!(storage.pg_reply_timeout_s > 0.0 && storage.pg_reply_timeout_s <= 3600.0)) {
+    return "[storage] pg_reply_timeout_s: must be > 0 and at most 3600 (s)";
+  }
+  // A lock wait must end as a lock timeout (busy_timeout_ms) before it could look like a server
+  // that does not answer. (PostgreSQL only: SQLite has no reply deadline.)
+  if (postgres() && !(storage.pg_reply_timeout_s * 1000.0 > storage.busy_timeout_ms)) {
+    return fmt::format(
+        "[storage] pg_reply_timeout_s ({:g} s) must be above busy_timeout_ms ({} ms): a lock "
+        "wait must end as a lock timeout before it looks like a server that does not answer",
+        storage.pg_reply_timeout_s, storage.busy_timeout_ms);
   }
   if (!parse_daily_time_utc(refit.daily_at_utc)) {
     return "[refit] daily_at_utc: expected \"HH:MM\" (UTC), got \"" + refit.daily_at_utc + "\"";

@@ -8,6 +8,7 @@
 #include <chrono>
 #include <cmath>
 #include <string_view>
+#include <thread>
 #include <utility>
 
 #include "storage/postgres/pg_calibration_history.hpp"
@@ -74,6 +75,15 @@ CREATE TABLE magcal_schema_version (
 
 }  // namespace
 
+struct PgDatabase::PendingConnect {
+  std::mutex mutex;
+  std::condition_variable done_cv;
+  pg_conn* conn = nullptr;
+  bool done = false;
+  bool abandoned = false;  // its PgDatabase is gone: the thread closes what it opened
+  std::chrono::steady_clock::time_point started = std::chrono::steady_clock::now();
+};
+
 PgDatabase::PgDatabase(const std::string& uri, const OpenOptions& options)
     : uri_(uri),
       name_(database_name(uri)),
@@ -106,8 +116,9 @@ void PgDatabase::open_session() {
     configure();
     check_and_migrate(open_options_);
   } catch (...) {
-    PQfinish(conn_);
-    conn_ = nullptr;
+    // A connection set aside stays open until its reply (settle_set_aside): closing it now would
+    // leave its statement running in the server and open another session at each retry.
+    if (!set_aside_) drop_connection();
     throw;
   }
   schema_checked_ = true;
@@ -115,6 +126,14 @@ void PgDatabase::open_session() {
 
 PgDatabase::~PgDatabase() {
   PQfinish(conn_);
+  abandon_pending_connect();
+}
+
+void PgDatabase::abandon_pending_connect() noexcept {
+  if (!pending_connect_) return;
+  std::lock_guard lock(pending_connect_->mutex);
+  pending_connect_->abandoned = true;
+  PQfinish(std::exchange(pending_connect_->conn, nullptr));  // done but not taken
 }
 
 PgDatabase::PgDatabase(PgDatabase&& other) noexcept
@@ -131,7 +150,9 @@ PgDatabase::PgDatabase(PgDatabase&& other) noexcept
       schema_checked_(other.schema_checked_),
       open_transactions_(std::exchange(other.open_transactions_, 0)),
       transaction_id_(std::exchange(other.transaction_id_, 0)),
-      prepared_(std::move(other.prepared_)) {}
+      prepared_(std::move(other.prepared_)),
+      pending_connect_(std::move(other.pending_connect_)),
+      conn_attempted_(other.conn_attempted_) {}
 
 PgDatabase& PgDatabase::operator=(PgDatabase&& other) noexcept {
   if (this != &other) {
@@ -150,24 +171,65 @@ PgDatabase& PgDatabase::operator=(PgDatabase&& other) noexcept {
     open_transactions_ = std::exchange(other.open_transactions_, 0);
     transaction_id_ = std::exchange(other.transaction_id_, 0);
     prepared_ = std::move(other.prepared_);
+    abandon_pending_connect();
+    pending_connect_ = std::move(other.pending_connect_);
+    conn_attempted_ = other.conn_attempted_;
   }
   return *this;
 }
 
 void PgDatabase::connect() {
-  // Defaults the URI may override (keywords before dbname yield to the expanded URI): a dead
-  // network fails a connect in 10 s and a statement in about 30 s (TCP keepalives, user
-  // timeout) instead of the kernel's ~15 min, so the caller's retry policy decides.
-  const char* keywords[] = {"connect_timeout",
-                            "keepalives_idle",
-                            "keepalives_interval",
-                            "keepalives_count",
-                            "tcp_user_timeout",
-                            "fallback_application_name",
-                            "dbname",
-                            nullptr};
-  const char* values[] = {"10", "30", "10", "3", "30000", "magcal", uri_.c_str(), nullptr};
-  conn_ = PQconnectdbParams(keywords, values, 1);
+  if (!pending_connect_) {
+    auto pending = std::make_shared<PendingConnect>();
+    std::thread([pending, uri = uri_] {
+      // Defaults the URI may override (keywords before dbname yield to the expanded URI): a
+      // dead network fails a connect in 10 s and a statement in about 30 s (TCP keepalives,
+      // user timeout) instead of the kernel's ~15 min, so the caller's retry policy decides.
+      const char* keywords[] = {"connect_timeout",
+                                "keepalives_idle",
+                                "keepalives_interval",
+                                "keepalives_count",
+                                "tcp_user_timeout",
+                                "fallback_application_name",
+                                "dbname",
+                                nullptr};
+      const char* values[] = {"10", "30", "10", "3", "30000", "magcal", uri.c_str(), nullptr};
+      pg_conn* conn = PQconnectdbParams(keywords, values, 1);
+      std::lock_guard lock(pending->mutex);
+      if (pending->abandoned) {
+        PQfinish(conn);
+        return;
+      }
+      pending->conn = conn;
+      pending->done = true;
+      pending->done_cv.notify_all();
+    }).detach();
+    pending_connect_ = std::move(pending);
+  }
+  {
+    std::unique_lock lock(pending_connect_->mutex);
+    const auto done = [this] { return pending_connect_->done; };
+    if (!open_options_.connect_later) {
+      pending_connect_->done_cv.wait(lock, done);
+    } else if (!pending_connect_->done_cv.wait_for(lock,
+                                                   schema_checked_ || conn_attempted_
+                                                       ? std::chrono::milliseconds(100)
+                                                       : std::chrono::milliseconds(2000),
+                                                   done)) {
+      conn_attempted_ = true;
+      const double connecting_s = std::chrono::duration<double>(std::chrono::steady_clock::now() -
+                                                                pending_connect_->started)
+                                      .count();
+      throw StorageError(StorageError::Kind::kEngine,
+                         "cannot connect to " + name_ + ": no answer after " +
+                             duration_text(connecting_s) +
+                             " (still connecting; libpq's connect_timeout, 10 s a host, ends it)",
+                         StorageError::Condition::kUnavailable);
+    }
+    conn_ = std::exchange(pending_connect_->conn, nullptr);
+  }
+  pending_connect_.reset();
+  conn_attempted_ = true;
   if (conn_ == nullptr) throw std::bad_alloc();
   if (PQstatus(conn_) == CONNECTION_OK) return;
   // libpq gives no SQLSTATE for a refused connection: the server's reasons that a retry
@@ -204,12 +266,8 @@ void PgDatabase::ensure_connected() {
     open_session();
     return;
   }
-  if (conn_ != nullptr) {
-    PQreset(conn_);
-    if (PQstatus(conn_) != CONNECTION_OK) fail("reconnect");
-  } else {
-    connect();
-  }
+  drop_connection();
+  connect();
   configure();
 }
 
@@ -230,7 +288,7 @@ void PgDatabase::configure() {
 pg_result* PgDatabase::await_reply(int sent, std::string_view sql) {
   using clock = std::chrono::steady_clock;
   const auto start = clock::now();
-  const bool bounded = reply_timeout_ms_ > 0 && !migrating_;
+  const bool bounded = reply_timeout_ms_ > 0;
   const auto deadline = start + std::chrono::milliseconds(reply_timeout_ms_);
   pg_result* kept = nullptr;
   const auto failed = [](const pg_result* r) {
@@ -503,25 +561,27 @@ void PgDatabase::check_and_migrate(const OpenOptions& options) {
   check(state);
   if (state.version >= target) return;
   if (options.read_only) {
+    // magcald's own read-only connection (connect_later) opens while its worker may still be
+    // migrating (a migration that outlasted the reply deadline): not yet, rather than never.
+    const auto condition = options.connect_later ? StorageError::Condition::kUnavailable
+                                                 : StorageError::Condition::kNone;
     if (state.version == 0) {
       throw StorageError(StorageError::Kind::kForeignFile,
                          name_ +
                              " has no magcal tables yet (a new database): magcald creates "
-                             "them on its first start");
+                             "them on its first start",
+                         condition);
     }
     throw StorageError(StorageError::Kind::kOlderSchema,
                        name_ + " has schema version " + std::to_string(state.version) +
-                           "; open it once read-write (magcald or magcal refit) to upgrade");
+                           "; open it once read-write (magcald or magcal refit) to upgrade",
+                       condition);
   }
   // Each migration in its own transaction under the advisory lock; re-read the version under
   // the lock because another daemon may have migrated meanwhile. The lock is released at
-  // commit, or by the server when a holder dies. Without a reply deadline: a migration of a big
-  // table, or the wait for another daemon's, may take minutes.
-  struct Unbounded {
-    bool& migrating;
-    explicit Unbounded(bool& flag) : migrating(flag) { migrating = true; }
-    ~Unbounded() { migrating = false; }
-  } unbounded(migrating_);
+  // commit, or by the server when a holder dies. A migration (or the wait for another daemon's)
+  // that outlasts the reply deadline goes on in the server: the connection is set aside, the
+  // open fails transient (a daemon rides it out as an outage) and finds it done later.
   for (const Migration& m : all) {
     if (m.version > target) break;
     PgTransaction tx(*this);

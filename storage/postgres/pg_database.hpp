@@ -35,8 +35,10 @@
 #pragma once
 
 #include <chrono>
+#include <condition_variable>
 #include <cstdint>
 #include <memory>
+#include <mutex>
 #include <string>
 #include <string_view>
 #include <unordered_map>
@@ -127,6 +129,11 @@ class PgDatabase final : public Connection {
   // connect(), configure() and check_and_migrate(): what the open does, at the first
   // statement when the server was unreachable then (OpenOptions::connect_later).
   void open_session();
+  // Opens conn_. The connect runs on its own thread (libpq's blocking connect, which keeps its
+  // connect_timeout per host and its multi-host order); this waits for it at most the open's
+  // wait (OpenOptions::connect_later: 2 s at the open, 100 ms at a reconnect, so a daemon's
+  // worker never blocks on a server that does not answer; otherwise until it ends), and
+  // throws transient while it is still in flight. The next call picks the same connect up.
   void connect();
   // Reconnects a lost connection, outside a transaction (see the header comment).
   void ensure_connected();
@@ -143,6 +150,8 @@ class PgDatabase final : public Connection {
   void settle_set_aside();
   // Closes the connection; the next statement opens a new session.
   void drop_connection() noexcept;
+  // A connect still in flight is left to its thread, which closes what it opens.
+  void abandon_pending_connect() noexcept;
   [[noreturn]] void fail(std::string_view context, const pg_result* result = nullptr);
 
   pg_conn* conn_ = nullptr;
@@ -151,7 +160,6 @@ class PgDatabase final : public Connection {
   bool read_only_ = false;
   int lock_timeout_ms_ = 5000;
   int reply_timeout_ms_ = 10000;
-  bool migrating_ = false;  // schema migrations wait for their replies without a deadline
   // A statement sent on conn_ got no reply in time (see the header comment): since when, and
   // what it was (for messages).
   bool set_aside_ = false;
@@ -164,6 +172,9 @@ class PgDatabase final : public Connection {
   // in doubt (StorageError::in_doubt_transaction()).
   int64_t transaction_id_ = 0;
   std::unordered_map<std::string, std::string> prepared_;  // SQL text -> statement name
+  struct PendingConnect;                                   // shared with the thread that connects
+  std::shared_ptr<PendingConnect> pending_connect_;
+  bool conn_attempted_ = false;  // a connect was tried (later ones wait less: see connect())
 };
 
 // storage::Transaction at a chosen isolation level (fleet code that needs REPEATABLE READ or

@@ -145,6 +145,8 @@ TEST_CASE("a PostgreSQL statement waits for its reply well inside the unit's Wat
   CHECK(2 * d.storage.pg_reply_timeout_s + 10.0 < watchdog_s);
   CHECK(d.database_options().reply_timeout_ms == 10000);
   CHECK(d.storage.pg_reply_timeout_s * 1000.0 > d.storage.busy_timeout_ms);
+  // SQLite has no reply deadline: a long busy timeout there is no conflict.
+  CHECK(parse_daemon_config("[storage]\nbusy_timeout_ms = 15000\n", "sqlite").error.empty());
 }
 
 TEST_CASE("values are read, integers accepted for floats", "[daemon_config]") {
@@ -214,8 +216,12 @@ TEST_CASE("unknown keys, bad types and bad values name the key", "[daemon_config
       {"[storage]\nspill_max_bytes = 1.5e9\n", "[storage] spill_max_bytes: expected an integer"},
       {"[storage]\nspill_dir = 7\n", "[storage] spill_dir: expected a string"},
       {"[storage]\nstop_max_failure_s = 0\n", "[storage] stop_max_failure_s: must be > 0"},
-      {"[storage]\npg_reply_timeout_s = 5\n", "[storage] pg_reply_timeout_s: must be above"},
-      {"[storage]\npg_reply_timeout_s = 7200\n", "[storage] pg_reply_timeout_s: must be above"},
+      {"[storage]\ndb_path = \"postgresql://h/db\"\npg_reply_timeout_s = 5\n",
+       "[storage] pg_reply_timeout_s (5 s) must be above busy_timeout_ms (5000 ms)"},
+      {"[storage]\npg_reply_timeout_s = 7200\n",
+       "[storage] pg_reply_timeout_s: must be > 0 and at most 3600"},
+      {"[storage]\npg_reply_timeout_s = 0\n",
+       "[storage] pg_reply_timeout_s: must be > 0 and at most 3600"},
       {"[storage]\nbusy_timeout_ms = -1\n", "[storage] busy_timeout_ms: must be >= 0"},
       {"[storage]\nmax_pending_samples = 100\n",
        "[storage] max_pending_samples: must be >= commit_every_samples"},

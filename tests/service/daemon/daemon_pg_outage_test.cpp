@@ -576,6 +576,63 @@ TEST_CASE(
       std::filesystem::exists(dir.file("magcal-spill-" + magcal::default_station_id() + ".spill")));
 }
 
+TEST_CASE("a PostgreSQL server that answers nothing when magcald starts: up at once, an outage",
+          "[daemon][postgres][outage][integration]") {
+  magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
+  if (server == nullptr) return;
+  TempDir dir("magcald_pg_start_unanswered");
+  const std::string log = paced_log(dir, 3000, 300'000);  // 18 s of replay
+  const std::string db = server->create_database();
+  // Frozen: the connects hang until libpq's connect_timeout (10 s a host); holding commits: the
+  // first migration's COMMIT waits for the standby. Either way the worker's connect and the
+  // refit and HTTP connections must not hold the start up (connects run on their own threads).
+  const bool frozen = GENERATE(true, false);
+  struct Thaw {
+    magcal::test::PgTestServer& server;
+    std::string db;
+    ~Thaw() {
+      try {
+        server.freeze(false);
+        magcal::test::set_absent_synchronous_standby(db, false);
+      } catch (const std::exception& e) {
+        WARN(e.what());
+      }
+    }
+  } thaw{*server, db};
+  if (frozen) {
+    server->freeze(true);
+  } else {
+    magcal::test::wait_for_standby_commits(db);
+    magcal::test::set_absent_synchronous_standby(db, true);
+  }
+  const std::string log_path = dir.file("magcald.log");
+  const auto t0 = std::chrono::steady_clock::now();
+  const pid_t pid = spawn(
+      {kBin + "/magcald", "--config", write_config(dir, "pg.toml", unanswered_config_text(db, dir)),
+       "--http-listen", "127.0.0.1:0", "--lcm-url", "file://" + log + "?speed=1"},
+      log_path);
+  REQUIRE(pid > 0);
+  const int port = wait_http_port(log_path, 30);
+  REQUIRE(port > 0);
+  const double up_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  INFO("up after " << up_s << " s");
+  CHECK(up_s < 8);
+  CHECK(http_get(port, "/-/ready").status == 503);
+  CHECK(http_get(port, "/-/healthy").status == 200);
+  REQUIRE(wait_until([&] { return metric(port, "magcal_samples_spilled_total") >= 300; }, 30));
+  if (frozen) {
+    server->freeze(false);
+  } else {
+    magcal::test::set_absent_synchronous_standby(db, false);
+  }
+  const int rc = wait_exit(pid, 120);
+  const std::string text = slurp(log_path);
+  INFO(text);
+  REQUIRE(rc == 0);
+  CHECK(text.find("received=3000 stored=3000 rejected=0") != std::string::npos);
+  CHECK(stored_samples(db) == 3000);
+}
+
 TEST_CASE("data-clock refits that fall due during a PostgreSQL outage run after it, once each",
           "[daemon][postgres][outage][integration]") {
   magcal::test::PgTestServer* server = magcal::test::pg_server_or_skip();
