@@ -548,6 +548,9 @@ bool SampleIntake::spill_pending(bool at_any_size, bool at_exit) {
                   to_spill.size(), spill_->path(), spill_->held_samples(), spill_->bytes()));
   pending_.erase(pending_.begin() + static_cast<std::ptrdiff_t>(keep), pending_.end());
   if (at_exit && in_doubt_.chunk == CommitInDoubt::Chunk::kPending) in_doubt_ = {};
+  // What stays (a commit in doubt) waits for its resolution, not for a commit interval: the
+  // next spill is due an interval from now, one append for the interval's samples.
+  if (keep > 0) first_pending_time_ = std::chrono::steady_clock::now();
   reset_pending_index();
   update_spill_gauges();
   return true;
