@@ -40,4 +40,11 @@ int bartlett_lag_window(double rho, int n) {
   return static_cast<int>(std::min(lag, static_cast<double>(n / 4)));
 }
 
+template Eigen::Matrix<double, 3, 3> covariance_not_below<3>(const Eigen::Matrix<double, 3, 3>&,
+                                                             const Eigen::Matrix<double, 3, 3>&);
+template Eigen::Matrix<double, 6, 6> covariance_not_below<6>(const Eigen::Matrix<double, 6, 6>&,
+                                                             const Eigen::Matrix<double, 6, 6>&);
+template Eigen::Matrix<double, 9, 9> covariance_not_below<9>(const Eigen::Matrix<double, 9, 9>&,
+                                                             const Eigen::Matrix<double, 9, 9>&);
+
 }  // namespace magcal

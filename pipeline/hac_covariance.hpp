@@ -100,4 +100,14 @@ Eigen::Matrix<double, P, P> covariance_not_below(
   return 0.5 * (C + C.transpose());
 }
 
+// Compiled once, in hac_covariance.cpp, for the sizes the fits use: each instantiation (two
+// fixed-size eigensolvers and their product chains) costs GCC about 10 s, which every includer
+// would otherwise pay again (lm_refinement.cpp, which uses all three, compiles in half the time).
+extern template Eigen::Matrix<double, 3, 3> covariance_not_below<3>(
+    const Eigen::Matrix<double, 3, 3>&, const Eigen::Matrix<double, 3, 3>&);
+extern template Eigen::Matrix<double, 6, 6> covariance_not_below<6>(
+    const Eigen::Matrix<double, 6, 6>&, const Eigen::Matrix<double, 6, 6>&);
+extern template Eigen::Matrix<double, 9, 9> covariance_not_below<9>(
+    const Eigen::Matrix<double, 9, 9>&, const Eigen::Matrix<double, 9, 9>&);
+
 }  // namespace magcal
