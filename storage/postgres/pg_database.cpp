@@ -585,8 +585,12 @@ void PgDatabase::check_and_migrate(const OpenOptions& options) {
   for (const Migration& m : all) {
     if (m.version > target) break;
     PgTransaction tx(*this);
-    // A migrating daemon is making progress (or dead, which frees the lock): wait for it.
-    exec("SET LOCAL lock_timeout = 0");
+    // A migrating process is making progress (or dead, which frees the lock): a command waits
+    // for it. A daemon (connect_later) does not: a wait past its lock timeout is an outage it
+    // rides out, and a wait of its own connection set aside past the reply deadline would, once
+    // granted, leave the lock held by a session no thread reads (another of its connections
+    // then waited for it for ever: a first start while the standby held the migration).
+    if (!open_options_.connect_later) exec("SET LOCAL lock_timeout = 0");
     exec("SELECT pg_advisory_xact_lock(" + std::to_string(kPgLockClass) + ", " +
          std::to_string(kPgMigrationLock) + ")");
     state = read_schema_state(*this);
