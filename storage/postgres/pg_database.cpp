@@ -258,15 +258,12 @@ void PgDatabase::ensure_connected() {
     throw StorageError::postgres(StorageError::Kind::kEngine,
                                  name_ + ": connection lost inside a transaction", "08006");
   }
-  prepared_.clear();
+  drop_connection();
   if (!schema_checked_) {
     // Unreachable at the open (connect_later), or lost during its checks: all of them now.
-    PQfinish(conn_);
-    conn_ = nullptr;
     open_session();
     return;
   }
-  drop_connection();
   connect();
   configure();
 }
