@@ -668,7 +668,16 @@ int Daemon::run(const std::atomic<bool>& stop) {
   }
   const auto st = d.status();
   d.publisher->publish(st);
-  spdlog::info("final {}", format_status_line(st));
+  // On PostgreSQL the books also count what waits in the spill file for the next start
+  // (received = stored + rejected + overflow + spill_held).
+  std::string spill_books;
+  if (d.postgres) {
+    spill_books = fmt::format(" spill_held={}", d.counters.spill_held.load());
+    if (const int64_t earlier = d.counters.spill_held_earlier.load(); earlier > 0) {
+      spill_books += fmt::format(" (and {} of an earlier run)", earlier);
+    }
+  }
+  spdlog::info("final {}{}", format_status_line(st), spill_books);
   if (d.server) d.server->stop();
   if (d.fatal.load()) {
     std::lock_guard lock(d.fatal_mutex);

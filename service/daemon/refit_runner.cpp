@@ -184,16 +184,21 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
   RefitOutcome out;
   // `magcal refit` runs whenever asked; the daemons' refits run once for all of them.
   const bool claimed = trigger != "manual";
+  // An unclaimed (manual) job is written with its end, in the end's transaction: a 'running'
+  // row of its own would stay running for good if the process died (Ctrl-C) or its COMMIT got
+  // no reply and landed later, since no daemon owns a manual job to interrupt it.
+  const int64_t started_utime = wall_utime();
+  const auto finish_job = [&](std::string_view outcome, const std::string& message,
+                              std::optional<int64_t> calibration_id) {
+    if (!claimed) out.job_id = jobs_->start(sat_id, trigger, scheduled_utime, started_utime);
+    jobs_->finish(out.job_id, outcome, wall_utime(), message, calibration_id);
+  };
   try {
     if (const auto done = finished_early_refit(sat_id, trigger, scheduled_utime)) {
       not_run_here(*done, config_.station.id, out);
       return out;
     }
-    if (!claimed) {
-      out.job_id = jobs_->start(sat_id, trigger, scheduled_utime, wall_utime());
-    } else if (!claim_job(sat_id, trigger, scheduled_utime, out)) {
-      return out;
-    }
+    if (claimed && !claim_job(sat_id, trigger, scheduled_utime, out)) return out;
   } catch (const storage::StorageError& e) {
     out.message = std::string("cannot write the job row: ") + e.what();
     out.storage_error = e;
@@ -213,7 +218,9 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
       out.kind = RefitOutcome::Kind::kSkipped;
       out.job_outcome = storage::job_outcome::kSkipped;
       out.message = std::move(why);
-      jobs_->finish(out.job_id, out.job_outcome, wall_utime(), out.message);
+      storage::Transaction tx(db_);
+      finish_job(out.job_outcome, out.message, std::nullopt);
+      tx.commit();
       return out;
     }
     const int64_t t_ref = *t_ref_utime;
@@ -250,7 +257,7 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
       out.job_outcome = storage::job_outcome::kFailed;
       out.message = out.result.message.empty() ? to_string(out.result.status) : out.result.message;
     }
-    jobs_->finish(out.job_id, out.job_outcome, wall_utime(), out.message, out.calibration_id);
+    finish_job(out.job_outcome, out.message, out.calibration_id);
     tx.commit();
     out.kind = RefitOutcome::Kind::kComputed;
   } catch (const storage::StorageError& e) {
@@ -266,9 +273,12 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
     // outcome: the job row is left as that commit left it (finish() would only wait on its
     // lock, and then refuse a row no longer running). The retry then finds the refit done, or
     // its own job still running and carries it on (claim_job), never a second result.
+    if (!claimed) out.job_id = 0;  // written with its end: rolled back (or in doubt) with it
     if (e.in_doubt_transaction() != 0) return out;
     try {
-      jobs_->finish(out.job_id, out.job_outcome, wall_utime(), out.message);
+      storage::Transaction tx(db_);
+      finish_job(out.job_outcome, out.message, std::nullopt);
+      tx.commit();
     } catch (const storage::StorageError&) {
       // The database is unusable; the caller reports out.message.
     }

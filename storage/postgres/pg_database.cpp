@@ -244,7 +244,15 @@ void PgDatabase::connect() {
                        why.find("authentication failed") != std::string::npos ||
                        why.find("pg_hba.conf") != std::string::npos ||
                        why.find("password") != std::string::npos;
-  const std::string message = "cannot connect to " + name_ + ": " + why;
+  std::string message = "cannot connect to " + name_ + ": " + why;
+  // libpq's bare words for its connect_timeout: a server that accepts the connection and never
+  // answers (frozen, overloaded, a silent network), not a refused one.
+  if (why == "timeout expired") {
+    message +=
+        " (no answer within libpq's connect_timeout, 10 s a host unless the URI sets it: the "
+        "server accepts connections but does not answer: frozen, overloaded or a silent "
+        "network)";
+  }
   if (no_database) throw StorageError::postgres(StorageError::Kind::kNotFound, message, "3D000");
   if (refused) throw StorageError::postgres(StorageError::Kind::kEngine, message, "28000");
   throw StorageError::postgres(StorageError::Kind::kEngine, message, "08001");

@@ -481,6 +481,11 @@ TEST_CASE("SIGTERM during a PostgreSQL outage: magcald stops at once, its sample
   const std::string text = stop_during_outage(daemon.pid, daemon.log_path);
   INFO(text);
   CHECK(text.find("database commit failing: ") != std::string::npos);
+  // The final books say where the rest went: the spill file.
+  CHECK(final_status(text, "spill_held") > 0);
+  CHECK(final_status(text, "spill_held") == final_status(text, "received") -
+                                                final_status(text, "stored") -
+                                                final_status(text, "rejected"));
   server->start();
   check_next_start_commits_spill(dir, config_text, log, db, static_cast<int64_t>(stored));
 }
@@ -554,6 +559,11 @@ TEST_CASE(
   } thaw{*server};
   server->freeze(true);
   check_rides_out_unanswered(daemon);
+  // An operator's `magcal status` meanwhile says why it cannot connect (a 2 s connect_timeout
+  // in the URI keeps the test short).
+  const std::string status_log = dir.file("status.log");
+  CHECK(run({kBin + "/magcal", "status", "--db", db + "&connect_timeout=2"}, status_log, 30) == 2);
+  CHECK(slurp(status_log).find("no answer within libpq's connect_timeout") != std::string::npos);
   const double received = metric(daemon.port, "magcal_samples_received_total");
   // SIGTERM: the samples go to the spill file, at once.
   const std::string text = stop_during_outage(daemon.pid, daemon.log_path);

@@ -540,3 +540,44 @@ TEST_CASE("a refit whose COMMIT gets no reply is not run twice: the retry finds 
   CHECK(std::count_if(rows.begin(), rows.end(),
                       [](const auto& r) { return storage::is_refit_method(r.method); }) == 1);
 }
+
+TEST_CASE("a manual refit whose COMMIT gets no reply leaves no job running when it lands") {
+  // `magcal refit` owns no claim that a daemon would interrupt: its job row is written with its
+  // end, so a COMMIT held for an absent synchronous standby (in doubt when the CLI exits) lands
+  // with a finished job, never a 'running' row for good.
+  test::PostgresBackend backend;
+  const std::string uri = backend.new_database();
+  if (uri.empty()) return;
+  storage::OpenOptions quick;
+  quick.busy_timeout_ms = 200;
+  quick.reply_timeout_ms = 500;
+  const auto db = backend.open_again(quick);
+  int64_t seq = 0;
+  store_simulation(*db, paper_scenario(7, 4.0), "PAPER-1", &seq);
+  const int64_t t_ref = *db->make_sample_window_store()->newest_utime("PAPER-1");
+  const DaemonConfig config;
+  RefitRunner runner(config, *db);
+  const auto observer = backend.open_again();
+  const auto jobs = observer->make_refit_job_log();
+  db->exec(
+      "CREATE FUNCTION hold_commit() RETURNS trigger AS $$ BEGIN "
+      "PERFORM set_config('synchronous_commit', 'on', true); RETURN NEW; END $$ "
+      "LANGUAGE plpgsql; "
+      "CREATE TRIGGER hold_commit BEFORE INSERT ON calibrations "
+      "FOR EACH ROW EXECUTE FUNCTION hold_commit();");
+  test::set_absent_synchronous_standby(uri, true);
+  const RefitOutcome held = runner.run("PAPER-1", t_ref, "manual", t_ref);
+  REQUIRE(held.kind == RefitOutcome::Kind::kError);
+  REQUIRE(held.storage_error.has_value());
+  CHECK(held.storage_error->in_doubt_transaction() != 0);
+  // While the commit is held, no job of it is visible (the CLI has exited with its error).
+  CHECK(jobs->recent("PAPER-1", 8).empty());
+  test::set_absent_synchronous_standby(uri, false);
+
+  REQUIRE(test::wait_until([&] { return !jobs->recent("PAPER-1", 8).empty(); }, 10));
+  const auto landed = jobs->recent("PAPER-1", 8);
+  REQUIRE(landed.size() == 1);
+  CHECK(landed[0].trigger == "manual");
+  CHECK(landed[0].outcome != storage::job_outcome::kRunning);
+  CHECK(landed[0].calibration_id.has_value());
+}

@@ -527,6 +527,46 @@ TEST_CASE("PostgreSQL without a reply: transient at the deadline, one session, c
   }
 }
 
+TEST_CASE("PostgreSQL: a daemon's migration never leaves the lock to a session no one reads") {
+  // A daemon (connect_later) whose first migration waits for another process's migration lock
+  // past its reply deadline would set that connection aside still waiting; once granted, the
+  // lock stayed with a session whose thread (an idle refit thread) never read it again, and
+  // the daemon's other connections waited for it for good. Its wait ends at its lock timeout.
+  PgTestServer* server = pg_server_or_skip();
+  if (server == nullptr) return;
+  const std::string uri = server->create_database();
+  OpenOptions bare;
+  bare.migrate_to = 0;
+  PgDatabase holder(uri, bare);  // another process migrating: holds the lock
+  holder.exec("BEGIN");
+  holder.exec("SELECT pg_advisory_xact_lock(" + std::to_string(kPgLockClass) + ", " +
+              std::to_string(kPgMigrationLock) + ")");
+  OpenOptions daemon;
+  daemon.connect_later = true;
+  daemon.reply_timeout_ms = 500;
+  daemon.busy_timeout_ms = 200;
+  PgDatabase idle(uri, daemon);  // tried while the lock is held, then left alone
+  const auto t0 = std::chrono::steady_clock::now();
+  while (std::chrono::steady_clock::now() - t0 < std::chrono::milliseconds(1500)) {
+    const StorageError e = error_of([&] { idle.execute("SELECT 1"); });
+    INFO(e.what());
+    CHECK(e.transient());
+  }
+  holder.exec("COMMIT");
+  // Another connection of the daemon migrates and answers, while `idle` is not touched.
+  PgDatabase worker(uri, daemon);
+  CHECK(magcal::test::wait_until(
+      [&] {
+        try {
+          return query_int(worker, "SELECT count(*) FROM meta") >= 0;
+        } catch (const StorageError&) {
+          return false;
+        }
+      },
+      5));
+  CHECK(query_int(idle, "SELECT 3") == 3);
+}
+
 TEST_CASE("PostgreSQL values: bigint, double precision, bytea and text exactly, both formats") {
   PgTestServer* server = pg_server_or_skip();
   if (server == nullptr) return;
