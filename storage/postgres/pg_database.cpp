@@ -247,7 +247,7 @@ void PgDatabase::connect() {
   std::string message = "cannot connect to " + name_ + ": " + why;
   // libpq's bare words for its connect_timeout: a server that accepts the connection and never
   // answers (frozen, overloaded, a silent network), not a refused one.
-  if (why == "timeout expired") {
+  if (why.ends_with("timeout expired")) {
     message +=
         " (no answer within libpq's connect_timeout, 10 s a host unless the URI sets it: the "
         "server accepts connections but does not answer: frozen, overloaded or a silent "
