@@ -55,6 +55,7 @@ struct Daemon::Impl {
   DaemonConfig config;
   DaemonCounters counters;
   std::chrono::steady_clock::time_point start_time = std::chrono::steady_clock::now();
+  const int64_t start_utime = wall_utime();  // what the probes quote for "unreachable since"
   bool replay = false;
   bool postgres = false;  // config.postgres(), once
 
@@ -210,7 +211,7 @@ struct Daemon::Impl {
         storage::database_name(config.storage.db_path),
         worker->restored() || since == 0
             ? ""
-            : ", unreachable since magcald started at " + format_iso8601_utc(since),
+            : ", unreachable since magcald started at " + format_iso8601_utc(start_utime),
         counters.storage_pending.load(), postgres ? spill_note() : "");
   }
   // ", N in the spill file" (and an earlier run's there, not committed yet).
