@@ -29,9 +29,9 @@ int run_serve(const ServeArgs& args) {
   http::ServerHooks hooks;
   // The same window as `magcal status` (the daemon's default [storage] window_hours).
   hooks.status_window_utime = DaemonConfig{}.window_utime();
-  hooks.metrics_text = [db_path = args.db] {
-    return read_consistently(db_path, [](storage::Connection& db) {
-      return http::database_metrics_text(db, MAGCAL_VERSION);
+  hooks.metrics_text = [db_path = args.db, window_utime = hooks.status_window_utime] {
+    return read_consistently(db_path, [window_utime](storage::Connection& db) {
+      return http::database_metrics_text(db, MAGCAL_VERSION, window_utime);
     });
   };
   std::string error;

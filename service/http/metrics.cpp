@@ -5,6 +5,7 @@
 
 #include <prometheus/text_serializer.h>
 
+#include "pipeline/time_utc.hpp"
 #include "storage/calibration_history.hpp"
 #include "storage/sample_window_store.hpp"
 
@@ -337,7 +338,8 @@ std::string DaemonMetrics::text() {
   return serialize(*registry_);
 }
 
-std::string database_metrics_text(storage::Connection& db, const std::string& version) {
+std::string database_metrics_text(storage::Connection& db, const std::string& version,
+                                  int64_t window_utime) {
   prometheus::Registry registry;
   const Families f = register_families(registry, version);
   const auto samples = db.make_sample_window_store();
@@ -346,18 +348,24 @@ std::string database_metrics_text(storage::Connection& db, const std::string& ve
   // deletes): a gauge of its own, never magcal_samples_stored_total (a counter must not fall).
   auto& window = prometheus::BuildGauge()
                      .Name("magcal_window_samples")
-                     .Help("Samples held in the database now, per spacecraft (magcal serve)")
+                     .Help(
+                         "Samples in the window ending at the spacecraft's newest sample, per "
+                         "spacecraft, as magcal status counts them (magcal serve)")
                      .Register(registry);
   auto& by_station = prometheus::BuildGauge()
                          .Name("magcal_window_samples_by_station")
                          .Help(
-                             "Samples held in the database now, per spacecraft and the station "
-                             "that stored them (magcal serve)")
+                             "Samples in the window ending at the spacecraft's newest sample, per "
+                             "spacecraft and the station that stored them (magcal serve)")
                          .Register(registry);
   for (const auto& sat : samples->spacecraft()) {
+    const auto newest = samples->newest_utime(sat);
+    if (!newest) continue;  // (deleted since the list was read)
     int64_t held = 0;
-    for (const auto& c : samples->count_by_station(sat, std::numeric_limits<int64_t>::min(),
-                                                   std::numeric_limits<int64_t>::max())) {
+    // The window (newest - W, newest], as magcal status counts it (saturating: a database
+    // written before the time bounds may hold any utime).
+    for (const auto& c : samples->count_by_station(sat, saturating_sub(*newest, window_utime) + 1,
+                                                   saturating_add(*newest, 1))) {
       by_station.Add({{"sat", sat}, {"station", c.station}}).Set(static_cast<double>(c.samples));
       held += c.samples;
     }

@@ -172,7 +172,8 @@ class DaemonMetrics {
 };
 
 // What a database alone knows, for `magcal serve` (same names and types as the daemon's):
-// magcal_window_samples{sat} = samples stored now (the window: retention deletes older ones),
+// magcal_window_samples{sat} = samples stored in the window of `window_utime` (us) ending at the
+// spacecraft's newest sample, as `magcal status` counts them (retention keeps a little more),
 // magcal_window_samples_by_station{sat,station} = the same by the station that stored them
 // (station="" for samples stored without one, before schema 7; one query per spacecraft for
 // both), the newest UKF snapshot's bias, sigma and verdict, refits_total{sat,verdict} from the
@@ -180,6 +181,7 @@ class DaemonMetrics {
 // build_info. Counters that only a running daemon knows (received, rejected, missing, queue,
 // commit latency) are absent. `db` is read-only or not: this never writes. Throws
 // storage::StorageError.
-std::string database_metrics_text(storage::Connection& db, const std::string& version);
+std::string database_metrics_text(storage::Connection& db, const std::string& version,
+                                  int64_t window_utime);
 
 }  // namespace magcal::http

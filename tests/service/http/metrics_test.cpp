@@ -8,6 +8,7 @@
 
 #include <algorithm>
 #include <filesystem>
+#include <map>
 #include <set>
 
 #include <catch2/catch.hpp>
@@ -219,6 +220,8 @@ TEST_CASE("database metrics (magcal serve): what the database holds", "[metrics]
   TempDb tmp;
   std::map<std::string, int> stored;
   std::map<std::pair<std::string, std::string>, int> stored_by_station;  // (sat, station)
+  std::map<std::string, std::vector<std::pair<int64_t, std::string>>>
+      stored_rows;  // (utime, station)
   {
     st::Database db(tmp.path());
     st::SqliteSampleWindowStore samples(db);
@@ -237,6 +240,7 @@ TEST_CASE("database metrics (magcal serve): what the database holds", "[metrics]
         if (!held.insert(s.utime).second) continue;  // an earlier station's
         ++stored[s.sat_id];
         ++stored_by_station[{s.sat_id, station}];
+        stored_rows[s.sat_id].emplace_back(s.utime, station);
         ++new_rows;
       }
       REQUIRE(samples.insert_batch(rows, nullptr, station).inserted == new_rows);
@@ -262,8 +266,32 @@ TEST_CASE("database metrics (magcal serve): what the database holds", "[metrics]
     history.append(record("ukf", 1'577'880'060'000'000, false, 14.0));  // the newest one
   }
   st::Database db(tmp.path(), st::OpenOptions{.read_only = true});
-  const auto p = parse_prometheus_text(magcal::http::database_metrics_text(db, "2.0"));
+  const int64_t day_utime = 86'400'000'000;
+  const auto p = parse_prometheus_text(magcal::http::database_metrics_text(db, "2.0", day_utime));
   REQUIRE(p.error.empty());
+  // A shorter window counts what `magcal status` counts: (newest - W, newest] per spacecraft.
+  {
+    const int64_t window_utime = 1'000'000'000;  // 1000 s of the 2490 s stored
+    const auto q =
+        parse_prometheus_text(magcal::http::database_metrics_text(db, "2.0", window_utime));
+    REQUIRE(q.error.empty());
+    for (const auto& [sat, rows] : stored_rows) {
+      int64_t newest = rows.front().first;
+      for (const auto& r : rows) newest = std::max(newest, r.first);
+      std::map<std::string, int> in_window;
+      int total = 0;
+      for (const auto& [utime, station] : rows) {
+        if (utime > newest - window_utime) ++in_window[station], ++total;
+      }
+      INFO(sat);
+      CHECK(total < stored[sat]);
+      CHECK(q.value("magcal_window_samples", {{"sat", sat}}) == total);
+      for (const auto& [station, n] : in_window) {
+        CHECK(q.value("magcal_window_samples_by_station", {{"sat", sat}, {"station", station}}) ==
+              n);
+      }
+    }
+  }
   CHECK(p.value("magcal_window_samples", {{"sat", "SAT-A"}}) == stored["SAT-A"]);
   CHECK(p.value("magcal_window_samples", {{"sat", "SAT-B"}}) == stored["SAT-B"]);
   for (const auto& [key, n] : stored_by_station) {
