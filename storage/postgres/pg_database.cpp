@@ -253,6 +253,13 @@ void PgDatabase::connect() {
         "server accepts connections but does not answer: frozen, overloaded or a silent "
         "network)";
   }
+  // The two refusals a new fleet meets first: say where the fix is.
+  if (no_database || (why.find("role \"") != std::string::npos &&
+                      why.find("does not exist") != std::string::npos)) {
+    message +=
+        " (create the role and the database as docs/fleet.md \"Create the database and its "
+        "role\" shows: deploy/fleet/create-database.sql)";
+  }
   if (no_database) throw StorageError::postgres(StorageError::Kind::kNotFound, message, "3D000");
   if (refused) throw StorageError::postgres(StorageError::Kind::kEngine, message, "28000");
   throw StorageError::postgres(StorageError::Kind::kEngine, message, "08001");

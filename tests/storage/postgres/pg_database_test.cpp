@@ -237,6 +237,15 @@ TEST_CASE("PostgreSQL schema: migrations, re-open, foreign / newer / older schem
     const StorageError missing = open_error(server->uri("no_such_database"));
     CHECK(missing.kind() == StorageError::Kind::kNotFound);
     CHECK_FALSE(missing.transient());
+    // A missing database or role says where the fix is.
+    const std::string hint = "docs/fleet.md \"Create the database and its role\"";
+    CHECK(std::string(missing.what()).find(hint) != std::string::npos);
+    std::string no_role = uri;
+    no_role.replace(no_role.find("magcal@"), 7, "nobody@");
+    const StorageError unknown_role = open_error(no_role);
+    INFO(unknown_role.what());
+    CHECK_FALSE(unknown_role.transient());
+    CHECK(std::string(unknown_role.what()).find(hint) != std::string::npos);
     CHECK(is_postgres_uri(uri));
     CHECK(is_postgres_uri("postgres://h/db"));
     CHECK_FALSE(is_postgres_uri("/var/lib/magcal/magcal.db"));
