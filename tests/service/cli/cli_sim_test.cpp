@@ -8,6 +8,8 @@
 #include <fstream>
 #include <sstream>
 
+#include <unistd.h>
+
 #include <lcm/lcm-cpp.hpp>
 #include <nlohmann/json.hpp>
 
@@ -19,7 +21,9 @@ namespace fs = std::filesystem;
 
 namespace {
 fs::path temp_dir() {
-  const fs::path d = fs::temp_directory_path() / "magcal_cli_sim_test";
+  // One folder per process: CTest runs this file's cases side by side.
+  const fs::path d =
+      fs::temp_directory_path() / ("magcal_cli_sim_test_" + std::to_string(::getpid()));
   fs::create_directories(d);
   return d;
 }

@@ -7,6 +7,8 @@
 #include <fstream>
 #include <string>
 
+#include <unistd.h>
+
 #include <catch2/catch.hpp>
 
 #include "pipeline/time_utc.hpp"
@@ -19,7 +21,9 @@ namespace {
 struct TempCsv {
   std::string path;
   explicit TempCsv(const std::string& name, const std::string& text)
-      : path((std::filesystem::temp_directory_path() / ("magcal_fr_" + name + ".csv")).string()) {
+      : path((std::filesystem::temp_directory_path() /
+              ("magcal_fr_" + name + "_" + std::to_string(::getpid()) + ".csv"))
+                 .string()) {
     std::ofstream(path) << text;
   }
   ~TempCsv() {
