@@ -80,6 +80,18 @@ Scenario paper_scenario(uint64_t seed, double hours) {
   return sc;
 }
 
+// PostgreSQL: a transaction that stores a refit result commits synchronously (a trigger sets
+// synchronous_commit), so with an absent synchronous standby its COMMIT waits for good; the job
+// claim before it does not.
+void hold_result_commits(storage::Connection& db) {
+  db.exec(
+      "CREATE FUNCTION hold_commit() RETURNS trigger AS $$ BEGIN "
+      "PERFORM set_config('synchronous_commit', 'on', true); RETURN NEW; END $$ "
+      "LANGUAGE plpgsql; "
+      "CREATE TRIGGER hold_commit BEFORE INSERT ON calibrations "
+      "FOR EACH ROW EXECUTE FUNCTION hold_commit();");
+}
+
 }  // namespace
 
 TEST_CASE("refits: the short first window is no reference, every full-window refit is accepted") {
@@ -482,14 +494,7 @@ TEST_CASE("a refit whose COMMIT gets no reply is not run twice: the retry finds 
   const auto observer = backend.open_again();  // (its sessions' commits never wait: it reads)
   const auto jobs = observer->make_refit_job_log();
 
-  // Only a transaction that stores a result waits for the standby (the claim before it does
-  // not): the trigger makes its commit synchronous.
-  db->exec(
-      "CREATE FUNCTION hold_commit() RETURNS trigger AS $$ BEGIN "
-      "PERFORM set_config('synchronous_commit', 'on', true); RETURN NEW; END $$ "
-      "LANGUAGE plpgsql; "
-      "CREATE TRIGGER hold_commit BEFORE INSERT ON calibrations "
-      "FOR EACH ROW EXECUTE FUNCTION hold_commit();");
+  hold_result_commits(*db);
   test::set_absent_synchronous_standby(uri, true);
   std::thread terminator;
   if (terminated) {
@@ -559,12 +564,7 @@ TEST_CASE("a manual refit whose COMMIT gets no reply leaves no job running when 
   RefitRunner runner(config, *db);
   const auto observer = backend.open_again();
   const auto jobs = observer->make_refit_job_log();
-  db->exec(
-      "CREATE FUNCTION hold_commit() RETURNS trigger AS $$ BEGIN "
-      "PERFORM set_config('synchronous_commit', 'on', true); RETURN NEW; END $$ "
-      "LANGUAGE plpgsql; "
-      "CREATE TRIGGER hold_commit BEFORE INSERT ON calibrations "
-      "FOR EACH ROW EXECUTE FUNCTION hold_commit();");
+  hold_result_commits(*db);
   test::set_absent_synchronous_standby(uri, true);
   const RefitOutcome held = runner.run("PAPER-1", t_ref, "manual", t_ref);
   REQUIRE(held.kind == RefitOutcome::Kind::kError);
