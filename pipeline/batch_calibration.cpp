@@ -19,6 +19,7 @@
 #include "pipeline/ellipsoid_fit.hpp"
 #include "pipeline/lm_refinement.hpp"
 #include "pipeline/model_extension.hpp"
+#include "pipeline/orbit_synchronous_bias.hpp"
 #include "pipeline/parameter_recovery.hpp"
 #include "pipeline/temperature_model.hpp"
 
@@ -680,6 +681,19 @@ void bias_variability_evidence(const SampleSet& samples, const BatchCalibrationO
   r->covariance.diagonal().head<3>() += r->bias_variability_nT2;
 }
 
+// Without a temperature channel, the bias may swing with the orbit unseen by the residuals and
+// the blocks (pipeline/orbit_synchronous_bias.hpp): the current bias's variance about the
+// published bias, where it exceeds the blocks' measure, into the covariance and the model error.
+void orbit_synchronous_swing_evidence(const SampleSet& samples,
+                                      const BatchCalibrationOptions& options,
+                                      CalibrationResult* r) {
+  const UnresolvedBiasSwing swing =
+      unresolved_orbit_synchronous_bias_swing(samples, *r, options.sigma_nT);
+  const Eigen::Vector3d added = (swing.variance_nT2 - r->bias_variability_nT2).cwiseMax(0.0);
+  r->bias_variability_nT2 += added;
+  r->covariance.diagonal().head<3>() += added;
+}
+
 // One fit of the samples; temperature: the temperature model is a candidate, about its mean.
 // bias_rate: the samples' temperature_C is the time before the window's end
 // (with_hours_before_window_end()), and a temperature model taken (only where significant) is
@@ -688,7 +702,7 @@ CalibrationResult calibrate_batch_window(const SampleSet& samples,
                                          const BatchCalibrationOptions& options,
                                          const CalibrationResult* previous_accepted,
                                          const TemperatureSpread* temperature,
-                                         bool bias_rate = false) {
+                                         bool no_temperature_channel, bool bias_rate = false) {
   CalibrationResult r;
   r.method = to_string(options.method);
   r.n_samples = static_cast<int>(samples.size());
@@ -744,6 +758,9 @@ CalibrationResult calibrate_batch_window(const SampleSet& samples,
   residual_evidence(corrected, options, &r, &gate_inputs);
   if (options.method == BatchCalibrationOptions::Method::kTwoStep && options.bias_variability) {
     bias_variability_evidence(corrected, options, &r);
+    if (no_temperature_channel && options.orbit_synchronous_swing) {
+      orbit_synchronous_swing_evidence(corrected, options, &r);
+    }
   }
 
   const CrlbResult crlb = compute_crlb(corrected, r.parameters, options.sigma_nT);
@@ -786,11 +803,14 @@ CalibrationResult calibrate_batch_window(const SampleSet& samples,
 CalibrationResult calibrate_batch_core(const SampleSet& samples,
                                        const BatchCalibrationOptions& options,
                                        const CalibrationResult* previous_accepted) {
+  const bool no_temperature_channel =
+      std::none_of(samples.begin(), samples.end(),
+                   [](const CalibrationSample& s) { return std::isfinite(s.temperature_C); });
   if (options.temperature_model) {
     const TemperatureSpread spread = temperature_spread(samples);
     if (temperature_model_unusable(spread, static_cast<int>(samples.size())).empty()) {
       if (spread.n_with_temperature == static_cast<int>(samples.size())) {
-        return calibrate_batch_window(samples, options, previous_accepted, &spread);
+        return calibrate_batch_window(samples, options, previous_accepted, &spread, false);
       }
       SampleSet with_temperature;
       with_temperature.reserve(static_cast<std::size_t>(spread.n_with_temperature));
@@ -798,7 +818,7 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
         if (std::isfinite(s.temperature_C)) with_temperature.push_back(s);
       }
       CalibrationResult r =
-          calibrate_batch_window(with_temperature, options, previous_accepted, &spread);
+          calibrate_batch_window(with_temperature, options, previous_accepted, &spread, false);
       if (r.has_temperature_model) return r;
     }
   }
@@ -810,10 +830,12 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
     const SampleSet timed = with_hours_before_window_end(samples, &span_h);
     if (span_h >= kMinBiasRateWindow_h) {
       const TemperatureSpread spread = temperature_spread(timed);
-      return calibrate_batch_window(timed, options, previous_accepted, &spread, true);
+      return calibrate_batch_window(timed, options, previous_accepted, &spread,
+                                    no_temperature_channel, true);
     }
   }
-  return calibrate_batch_window(samples, options, previous_accepted, nullptr);
+  return calibrate_batch_window(samples, options, previous_accepted, nullptr,
+                                no_temperature_channel);
 }
 }  // namespace
 

@@ -73,6 +73,11 @@ struct BatchCalibrationOptions {
   // twostep: on windows of at least kMinBiasRateWindow_h, measure how far the bias moves about its
   // window average (pipeline/bias_variability.hpp) and add that variance to the covariance.
   bool bias_variability = true;
+  // twostep, where no sample carries a temperature, on windows of at least one orbit: the
+  // variance an orbit-synchronous bias swing leaves between the published and the current bias
+  // (pipeline/orbit_synchronous_bias.hpp), where it exceeds the blocks' measure above, into the
+  // covariance and bias_variability_nT2.
+  bool orbit_synchronous_swing = true;
   // Hard geometry limits (beyond them no estimate is reported: kUnobservable). The acceptance
   // gates have their own, stricter, thresholds for "computed but not trusted".
   double min_coverage_eigenvalue = 1e-4;  // smallest eigenvalue of mean(d d^T), d = B/|B|

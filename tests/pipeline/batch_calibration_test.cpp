@@ -237,11 +237,16 @@ TEST_CASE("robust refit of a cheap sensor (600 nT noise, 28 spikes up to 3 G) is
   CHECK(r.status == CalibrationStatus::kOk);
   CHECK(r.accepted);
   // 600 nT noise, 3 000 samples: the CRLB sigma is ~20 nT per axis; the error stays within
-  // 4 reported sigmas (and the sigma is honest, not inflated by the spikes: < 30 nT).
+  // 4 reported sigmas, and the sigma is not inflated by the spikes: < 30 nT before the variance
+  // an orbit-synchronous swing could leave over these 8 h without a temperature channel
+  // (pipeline/orbit_synchronous_bias.hpp: at 600 nT noise a swing of ~30 nT is not excluded).
   const Eigen::Vector3d err = r.parameters.bias_nT - p.bias_nT;
-  INFO("bias error " << err.transpose() << " sigma " << r.bias_sigma_nT().transpose());
+  const Eigen::Vector3d sigma_without_swing =
+      (r.covariance.diagonal().head<3>() - r.bias_variability_nT2).cwiseSqrt();
+  INFO("bias error " << err.transpose() << " sigma " << r.bias_sigma_nT().transpose()
+                     << ", without the swing's variance " << sigma_without_swing.transpose());
   CHECK(err.cwiseQuotient(r.bias_sigma_nT()).cwiseAbs().maxCoeff() < 4.0);
-  CHECK(r.bias_sigma_nT().maxCoeff() < 30.0);
+  CHECK(sigma_without_swing.maxCoeff() < 30.0);
   CHECK_FALSE(r.has_nonlinearity);  // white noise: BIC keeps the 9-parameter model
   CHECK(r.n_downweighted >= 20);
   CHECK(r.residual_rms_nT < 1.5 * 600.0);

@@ -13,6 +13,7 @@
 #include "pipeline/bias_variability.hpp"
 #include "pipeline/scenario.hpp"
 #include "pipeline/simulator.hpp"
+#include "tests/pipeline/orbit_swing_scenario.hpp"
 
 using namespace magcal;
 
@@ -25,12 +26,7 @@ struct SwingWindow {
 
 SwingWindow simulate_swing(const char* preset, uint64_t seed, double amplitude_nT,
                            double hours = 12.0) {
-  Scenario sc = *scenario_preset(preset);
-  sc.seed = seed;
-  sc.duration_s = hours * 3600.0;
-  sc.sensor.temperature_amplitude_C = amplitude_nT;
-  sc.sensor.temperature_coefficient_nT_per_C = Eigen::Vector3d::Ones();
-  Simulator sim(sc);
+  Simulator sim(test::orbit_swing_scenario(preset, seed, amplitude_nT, hours));
   SwingWindow w;
   SimulatedSample s;
   const BiasVariabilityOptions blocks;
@@ -69,7 +65,9 @@ SwingWindow simulate_swing(const char* preset, uint64_t seed, double amplitude_n
 TEST_CASE("Tumbling, bias swing without temperature: its block means' spread is measured") {
   for (uint64_t seed : {1, 2, 3}) {
     const SwingWindow w = simulate_swing("tumbling", seed, 10.0);
-    const CalibrationResult refit = calibrate_batch(w.samples, BatchCalibrationOptions{});
+    BatchCalibrationOptions blocks_alone;  // the swing's own estimate: orbit_synchronous_bias_test
+    blocks_alone.orbit_synchronous_swing = false;
+    const CalibrationResult refit = calibrate_batch(w.samples, blocks_alone);
     REQUIRE(refit.status == CalibrationStatus::kOk);
     const BiasVariability v = measure_bias_variability(w.samples, refit, 3.0);
     const Eigen::Vector3d excess_sd = v.excess_nT2().cwiseSqrt();
@@ -93,9 +91,11 @@ TEST_CASE("Constant bias, tumbling and nadir: no bias variability") {
     int alarms = 0;
     for (uint64_t seed : {1, 2, 3, 4, 5, 6}) {
       const SwingWindow w = simulate_swing(preset, seed, 0.0);
-      const CalibrationResult refit = calibrate_batch(w.samples, BatchCalibrationOptions{});
+      BatchCalibrationOptions blocks_alone;  // the orbit swing's term: orbit_synchronous_bias_test
+      blocks_alone.orbit_synchronous_swing = false;
+      const CalibrationResult refit = calibrate_batch(w.samples, blocks_alone);
       alarms += refit.bias_variability_nT2.any();
-      BatchCalibrationOptions without;
+      BatchCalibrationOptions without = blocks_alone;
       without.bias_variability = false;
       const CalibrationResult plain = calibrate_batch(w.samples, without);
       CHECK(plain.parameters.bias_nT == refit.parameters.bias_nT);

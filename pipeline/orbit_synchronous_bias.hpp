@@ -1,0 +1,60 @@
+// How far the current bias can be from a fit's constant bias when the sensor reports no
+// temperature (issue 20): a thermal bias swing that follows the orbit (eclipse, sun angle) is a
+// first harmonic of the orbital period, b(t) = b + c cos(w t) + s sin(w t). In a nadir-pointed
+// attitude the body-frame field is itself a first harmonic of the orbit on two axes (for a
+// dipole: along-track ~ cos u, radial ~ 2 sin u), so such a swing is almost exactly a change of D
+// and the 9-parameter fit absorbs it: the residuals show nothing (bias_variability.hpp sees a
+// +-10 nT nadir swing in 1 of 4 12 h windows) and the fit's bias sigma says nothing of it. Where
+// a temperature channel exists the temperature model bounds the swing; without one, only the
+// geometry can: this is the consider term of the swing the window's geometry cannot separate
+// from the 9 parameters.
+//
+// For every period of a LEO orbit in [min_period_s, max_period_s] (the orbit is not known to the
+// fit), the information of the augmented problem [b, D, c, s] (15 parameters, the scalar
+// measurement of estimation.md 2 with the swing's columns dz/dc = dz/db cos(w t), dz/ds =
+// dz/db sin(w t)) with a Gaussian prior of prior_amplitude_nT on each swing coefficient gives
+// the posterior mean of the swing (one Gauss-Newton step from the fit) and the expected squared
+// distance of the current bias b(t), averaged over the orbit phase, from the published bias:
+//   V = (b_pub - b^)^2 + P_bb + (c^2 + s^2 + P_cc + P_ss) / 2   (per axis; cross terms average
+// out; c^2 + P_cc is c's posterior mean square), and the variance the swing adds, V - P_bb
+// without the swing, averaged over the periods weighted by their marginal likelihood.
+// Tumbling geometry separates the swing: a few nT^2 at the paper noise; nadir does not: the
+// prior comes back. The noise is the fit's (sigma x noise scale, with the AR(1) factor of its
+// residuals' lag-1 autocorrelation), as bias_variability.hpp weighs its blocks.
+#pragma once
+
+#include <Eigen/Core>
+
+#include "pipeline/calibration_result.hpp"
+#include "pipeline/calibration_types.hpp"
+
+namespace magcal {
+
+struct OrbitSynchronousBiasOptions {
+  double min_period_s = 85.0 * 60.0;   // a 200 km orbit: 88 min
+  double max_period_s = 130.0 * 60.0;  // a 2 000 km orbit: 127 min
+  // Prior 1-sigma of each swing coefficient (c_i, s_i): a +-30 nT swing is the issue's plausible
+  // worst case (2 nT/degC over +-15 degC); what no data constrain comes back at this size.
+  double prior_amplitude_nT = 30.0;
+};
+
+struct UnresolvedBiasSwing {
+  Eigen::Vector3d variance_nT2 = Eigen::Vector3d::Zero();  // added to the bias's, per axis
+  // The most probable period, its posterior probability, and the swing estimated there per axis
+  // (sqrt(c^2 + s^2), nT) with its 1-sigma (the rms of c's and s's).
+  double period_s = 0.0;
+  double period_probability = 0.0;
+  Eigen::Vector3d amplitude_nT = Eigen::Vector3d::Zero();
+  Eigen::Vector3d amplitude_sigma_nT = Eigen::Vector3d::Zero();
+  int periods_tried = 0;  // 0: not computed (see below)
+};
+
+// samples in any order (utime); fit: the refit whose b, D, noise scale and residual lag-1
+// autocorrelation describe them. Nothing is computed (periods_tried = 0) for a window shorter than
+// max_period_s (a fragment or a bench capture: an orbit's swing is not considered there) or
+// without a finite Fisher information.
+UnresolvedBiasSwing unresolved_orbit_synchronous_bias_swing(
+    const SampleSet& samples, const CalibrationResult& fit, double sigma_nT,
+    const OrbitSynchronousBiasOptions& options = {});
+
+}  // namespace magcal
