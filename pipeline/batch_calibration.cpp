@@ -687,9 +687,9 @@ void bias_variability_evidence(const SampleSet& samples, const BatchCalibrationO
 void orbit_synchronous_swing_evidence(const SampleSet& samples,
                                       const BatchCalibrationOptions& options,
                                       CalibrationResult* r) {
-  const UnresolvedBiasSwing swing =
-      unresolved_orbit_synchronous_bias_swing(samples, *r, options.sigma_nT);
-  const Eigen::Vector3d added = (swing.variance_nT2 - r->bias_variability_nT2).cwiseMax(0.0);
+  r->orbit_swing = unresolved_orbit_synchronous_bias_swing(samples, *r, options.sigma_nT);
+  const Eigen::Vector3d added =
+      (r->orbit_swing.variance_nT2 - r->bias_variability_nT2).cwiseMax(0.0);
   r->bias_variability_nT2 += added;
   r->covariance.diagonal().head<3>() += added;
 }

@@ -39,6 +39,21 @@ struct AlignmentEstimate {
   double residual_fraction = 0.0;
 };
 
+// What a refit without a temperature channel estimated of a bias swing at the orbital period
+// (pipeline/orbit_synchronous_bias.hpp).
+struct UnresolvedBiasSwing {
+  // The expected squared distance of the current bias from the published one that the swing
+  // adds, averaged over the orbit phase and the periods, nT^2 per axis.
+  Eigen::Vector3d variance_nT2 = Eigen::Vector3d::Zero();
+  // The most probable period, its posterior probability, and the swing estimated there per axis
+  // (sqrt(c^2 + s^2), nT) with its 1-sigma (the rms of c's and s's).
+  double period_s = 0.0;
+  double period_probability = 0.0;
+  Eigen::Vector3d amplitude_nT = Eigen::Vector3d::Zero();
+  Eigen::Vector3d amplitude_sigma_nT = Eigen::Vector3d::Zero();
+  int periods_tried = 0;  // 0: not computed
+};
+
 struct CalibrationResult {
   std::string method;  // "centered", "twostep", "ekf", "ukf"
   int64_t utime = 0;   // time the estimate refers to
@@ -118,6 +133,11 @@ struct CalibrationResult {
     m.diagonal().head<3>() += bias_variability_nT2;
     return m;
   }
+  // Twostep refits of a window without any temperature: the orbit-synchronous bias swing
+  // estimated with it (pipeline/orbit_synchronous_bias.hpp); its variance_nT2 is in
+  // bias_variability_nT2 where larger than the blocks'. periods_tried 0: not computed. Not
+  // persisted.
+  UnresolvedBiasSwing orbit_swing;
   // Batch refits whose estimator bias was measured (bootstrap, pipeline/batch_calibration.hpp)
   // and removed from `parameters`: that bias. Zero otherwise. Not persisted.
   Vector9d estimator_bias = Vector9d::Zero();

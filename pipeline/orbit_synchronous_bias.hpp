@@ -42,17 +42,6 @@ struct OrbitSynchronousBiasOptions {
   double prior_amplitude_nT = 30.0;
 };
 
-struct UnresolvedBiasSwing {
-  Eigen::Vector3d variance_nT2 = Eigen::Vector3d::Zero();  // added to the bias's, per axis
-  // The most probable period, its posterior probability, and the swing estimated there per axis
-  // (sqrt(c^2 + s^2), nT) with its 1-sigma (the rms of c's and s's).
-  double period_s = 0.0;
-  double period_probability = 0.0;
-  Eigen::Vector3d amplitude_nT = Eigen::Vector3d::Zero();
-  Eigen::Vector3d amplitude_sigma_nT = Eigen::Vector3d::Zero();
-  int periods_tried = 0;  // 0: not computed (see below)
-};
-
 // samples in any order (utime); fit: the refit whose b, D, noise scale and residual lag-1
 // autocorrelation describe them. Nothing is computed (periods_tried = 0) for a window shorter than
 // max_period_s (a fragment or a bench capture: an orbit's swing is not considered there) or

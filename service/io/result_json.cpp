@@ -100,6 +100,17 @@ nlohmann::json calibration_result_to_json(const CalibrationResult& result,
   else
     j["covariance_lag_window"] = nullptr;
   j["residual_rms_all_nT"] = json_number(result.residual_rms_all_nT);
+  // The bias's variance about its window average (in `covariance`), and what a refit without a
+  // temperature channel estimated of a swing with the orbit.
+  j["bias_variability_nT2"] = json_vector(result.bias_variability_nT2);
+  if (result.orbit_swing.periods_tried > 0) {
+    const UnresolvedBiasSwing& w = result.orbit_swing;
+    j["orbit_swing"] = {{"period_min", json_number(w.period_s / 60.0)},
+                        {"period_probability", json_number(w.period_probability)},
+                        {"amplitude_nT", json_vector(w.amplitude_nT)},
+                        {"amplitude_sigma_nT", json_vector(w.amplitude_sigma_nT)},
+                        {"variance_nT2", json_vector(w.variance_nT2)}};
+  }
   if (result.has_nonlinearity) {
     j["nonlinearity_k3"] = json_vector(result.nonlinearity_k3);  // of k_i y_i^2, 1/nT
     j["hysteresis_nT"] = json_vector(result.hysteresis_nT);

@@ -235,37 +235,52 @@ TEST_CASE("fit on thermal data (CSV temperature_C, LCM temperature_C): the tempe
   std::filesystem::remove(truth);
 }
 
+// `magcal sim` of 12 h of `base` with an orbit-synchronous temperature of +-amplitude_C about
+// 20 degC and the bias temperature coefficients k_nT_per_C ("kx, ky, kz"), as a CSV.
+std::filesystem::path simulate_thermal_csv(const std::string& name, const char* base, int seed,
+                                           const char* k_nT_per_C, double amplitude_C) {
+  const auto toml = temp_path(name + ".toml");
+  {
+    std::ofstream f(toml);
+    f << "base = \"" << base << "\"\nduration_h = 12\nseed = " << seed << "\n[sensor]\n"
+      << "temperature_coefficient_nT_per_C = [" << k_nT_per_C << "]\nreference_temperature_C = 20\n"
+      << "[temperature]\nmean_C = 20\namplitude_C = " << amplitude_C << "\nperiod_s = 0\n";
+  }
+  const auto csv = temp_path(name + "_full.csv");
+  REQUIRE(run_magcal("sim --scenario " + toml.string() + " --out " + csv.string()).exit_code == 0);
+  std::filesystem::remove(toml);
+  return csv;
+}
+
+// Copies a sample CSV with the temperature_C field of the rows where blank(row) is true emptied
+// (unknown).
+template <class Blank>
+void blank_temperatures(const std::filesystem::path& from, const std::filesystem::path& to,
+                        Blank blank) {
+  std::ifstream in(from);
+  std::ofstream out(to);
+  std::string line;
+  REQUIRE(std::getline(in, line));
+  const size_t column = static_cast<size_t>(std::count(
+      line.begin(), line.begin() + static_cast<std::ptrdiff_t>(line.find("temperature_C")), ','));
+  out << line << "\n";
+  for (int row = 0; std::getline(in, line); ++row) {
+    if (blank(row)) {
+      size_t start = 0;
+      for (size_t c = 0; c < column; ++c) start = line.find(',', start) + 1;
+      const size_t end = line.find(',', start);
+      line.erase(start, end == std::string::npos ? std::string::npos : end - start);
+    }
+    out << line << "\n";
+  }
+}
+
 TEST_CASE("fit: temperatures too sparse for the model are named on stderr", "[cli][fit]") {
   // The thermal data above with the temperature of 3 rows in 5 blanked: the model is not tried
   // (at least half the samples must carry one), and a thermal bias stays in the fit, so say so.
-  const auto toml = temp_path("sparse_thermal.toml");
-  {
-    std::ofstream f(toml);
-    f << "base = \"paper\"\nduration_h = 12\nseed = 7\n[sensor]\n"
-         "temperature_coefficient_nT_per_C = [1.0, -0.8, 1.2]\nreference_temperature_C = 20\n"
-         "[temperature]\nmean_C = 20\namplitude_C = 15\nperiod_s = 0\n";
-  }
-  const auto full = temp_path("sparse_full.csv");
-  REQUIRE(run_magcal("sim --scenario " + toml.string() + " --out " + full.string()).exit_code == 0);
+  const auto full = simulate_thermal_csv("sparse", "paper", 7, "1.0, -0.8, 1.2", 15.0);
   const auto sparse = temp_path("sparse.csv");
-  {
-    std::ifstream in(full);
-    std::ofstream out(sparse);
-    std::string line;
-    REQUIRE(std::getline(in, line));
-    const size_t column = static_cast<size_t>(std::count(
-        line.begin(), line.begin() + static_cast<std::ptrdiff_t>(line.find("temperature_C")), ','));
-    out << line << "\n";
-    for (int row = 0; std::getline(in, line); ++row) {
-      if (row % 5 < 3) {  // blank this row's temperature_C field
-        size_t start = 0;
-        for (size_t c = 0; c < column; ++c) start = line.find(',', start) + 1;
-        const size_t end = line.find(',', start);
-        line.erase(start, end == std::string::npos ? std::string::npos : end - start);
-      }
-      out << line << "\n";
-    }
-  }
+  blank_temperatures(full, sparse, [](int row) { return row % 5 < 3; });
   const Run r = run_magcal("fit --input " + sparse.string() + " --method twostep --json");
   INFO(r.err);
   REQUIRE(r.exit_code == 0);
@@ -276,7 +291,42 @@ TEST_CASE("fit: temperatures too sparse for the model are named on stderr", "[cl
   const Run whole = run_magcal("fit --input " + full.string() + " --method twostep --json");
   REQUIRE(whole.exit_code == 0);
   CHECK(whole.err.find("unmodelled") == std::string::npos);
-  for (const auto& f : {toml, full, sparse}) std::filesystem::remove(f);
+  for (const auto& f : {full, sparse}) std::filesystem::remove(f);
+}
+
+TEST_CASE("fit without any temperature: the orbit swing it estimated is reported", "[cli][fit]") {
+  // A tumbling spacecraft whose bias swings +-10 nT with the orbit (1 nT/degC, +-10 degC), its
+  // temperature blanked in every row: the refit estimates the swing and says so.
+  const auto full = simulate_thermal_csv("swing", "tumbling", 2, "1.0, 1.0, 1.0", 10.0);
+  const auto blind = temp_path("swing_blind.csv");
+  blank_temperatures(full, blind, [](int) { return true; });
+  const Run r = run_magcal("fit --input " + blind.string() + " --method twostep --json");
+  INFO(r.err);
+  REQUIRE(r.exit_code == 0);
+  const nlohmann::json j = nlohmann::json::parse(r.out);
+  REQUIRE(j.contains("orbit_swing"));
+  const nlohmann::json& w = j["orbit_swing"];
+  INFO(w.dump());
+  CHECK(w["period_probability"].get<double>() > 0.5);
+  CHECK(w["period_min"].get<double>() > 85.0);
+  CHECK(w["period_min"].get<double>() < 130.0);
+  for (int i = 0; i < 3; ++i) {
+    CHECK(std::abs(w["amplitude_nT"][i].get<double>() - 10.0) <=
+          3.0 * w["amplitude_sigma_nT"][i].get<double>());
+    // In the published sigma: at least the swing's rms about the mean, 10 / sqrt(2) nT.
+    CHECK(j["bias_sigma_nT"][i].get<double>() > 6.0);
+    CHECK(j["bias_variability_nT2"][i].get<double>() >= w["variance_nT2"][i].get<double>() - 1e-9);
+  }
+  const Run text = run_magcal("fit --input " + blind.string() + " --method twostep");
+  REQUIRE(text.exit_code == 0);
+  CHECK(text.out.find("orbit_swing_nT") != std::string::npos);
+  // With the temperatures the temperature model takes it instead: no swing term.
+  const Run known = run_magcal("fit --input " + full.string() + " --method twostep --json");
+  REQUIRE(known.exit_code == 0);
+  const nlohmann::json k = nlohmann::json::parse(known.out);
+  CHECK_FALSE(k.contains("orbit_swing"));
+  CHECK(k.contains("temperature_coefficient_nT_per_C"));
+  for (const auto& f : {full, blind}) std::filesystem::remove(f);
 }
 
 TEST_CASE("fit --robust reports down-weighted samples", "[cli][fit]") {
