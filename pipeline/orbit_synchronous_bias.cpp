@@ -84,6 +84,13 @@ UnresolvedBiasSwing unresolved_orbit_synchronous_bias_swing(
   F_model = F_model.selfadjointView<Eigen::Lower>();
   ModelMatrix P_model;
   if (!invert_information<kModel>(F_model, &P_model)) return out;
+  // The model's own Gauss-Newton step: not zero where the published parameters are not the
+  // least-squares optimum (the estimator-bias correction moved them); only what the swing adds to
+  // it counts below.
+  Eigen::Matrix<double, kModel, 1> model_gradient = Eigen::Matrix<double, kModel, 1>::Zero();
+  for (std::size_t k = 0; k < rows.size(); ++k)
+    model_gradient += rows[k].transpose() * residuals[k];
+  const Eigen::Matrix<double, kModel, 1> model_step = P_model * model_gradient;
 
   // Frequencies 1/16 of a cycle over the window apart. In nadir the estimate is that sensitive
   // to the period: the separation rests on small departures of the field from a first harmonic
@@ -112,9 +119,9 @@ UnresolvedBiasSwing unresolved_orbit_synchronous_bias_swing(
           rows[k].head<3>().transpose() * std::sin(omega * t_s[k]);
       cross.noalias() += rows[k].transpose() * g.transpose();
       swing.selfadjointView<Eigen::Lower>().rankUpdate(g);
-      gradient.head<kModel>() += rows[k].transpose() * residuals[k];
       gradient.tail<6>() += g * residuals[k];
     }
+    gradient.head<kModel>() = model_gradient;
     F.topRightCorner<kModel, 6>() = cross;
     F.bottomLeftCorner<6, kModel>() = cross.transpose();
     F.bottomRightCorner<6, 6>() = swing.selfadjointView<Eigen::Lower>();
@@ -133,7 +140,8 @@ UnresolvedBiasSwing unresolved_orbit_synchronous_bias_swing(
     period.log_weight = 0.5 * g.dot(P_gg.solve(g)) + 0.5 * P_gg.vectorD().array().log().sum();
     for (int a = 0; a < 3; ++a) {
       const int ci = kModel + a, si = kModel + 3 + a;
-      period.added_nT2(a) = step(a) * step(a) + P(a, a) - P_model(a, a) +
+      const double shift = step(a) - model_step(a);  // of b, by the swing
+      period.added_nT2(a) = shift * shift + P(a, a) - P_model(a, a) +
                             0.5 * (g(a) * g(a) + g(3 + a) * g(3 + a) + P(ci, ci) + P(si, si));
       period.amplitude_nT(a) = std::hypot(g(a), g(3 + a));
       period.amplitude_sigma_nT(a) = std::sqrt(0.5 * (P(ci, ci) + P(si, si)));

@@ -490,8 +490,11 @@ TEST_CASE(
 // it jointly with b, D and the extension at every LEO period and publish the variance it leaves
 // (pipeline/orbit_synchronous_bias.hpp). Before: 218 ok snapshots, 47 / 106 / 113 beyond 3 sigma
 // per axis, worst 19.5. Bar: none beyond 4 sigma, x and z at most 1 % beyond 3; y (the orbit
-// normal, the axis the swing hides best on) is reported, not asserted: 7 of 144 beyond 3 sigma,
-// all within 3.6.
+// normal, the axis the swing hides best on) is reported, not asserted: 7 of 143 beyond 3 sigma,
+// all within 3.6, at 15-19 h, where the UKF has wandered 15-20 nT on y from the 11 h refit it was
+// re-anchored on. Measured and not kept: no ok while the filter is more than 3 of the anchor
+// refit's sigmas from it (the misses are 2.5 from it at most; filters following a drift through
+// their refits' rate are up to 16-19 from it while honest).
 TEST_CASE(
     "Nadir, orbit-synchronous bias swing without temperature, daemon refits: ok within "
     "4 sigma") {
@@ -523,7 +526,7 @@ TEST_CASE(
 // also estimate a first-harmonic swing at every LEO period (pipeline/orbit_synchronous_bias.hpp).
 // Measured (UKF with the refits, ok beyond 3 sigma per axis, worst): tumbling +-10 nT 0 / 0 / 0
 // of 258, 1.7 (the blocks alone: 0 / 3 / 0 of 340, 3.3; neither: 60 / 130 / 0, 5.4); paper +-10 nT
-// 0 / 7 / 0 of 144, 3.5 (the blocks alone: 47 / 106 / 113 of 218, 19.5), +-5 nT 0 / 0 / 0 of 181,
+// 0 / 7 / 0 of 143, 3.5 (the blocks alone: 47 / 106 / 113 of 218, 19.5), +-5 nT 0 / 0 / 0 of 181,
 // 2.7 (14 / 0 / 25 of 234, 13.8), constant bias 0 / 0 / 0 of 208, 1.9 (241 ok before: the swing
 // that nadir data cannot exclude widens the sigmas). The library filters, without refits, are
 // unchanged: paper +-10 nT 76 / 2 / 84 of 154, 7.0.
