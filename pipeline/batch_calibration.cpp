@@ -702,7 +702,7 @@ CalibrationResult calibrate_batch_window(const SampleSet& samples,
                                          const BatchCalibrationOptions& options,
                                          const CalibrationResult* previous_accepted,
                                          const TemperatureSpread* temperature,
-                                         bool no_temperature_channel, bool bias_rate = false) {
+                                         bool temperatures_too_few, bool bias_rate = false) {
   CalibrationResult r;
   r.method = to_string(options.method);
   r.n_samples = static_cast<int>(samples.size());
@@ -758,7 +758,7 @@ CalibrationResult calibrate_batch_window(const SampleSet& samples,
   residual_evidence(corrected, options, &r, &gate_inputs);
   if (options.method == BatchCalibrationOptions::Method::kTwoStep && options.bias_variability) {
     bias_variability_evidence(corrected, options, &r);
-    if (no_temperature_channel && options.orbit_synchronous_swing) {
+    if (temperatures_too_few && options.orbit_synchronous_swing) {
       orbit_synchronous_swing_evidence(corrected, options, &r);
     }
   }
@@ -803,11 +803,11 @@ CalibrationResult calibrate_batch_window(const SampleSet& samples,
 CalibrationResult calibrate_batch_core(const SampleSet& samples,
                                        const BatchCalibrationOptions& options,
                                        const CalibrationResult* previous_accepted) {
-  const bool no_temperature_channel =
-      std::none_of(samples.begin(), samples.end(),
-                   [](const CalibrationSample& s) { return std::isfinite(s.temperature_C); });
+  // Without enough temperatures (none, or a sparse housekeeping rate) neither the temperature
+  // model nor a constant temperature rules out a bias swinging with the orbit.
+  const TemperatureSpread spread = temperature_spread(samples);
+  const bool temperatures_too_few = too_few_temperatures(spread, static_cast<int>(samples.size()));
   if (options.temperature_model) {
-    const TemperatureSpread spread = temperature_spread(samples);
     if (temperature_model_unusable(spread, static_cast<int>(samples.size())).empty()) {
       if (spread.n_with_temperature == static_cast<int>(samples.size())) {
         return calibrate_batch_window(samples, options, previous_accepted, &spread, false);
@@ -829,13 +829,12 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
     double span_h = 0.0;
     const SampleSet timed = with_hours_before_window_end(samples, &span_h);
     if (span_h >= kMinBiasRateWindow_h) {
-      const TemperatureSpread spread = temperature_spread(timed);
-      return calibrate_batch_window(timed, options, previous_accepted, &spread,
-                                    no_temperature_channel, true);
+      const TemperatureSpread timed_spread = temperature_spread(timed);
+      return calibrate_batch_window(timed, options, previous_accepted, &timed_spread,
+                                    temperatures_too_few, true);
     }
   }
-  return calibrate_batch_window(samples, options, previous_accepted, nullptr,
-                                no_temperature_channel);
+  return calibrate_batch_window(samples, options, previous_accepted, nullptr, temperatures_too_few);
 }
 }  // namespace
 

@@ -73,7 +73,8 @@ struct BatchCalibrationOptions {
   // twostep: on windows of at least kMinBiasRateWindow_h, measure how far the bias moves about its
   // window average (pipeline/bias_variability.hpp) and add that variance to the covariance.
   bool bias_variability = true;
-  // twostep, where no sample carries a temperature, on windows of at least one orbit: the
+  // twostep, where too few samples carry a temperature (too_few_temperatures(): none, or a sparse
+  // housekeeping rate), on windows of at least one orbit: the
   // variance an orbit-synchronous bias swing leaves between the published and the current bias
   // (pipeline/orbit_synchronous_bias.hpp), where it exceeds the blocks' measure above, into the
   // covariance and bias_variability_nT2.

@@ -52,6 +52,11 @@ struct UnresolvedBiasSwing {
   Eigen::Vector3d amplitude_nT = Eigen::Vector3d::Zero();
   Eigen::Vector3d amplitude_sigma_nT = Eigen::Vector3d::Zero();
   int periods_tried = 0;  // 0: not computed
+  // Some axis's swing beyond 3 of its sigmas at the most probable period: a swing seen, not only
+  // one the data cannot exclude (variance_nT2 holds either).
+  bool detected() const {
+    return periods_tried > 0 && (amplitude_nT.array() > 3.0 * amplitude_sigma_nT.array()).any();
+  }
 };
 
 struct CalibrationResult {
@@ -133,7 +138,7 @@ struct CalibrationResult {
     m.diagonal().head<3>() += bias_variability_nT2;
     return m;
   }
-  // Twostep refits of a window without any temperature: the orbit-synchronous bias swing
+  // Twostep refits of a window with too few temperatures: the orbit-synchronous bias swing
   // estimated with it (pipeline/orbit_synchronous_bias.hpp); its variance_nT2 is in
   // bias_variability_nT2 where larger than the blocks'. periods_tried 0: not computed. Not
   // persisted.

@@ -34,6 +34,9 @@ struct Scenario {
   // Knowledge errors on what the spacecraft reports (off = 0).
   double attitude_noise_deg = 0.0;  // 1-sigma per axis, small rotation on the reported q
   double gnss_noise_m = 0.0;        // 1-sigma per ECEF axis on the reported position
+  // false: a sensor without a temperature channel (the samples' temperature is NaN: unknown); the
+  // truth's temperature still drives the bias temperature coefficient.
+  bool temperature_reported = true;
 
   // Number of samples: floor(duration / period) + 1 would double-count the end; we use
   // samples at t = k * period for k = 0 .. floor(duration / period) - 1 (12 h @ 10 s = 4320).

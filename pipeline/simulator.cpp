@@ -2,6 +2,7 @@
 
 #include <cassert>
 #include <cmath>
+#include <limits>
 
 #include "pipeline/rotation.hpp"
 #include "pipeline/time_utc.hpp"
@@ -30,7 +31,7 @@ CalibrationSample SimulatedSample::calibration_sample() const {
   s.b_sensor_nT = b_sensor_nT;
   s.h_body_nT = h_body_reported_nT;
   s.has_reference_direction = true;
-  s.temperature_C = temperature_C;
+  s.temperature_C = temperature_reported_C;
   return s;
 }
 
@@ -78,6 +79,8 @@ bool Simulator::next(SimulatedSample* out) {
   const Eigen::Matrix3d A = dcm_from_quaternion(s.q_body_from_eci);
   s.h_body_nT = A * s.h_eci_nT;
   s.temperature_C = sensor_.temperature_C(t_s);
+  s.temperature_reported_C =
+      scenario_.temperature_reported ? s.temperature_C : std::numeric_limits<double>::quiet_NaN();
   s.b_sensor_nT = sensor_.measure(s.h_body_nT, t_s, sensor_noise_);
 
   // Reported knowledge.
@@ -141,6 +144,8 @@ TruthParameters Simulator::truth() const {
   t.temperature_mean_C = p.temperature_mean_C;
   t.temperature_amplitude_C = p.temperature_amplitude_C;
   t.temperature_period_s = p.temperature_period_s;
+  t.temperature_phase_deg = p.temperature_phase_deg;
+  t.temperature_reported = scenario_.temperature_reported;
   t.attitude_noise_deg = scenario_.attitude_noise_deg;
   t.gnss_noise_m = scenario_.gnss_noise_m;
   return t;

@@ -41,7 +41,8 @@ struct SimulatedSample {
   QuaternionWxyz q_body_from_eci_reported = QuaternionWxyz(1, 0, 0, 0);
   Eigen::Vector3d r_ecef_reported_m = Eigen::Vector3d::Zero();
   Eigen::Vector3d h_body_reported_nT = Eigen::Vector3d::Zero();  // IGRF from reported r, q
-  double temperature_C = 0.0;
+  double temperature_C = 0.0;                                    // true sensor temperature
+  double temperature_reported_C = 0.0;  // what the sample carries: NaN without a channel
 
   // The estimators' view: B and the reported reference field (with direction).
   CalibrationSample calibration_sample() const;
@@ -69,6 +70,8 @@ struct TruthParameters {
   double reference_temperature_C = 0.0;
   Eigen::Vector3d drift_nT_per_day = Eigen::Vector3d::Zero();
   double temperature_mean_C = 0.0, temperature_amplitude_C = 0.0, temperature_period_s = 0.0;
+  double temperature_phase_deg = 0.0;  // T(t) = mean + amplitude sin(2 pi t / period + phase)
+  bool temperature_reported = true;    // false: the samples carry no temperature
   double attitude_noise_deg = 0.0;
   double gnss_noise_m = 0.0;
 };

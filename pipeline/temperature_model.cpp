@@ -50,10 +50,14 @@ CalibrationResult at_temperature(CalibrationResult result, double temperature_C)
   return result;
 }
 
+bool too_few_temperatures(const TemperatureSpread& spread, int n_samples) {
+  return spread.n_with_temperature < kMinTemperatureSamples ||
+         spread.n_with_temperature < kMinTemperatureSampleFraction * n_samples;
+}
+
 std::string temperature_model_unusable(const TemperatureSpread& spread, int n_samples) {
   char buf[160];
-  if (spread.n_with_temperature < kMinTemperatureSamples ||
-      spread.n_with_temperature < kMinTemperatureSampleFraction * n_samples) {
+  if (too_few_temperatures(spread, n_samples)) {
     std::snprintf(buf, sizeof buf, "%d of %d samples carry a temperature",
                   spread.n_with_temperature, n_samples);
     return buf;

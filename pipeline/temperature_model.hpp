@@ -58,6 +58,11 @@ TemperatureSpread temperature_spread(const SampleSet& samples);
 // The mean temperature of the samples that carry one, degC; NaN when none does. A window's T0.
 double mean_temperature_C(const SampleSet& samples);
 
+// Too few samples carry a temperature for the temperature model (or a constant temperature) to
+// tell anything of the bias's thermal motion: fewer than kMinTemperatureSamples or than
+// kMinTemperatureSampleFraction of n_samples.
+bool too_few_temperatures(const TemperatureSpread& spread, int n_samples);
+
 // Empty when the temperature model is a candidate for these samples, else why not.
 std::string temperature_model_unusable(const TemperatureSpread& spread, int n_samples);
 

@@ -250,9 +250,12 @@ void print_text(const CalibrationResult& r, double compute_ms, double convergenc
   }
   if (r.orbit_swing.periods_tried > 0) {  // no temperature channel: a swing with the orbit?
     const UnresolvedBiasSwing& w = r.orbit_swing;
-    line("orbit_swing_nT", fmt::format("{:12.4f} {:12.4f} {:12.4f}  (at {:.2f} min, p {:.2f})",
-                                       w.amplitude_nT.x(), w.amplitude_nT.y(), w.amplitude_nT.z(),
-                                       w.period_s / 60.0, w.period_probability));
+    line(
+        "orbit_swing_nT",
+        fmt::format("{:12.4f} {:12.4f} {:12.4f}  (at {:.2f} min, p {:.2f}; {})", w.amplitude_nT.x(),
+                    w.amplitude_nT.y(), w.amplitude_nT.z(), w.period_s / 60.0, w.period_probability,
+                    w.detected() ? "detected"
+                                 : "not detected: the sigma covers what the data cannot exclude"));
     line("orbit_swing_sigma", fmt::format("{:12.4f} {:12.4f} {:12.4f}", w.amplitude_sigma_nT.x(),
                                           w.amplitude_sigma_nT.y(), w.amplitude_sigma_nT.z()));
   }

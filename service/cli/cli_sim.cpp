@@ -77,7 +77,9 @@ nlohmann::json truth_json(const Simulator& sim) {
   j["drift_nT_per_day"] = json_vec(t.drift_nT_per_day);
   j["temperature"] = {{"mean_C", t.temperature_mean_C},
                       {"amplitude_C", t.temperature_amplitude_C},
-                      {"period_s", t.temperature_period_s}};
+                      {"period_s", t.temperature_period_s},
+                      {"phase_deg", t.temperature_phase_deg},
+                      {"reported", t.temperature_reported}};
   j["attitude_noise_deg"] = t.attitude_noise_deg;
   j["gnss_noise_m"] = t.gnss_noise_m;
   return j;
@@ -97,7 +99,7 @@ mag_sample_t to_message(const SimulatedSample& s, const std::string& sat_id) {
   m.has_position = true;
   m.has_attitude = true;
   m.has_reference = true;
-  m.temperature_C = static_cast<float>(s.temperature_C);
+  m.temperature_C = static_cast<float>(s.temperature_reported_C);  // NaN: no channel
   return m;
 }
 
@@ -169,7 +171,7 @@ int run_sim(const SimArgs& args) {
       CsvSampleExtras extras;
       extras.q_body_from_eci = s.q_body_from_eci_reported;
       extras.r_ecef_m = s.r_ecef_reported_m;
-      extras.temperature_C = s.temperature_C;
+      if (std::isfinite(s.temperature_reported_C)) extras.temperature_C = s.temperature_reported_C;
       csv.write(s.calibration_sample(), extras);
     } else if (std::string e = lcm_log.write(to_message(s, scenario.sat_id)); !e.empty()) {
       return fail(e, kExitData, temps);

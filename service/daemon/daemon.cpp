@@ -370,16 +370,24 @@ struct Daemon::Impl {
                   r.utime);
       publisher->publish(message_from_result(sat, r));
       const Eigen::Vector3d sb = r.bias_sigma_nT();
-      spdlog::info(
-          "refit {}{} window {} .. {} ({} samples): {}, bias [{:.1f} {:.1f} {:.1f}] +- "
-          "[{:.1f} {:.1f} {:.1f}] nT, residual {:.2f} nT{}{}",
-          sat,
-          std::string_view(req.trigger) == "scheduled" ? "" : fmt::format(" ({})", req.trigger),
-          format_iso8601_utc(r.window_start_utime), format_iso8601_utc(r.window_end_utime),
-          r.n_samples, r.accepted ? to_string(r.status) : "rejected", r.parameters.bias_nT.x(),
-          r.parameters.bias_nT.y(), r.parameters.bias_nT.z(), sb.x(), sb.y(), sb.z(),
-          r.residual_rms_nT, r.rejection_reasons.empty() ? "" : ": ",
-          fmt::format("{}", fmt::join(r.rejection_reasons, "; ")));
+      const std::string trigger =
+          std::string_view(req.trigger) == "scheduled" ? "" : fmt::format(" ({})", req.trigger);
+      if (r.status == CalibrationStatus::kFailed ||
+          r.status == CalibrationStatus::kUnobservable) {  // no estimate, no window to show
+        spdlog::warn("refit {}{} due {} ({} samples): {}: {}", sat, trigger,
+                     format_iso8601_utc(req.scheduled_utime), r.n_samples, to_string(r.status),
+                     r.message);
+      } else {
+        spdlog::info(
+            "refit {}{} window {} .. {} ({} samples): {}, bias [{:.1f} {:.1f} {:.1f}] +- "
+            "[{:.1f} {:.1f} {:.1f}] nT, residual {:.2f} nT{}{}",
+            sat, trigger, format_iso8601_utc(r.window_start_utime),
+            format_iso8601_utc(r.window_end_utime), r.n_samples,
+            r.accepted ? to_string(r.status) : "rejected", r.parameters.bias_nT.x(),
+            r.parameters.bias_nT.y(), r.parameters.bias_nT.z(), sb.x(), sb.y(), sb.z(),
+            r.residual_rms_nT, r.rejection_reasons.empty() ? "" : ": ",
+            fmt::format("{}", fmt::join(r.rejection_reasons, "; ")));
+      }
       if (out.accepted()) {
         counters.refits_accepted.fetch_add(1);
         worker->post_reanchor(sat, r, out.calibration_id);

@@ -46,6 +46,8 @@ const char* to_string(RejectReason r) {
       return "time_jump_unconfirmed";
     case RejectReason::kStorageError:
       return "storage_error";
+    case RejectReason::kZeroVector:
+      return "zero_vector";
     case RejectReason::kCount:
       break;
   }

@@ -44,6 +44,7 @@ enum class RejectReason : int {
   kTimeJump,           // held past the stream's newest time, then contradicted by the stream
   kJumpUnconfirmed,    // still held (uncorroborated) at shutdown
   kStorageError,       // not committed: storage stayed broken until magcald stopped (logged)
+  kZeroVector,         // b_sensor_nT exactly (0, 0, 0): a sensor dropout, no measurement
   kCount
 };
 constexpr int kRejectReasonCount = static_cast<int>(RejectReason::kCount);

@@ -85,6 +85,11 @@ std::optional<RejectReason> check_sample(const mag_sample_t& s, const std::strin
   for (double b : s.b_sensor_nT) {
     if (std::abs(b) > options.range_nT) return RejectReason::kOutOfRange;
   }
+  // No field anywhere near a spacecraft or a lab is exactly zero on three axes: a dropout. Stored,
+  // one such sample failed every refit of its window (|B| - |h| = -|h|, tens of sigmas).
+  if (s.b_sensor_nT[0] == 0.0 && s.b_sensor_nT[1] == 0.0 && s.b_sensor_nT[2] == 0.0) {
+    return RejectReason::kZeroVector;
+  }
   if (s.has_position) {
     const double r = vec3(s.r_ecef_m).norm();
     if (r < options.min_position_m || r > options.max_position_m) {

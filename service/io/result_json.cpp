@@ -107,6 +107,7 @@ nlohmann::json calibration_result_to_json(const CalibrationResult& result,
     const UnresolvedBiasSwing& w = result.orbit_swing;
     j["orbit_swing"] = {{"period_min", json_number(w.period_s / 60.0)},
                         {"period_probability", json_number(w.period_probability)},
+                        {"detected", w.detected()},
                         {"amplitude_nT", json_vector(w.amplitude_nT)},
                         {"amplitude_sigma_nT", json_vector(w.amplitude_sigma_nT)},
                         {"variance_nT2", json_vector(w.variance_nT2)}};

@@ -308,6 +308,7 @@ ScenarioLoadResult parse_scenario_toml(std::string_view text, std::string_view s
   TableReader rk(knowledge, "knowledge.", &error);
   rk.number("attitude_noise_deg", &s.attitude_noise_deg);
   rk.number("gnss_noise_m", &s.gnss_noise_m);
+  rk.boolean("temperature_reported", &s.temperature_reported);
   rk.check_unknown();
 
   if (error.empty()) error = s.validate();
@@ -401,6 +402,7 @@ std::string scenario_to_toml(const Scenario& s) {
   toml::table know;
   know.insert("attitude_noise_deg", s.attitude_noise_deg);
   know.insert("gnss_noise_m", s.gnss_noise_m);
+  know.insert("temperature_reported", s.temperature_reported);
   root.insert("knowledge", know);
   std::ostringstream os;
   os << root << "\n";

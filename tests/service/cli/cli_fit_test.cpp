@@ -308,6 +308,7 @@ TEST_CASE("fit without any temperature: the orbit swing it estimated is reported
   const nlohmann::json& w = j["orbit_swing"];
   INFO(w.dump());
   CHECK(w["period_probability"].get<double>() > 0.5);
+  CHECK(w["detected"].get<bool>());
   CHECK(w["period_min"].get<double>() > 85.0);
   CHECK(w["period_min"].get<double>() < 130.0);
   for (int i = 0; i < 3; ++i) {

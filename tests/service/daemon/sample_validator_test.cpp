@@ -85,6 +85,14 @@ TEST_CASE("each rejection reason fires on its condition", "[sample_validator]") 
     s.q_body_from_eci[3] = 0.0;
     CHECK(check(s) == RejectReason::kBadAttitude);
   }
+  SECTION("zero vector: a sensor dropout") {
+    auto s = good_sample();
+    for (double& b : s.b_sensor_nT) b = 0.0;
+    CHECK(check(s) == RejectReason::kZeroVector);
+    CHECK(std::string(to_string(RejectReason::kZeroVector)) == "zero_vector");
+    s.b_sensor_nT[2] = 1e-3;  // small, but a measurement
+    CHECK_FALSE(check(s).has_value());
+  }
   SECTION("out of range") {
     auto s = good_sample();
     s.b_sensor_nT[2] = -100000.5;
