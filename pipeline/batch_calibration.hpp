@@ -67,8 +67,9 @@ struct BatchCalibrationOptions {
   // and the window count them); without it, on all samples.
   bool temperature_model = true;
   // twostep: also fit a linear bias rate (pipeline/temperature_model.hpp: time as the covariate)
-  // and keep it when BIC prefers it, on windows of at least kMinBiasRateWindow_h where no
-  // temperature model is taken. The published bias is then that at the window's end.
+  // and keep it when BIC prefers it, on windows of at least kMinBiasRateWindow_h (beside a
+  // temperature model taken: on the samples moved to T0). The published bias is then that at the
+  // window's end.
   bool bias_rate_model = true;
   // twostep: on windows of at least kMinBiasRateWindow_h, measure how far the bias moves about its
   // window average (pipeline/bias_variability.hpp) and add that variance to the covariance.

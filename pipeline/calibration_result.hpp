@@ -113,8 +113,9 @@ struct CalibrationResult {
     return temperature_coefficient_covariance.diagonal().cwiseMax(0.0).cwiseSqrt();
   }
 
-  // Linear bias rate (a drifting sensor), when the data support it (BIC) and no temperature model
-  // was taken: b(t) = bias_nT + r (t - window end), r per axis in nT/h; `parameters.bias_nT` and
+  // Linear bias rate (a drifting sensor), when the data support it (BIC), also beside a
+  // temperature model (of the samples moved to T0; the bias is then at T0 and at the window's end):
+  // b(t) = bias_nT + r (t - window end), r per axis in nT/h; `parameters.bias_nT` and
   // `covariance` are then those of the bias at the window's end (the current bias: what a filter
   // re-anchored by this refit and an operator need). Covariance of r in (nT/h)^2.
   bool has_bias_rate = false;

@@ -332,6 +332,75 @@ TEST_CASE("bias drift, paper 12 h: the rate and the bias at the window's end wit
   CHECK(rate.rms_z() <= 1.5);
 }
 
+// A sensor that both cycles thermally and drifts (the shipped deploy/scenarios/tumbling.toml's
+// kind: +-15 degC, a few nT/day): the temperature model and, beside it, the bias rate of the
+// samples moved to T0. Before, the temperature model alone published the bias at a 24 h window's
+// end up to 18 sigma off (sigma 0.14 nT; a fresh-user trial). Control: the thermal sensor without
+// drift takes no rate.
+TEST_CASE("thermal and drifting, 24 h: the bias rate beside the temperature model") {
+  const Eigen::Vector3d k(1.0, -0.8, 1.2);
+  Coverage bias, rate, coefficient;
+  int false_rates = 0;
+  for (const char* preset : {"tumbling", "paper"}) {
+    for (uint64_t seed = 1; seed <= 5; ++seed) {
+      for (const bool drifting : {true, false}) {
+        Scenario sc = *scenario_preset(preset);
+        sc.seed = seed;
+        sc.duration_s = 24.0 * 3600.0;
+        sc.sensor.temperature_coefficient_nT_per_C = k;
+        sc.sensor.temperature_mean_C = 20.0;
+        sc.sensor.temperature_amplitude_C = 15.0;
+        sc.sensor.temperature_period_s = 0.0;
+        const Eigen::Vector3d drift_nT_per_day(5.0, -4.0, 3.0);
+        sc.sensor.drift_nT_per_day = drifting ? drift_nT_per_day : Eigen::Vector3d::Zero();
+        Simulator sim(sc);
+        const TruthParameters truth = sim.truth();
+        SampleSet samples;
+        SimulatedSample x;
+        while (sim.next(&x)) samples.push_back(x.calibration_sample());
+        const CalibrationResult fit = calibrate_batch(samples, BatchCalibrationOptions{});
+        INFO(preset << " seed " << seed << (drifting ? " drifting" : " no drift") << ": "
+                    << fit.message);
+        REQUIRE(fit.status == CalibrationStatus::kOk);
+        REQUIRE(fit.has_temperature_model);
+        coefficient.add(fit.temperature_coefficient_nT_per_C - k,
+                        fit.temperature_coefficient_sigma_nT_per_C());
+        if (!drifting) {
+          false_rates += fit.has_bias_rate;
+          continue;
+        }
+        CHECK(fit.has_bias_rate);
+        const double end_h = static_cast<double>(samples.back().utime - samples.front().utime) /
+                             3.6e9;  // the simulator's drift runs from the first sample
+        const Eigen::Vector3d at_end =
+            true_bias_at(truth, fit.reference_temperature_C) + drift_nT_per_day * (end_h / 24.0);
+        bias.add(fit.parameters.bias_nT - at_end, fit.bias_sigma_nT());
+        if (fit.has_bias_rate) {
+          rate.add(fit.bias_rate_nT_per_h - drift_nT_per_day / 24.0,
+                   fit.bias_rate_sigma_nT_per_h());
+        }
+      }
+    }
+  }
+  std::printf(
+      "thermal + drift, 24 h, tumbling and paper x 5: bias at the end (T0) within 3 sigma %d / %d "
+      "(RMS z %.2f), rate %d / %d (%.2f), k_T %d / %d (%.2f); rates on the thermal sensor without "
+      "drift: %d of 10\n",
+      bias.within, bias.total, bias.rms_z(), rate.within, rate.total, rate.rms_z(),
+      coefficient.within, coefficient.total, coefficient.rms_z(), false_rates);
+  // Measured over 10 seeds each: bias 59 / 60 within 3 sigma (RMS z 1.22), rate 60 / 60 (0.97),
+  // k_T 115 / 120 (1.39), no rate without drift; here (5 seeds) 29 / 30, 30 / 30, 57 / 60. The
+  // miss (3.7 sigma) and the k_T tail are the 24 h thermal fit itself, with or without the rate:
+  // without drift the paper sensor's bias at T0 is 1.2-1.4 sigma off on z in 3 of 3 seeds, and
+  // k_T's sigma is too small by about a third on 24 h windows (still open; the 12 h test above
+  // holds).
+  CHECK(bias.within >= bias.total - 1);
+  CHECK(bias.rms_z() <= 1.5);
+  CHECK(rate.within == rate.total);
+  CHECK(coefficient.within >= coefficient.total - 3);
+  CHECK(false_rates == 0);
+}
+
 // Measured: 0 of 300 (6, 12 and 24 h x 100 seeds).
 TEST_CASE("constant bias, paper 12 h and 24 h: the bias rate model stays off") {
   int with_rate = 0, fits = 0;
