@@ -681,9 +681,10 @@ void bias_variability_evidence(const SampleSet& samples, const BatchCalibrationO
   r->covariance.diagonal().head<3>() += r->bias_variability_nT2;
 }
 
-// Without a temperature channel, the bias may swing with the orbit unseen by the residuals and
-// the blocks (pipeline/orbit_synchronous_bias.hpp): the current bias's variance about the
-// published bias, where it exceeds the blocks' measure, into the covariance and the model error.
+// Where too few samples carry a temperature, the bias may swing with the orbit unseen by the
+// residuals and the blocks (pipeline/orbit_synchronous_bias.hpp): the current bias's variance about
+// the published bias, where it exceeds the blocks' measure, into the covariance and the model
+// error.
 void orbit_synchronous_swing_evidence(const SampleSet& samples,
                                       const BatchCalibrationOptions& options,
                                       CalibrationResult* r) {

@@ -9,6 +9,7 @@
 #include "pipeline/levenberg_marquardt.hpp"
 #include "pipeline/lm_refinement.hpp"
 #include "pipeline/parameter_recovery.hpp"
+#include "pipeline/scaled_inverse.hpp"
 
 namespace magcal {
 
@@ -21,33 +22,6 @@ constexpr double kDecrementTolerance = 1e-6;  // g^T F^-1 g when no step lowers 
 constexpr double kDegenerateRatio = 1e-3;     // smallest / next scaled eigenvalue
 constexpr double kSingularRatio = 1e-14;      // smallest / largest scaled eigenvalue
 constexpr int kMaxLineIterations = 30;
-
-// Inverse of a symmetric positive semi-definite matrix in the diagonally scaled form, and its
-// scaled condition number. False when singular.
-template <int N>
-bool scaled_inverse(const Eigen::Matrix<double, N, N>& F, Eigen::Matrix<double, N, N>* inverse,
-                    double* condition) {
-  using Vec = Eigen::Matrix<double, N, 1>;
-  using Mat = Eigen::Matrix<double, N, N>;
-  const Vec d = F.diagonal();
-  if (!(d.minCoeff() > 0.0) || !d.allFinite()) {
-    if (condition) *condition = std::numeric_limits<double>::infinity();
-    return false;
-  }
-  const Vec s_inv = d.cwiseSqrt().cwiseInverse();
-  const Mat Fs = s_inv.asDiagonal() * F * s_inv.asDiagonal();
-  const Eigen::SelfAdjointEigenSolver<Mat> eig(Fs);
-  const double lmin = eig.eigenvalues()(0), lmax = eig.eigenvalues()(N - 1);
-  const bool ok = lmin > kSingularRatio * lmax;
-  if (condition) *condition = lmin > 0.0 ? lmax / lmin : std::numeric_limits<double>::infinity();
-  if (!ok) return false;
-  if (inverse) {
-    *inverse = s_inv.asDiagonal() * eig.eigenvectors() *
-               eig.eigenvalues().cwiseInverse().asDiagonal() * eig.eigenvectors().transpose() *
-               s_inv.asDiagonal();
-  }
-  return true;
-}
 
 // Levenberg-Marquardt on the moments from theta (must make I + E positive definite).
 bool refine_on_moments(const Matrix11d& M, Vector9d& theta, double& cost, int& iterations) {
@@ -148,7 +122,7 @@ double moments_fisher_condition(const Matrix11d& M, const Vector9d& p) {
     return std::numeric_limits<double>::infinity();
   const Matrix9d J = theta_jacobian(params);
   double condition = std::numeric_limits<double>::infinity();
-  scaled_inverse<9>(Matrix9d(J.transpose() * info * J), nullptr, &condition);
+  scaled_inverse<9>(Matrix9d(J.transpose() * info * J), nullptr, &condition, kSingularRatio);
   return condition;
 }
 
@@ -212,7 +186,8 @@ FilterStartResult solve_filter_start(const ScalarMoments& moments, const ScalarL
   moments_cost(M, best, nullptr, &info, nullptr);
   Matrix9d cov_theta;
   double condition_theta = 0.0;
-  if (!scaled_inverse<9>(info, &cov_theta, &condition_theta) || !theta_positive_definite(best)) {
+  if (!scaled_inverse<9>(info, &cov_theta, &condition_theta, kSingularRatio) ||
+      !theta_positive_definite(best)) {
     r.status = FilterStartStatus::kUnobservable;
     r.fisher_condition = std::numeric_limits<double>::infinity();
     return r;

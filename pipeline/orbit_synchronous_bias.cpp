@@ -10,6 +10,7 @@
 #include "pipeline/acceptance_gates.hpp"
 #include "pipeline/model_extension.hpp"
 #include "pipeline/scalar_measurement.hpp"
+#include "pipeline/scaled_inverse.hpp"
 
 namespace magcal {
 
@@ -21,19 +22,6 @@ constexpr int kAll = 21;
 using ModelRow = Eigen::Matrix<double, 1, kModel>;
 using ModelMatrix = Eigen::Matrix<double, kModel, kModel>;
 using AllMatrix = Eigen::Matrix<double, kAll, kAll>;
-
-// The inverse of a symmetric positive definite information matrix, scaled to unit diagonal first
-// (b in nT and D unitless differ by |B| ~ 5e4); false if it is not positive definite.
-template <int N>
-bool invert_information(const Eigen::Matrix<double, N, N>& F, Eigen::Matrix<double, N, N>* P) {
-  const Eigen::Matrix<double, N, 1> d = F.diagonal();
-  if (!(d.array() > 0.0).all()) return false;
-  const Eigen::Matrix<double, N, 1> s = d.cwiseSqrt().cwiseInverse();
-  const Eigen::LDLT<Eigen::Matrix<double, N, N>> ldlt(s.asDiagonal() * F * s.asDiagonal());
-  if (ldlt.info() != Eigen::Success || !(ldlt.vectorD().array() > 0.0).all()) return false;
-  *P = s.asDiagonal() * ldlt.solve(Eigen::Matrix<double, N, N>::Identity()) * s.asDiagonal();
-  return P->allFinite();
-}
 
 }  // namespace
 
@@ -83,7 +71,7 @@ UnresolvedBiasSwing unresolved_orbit_synchronous_bias_swing(
   }
   F_model = F_model.selfadjointView<Eigen::Lower>();
   ModelMatrix P_model;
-  if (!invert_information<kModel>(F_model, &P_model)) return out;
+  if (!scaled_inverse<kModel>(F_model, &P_model, nullptr)) return out;
   // The model's own Gauss-Newton step: not zero where the published parameters are not the
   // least-squares optimum (the estimator-bias correction moved them); only what the swing adds to
   // it counts below.
@@ -127,7 +115,7 @@ UnresolvedBiasSwing unresolved_orbit_synchronous_bias_swing(
     F.bottomRightCorner<6, 6>() = swing.selfadjointView<Eigen::Lower>();
     F.bottomRightCorner<6, 6>().diagonal().array() += prior_information;
     AllMatrix P;
-    if (!invert_information<kAll>(F, &P)) continue;
+    if (!scaled_inverse<kAll>(F, &P, nullptr)) continue;
     // One Gauss-Newton step from the fit (c = s = 0): the swing's posterior mean and the shift of b
     // it brings. The period's weight is its marginal likelihood against no swing,
     //   ln BF = 1/2 g^T P_gg^-1 g + 1/2 ln det P_gg + const   (g = [c; s], P_gg its covariance).
