@@ -86,7 +86,7 @@ std::optional<RejectReason> check_sample(const mag_sample_t& s, const std::strin
     if (std::abs(b) > options.range_nT) return RejectReason::kOutOfRange;
   }
   // No field anywhere near a spacecraft or a lab is exactly zero on three axes: a dropout. Stored,
-  // one such sample failed every refit of its window (|B| - |h| = -|h|, tens of sigmas).
+  // one such sample failed every refit of its window (its residual is -|h|, thousands of sigmas).
   if (s.b_sensor_nT[0] == 0.0 && s.b_sensor_nT[1] == 0.0 && s.b_sensor_nT[2] == 0.0) {
     return RejectReason::kZeroVector;
   }
