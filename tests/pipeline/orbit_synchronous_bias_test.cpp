@@ -44,6 +44,15 @@ SwingWindow simulate_swing(const char* preset, uint64_t seed, double amplitude_n
   return out;
 }
 
+// Per axis, the rms over the window of (bias - current bias) / sigma.
+Eigen::Vector3d rms_error_over_sigma(const SwingWindow& w, const CalibrationResult& r) {
+  Eigen::Vector3d err2 = Eigen::Vector3d::Zero();
+  for (const Eigen::Vector3d& b : w.bias_nT) err2 += (r.parameters.bias_nT - b).cwiseAbs2();
+  return (err2 / static_cast<double>(w.bias_nT.size()))
+      .cwiseSqrt()
+      .cwiseQuotient(r.bias_sigma_nT());
+}
+
 }  // namespace
 
 // Tumbling: the swing is separable at any period; its size is estimated, its period found, and
@@ -65,11 +74,7 @@ TEST_CASE("Tumbling, +-10 nT orbit swing without temperature: estimated, in the 
     CHECK(((u.amplitude_nT.array() - 10.0).abs() < 3.0 * u.amplitude_sigma_nT.array()).all());
     // In the published covariance and the filters' model error.
     CHECK((refit.bias_variability_nT2.array() >= u.variance_nT2.array() - 1e-9).all());
-    Eigen::Vector3d err2 = Eigen::Vector3d::Zero();
-    for (const Eigen::Vector3d& b : w.bias_nT) err2 += (refit.parameters.bias_nT - b).cwiseAbs2();
-    const Eigen::Vector3d rms_z = (err2 / static_cast<double>(w.bias_nT.size()))
-                                      .cwiseSqrt()
-                                      .cwiseQuotient(refit.bias_sigma_nT());
+    const Eigen::Vector3d rms_z = rms_error_over_sigma(w, refit);
     INFO("rms (bias - current bias) / sigma " << rms_z.transpose());
     CHECK((rms_z.array() > 0.8).all());  // not much wider than the swing
     CHECK((rms_z.array() < 1.2).all());
@@ -85,11 +90,7 @@ TEST_CASE("Nadir, +-10 nT orbit swing without temperature: rms error within the 
       const SwingWindow w = simulate_swing("paper", seed, 10.0, hours);
       const CalibrationResult refit = calibrate_batch(w.samples, BatchCalibrationOptions{});
       REQUIRE(refit.status == CalibrationStatus::kOk);
-      Eigen::Vector3d err2 = Eigen::Vector3d::Zero();
-      for (const Eigen::Vector3d& b : w.bias_nT) err2 += (refit.parameters.bias_nT - b).cwiseAbs2();
-      const Eigen::Vector3d rms_z = (err2 / static_cast<double>(w.bias_nT.size()))
-                                        .cwiseSqrt()
-                                        .cwiseQuotient(refit.bias_sigma_nT());
+      const Eigen::Vector3d rms_z = rms_error_over_sigma(w, refit);
       INFO(hours << " h, seed " << seed << ": rms (bias - current bias) / sigma "
                  << rms_z.transpose() << ", sigma " << refit.bias_sigma_nT().transpose());
       // The swing's peak is sqrt(2) times its rms: within 3 sigma where the rms is within 2.
@@ -109,11 +110,7 @@ TEST_CASE("Sparse temperatures (every 6th sample): the swing term as without any
   REQUIRE(refit.status == CalibrationStatus::kOk);
   CHECK_FALSE(refit.has_temperature_model);
   CHECK(refit.orbit_swing.periods_tried > 0);
-  Eigen::Vector3d err2 = Eigen::Vector3d::Zero();
-  for (const Eigen::Vector3d& b : w.bias_nT) err2 += (refit.parameters.bias_nT - b).cwiseAbs2();
-  const Eigen::Vector3d rms_z = (err2 / static_cast<double>(w.bias_nT.size()))
-                                    .cwiseSqrt()
-                                    .cwiseQuotient(refit.bias_sigma_nT());
+  const Eigen::Vector3d rms_z = rms_error_over_sigma(w, refit);
   INFO("rms (bias - current bias) / sigma " << rms_z.transpose());
   CHECK((rms_z.array() < 1.5).all());
 }
