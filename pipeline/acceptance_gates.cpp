@@ -172,11 +172,13 @@ void change_gate(const CalibrationResult& r, const GateInputs& in, const GateOpt
 void outlier_gate(const GateInputs& in, GateVerdict& v) {
   const GateInputs::Outliers& o = in.outliers;
   if (o.count <= 0) return;
-  v.reasons.push_back(format(
-      "outliers: %d samples' residuals lie more than %.0f robust sigmas from the median (the "
-      "largest, sample %lld, %.4g nT): the fit is pulled by them; a robust fit (magcal fit "
-      "--robust, [refit] robust = true) leaves them out",
-      o.count, o.robust_sigmas, static_cast<long long>(o.largest_sample), o.largest_residual_nT));
+  v.reasons.push_back(
+      format("outliers: %d samples' %s lie more than %.0f robust sigmas from the median (the "
+             "largest, %s, %.4g nT): the fit is pulled by them; a robust fit (magcal fit --robust, "
+             "[refit] robust = true) leaves them out",
+             o.count, o.raw ? "uncalibrated residuals |B| - |h|" : "residuals", o.robust_sigmas,
+             sample_label(static_cast<std::size_t>(o.largest_sample), o.largest_utime).c_str(),
+             o.largest_residual_nT));
 }
 
 void unmodelled_gate(const GateInputs& in, GateVerdict& v) {

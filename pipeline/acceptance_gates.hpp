@@ -115,11 +115,14 @@ struct GateInputs {
   const CalibrationResult* previous_accepted = nullptr;
   // Residual evidence of a least-squares fit: samples whose residual | |B_cal| - |h| | lies more
   // than robust_sigmas robust sigmas (1.4826 x MAD, never below the nominal noise) from the
-  // median. count 0: none found (or not checked).
+  // median. count 0: none found (or not checked). raw: found among the uncalibrated residuals
+  // |B| - |h| instead (a spike that wrecked the fit leaves no outlier among the fit's residuals).
   struct Outliers {
     int count = 0;
     double robust_sigmas = 0.0;
+    bool raw = false;
     int64_t largest_sample = -1;  // index of the largest residual
+    int64_t largest_utime = 0;    // its time tag, microseconds
     double largest_residual_nT = std::numeric_limits<double>::quiet_NaN();
   } outliers;
   // True when the data support effects the fitted model cannot take (BIC prefers the sensor-model

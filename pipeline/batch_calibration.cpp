@@ -44,6 +44,17 @@ constexpr double kOutlierRobustSigmas = 5.0;
 // each of 3, 12 and 24 h: the largest residual is 3.5 (paper), 3.2 (tumbling), 4.7 (pure model,
 // Gaussian) robust sigmas.
 constexpr double kOutlierGateRobustSigmas = 10.0;
+// Robust fits leave out samples with |B| beyond the sensor range (a spike, one wrapped count)
+// while they are at most this share of the window; more is a systematic fault (negative counts
+// read as unsigned wrap every sample with a negative axis, a wrong unit wraps all of them), and
+// a fit of the rest would rest on a biased subset: refused, naming the magnitude.
+constexpr double kMaxLeftOutBeyondRangeFraction = 0.01;
+// Where the fit's own residuals show no outlier (a spike large enough to wreck the fit makes
+// every residual large), the raw residuals |B| - |h| are screened: a sample beyond
+// kOutlierGateRobustSigmas robust sigmas of their median and beyond this share of the mean |h|
+// from it is a spike no sensor error explains (a 30 % scale error moves |B| by 30 % of |h|, and
+// it moves every sample).
+constexpr double kRawSpikeFractionOfField = 0.5;
 // The estimator-bias bootstrap (correct_estimator_bias()) runs where the noise (residual rms) is
 // above kBootstrapNoiseFraction of |h| and a scale factor's sigma above kBootstrapScaleSigma: the
 // O(sigma^2) terms are then a sizeable part of a sigma on weak coverage (bench, 150 nT, tilt
@@ -55,6 +66,10 @@ constexpr double kBootstrapScaleSigma = 1e-4;
 
 bool is_zero_field_vector(const CalibrationSample& s) {
   return s.b_sensor_nT.squaredNorm() == 0.0 && s.h_body_nT.allFinite();
+}
+
+bool beyond_sensor_range(const CalibrationSample& s, double max_field_nT) {
+  return s.b_sensor_nT.allFinite() && s.b_sensor_nT.norm() > max_field_nT;
 }
 
 std::string sample_input_problem(const CalibrationSample& s, double max_field_nT) {
@@ -211,7 +226,14 @@ bool check_input(const SampleSet& samples, const BatchCalibrationOptions& option
       continue;
     }
     if (std::string problem = sample_input_problem(s, options.max_field_nT); !problem.empty()) {
-      *r = fail(*r, CalibrationStatus::kFailed, "sample " + std::to_string(k) + ": " + problem);
+      if (beyond_sensor_range(s, options.max_field_nT)) {
+        problem +=
+            ": a robust fit (magcal fit --robust, [refit] robust = true) leaves such a "
+            "sample out while they are at most " +
+            std::to_string(static_cast<int>(100.0 * kMaxLeftOutBeyondRangeFraction)) +
+            " % of the samples";
+      }
+      *r = fail(*r, CalibrationStatus::kFailed, sample_label(k, s.utime) + ": " + problem);
       return false;
     }
     t0 = std::min(t0, s.utime);
@@ -220,9 +242,10 @@ bool check_input(const SampleSet& samples, const BatchCalibrationOptions& option
   if (n_zero > 0) {
     char buf[200];
     std::snprintf(buf, sizeof buf,
-                  "sample %zu: zero field vector (sensor dropout); %zu of %zu samples are (0, 0, "
+                  "%s: zero field vector (sensor dropout); %zu of %zu samples are (0, 0, "
                   "0): a robust fit (magcal fit --robust, [refit] robust = true) leaves them out",
-                  first_zero, n_zero, samples.size());
+                  sample_label(first_zero, samples[first_zero].utime).c_str(), n_zero,
+                  samples.size());
     *r = fail(*r, CalibrationStatus::kFailed, buf);
     return false;
   }
@@ -653,12 +676,26 @@ void residual_evidence(const SampleSet& samples, const BatchCalibrationOptions& 
   mark_outliers(residuals, kOutlierGateRobustSigmas, options.sigma_nT, &scratch, &inlier);
   gates->outliers.count = static_cast<int>(std::count(inlier.begin(), inlier.end(), 0));
   gates->outliers.robust_sigmas = kOutlierGateRobustSigmas;
+  if (gates->outliers.count == 0) {  // a spike that wrecked the fit (kRawSpikeFractionOfField)
+    double mean_h_nT = 0.0;
+    for (std::size_t k = 0; k < samples.size(); ++k) {
+      residuals[k] = samples[k].b_sensor_nT.norm() - samples[k].h_body_nT.norm();
+      mean_h_nT += samples[k].h_body_nT.norm();
+    }
+    mean_h_nT /= static_cast<double>(samples.size());
+    const double floor_nT =
+        std::max(options.sigma_nT, kRawSpikeFractionOfField * mean_h_nT / kOutlierGateRobustSigmas);
+    mark_outliers(residuals, kOutlierGateRobustSigmas, floor_nT, &scratch, &inlier);
+    gates->outliers.count = static_cast<int>(std::count(inlier.begin(), inlier.end(), 0));
+    gates->outliers.raw = gates->outliers.count > 0;
+  }
   if (gates->outliers.count > 0) {
     std::size_t worst = 0;
     for (std::size_t k = 0; k < residuals.size(); ++k) {
       if (std::abs(residuals[k]) > std::abs(residuals[worst])) worst = k;
     }
     gates->outliers.largest_sample = static_cast<int64_t>(worst);
+    gates->outliers.largest_utime = samples[worst].utime;
     gates->outliers.largest_residual_nT = residuals[worst];
   }
 }
@@ -987,32 +1024,47 @@ CalibrationResult calibrate_batch_robust(const SampleSet& samples,
 CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrationOptions& options,
                                   const CalibrationResult* previous_accepted) {
   if (!options.robust) return calibrate_batch_core(samples, options, previous_accepted);
-  // Zero field vectors (a sensor's dropouts) carry no measurement: left out before anything
-  // else, and counted with the outliers.
-  // Any other unusable sample (NaN, a wrapped or mis-scaled |B|) is no outlier of a measurement
-  // but a broken input: refused, named, as without --robust.
-  SampleSet measured;
-  measured.reserve(samples.size());
-  for (std::size_t k = 0; k < samples.size(); ++k) {
-    const CalibrationSample& s = samples[k];
-    if (is_zero_field_vector(s)) continue;
-    if (std::string problem = sample_input_problem(s, options.max_field_nT); !problem.empty()) {
-      CalibrationResult r;
-      r.method = to_string(options.method);
-      r.n_samples = static_cast<int>(samples.size());
-      return fail(r, CalibrationStatus::kFailed, "sample " + std::to_string(k) + ": " + problem);
-    }
-    measured.push_back(s);
-  }
-  if (static_cast<int>(measured.size()) < options.min_samples) {
-    if (measured.size() == samples.size()) return calibrate_batch_core(samples, options, nullptr);
+  // Zero field vectors (a sensor's dropouts) and isolated samples beyond the sensor range
+  // (kMaxLeftOutBeyondRangeFraction) carry no measurement: left out before anything else, and
+  // counted with the outliers.
+  // Any other unusable sample (NaN, many wrapped or mis-scaled |B|) is no outlier of a
+  // measurement but a broken input: refused, named, as without --robust.
+  const auto failed = [&](const std::string& message) {
     CalibrationResult r;
     r.method = to_string(options.method);
     r.n_samples = static_cast<int>(samples.size());
-    return fail(r, CalibrationStatus::kFailed,
-                "too few samples besides the " + std::to_string(samples.size() - measured.size()) +
-                    " zero field vectors (sensor dropouts): " + std::to_string(measured.size()) +
-                    " < " + std::to_string(options.min_samples));
+    return fail(r, CalibrationStatus::kFailed, message);
+  };
+  SampleSet measured;
+  measured.reserve(samples.size());
+  std::size_t n_beyond_range = 0, first_beyond_range = 0;
+  for (std::size_t k = 0; k < samples.size(); ++k) {
+    const CalibrationSample& s = samples[k];
+    if (is_zero_field_vector(s)) continue;
+    if (beyond_sensor_range(s, options.max_field_nT)) {
+      if (n_beyond_range++ == 0) first_beyond_range = k;
+      continue;
+    }
+    if (std::string problem = sample_input_problem(s, options.max_field_nT); !problem.empty()) {
+      return failed(sample_label(k, s.utime) + ": " + problem);
+    }
+    measured.push_back(s);
+  }
+  if (static_cast<double>(n_beyond_range) >
+      kMaxLeftOutBeyondRangeFraction * static_cast<double>(samples.size())) {
+    const CalibrationSample& s = samples[first_beyond_range];
+    return failed(sample_label(first_beyond_range, s.utime) + ": " +
+                  sample_input_problem(s, options.max_field_nT) + "; " +
+                  std::to_string(n_beyond_range) + " of " + std::to_string(samples.size()) +
+                  " samples are beyond it: a systematic fault (a robust fit leaves out at most " +
+                  std::to_string(static_cast<int>(100.0 * kMaxLeftOutBeyondRangeFraction)) + " %)");
+  }
+  if (static_cast<int>(measured.size()) < options.min_samples) {
+    if (measured.size() == samples.size()) return calibrate_batch_core(samples, options, nullptr);
+    return failed("too few samples besides the " +
+                  std::to_string(samples.size() - measured.size()) +
+                  " zero field vectors (sensor dropouts) and samples beyond the sensor range: " +
+                  std::to_string(measured.size()) + " < " + std::to_string(options.min_samples));
   }
   CalibrationResult r = calibrate_batch_robust(measured, options, previous_accepted);
   r.n_downweighted += static_cast<int>(samples.size() - measured.size());

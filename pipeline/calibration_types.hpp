@@ -6,7 +6,9 @@
 #pragma once
 
 #include <cstdint>
+#include <cstdio>
 #include <limits>
+#include <string>
 #include <vector>
 
 #include <Eigen/Core>
@@ -64,5 +66,13 @@ struct CalibrationSample {
 };
 
 using SampleSet = std::vector<CalibrationSample>;
+
+// How messages name one sample of a set: "sample K (t_s T)", K its 0-based index in the set
+// (input order), T its time tag in seconds, the t_s column of the CSV (design.md).
+inline std::string sample_label(std::size_t index, int64_t utime) {
+  char buf[80];
+  std::snprintf(buf, sizeof buf, "sample %zu (t_s %.3f)", index, static_cast<double>(utime) * 1e-6);
+  return buf;
+}
 
 }  // namespace magcal

@@ -138,8 +138,10 @@ std::optional<RecordingFitReport> fit_recording(const FieldRecording& rec,
     rep.reference = "igrf";
     if (!rec.has_position_columns)
       return fail(
-          "the recording has no position columns: give a constant reference magnitude "
-          "(--reference-magnitude auto|VALUE_nT)");
+          "no reference field: the file has neither all of the sample CSV's reference columns "
+          "(t_s, bx_nT, by_nT, bz_nT, hx_nT, hy_nT, hz_nT: the reference field in the body "
+          "frame) nor position columns (latitude, longitude, altitude: an IGRF reference); add "
+          "them, or give a constant reference magnitude (--reference-magnitude auto|VALUE_nT)");
     ReferenceField field;
     series.t_s.reserve(rec.rows.size());
     series.value_nT.reserve(rec.rows.size());

@@ -408,7 +408,7 @@ int run_fit(const FitArgs& args) {
     for (std::size_t k = 0; k < samples.size(); ++k) {
       if (std::string problem = sample_input_problem(samples[k], check.max_field_nT);
           !problem.empty()) {
-        std::cerr << "magcal fit: sample " << k << ": " << problem << "\n";
+        std::cerr << "magcal fit: " << sample_label(k, samples[k].utime) << ": " << problem << "\n";
         return kExitData;
       }
     }

@@ -192,10 +192,11 @@ TEST_CASE("each gate fires when its condition is violated, and only that gate", 
     gi.outliers.count = 1;
     gi.outliers.robust_sigmas = 10.0;
     gi.outliers.largest_sample = 1234;
+    gi.outliers.largest_utime = 1600000123500000;
     gi.outliers.largest_residual_nT = 5012.0;
     expect_only(h.result, gi, "outliers");
     const GateVerdict v = evaluate_gates(h.result, gi, opt);
-    CHECK(joined(v.reasons).find("sample 1234, 5012 nT") != std::string::npos);
+    CHECK(joined(v.reasons).find("sample 1234 (t_s 1600000123.500), 5012 nT") != std::string::npos);
     GateOptions off = opt;
     off.outliers_enabled = false;
     CHECK(evaluate_gates(h.result, gi, off).accepted);

@@ -132,7 +132,8 @@ TEST_CASE("batch calibration failure modes give clean statuses, never garbage") 
     const CalibrationResult r = calibrate_batch(s, twostep);
     CHECK(r.status == CalibrationStatus::kFailed);
     CHECK(r.message ==
-          "sample 5: zero field vector (sensor dropout); 66 of 400 samples are (0, 0, "
+          "sample 5 (t_s 1600000050.000): zero field vector (sensor dropout); 66 of 400 "
+          "samples are (0, 0, "
           "0): a robust fit (magcal fit --robust, [refit] robust = true) leaves them "
           "out");
     BatchCalibrationOptions robust = twostep;
@@ -152,9 +153,44 @@ TEST_CASE("batch calibration failure modes give clean statuses, never garbage") 
     s[17].b_sensor_nT << 6.1e6, 1e3, -2e3;
     const CalibrationResult r = calibrate_batch(s, twostep);
     CHECK(r.status == CalibrationStatus::kFailed);
-    CHECK(r.message.rfind("sample 17: |B| 6.1e+06 nT: beyond the sensor range (wrapped or wrong "
-                          "unit?",
+    CHECK(r.message.rfind("sample 17 (t_s 1600000170.000): |B| 6.1e+06 nT: beyond the sensor "
+                          "range (wrapped or wrong unit?",
                           0) == 0);
+    CHECK(r.message.find("a robust fit (magcal fit --robust") != std::string::npos);
+    // Robust: one such sample (a spike, a wrapped count) is left out like a dropout...
+    BatchCalibrationOptions robust = twostep;
+    robust.robust = true;
+    const CalibrationResult rr = calibrate_batch(s, robust);
+    CHECK(rr.status == CalibrationStatus::kOk);
+    CHECK(rr.n_downweighted >= 1);
+    CHECK((rr.parameters.bias_nT - p.bias_nT).norm() < 5.0);
+    // ...but more than 1 % of them is a systematic fault (negative counts read as unsigned):
+    // refused, naming the first and the count.
+    for (std::size_t k = 30; k < 33; ++k) s[k].b_sensor_nT(1) = 6.5e6;
+    const CalibrationResult many = calibrate_batch(s, robust);
+    CHECK(many.status == CalibrationStatus::kFailed);
+    CHECK(many.message.rfind("sample 17 (t_s 1600000170.000): |B| 6.1e+06 nT", 0) == 0);
+    CHECK(many.message.find("4 of 200 samples are beyond it: a systematic fault") !=
+          std::string::npos);
+  }
+  SECTION("a spike within the range that wrecks a least-squares fit is named as the outlier") {
+    // 1.5e6 nT on one sample (below the 2e6 nT range): the fit's residuals are all large, so the
+    // outlier is found among the uncalibrated residuals |B| - |h|.
+    SampleSet s = model_data(p, 400, 3.0, 6);
+    s[123].b_sensor_nT = s[123].b_sensor_nT.normalized() * 1.5e6;
+    const CalibrationResult r = calibrate_batch(s, twostep);
+    CHECK_FALSE(r.accepted);
+    std::string reasons;
+    for (const std::string& reason : r.rejection_reasons) reasons += reason + "\n";
+    INFO(reasons);
+    CHECK(reasons.find("outliers: 1 samples' uncalibrated residuals |B| - |h| lie more than 10 "
+                       "robust sigmas from the median (the largest, sample 123 (t_s "
+                       "1600001230.000)") != std::string::npos);
+    BatchCalibrationOptions robust = twostep;
+    robust.robust = true;
+    const CalibrationResult rr = calibrate_batch(s, robust);
+    CHECK(rr.accepted);
+    CHECK((rr.parameters.bias_nT - p.bias_nT).norm() < 5.0);
   }
   SECTION("all samples along one direction") {
     SampleSet s = model_data(p, 200, 3.0, 3);

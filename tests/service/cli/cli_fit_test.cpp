@@ -559,6 +559,41 @@ TEST_CASE(
     require_one_line_error(run_magcal("fit --input " + csv.string() + " --method twostep" + extra),
                            2, "e+06 nT: beyond the sensor range (wrapped or wrong unit?");
   }
+
+  // One spike beyond the range (a fresh-user trial: --robust refused it, naming "sample 1000"
+  // without its time): named with its time tag; --robust leaves it out.
+  SampleSet spike = model_data(600, 3.0, 13);
+  spike[321].b_sensor_nT = spike[321].b_sensor_nT.normalized() * 5e6;
+  REQUIRE(write_sample_csv(csv.string(), spike).empty());
+  char label[80];
+  std::snprintf(label, sizeof label, "sample 321 (t_s %.3f): |B| 5e+06 nT",
+                static_cast<double>(spike[321].utime) * 1e-6);
+  require_one_line_error(run_magcal("fit --input " + csv.string() + " --method twostep"), 2, label);
+  const Run robust_spike =
+      run_magcal("fit --input " + csv.string() + " --method twostep --robust --json");
+  INFO(robust_spike.err);
+  REQUIRE(robust_spike.exit_code == 0);
+  const nlohmann::json js = nlohmann::json::parse(robust_spike.out);
+  CHECK(js["verdict"] == "accepted");
+  CHECK(js["n_downweighted"].get<int>() >= 1);
+  check_bias(js);
+  std::filesystem::remove(csv);
+}
+
+TEST_CASE("fit: a sample CSV without its reference columns names what is missing", "[cli][fit]") {
+  // A fresh-user trial: dropping hx_nT..hz_nT was answered "no position columns".
+  const auto csv = temp_path("noref.csv");
+  std::vector<std::string> rows;
+  rows.push_back("t_s,bx_nT,by_nT,bz_nT");
+  for (const CalibrationSample& s : model_data(300, 3.0, 14)) {
+    rows.push_back(std::to_string(static_cast<double>(s.utime) * 1e-6) + "," +
+                   std::to_string(s.b_sensor_nT(0)) + "," + std::to_string(s.b_sensor_nT(1)) + "," +
+                   std::to_string(s.b_sensor_nT(2)));
+  }
+  write_lines(csv, rows);
+  require_one_line_error(run_magcal("fit --input " + csv.string() + " --method twostep"), 2,
+                         "hx_nT, hy_nT, hz_nT: the reference field in the body frame) nor "
+                         "position columns");
   std::filesystem::remove(csv);
 }
 
