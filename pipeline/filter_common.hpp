@@ -185,12 +185,16 @@ struct FilterOptions {
   // Snapshot status: ok once every bias 1-sigma is below this (and the filter is consistent
   // and observable).
   double converged_bias_sigma_nT = 10.0;
-  // `ok` also needs the model error measured (reanchor() or set_model_error_covariance()). A
-  // filter started from its own first samples (a 9-parameter batch) cannot know what the model
-  // leaves out: on a tumbling spacecraft, whose first samples observe everything, its D was up to
-  // 7 sigma off while `ok`, until the first refit. Off in the library (pure-model studies); the
-  // daemon turns it on ([ukf] ok_needs_refit).
-  bool ok_needs_model_error = false;
+  // `ok` also needs the model error stated (reanchor() with a refit's model error, or
+  // set_model_error_covariance(); Matrix9d::Zero() states that the data have none, as on
+  // pure-model data). A filter started from its own first samples (a 9-parameter batch) cannot
+  // know what the model leaves out: on a tumbling spacecraft, whose first samples observe
+  // everything, its D was up to 7 sigma off while `ok`, and its bias up to 10.8 sigma, until the
+  // first refit. Its innovations do not separate that error from a moving bias either (noise scale
+  // ~5 for both on the paper sensor). Every caller that has a refit passes its model error (the
+  // daemon, `magcal fit`, `magcal evaluate`); false only for studies of the filter alone
+  // ([ukf] ok_needs_refit in the daemon).
+  bool ok_needs_model_error = true;
   // Observability: scaled Fisher condition above this is `unobservable` (the acceptance gates'
   // max_fisher_condition default).
   double max_fisher_condition = 1e4;

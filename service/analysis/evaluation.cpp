@@ -315,6 +315,9 @@ EvaluationReport run_evaluation(const EvaluationOptions& options) {
       MagnetometerEkf::Options o;
       o.sigma_nT = filter_sigma;
       MagnetometerEkf cold(o);
+      // `ok` needs the model error (FilterOptions::ok_needs_model_error): the offline refit's,
+      // as `magcal fit --method ekf|ukf` passes its refit's.
+      if (have_warm) cold.set_model_error_covariance(lm_result.model_error_covariance());
       run_filter(cold, all, 0, acc[4], truth, crlb_on);
       if (have_warm) {
         MagnetometerEkf w(o);
@@ -332,6 +335,7 @@ EvaluationReport run_evaluation(const EvaluationOptions& options) {
       MagnetometerUkf::Options o;
       o.sigma_nT = filter_sigma;
       MagnetometerUkf cold(o);
+      if (have_warm) cold.set_model_error_covariance(lm_result.model_error_covariance());  // above
       run_filter(cold, all, 0, acc[6], truth, crlb_on);
       if (have_warm) {
         MagnetometerUkf w(o);

@@ -102,11 +102,7 @@ struct DaemonConfig {
   struct Ukf {
     // sigma_nT, process_noise, tuning, consistency monitor; `ok` only after a refit measured the
     // model error (FilterOptions::ok_needs_model_error).
-    MagnetometerUkf::Options filter = [] {
-      MagnetometerUkf::Options o;
-      o.ok_needs_model_error = true;
-      return o;
-    }();
+    MagnetometerUkf::Options filter;
     double snapshot_every_s = 60.0;  // of data time
   } ukf;
   GateOptions gates;

@@ -9,10 +9,12 @@
 // orbit with a small out-of-plane y component, the paper's weakly observed case).
 #pragma once
 
+#include <algorithm>
 #include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
+#include <limits>
 #include <new>
 #include <random>
 #include <vector>
@@ -152,6 +154,22 @@ constexpr bool kCountingAllocations = false;
 #else
 constexpr bool kCountingAllocations = true;
 #endif
+
+// simulate()'s samples come from the 9-parameter model itself: there is no model error to
+// measure, and the filter is told so (FilterOptions::ok_needs_model_error: `ok` needs it stated).
+template <class Filter>
+void state_pure_model(Filter& f) {
+  f.set_model_error_covariance(Matrix9d::Zero());
+}
+
+// Feeds samples [begin, end) of simulate()'s data to f, which is told the data are pure-model.
+template <class Filter>
+void run_pure_model(Filter& f, const std::vector<SimSample>& data, size_t begin = 0,
+                    size_t end = std::numeric_limits<size_t>::max()) {
+  state_pure_model(f);
+  for (size_t k = begin; k < std::min(end, data.size()); ++k)
+    f.update(data[k].b_sensor_nT, data[k].h_norm_nT, data[k].utime);
+}
 
 }  // namespace magcal::test
 

@@ -21,13 +21,6 @@ constexpr double kNoiseFreeSigma_nT = 1e-3;  // filter noise setting for noise-f
 constexpr double kNoiseFreeBiasTol_nT = 1e-3;
 constexpr double kNoiseFreeDTol = 1e-7;
 
-template <class Filter>
-void run(Filter& f, const std::vector<SimSample>& data, size_t begin = 0,
-         size_t end = std::numeric_limits<size_t>::max()) {
-  for (size_t k = begin; k < std::min(end, data.size()); ++k)
-    f.update(data[k].b_sensor_nT, data[k].h_norm_nT, data[k].utime);
-}
-
 }  // namespace
 
 TEST_CASE("EKF recovers known parameters from a warm start on noise-free data") {
@@ -47,7 +40,7 @@ TEST_CASE("EKF recovers known parameters from a warm start on noise-free data") 
     MagnetometerEkf f(o);
     std::mt19937_64 rng(5);
     f.initialize(draw_prior(p_true, warm_covariance(), rng), warm_covariance());
-    run(f, data);
+    run_pure_model(f, data);
     const Vector9d e = f.x() - p_true;
     CHECK(e.head<3>().cwiseAbs().maxCoeff() < kNoiseFreeBiasTol_nT);
     CHECK(e.tail<6>().cwiseAbs().maxCoeff() < kNoiseFreeDTol);
@@ -61,7 +54,7 @@ TEST_CASE("EKF converges from 2.8x the paper's parameters on a tumbling spacecra
   const auto data = simulate(Geometry::kTumbling, p_true, 24.0, kSigma_nT, 3);
   MagnetometerEkf f;
   f.initialize(2.8 * p_true, f.options().initial_covariance());
-  run(f, data);
+  run_pure_model(f, data);
   const Vector9d e = f.x() - p_true;
   CHECK(e.head<3>().cwiseAbs().maxCoeff() < 1.0);
   CHECK(e.head<3>().cwiseQuotient(f.bias_sigma_nT()).cwiseAbs().maxCoeff() < 5.0);
@@ -74,7 +67,7 @@ TEST_CASE("EKF converges from 2.8x the paper's parameters on a tumbling spacecra
 TEST_CASE("EKF rejects NaN, Inf and non-positive |h| without touching the state") {
   const auto data = simulate(Geometry::kRandom, paper_parameters(), 0.5, kSigma_nT, 2);
   MagnetometerEkf f;
-  run(f, data);
+  run_pure_model(f, data);
   const FilterState before = f.state();
   const double nan = std::numeric_limits<double>::quiet_NaN();
   const double inf = std::numeric_limits<double>::infinity();
@@ -101,12 +94,12 @@ TEST_CASE("EKF state save/restore is a bit-exact continuation") {
   MagnetometerEkf::Options o;
   o.process_noise_per_sqrt_hour.setConstant(1e-3);
   MagnetometerEkf a(o);
-  run(a, data, 0, data.size() / 2);
+  run_pure_model(a, data, 0, data.size() / 2);
   MagnetometerEkf b(o);
   b.restore(a.state());  // what the daemon stores and loads
   CHECK(b.state() == a.state());
-  run(a, data, data.size() / 2);
-  run(b, data, data.size() / 2);
+  run_pure_model(a, data, data.size() / 2);
+  run_pure_model(b, data, data.size() / 2);
   CHECK(b.state() == a.state());  // exact, not approximate
   CHECK(b.x() == a.x());
   CHECK(b.P() == a.P());
@@ -121,7 +114,7 @@ TEST_CASE("EKF update does not allocate") {
     return;
   }
   const long before = g_allocations.load();
-  run(f, data, 1);
+  run_pure_model(f, data, 1);
   CHECK(g_allocations.load() == before);
   CHECK(f.state().n_accepted > 0);
 }
@@ -137,7 +130,7 @@ TEST_CASE("EKF gates spikes so they do not corrupt the state") {
   MagnetometerEkf f;
   std::mt19937_64 rng(7);
   f.initialize(draw_prior(p_true, warm_covariance(), rng), warm_covariance());
-  run(f, data);
+  run_pure_model(f, data);
   CHECK(f.state().n_rejected_gate == n_spikes);
   const Vector9d e = f.x() - p_true;
   CHECK(e.head<3>().cwiseQuotient(f.bias_sigma_nT()).cwiseAbs().maxCoeff() < 5.0);
@@ -160,7 +153,7 @@ TEST_CASE("EKF process noise grows the covariance with the time step") {
   MagnetometerEkf with_q(oq), without_q;
   for (auto* f : {&with_q, &without_q}) {
     f->initialize(p_true, warm_covariance());
-    run(*f, data);
+    run_pure_model(*f, data);
   }
   CHECK((with_q.P().diagonal().array() > without_q.P().diagonal().array()).all());
 }
@@ -193,7 +186,7 @@ TEST_CASE("EKF snapshot reports not_converged until the bias sigma is small") {
   CHECK(r.status == CalibrationStatus::kNotConverged);
   CHECK_FALSE(r.converged);
   CHECK(r.window_start_utime == data[0].utime);
-  run(f, data, 1);
+  run_pure_model(f, data, 1);
   r = f.snapshot();
   CHECK(r.status == CalibrationStatus::kOk);
   CHECK((r.bias_sigma_nT().array() < f.options().converged_bias_sigma_nT).all());

@@ -28,13 +28,6 @@ constexpr double kNoiseFreeBiasTol_nT = 1e-3;
 constexpr double kNoiseFreeDTol = 1e-7;
 constexpr double kMomentRelTol = 1e-9;
 
-template <class Filter>
-void run(Filter& f, const std::vector<SimSample>& data, size_t begin = 0,
-         size_t end = std::numeric_limits<size_t>::max()) {
-  for (size_t k = begin; k < std::min(end, data.size()); ++k)
-    f.update(data[k].b_sensor_nT, data[k].h_norm_nT, data[k].utime);
-}
-
 // M = dy/dp of y(p) = (I + D) B - b, by central differences (y is linear in p, so exact).
 Eigen::Matrix<double, 3, 9> dy_dp(const Eigen::Vector3d& B) {
   Eigen::Matrix<double, 3, 9> M;
@@ -94,7 +87,7 @@ TEST_CASE("UKF recovers known parameters from a warm start on noise-free data") 
     MagnetometerUkf f(o);
     std::mt19937_64 rng(5);
     f.initialize(draw_prior(p_true, warm_covariance(), rng), warm_covariance());
-    run(f, data);
+    run_pure_model(f, data);
     const Vector9d e = f.x() - p_true;
     CHECK(e.head<3>().cwiseAbs().maxCoeff() < kNoiseFreeBiasTol_nT);
     CHECK(e.tail<6>().cwiseAbs().maxCoeff() < kNoiseFreeDTol);
@@ -195,7 +188,7 @@ TEST_CASE("Covariance guard keeps P symmetric positive definite") {
 TEST_CASE("UKF rejects NaN input without touching the state") {
   const auto data = simulate(Geometry::kRandom, paper_parameters(), 0.5, kSigma_nT, 2);
   MagnetometerUkf f;
-  run(f, data);
+  run_pure_model(f, data);
   const FilterState before = f.state();
   const double nan = std::numeric_limits<double>::quiet_NaN();
   const int64_t t = data.back().utime + 10'000'000;
@@ -211,11 +204,11 @@ TEST_CASE("UKF state save/restore is a bit-exact continuation, reanchor keeps co
   MagnetometerUkf::Options o;
   o.process_noise_per_sqrt_hour.setConstant(1e-3);
   MagnetometerUkf a(o);
-  run(a, data, 0, data.size() / 2);
+  run_pure_model(a, data, 0, data.size() / 2);
   MagnetometerUkf b(o);
   b.restore(a.state());
-  run(a, data, data.size() / 2);
-  run(b, data, data.size() / 2);
+  run_pure_model(a, data, data.size() / 2);
+  run_pure_model(b, data, data.size() / 2);
   CHECK(b.state() == a.state());
 
   const FilterState s = a.state();
@@ -234,15 +227,15 @@ TEST_CASE(
   const auto data = simulate(Geometry::kNadir, paper_parameters(), 4.0, kSigma_nT, 4);
   const size_t collecting = 40;  // below start.min_samples
   MagnetometerUkf a;
-  run(a, data, 0, collecting);
+  run_pure_model(a, data, 0, collecting);
   REQUIRE_FALSE(a.initialized());
   const auto* lag1 = std::get_if<ScalarLag1Moments>(&a.state().lag1_or_block);
   REQUIRE(lag1 != nullptr);
   CHECK(lag1->m.norm() > 0.0);
   MagnetometerUkf b;
   b.restore(a.state());
-  run(a, data, collecting);
-  run(b, data, collecting);
+  run_pure_model(a, data, collecting);
+  run_pure_model(b, data, collecting);
   REQUIRE(a.initialized());
   CHECK(b.state() == a.state());
   // The bias-motion block start holds the place of the lag-1 products.
@@ -260,7 +253,7 @@ TEST_CASE("UKF update does not allocate") {
     return;
   }
   const long before = g_allocations.load();
-  run(f, data, 1);
+  run_pure_model(f, data, 1);
   CHECK(g_allocations.load() == before);
   CHECK(f.state().n_accepted > 0);
 }
@@ -273,7 +266,7 @@ TEST_CASE("UKF converges from 2.8x the paper's parameters") {
     const auto data = simulate(g, p_true, 24.0, kSigma_nT, 3);
     MagnetometerUkf f;
     f.initialize(2.8 * p_true, f.options().initial_covariance());
-    run(f, data);
+    run_pure_model(f, data);
     const Vector9d e = f.x() - p_true;
     CHECK(e.head<3>().cwiseAbs().maxCoeff() < (g == Geometry::kNadir ? 5.0 : 1.0));
     CHECK(e.head<3>().cwiseQuotient(f.bias_sigma_nT()).cwiseAbs().maxCoeff() < 5.0);
