@@ -47,8 +47,9 @@ struct EvaluationOptions {
   bool filter_sigma_from_residual = false;
   // Two more centered+LM rows on a thermal variant of each run (the scenario with an
   // orbit-synchronous temperature of +-thermal_amplitude_C and a bias temperature coefficient
-  // thermal_coefficient_nT_per_C), without and with the bias temperature model, against the true
-  // bias at the fit's reference temperature (the samples' mean temperature).
+  // thermal_coefficient_nT_per_C): without a temperature channel (every temperature unknown: the
+  // refit bounds a swing with the orbit) and with one (the bias temperature model), against the
+  // true bias at the samples' mean temperature.
   bool thermal = true;
   double thermal_amplitude_C = 15.0;
   Eigen::Vector3d thermal_coefficient_nT_per_C = Eigen::Vector3d(1.0, -0.8, 1.2);
