@@ -388,16 +388,16 @@ TEST_CASE("thermal and drifting, 24 h: the bias rate beside the temperature mode
       "drift: %d of 10\n",
       bias.within, bias.total, bias.rms_z(), rate.within, rate.total, rate.rms_z(),
       coefficient.within, coefficient.total, coefficient.rms_z(), false_rates);
-  // Measured over 10 seeds each: bias 59 / 60 within 3 sigma (RMS z 1.22), rate 60 / 60 (0.97),
-  // k_T 115 / 120 (1.39), no rate without drift; here (5 seeds) 29 / 30, 30 / 30, 57 / 60. The
-  // miss (3.7 sigma) and the k_T tail are the 24 h thermal fit itself, with or without the rate:
-  // without drift the paper sensor's bias at T0 is 1.2-1.4 sigma off on z in 3 of 3 seeds, and
-  // k_T's sigma is too small by about a third on 24 h windows (still open; the 12 h test above
-  // holds).
+  // Measured over 10 seeds each: bias 60 / 60 within 3 sigma (RMS z 1.11), rate 60 / 60 (0.98),
+  // k_T 120 / 120 (0.95), no rate without drift; here (5 seeds) 30 / 30 (1.21), 30 / 30 (1.02),
+  // 60 / 60 (0.98). With k_T fitted once beside the unmodelled drift (before the coordinate
+  // descent in with_bias_rate_beside_temperature()): k_T 115 / 120 (RMS z 1.39), the paper
+  // sensor's k_z 2.7-3.6 sigma off in 5 of 5 drifting seeds.
   CHECK(bias.within >= bias.total - 1);
   CHECK(bias.rms_z() <= 1.5);
   CHECK(rate.within == rate.total);
-  CHECK(coefficient.within >= coefficient.total - 3);
+  CHECK(coefficient.within >= coefficient.total - 1);
+  CHECK(coefficient.rms_z() <= 1.25);
   CHECK(false_rates == 0);
 }
 
