@@ -48,6 +48,8 @@ RollPitchYawReport roll_pitch_yaw_report(const Eigen::Matrix3d& R,
   out.rpy.roll_rad = 0.0;
   out.rpy.pitch_rad = rpy.pitch_rad;
   out.rpy.yaw_rad = out.combination_rad;
+  out.canonical_rotation_error_rad =
+      rotation_angle(dcm_from_roll_pitch_yaw(out.rpy) * R.transpose());
   return out;
 }
 

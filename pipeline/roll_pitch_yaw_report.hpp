@@ -31,6 +31,11 @@ struct RollPitchYawReport {
   const char* combination_name = "";
   double combination_rad = std::numeric_limits<double>::quiet_NaN();
   double combination_sigma_rad = std::numeric_limits<double>::quiet_NaN();
+  // Singular: the angle of the rotation between dcm_from_roll_pitch_yaw(rpy) and R, rad. Roll = 0
+  // moves the whole roll into the combination, exact at the pole only: roll r at pitch p leaves
+  // about |r| cos(p) (30 deg at 88.5 deg: 0.8 deg), far beyond the combination's sigma. The
+  // quaternion is R itself; 0 when not singular.
+  double canonical_rotation_error_rad = 0.0;
 };
 
 // Default distance from pitch +-90 deg within which the angles are reported singular. The

@@ -293,6 +293,9 @@ void print_text(const CalibrationResult& r, double compute_ms, double convergenc
                        "deg",
                        gimbal_lock_margin_deg, a.combination_name, a.combination_rad * kRadToDeg,
                        a.combination_sigma_rad * kRadToDeg));
+      line("", fmt::format("these angles differ from the rotation by {:.2g} deg: use the "
+                           "quaternion for the rotation itself",
+                           a.canonical_rotation_error_rad * kRadToDeg));
     }
   } else {
     line("alignment", "not estimated (no reference directions)");
@@ -446,20 +449,23 @@ int run_fit(const FitArgs& args) {
     batch.sigma_nT = args.sigma_nT;
     batch.alignment = false;
     batch.gates = false;
+    // A refit that failed measured nothing: the filter is then never `ok`
+    // (FilterOptions::ok_needs_model_error).
     const CalibrationResult refit = calibrate_batch(samples, batch);
+    const bool model_error_measured = refit.status == CalibrationStatus::kOk;
     const Matrix9d model_error = refit.model_error_covariance();
     FilterRun run;
     if (args.method == "ekf") {
       MagnetometerEkf::Options o;
       o.sigma_nT = args.sigma_nT;
       MagnetometerEkf f(o);
-      f.set_model_error_covariance(model_error);
+      if (model_error_measured) f.set_model_error_covariance(model_error);
       run = run_filter(f, samples, trace);
     } else {
       MagnetometerUkf::Options o;
       o.sigma_nT = args.sigma_nT;
       MagnetometerUkf f(o);
-      f.set_model_error_covariance(model_error);
+      if (model_error_measured) f.set_model_error_covariance(model_error);
       run = run_filter(f, samples, trace);
     }
     if (trace) {

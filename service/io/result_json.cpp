@@ -78,6 +78,7 @@ nlohmann::json calibration_result_to_json(const CalibrationResult& result,
     j["alignment_singular"] = a.singular;
     if (a.singular) {
       j["alignment_determined_deg"] = {{a.combination_name, a.combination_rad * kRadToDeg}};
+      j["alignment_canonical_error_deg"] = a.canonical_rotation_error_rad * kRadToDeg;
       if (covariance_known) {
         j["alignment_determined_sigma_deg"] = {
             {a.combination_name, json_number(a.combination_sigma_rad * kRadToDeg)}};

@@ -66,6 +66,14 @@ TEST_CASE("gimbal lock: canonical roll/yaw split near pitch +-90 deg, honest com
         dcm_from_roll_pitch_yaw({roll_true, pitch_deg * kDegToRad, yaw_true});
     const RollPitchYawReport truth = roll_pitch_yaw_report(R_true, Eigen::Matrix3d::Zero(), margin);
     REQUIRE(truth.singular);
+    // The roll-0 angles reproduce R only at the pole; off it they are off by about
+    // |roll| cos(pitch), which the report states (the quaternion is exact).
+    const double moved_roll_rad = roll_true * std::cos(pitch_deg * kDegToRad);
+    WARN("pitch " << pitch_deg << ": the canonical angles differ from R by "
+                  << truth.canonical_rotation_error_rad * kRadToDeg << " deg (|roll| cos(pitch) "
+                  << std::abs(moved_roll_rad) * kRadToDeg << " deg)");
+    CHECK(truth.canonical_rotation_error_rad ==
+          Approx(std::abs(moved_roll_rad)).epsilon(0.05).margin(1e-9));
     std::mt19937 rng(static_cast<uint32_t>(1000 + 10 * pitch_deg));
     Rms combination, pitch;
     double spread_rad = 0.0, raw_roll_min = 10.0, raw_roll_max = -10.0;

@@ -378,6 +378,8 @@ TEST_CASE("history flags roll/yaw near gimbal lock in JSON and CSV (canonical sp
   const double combination_deg = (-0.2 - 0.3) * 180.0 / std::numbers::pi;
   CHECK(row["alignment_deg"]["yaw"].get<double>() == Approx(combination_deg));
   CHECK(row["alignment_determined_deg"]["yaw_minus_roll"].get<double>() == Approx(combination_deg));
+  // At the pole itself the roll-0 angles are the rotation.
+  CHECK(row["alignment_canonical_error_deg"].get<double>() == Approx(0.0).margin(1e-9));
   // Stored without a covariance (as rows before it was kept): no sigma is printed.
   CHECK_FALSE(row.contains("alignment_determined_sigma_deg"));
   CHECK_FALSE(row.contains("alignment_sigma_deg"));
