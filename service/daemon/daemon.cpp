@@ -464,13 +464,42 @@ struct Daemon::Impl {
     guarded("worker", [this] { worker_loop(); });
   }
 
+  // The worker loop's frames: popped from the queue, items[next..] not processed yet. After a
+  // fatal error they go to the pending batch, and so to the spill file (keep_after_fatal()).
+  std::vector<IngestItem> popped_items;
+  size_t popped_next = 0;
+
+  // After a fatal error, with the worker stopped: the frames it had popped but not processed,
+  // those still queued and the first samples held for their time base go to the pending batch,
+  // which the spill file (PostgreSQL) then takes; none is counted as lost while it has room.
+  void keep_after_fatal() {
+    try {
+      for (size_t i = popped_next; i < popped_items.size(); ++i) {
+        worker->ingest_without_commit(popped_items[i]);
+      }
+      popped_items.clear();
+      popped_next = 0;
+      std::vector<IngestItem> queued;
+      while (queue->pop_all(queued, 0) && !queued.empty()) {  // (closed: false once empty)
+        for (const IngestItem& item : queued) worker->ingest_without_commit(item);
+        queued.clear();
+      }
+      worker->settle_held();
+    } catch (const std::exception& e) {
+      spdlog::error(
+          "after the fatal error, received samples could not be kept for the spill "
+          "file: {}",
+          e.what());
+    }
+  }
+
   void worker_loop() {
     using clock = std::chrono::steady_clock;
     auto last_status = clock::now();
     auto last_log = clock::now();
     auto last_states = clock::now();
-    std::vector<IngestItem> items;
-    size_t next = 0;  // items[next..] are popped but not processed yet
+    std::vector<IngestItem>& items = popped_items;
+    size_t& next = popped_next;  // items[next..] are popped but not processed yet
     while (!fatal.load()) {
       // The loop wakes at least every 100 ms (pop_all, the retry wait); a commit blocks at most
       // [storage] busy_timeout_ms. Sent every WatchdogSec/2: a stuck worker gets restarted.
@@ -657,6 +686,7 @@ int Daemon::run(const std::atomic<bool>& stop) {
     });
   }
   if (d.fatal.load()) {
+    d.keep_after_fatal();
     // On PostgreSQL the pending batch goes to the spill file: committed at the next start.
     if (const int64_t spilled = d.worker->spill_all_pending(); spilled > 0) {
       spdlog::warn("{} pending samples spilled: committed at the next start", spilled);

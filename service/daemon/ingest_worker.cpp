@@ -105,12 +105,25 @@ void IngestWorker::track_all_now() {
 
 void IngestWorker::process(const IngestItem& item) {
   intake_.begin_frame();
-  for (const auto& s : item.samples) {
-    intake_.ingest(s, item.batch_sat_id, item.receive_utime);
+  for (size_t i = 0; i < item.samples.size(); ++i) {
+    intake_.ingest(item.samples[i], item.batch_sat_id, item.receive_utime);
     // A new spacecraft gets its lease row (and, when this daemon's share allows, its owner
     // here) at the next commit, before its first samples are read back.
     if (intake_.has_new_spacecraft()) owner_.register_spacecraft(intake_.take_new_spacecraft());
-    if (intake_.batch_full()) commit();
+    if (intake_.batch_full()) {
+      try {
+        commit();
+      } catch (...) {
+        ingest_without_commit(item, i + 1);
+        throw;
+      }
+    }
+  }
+}
+
+void IngestWorker::ingest_without_commit(const IngestItem& item, size_t first) {
+  for (size_t i = first; i < item.samples.size(); ++i) {
+    intake_.ingest(item.samples[i], item.batch_sat_id, item.receive_utime);
   }
 }
 

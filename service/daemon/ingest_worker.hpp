@@ -106,7 +106,12 @@ class IngestWorker {
   void track_all_now();
 
   // Validates and ingests every sample of a decoded frame (commits whenever the batch is full).
+  // A commit that throws (storage failed for good) leaves the rest of the frame in the pending
+  // batch, so that spill_all_pending() keeps it.
   void process(const IngestItem& item);
+  // After storage failed for good: validates and ingests the samples of a frame from `first` on
+  // into the pending batch, without committing (for spill_all_pending()).
+  void ingest_without_commit(const IngestItem& item, size_t first = 0);
   // Commits when the pending batch is full or old enough; call regularly.
   void commit_if_due();
   // Commits pending samples and the owner's writes now (see file comment), then runs retention.
