@@ -663,6 +663,49 @@ void correct_estimator_bias(const SampleSet& samples, const BatchCalibrationOpti
   P += second.spread / static_cast<double>(second.replicates) + step * step.transpose();
 }
 
+// Raw residuals |B| - |h| in *residuals; the samples beyond kOutlierGateRobustSigmas robust sigmas
+// of their median and beyond kRawSpikeFractionOfField of the mean |h| from it marked 0 in
+// *inlier. Returns how many.
+int mark_raw_spikes(const SampleSet& samples, double sigma_nT, std::vector<double>* residuals,
+                    std::vector<char>* inlier) {
+  residuals->resize(samples.size());
+  inlier->assign(samples.size(), 1);
+  double mean_h_nT = 0.0;
+  for (std::size_t k = 0; k < samples.size(); ++k) {
+    (*residuals)[k] = samples[k].b_sensor_nT.norm() - samples[k].h_body_nT.norm();
+    mean_h_nT += samples[k].h_body_nT.norm();
+  }
+  mean_h_nT /= static_cast<double>(std::max<std::size_t>(samples.size(), 1));
+  const double floor_nT =
+      std::max(sigma_nT, kRawSpikeFractionOfField * mean_h_nT / kOutlierGateRobustSigmas);
+  std::vector<double> scratch;
+  mark_outliers(*residuals, kOutlierGateRobustSigmas, floor_nT, &scratch, inlier);
+  return static_cast<int>(std::count(inlier->begin(), inlier->end(), 0));
+}
+
+// A failed fit's message with the spikes among its samples named (mark_raw_spikes()): one sample
+// far off the field can leave the centered solution without a solution at all ("I + E is not
+// positive definite"), where the cause is the input, and --robust leaves it out.
+void name_raw_spikes(const SampleSet& samples, double sigma_nT, CalibrationResult* r) {
+  // (An input refusal that already names its sample and --robust says it all.)
+  if (samples.empty() || r->message.find("--robust") != std::string::npos) return;
+  std::vector<double> residuals;
+  std::vector<char> inlier;
+  const int n = mark_raw_spikes(samples, sigma_nT, &residuals, &inlier);
+  if (n == 0) return;
+  std::size_t worst = 0;
+  for (std::size_t k = 0; k < residuals.size(); ++k) {
+    if (inlier[k] == 0 && std::abs(residuals[k]) > std::abs(residuals[worst])) worst = k;
+  }
+  char buf[320];
+  std::snprintf(buf, sizeof buf,
+                "; %d sample(s) far off the field, the largest %s: |B| - |h| = %.4g nT (an "
+                "outlier?): a robust fit (magcal fit --robust, [refit] robust = true) leaves such "
+                "samples out",
+                n, sample_label(worst, samples[worst].utime).c_str(), residuals[worst]);
+  r->message += buf;
+}
+
 // Residual evidence at the published b, D: rms of |B_cal| - |h| (what a user of calibration_t
 // gets; the model extension, when used, shows in noise_scale instead) and the samples the fit
 // rests on as outliers (residuals beyond kOutlierGateRobustSigmas robust sigmas of the median).
@@ -677,16 +720,7 @@ void residual_evidence(const SampleSet& samples, const BatchCalibrationOptions& 
   gates->outliers.count = static_cast<int>(std::count(inlier.begin(), inlier.end(), 0));
   gates->outliers.robust_sigmas = kOutlierGateRobustSigmas;
   if (gates->outliers.count == 0) {  // a spike that wrecked the fit (kRawSpikeFractionOfField)
-    double mean_h_nT = 0.0;
-    for (std::size_t k = 0; k < samples.size(); ++k) {
-      residuals[k] = samples[k].b_sensor_nT.norm() - samples[k].h_body_nT.norm();
-      mean_h_nT += samples[k].h_body_nT.norm();
-    }
-    mean_h_nT /= static_cast<double>(samples.size());
-    const double floor_nT =
-        std::max(options.sigma_nT, kRawSpikeFractionOfField * mean_h_nT / kOutlierGateRobustSigmas);
-    mark_outliers(residuals, kOutlierGateRobustSigmas, floor_nT, &scratch, &inlier);
-    gates->outliers.count = static_cast<int>(std::count(inlier.begin(), inlier.end(), 0));
+    gates->outliers.count = mark_raw_spikes(samples, options.sigma_nT, &residuals, &inlier);
     gates->outliers.raw = gates->outliers.count > 0;
   }
   if (gates->outliers.count > 0) {
@@ -1061,7 +1095,13 @@ CalibrationResult calibrate_batch_robust(const SampleSet& samples,
 
 CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrationOptions& options,
                                   const CalibrationResult* previous_accepted) {
-  if (!options.robust) return calibrate_batch_core(samples, options, previous_accepted);
+  if (!options.robust) {
+    CalibrationResult r = calibrate_batch_core(samples, options, previous_accepted);
+    if (r.status == CalibrationStatus::kFailed || r.status == CalibrationStatus::kUnobservable) {
+      name_raw_spikes(samples, options.sigma_nT, &r);
+    }
+    return r;
+  }
   // Zero field vectors (a sensor's dropouts) and isolated samples beyond the sensor range
   // (kMaxLeftOutBeyondRangeFraction) carry no measurement: left out before anything else, and
   // counted with the outliers.

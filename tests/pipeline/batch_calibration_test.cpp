@@ -10,6 +10,8 @@
 #include "pipeline/batch_calibration.hpp"
 #include "pipeline/crlb.hpp"
 #include "pipeline/rotation.hpp"
+#include "pipeline/scenario.hpp"
+#include "pipeline/simulator.hpp"
 
 using namespace magcal;
 
@@ -191,6 +193,27 @@ TEST_CASE("batch calibration failure modes give clean statuses, never garbage") 
     const CalibrationResult rr = calibrate_batch(s, robust);
     CHECK(rr.accepted);
     CHECK((rr.parameters.bias_nT - p.bias_nT).norm() < 5.0);
+  }
+  SECTION("a spike that leaves a least-squares fit without a solution is named, with --robust") {
+    // 1.5e6 nT added to x of one sample of 12 h of the paper scenario (nadir): the centered
+    // solution has none (I + E not positive definite), and the cause is that sample.
+    Scenario sc = *scenario_preset("paper");
+    sc.seed = 2;
+    sc.duration_s = 12.0 * 3600.0;
+    Simulator sim(sc);
+    SampleSet s;
+    SimulatedSample x;
+    while (sim.next(&x)) s.push_back(x.calibration_sample());
+    s[1000].b_sensor_nT(0) += 1.5e6;
+    const CalibrationResult r = calibrate_batch(s, BatchCalibrationOptions{});
+    INFO(r.message);
+    REQUIRE(r.status == CalibrationStatus::kFailed);
+    CHECK(r.message.find("1 sample(s) far off the field, the largest sample 1000 (t_s ") !=
+          std::string::npos);
+    CHECK(r.message.find("magcal fit --robust") != std::string::npos);
+    BatchCalibrationOptions robust;
+    robust.robust = true;
+    CHECK(calibrate_batch(s, robust).accepted);
   }
   SECTION("all samples along one direction") {
     SampleSet s = model_data(p, 200, 3.0, 3);
