@@ -62,6 +62,12 @@ constexpr double kRawSpikeFractionOfField = 0.5;
 // paper scenario (2e-4 of |h|, sigma(D) 3e-4 on 12 h, 3e-3 on 3 h) and well-covered captures
 // (sigma(D) 5e-5 tumbled or turned over at 30 nT) never pay for it.
 constexpr double kBootstrapNoiseFraction = 1e-3;
+// A window whose median |B| is beyond this factor of the reference field's median |h| (either
+// way) is in another unit (uT, G, mG, raw counts) or fitted against the wrong reference: no
+// calibration error a gate would accept (scale factors within 0.3, a bias of a few thousand nT)
+// comes near a factor of 5, and the fit of such data is refused only through every bound at
+// once, without naming the cause.
+constexpr double kMaxFieldMagnitudeRatio = 5.0;
 constexpr double kBootstrapScaleSigma = 1e-4;
 
 bool is_zero_field_vector(const CalibrationSample& s) {
@@ -181,6 +187,13 @@ CalibrationResult fail(CalibrationResult r, CalibrationStatus status, std::strin
   return r;
 }
 
+// The median of *x (the upper one for an even count), reordering *x.
+double median_in_place(std::vector<double>* x) {
+  auto mid = x->begin() + static_cast<std::ptrdiff_t>(x->size() / 2);
+  std::nth_element(x->begin(), mid, x->end());
+  return *mid;
+}
+
 // keep[k] = |e_k - median(e)| <= n_sigmas x max(1.4826 MAD(e), floor_nT) (a robust sigma never
 // below the nominal noise: on noise-free data the MAD is rounding). Returns whether any keep[k]
 // changed. `scratch` is reused.
@@ -188,12 +201,9 @@ bool mark_outliers(const std::vector<double>& e, double n_sigmas, double floor_n
                    std::vector<double>* scratch, std::vector<char>* keep) {
   std::vector<double>& sorted = *scratch;
   sorted = e;
-  auto mid = sorted.begin() + static_cast<std::ptrdiff_t>(sorted.size() / 2);
-  std::nth_element(sorted.begin(), mid, sorted.end());
-  const double median = *mid;
+  const double median = median_in_place(&sorted);
   for (double& x : sorted) x = std::abs(x - median);
-  std::nth_element(sorted.begin(), mid, sorted.end());
-  const double cut = n_sigmas * std::max(1.4826 * *mid, floor_nT);
+  const double cut = n_sigmas * std::max(1.4826 * median_in_place(&sorted), floor_nT);
   bool changed = false;
   for (std::size_t k = 0; k < e.size(); ++k) {
     const char in = std::abs(e[k] - median) <= cut ? 1 : 0;
@@ -203,8 +213,37 @@ bool mark_outliers(const std::vector<double>& e, double n_sigmas, double floor_n
   return changed;
 }
 
+// Empty when the window's median |B| is within kMaxFieldMagnitudeRatio of its median |h|; else
+// the reason, naming both and the likely cause. Samples the per-sample check refuses (zero,
+// non-finite, beyond the range) are not counted.
+std::string field_magnitude_mismatch(const SampleSet& samples) {
+  std::vector<double> b_nT, h_nT;
+  b_nT.reserve(samples.size());
+  h_nT.reserve(samples.size());
+  for (const CalibrationSample& s : samples) {
+    if (!s.b_sensor_nT.allFinite() || !s.h_body_nT.allFinite() || is_zero_field_vector(s)) {
+      continue;
+    }
+    b_nT.push_back(s.b_sensor_nT.norm());
+    h_nT.push_back(s.h_body_nT.norm());
+  }
+  if (b_nT.empty()) return {};
+  const double b = median_in_place(&b_nT), h = median_in_place(&h_nT);
+  const double ratio = b / h;
+  if (ratio <= kMaxFieldMagnitudeRatio && ratio >= 1.0 / kMaxFieldMagnitudeRatio) return {};
+  char buf[320];
+  std::snprintf(buf, sizeof buf,
+                "median |B| %.6g nT is %.3g times the reference field's median |h| %.6g nT: the "
+                "samples are in another unit (uT: x 1e-3, G: x 1e-5, mG: x 1e-2, or raw counts) "
+                "or the reference field is wrong; convert them to nT (a recording CSV: magcal fit "
+                "--field-unit)",
+                b, ratio, h);
+  return buf;
+}
+
 // Input check: the options, the sample count, each sample (sample_input_problem), the window's
-// times. False (r failed) when the data cannot enter a fit.
+// times, the window's field magnitude against the reference (field_magnitude_mismatch). False (r
+// failed) when the data cannot enter a fit.
 bool check_input(const SampleSet& samples, const BatchCalibrationOptions& options,
                  CalibrationResult* r) {
   if (std::string err = options.validate(); !err.empty()) {
@@ -247,6 +286,10 @@ bool check_input(const SampleSet& samples, const BatchCalibrationOptions& option
                   sample_label(first_zero, samples[first_zero].utime).c_str(), n_zero,
                   samples.size());
     *r = fail(*r, CalibrationStatus::kFailed, buf);
+    return false;
+  }
+  if (std::string problem = field_magnitude_mismatch(samples); !problem.empty()) {
+    *r = fail(*r, CalibrationStatus::kFailed, problem);
     return false;
   }
   r->window_start_utime = t0;

@@ -150,6 +150,28 @@ TEST_CASE("batch calibration failure modes give clean statuses, never garbage") 
           0);
     CHECK(calibrate_batch({}, robust).status == CalibrationStatus::kFailed);
   }
+  SECTION("a window in another unit names the unit, with --robust too") {
+    // A trial: samples in uT were refused only through six bounds (|D| 1009 > 0.3, ...).
+    for (const double unit : {1e-3, 1e-2, 1e-5, 8.0}) {  // 8: counts of 0.125 nT
+      SampleSet s = model_data(p, 200, 3.0, 5);
+      for (CalibrationSample& x : s) x.b_sensor_nT *= unit;
+      INFO("unit " << unit);
+      for (const bool robust : {false, true}) {
+        BatchCalibrationOptions o = twostep;
+        o.robust = robust;
+        const CalibrationResult r = calibrate_batch(s, o);
+        CHECK(r.status == CalibrationStatus::kFailed);
+        CHECK(r.message.rfind("median |B| ", 0) == 0);
+        CHECK(r.message.find("the samples are in another unit (uT") != std::string::npos);
+      }
+    }
+    // A hard-iron bias of 2/3 of the field (|B| from 1/3 to 5/3 of |h|) is not a unit.
+    CalibrationParameters hard_iron = p;
+    hard_iron.bias_nT << 30000.0, -20000.0, 10000.0;
+    const CalibrationResult r = calibrate_batch(model_data(hard_iron, 400, 3.0, 5), twostep);
+    CHECK(r.status == CalibrationStatus::kOk);
+    CHECK(r.accepted);
+  }
   SECTION("|B| beyond any sensor's range names the magnitude") {
     SampleSet s = model_data(p, 200, 3.0, 5);
     s[17].b_sensor_nT << 6.1e6, 1e3, -2e3;
