@@ -31,6 +31,7 @@
 #include "pipeline/rotation.hpp"
 #include "pipeline/temperature_model.hpp"
 #include "service/cli/cli_commands.hpp"
+#include "service/daemon/spacecraft_tracker.hpp"
 #include "service/io/field_recording.hpp"
 #include "service/io/reference_field.hpp"
 #include "service/io/result_json.hpp"
@@ -454,19 +455,38 @@ int run_fit(const FitArgs& args) {
     const CalibrationResult refit = calibrate_batch(samples, batch);
     const bool model_error_measured = refit.status == CalibrationStatus::kOk;
     const Matrix9d model_error = refit.model_error_covariance();
+    // Where the refit took a temperature model, the filter sees the samples moved to its T0, as
+    // the daemon's UKF does (TemperatureCorrection): a bias swinging with the temperature is
+    // faster than the filter follows (the shipped tumbling scenario, +-20 nT per orbit: `ok`
+    // snapshots up to 16.6 sigma off the current bias without it). Its bias is then the bias at
+    // T0; a sample without a temperature (none within 60 s) is left out, as there.
+    TemperatureCorrection temperature;
+    if (model_error_measured) temperature.take_from(refit, 0);
+    SampleSet filtered;
+    filtered.reserve(samples.size());
+    for (const CalibrationSample& s : samples) {
+      CalibrationSample moved = s;
+      if (temperature.correct(s, moved.b_sensor_nT)) filtered.push_back(moved);
+    }
+    if (filtered.empty()) {
+      std::cerr << "magcal fit: " << args.input << ": no sample carries a temperature within "
+                << TemperatureCorrection::kTemperatureHoldMax_utime / 1'000'000
+                << " s, which the refit's temperature model needs\n";
+      return kExitData;
+    }
     FilterRun run;
     if (args.method == "ekf") {
       MagnetometerEkf::Options o;
       o.sigma_nT = args.sigma_nT;
       MagnetometerEkf f(o);
       if (model_error_measured) f.set_model_error_covariance(model_error);
-      run = run_filter(f, samples, trace);
+      run = run_filter(f, filtered, trace);
     } else {
       MagnetometerUkf::Options o;
       o.sigma_nT = args.sigma_nT;
       MagnetometerUkf f(o);
       if (model_error_measured) f.set_model_error_covariance(model_error);
-      run = run_filter(f, samples, trace);
+      run = run_filter(f, filtered, trace);
     }
     if (trace) {
       const bool ok = std::fclose(trace) == 0;
@@ -480,7 +500,8 @@ int run_fit(const FitArgs& args) {
     }
     r = run.result;
     convergence_time_s = run.convergence_time_s;
-    finish_filter_result(r, samples, args.sigma_nT, refit);
+    finish_filter_result(r, filtered, args.sigma_nT, refit);
+    temperature.describe(r);
   }
   const double compute_ms =
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_start).count();
