@@ -63,7 +63,8 @@ constexpr double kRawSpikeFractionOfField = 0.5;
 // (sigma(D) 5e-5 tumbled or turned over at 30 nT) never pay for it.
 constexpr double kBootstrapNoiseFraction = 1e-3;
 // A window whose median |B| is beyond this factor of the reference field's median |h| (either
-// way) is in another unit (uT, G, mG, raw counts) or fitted against the wrong reference: no
+// way) is in another unit (uT, G, mG, raw counts), wrapped on many samples (negative counts of a
+// 16-bit sensor read as unsigned: +65536 LSB) or fitted against the wrong reference: no
 // calibration error a gate would accept (scale factors within 0.3, a bias of a few thousand nT)
 // comes near a factor of 5, and the fit of such data is refused only through every bound at
 // once, without naming the cause.
@@ -234,9 +235,9 @@ std::string field_magnitude_mismatch(const SampleSet& samples) {
   char buf[320];
   std::snprintf(buf, sizeof buf,
                 "median |B| %.6g nT is %.3g times the reference field's median |h| %.6g nT: the "
-                "samples are in another unit (uT: x 1e-3, G: x 1e-5, mG: x 1e-2, or raw counts) "
-                "or the reference field is wrong; convert them to nT (a recording CSV: magcal fit "
-                "--field-unit)",
+                "samples are in another unit (uT: x 1e-3, G: x 1e-5, mG: x 1e-2, or raw counts), "
+                "wrapped (negative counts read as unsigned) or the reference field is wrong; "
+                "convert them to nT (a recording CSV: magcal fit --field-unit)",
                 b, ratio, h);
   return buf;
 }

@@ -165,6 +165,17 @@ TEST_CASE("batch calibration failure modes give clean statuses, never garbage") 
         CHECK(r.message.find("the samples are in another unit (uT") != std::string::npos);
       }
     }
+    // Negative counts of a 16-bit sensor (3.05 nT LSB) read as unsigned: +200 000 nT on about
+    // half the values, each below the range.
+    SampleSet wrapped = model_data(p, 400, 3.0, 5);
+    for (CalibrationSample& x : wrapped) {
+      for (int i = 0; i < 3; ++i) {
+        if (x.b_sensor_nT(i) < 0.0) x.b_sensor_nT(i) += 65536 * 3.0517578125;
+      }
+    }
+    const CalibrationResult w = calibrate_batch(wrapped, twostep);
+    CHECK(w.status == CalibrationStatus::kFailed);
+    CHECK(w.message.find("wrapped (negative counts read as unsigned)") != std::string::npos);
     // A hard-iron bias of 2/3 of the field (|B| from 1/3 to 5/3 of |h|) is not a unit.
     CalibrationParameters hard_iron = p;
     hard_iron.bias_nT << 30000.0, -20000.0, 10000.0;
