@@ -405,14 +405,15 @@ int run_fit(const FitArgs& args) {
   } else {
     BatchCalibrationOptions check;  // same input validation as the batch path
     if (static_cast<int>(samples.size()) < check.min_samples) {
-      std::cerr << "magcal fit: too few samples: " << samples.size() << " < " << check.min_samples
-                << "\n";
+      std::cerr << "magcal fit: " << args.input << ": too few samples: " << samples.size() << " < "
+                << check.min_samples << "\n";
       return kExitData;
     }
     for (std::size_t k = 0; k < samples.size(); ++k) {
       if (std::string problem = sample_input_problem(samples[k], check.max_field_nT);
           !problem.empty()) {
-        std::cerr << "magcal fit: " << sample_label(k, samples[k].utime) << ": " << problem << "\n";
+        std::cerr << "magcal fit: " << args.input << ": " << sample_label(k, samples[k].utime)
+                  << ": " << problem << "\n";
         return kExitData;
       }
     }
@@ -454,6 +455,12 @@ int run_fit(const FitArgs& args) {
     // (FilterOptions::ok_needs_model_error).
     const CalibrationResult refit = calibrate_batch(samples, batch);
     const bool model_error_measured = refit.status == CalibrationStatus::kOk;
+    if (!model_error_measured) {  // the snapshot's reason alone reads "waiting for a refit"
+      std::cerr << "magcal fit: note: " << args.input
+                << ": the twostep refit that measures the model error gave "
+                << to_string(refit.status) << ": " << refit.message
+                << "; without it the filter is never ok\n";
+    }
     const Matrix9d model_error = refit.model_error_covariance();
     // Where the refit took a temperature model, the filter sees the samples moved to its T0, as
     // the daemon's UKF does (TemperatureCorrection): a bias swinging with the temperature is

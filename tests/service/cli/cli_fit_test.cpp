@@ -479,6 +479,22 @@ TEST_CASE("fit --method ukf|ekf on a thermal sensor: ok only within 3 sigma of t
   std::filesystem::remove(trace);
 }
 
+TEST_CASE("fit --method ukf|ekf: a failed refit says why the filter is not ok", "[cli][fit]") {
+  // Samples in uT: the snapshot's reason alone said "waiting for the first refit".
+  const auto csv = temp_path("filter_uT.csv");
+  SampleSet s = model_data(600, 3.0, 21);
+  for (CalibrationSample& x : s) x.b_sensor_nT *= 1e-3;
+  REQUIRE(write_sample_csv(csv.string(), s).empty());
+  const Run r = run_magcal("fit --input " + csv.string() + " --method ukf --json");
+  INFO(r.err);
+  REQUIRE(r.exit_code == 0);
+  CHECK(nlohmann::json::parse(r.out)["verdict"] == "rejected");
+  CHECK(r.err.find("the twostep refit that measures the model error gave failed: median |B|") !=
+        std::string::npos);
+  CHECK(r.err.find("another unit (uT") != std::string::npos);
+  std::filesystem::remove(csv);
+}
+
 TEST_CASE("fit --method ukf|ekf: a result that is not ok is never accepted", "[cli][fit]") {
   // 3 h of the paper scenario: the filters start but their bias 1-sigma is still above the
   // 10 nT convergence threshold (found by a fresh-user trial: `not_converged` yet `accepted`,
