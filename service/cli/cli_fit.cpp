@@ -475,6 +475,12 @@ int run_fit(const FitArgs& args) {
       CalibrationSample moved = s;
       if (temperature.correct(s, moved.b_sensor_nT)) filtered.push_back(moved);
     }
+    if (!filtered.empty() && filtered.size() < samples.size()) {
+      std::cerr << "magcal fit: note: " << args.input << ": " << samples.size() - filtered.size()
+                << " of " << samples.size() << " samples without a temperature within "
+                << TemperatureCorrection::kTemperatureHoldMax_utime / 1'000'000
+                << " s left out of the filter (the refit's temperature model needs one)\n";
+    }
     if (filtered.empty()) {
       std::cerr << "magcal fit: " << args.input << ": no sample carries a temperature within "
                 << TemperatureCorrection::kTemperatureHoldMax_utime / 1'000'000

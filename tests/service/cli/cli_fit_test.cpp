@@ -475,6 +475,18 @@ TEST_CASE("fit --method ukf|ekf on a thermal sensor: ok only within 3 sigma of t
     CHECK(beyond_3_sigma <= ok_rows / 100);
     CHECK(worst < 4.0);
   }
+  // 100 rows without a temperature (10 s apart): those beyond the 60 s hold of the last one
+  // seen are left out of the filter, and said.
+  const auto gap = temp_path("filter_thermal_gap.csv");
+  blank_temperatures(csv, gap, [](int row) { return row >= 1000 && row < 1100; });
+  const Run g = run_magcal("fit --input " + gap.string() + " --method ukf --json");
+  INFO(g.err);
+  REQUIRE(g.exit_code == 0);
+  const int held = 60 / 10;
+  CHECK(g.err.find(std::to_string(100 - held) + " of 4320 samples without a temperature within 60 "
+                                                "s left out of the filter") != std::string::npos);
+  CHECK(nlohmann::json::parse(g.out)["n_samples"] == 4320 - (100 - held));
+  std::filesystem::remove(gap);
   std::filesystem::remove(csv);
   std::filesystem::remove(trace);
 }
