@@ -62,14 +62,14 @@ constexpr double kRawSpikeFractionOfField = 0.5;
 // paper scenario (2e-4 of |h|, sigma(D) 3e-4 on 12 h, 3e-3 on 3 h) and well-covered captures
 // (sigma(D) 5e-5 tumbled or turned over at 30 nT) never pay for it.
 constexpr double kBootstrapNoiseFraction = 1e-3;
+constexpr double kBootstrapScaleSigma = 1e-4;
 // A window whose median |B| is beyond this factor of the reference field's median |h| (either
 // way) is in another unit (uT, G, mG, raw counts), wrapped on many samples (negative counts of a
-// 16-bit sensor read as unsigned: +65536 LSB) or fitted against the wrong reference: no
-// calibration error a gate would accept (scale factors within 0.3, a bias of a few thousand nT)
-// comes near a factor of 5, and the fit of such data is refused only through every bound at
-// once, without naming the cause.
+// 16-bit sensor read as unsigned: +65536 LSB) or fitted against the wrong reference. No
+// calibration error a gate accepts comes near a factor of 5 (scale factors within 0.3; even a
+// hard-iron bias of 2/3 of |h| leaves the median near 1), and a fit of such data fails every
+// bound at once without naming the cause.
 constexpr double kMaxFieldMagnitudeRatio = 5.0;
-constexpr double kBootstrapScaleSigma = 1e-4;
 
 bool is_zero_field_vector(const CalibrationSample& s) {
   return s.b_sensor_nT.squaredNorm() == 0.0 && s.h_body_nT.allFinite();

@@ -481,7 +481,12 @@ int run_fit(const FitArgs& args) {
                 << TemperatureCorrection::kTemperatureHoldMax_utime / 1'000'000
                 << " s left out of the filter (the refit's temperature model needs one)\n";
     }
-    if (filtered.empty()) {
+    if (filtered.empty()) {  // (the temperature model needs half the samples to carry one)
+      if (trace) {
+        std::fclose(trace);
+        std::error_code ec;
+        std::filesystem::remove(trace_tmp, ec);
+      }
       std::cerr << "magcal fit: " << args.input << ": no sample carries a temperature within "
                 << TemperatureCorrection::kTemperatureHoldMax_utime / 1'000'000
                 << " s, which the refit's temperature model needs\n";
