@@ -118,6 +118,14 @@ std::string database_name(const std::string& db) {
   return without_database_secrets(db, db);
 }
 
+Capabilities capabilities_of(std::string_view db) {
+  if (!is_postgres_uri(db)) return {};
+  return Capabilities{.commit_may_block = false,
+                      .spill_during_outage = true,
+                      .failure_is_unhealthy = false,
+                      .unreachable_at_start_is_outage = true};
+}
+
 std::string database_value_error(const std::string& db) {
   if (is_postgres_uri(db)) return "";
   const std::size_t scheme_end = db.find("://");

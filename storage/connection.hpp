@@ -72,6 +72,31 @@ inline bool is_postgres_uri(std::string_view db) {
   return db.starts_with("postgresql://") || db.starts_with("postgres://");
 }
 
+// What the engine behind a --db / db_path value means for a writer that must ride out its
+// failures: each caller asks the question it has, never which engine it is. An SQLite file is
+// local: its failure (disk full, file moved, a lock held too long) is this host's, so a commit
+// waits through the retry backoff and liveness reports it. A PostgreSQL server is remote and
+// shared by a fleet: its failure is an outage elsewhere (network, restart, failover) that a
+// writer rides out without blocking, its samples in a local spill file, and that says nothing of
+// this process's health (readiness reports it instead).
+struct Capabilities {
+  // A commit may block its caller through the retry backoff until storage answers (flush
+  // before a refit or a handover). False: one attempt per call, never a wait through an outage.
+  bool commit_may_block = true;
+  // While commits fail, received samples go to a local spill file (written and fdatasync'ed at
+  // each commit interval) and are committed when the database returns.
+  bool spill_during_outage = false;
+  // A storage failure means this process is unhealthy (/-/healthy 503, systemd may restart
+  // it). False: the process stays healthy and is not ready (/-/ready 503) during the outage.
+  bool failure_is_unhealthy = true;
+  // A database that cannot be reached at start is an outage that began early (the writer
+  // starts and rides it out), not a start error.
+  bool unreachable_at_start_is_outage = false;
+};
+
+// The capabilities of the engine `db` names (see Capabilities); opens nothing.
+Capabilities capabilities_of(std::string_view db);
+
 // A --db / db_path value as messages and logs may show it: a PostgreSQL URI without its password
 // (user:***@host, password=***), a file path as it is. Connection::name() of an open connection.
 std::string database_name(const std::string& db);

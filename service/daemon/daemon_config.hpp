@@ -176,6 +176,11 @@ struct DaemonConfig {
   bool data_clock() const { return refit.clock == "data"; }
   // db_path is a PostgreSQL URI (a fleet's database).
   bool postgres() const;
+  // What the database's engine means for the daemon's commits, health and spill file
+  // (storage::Capabilities): the daemon asks these, never which engine it is.
+  storage::Capabilities storage_capabilities() const {
+    return storage::capabilities_of(storage.db_path);
+  }
   // How long storage may fail before the daemon stops (exit 3): [storage] pg_max_failure_s on
   // PostgreSQL, max_failure_s otherwise; and that key, for messages.
   double storage_max_failure_s() const {
