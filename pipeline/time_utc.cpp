@@ -2,6 +2,7 @@
 // see time_utc.hpp for why that is acceptable.
 #include "pipeline/time_utc.hpp"
 
+#include <chrono>
 #include <cmath>
 #include <cstdio>
 
@@ -223,6 +224,12 @@ std::string format_iso8601_utc(int64_t utime, int fractional_digits) {
 
 int64_t utime_from_seconds(double t_s) {
   return static_cast<int64_t>(std::llround(t_s * kMicrosPerSecond));
+}
+
+int64_t now_utime() {
+  return std::chrono::duration_cast<std::chrono::microseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
 }
 
 }  // namespace magcal

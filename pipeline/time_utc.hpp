@@ -47,6 +47,10 @@ std::optional<int64_t> parse_iso8601_utc(std::string_view text);
 // "YYYY-MM-DDTHH:MM:SS.ffffffZ"; fractional digits (0..6) as asked, rounded to that precision.
 std::string format_iso8601_utc(int64_t utime, int fractional_digits = 0);
 
+// The wall clock now, as a utime (system_clock). The one clock read of the code base: pipeline
+// functions never call it (they take times as arguments); the service and storage layers do.
+int64_t now_utime();
+
 // Time tags magcal accepts from telemetry: 1990-01-01T00:00:00Z <= utime < 2100-01-01T00:00:00Z.
 // Anything outside is a corrupt tag (and would overflow the arithmetic below near the int64
 // limits). Differences of plausible utimes fit in int64 with 58 bits to spare.

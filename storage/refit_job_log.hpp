@@ -14,6 +14,40 @@
 
 namespace magcal::storage {
 
+// Why a refit ran, stored in refit_jobs.trigger_kind as to_string()'s text.
+enum class RefitTrigger {
+  kScheduled,  // the schedule ([refit] daily_at_utc, every_hours) on the wall or data clock
+  kFirst,      // a new spacecraft's stored samples reached [refit] min_samples
+  kEarly,      // ... and grew by [refit] early_growth since, while its window is not full
+  kManual,     // `magcal refit`
+};
+inline constexpr std::string_view to_string(RefitTrigger t) {
+  switch (t) {
+    case RefitTrigger::kScheduled:
+      return "scheduled";
+    case RefitTrigger::kFirst:
+      return "first";
+    case RefitTrigger::kEarly:
+      return "early";
+    case RefitTrigger::kManual:
+      return "manual";
+  }
+  return "scheduled";
+}
+// The trigger a stored trigger_kind names; nullopt for a text no version of magcal writes.
+inline std::optional<RefitTrigger> refit_trigger_from_string(std::string_view text) {
+  for (RefitTrigger t : {RefitTrigger::kScheduled, RefitTrigger::kFirst, RefitTrigger::kEarly,
+                         RefitTrigger::kManual}) {
+    if (text == to_string(t)) return t;
+  }
+  return std::nullopt;
+}
+// A new spacecraft's refits before its window is full (their job claims differ from the
+// schedule's: the window ends at the N-th stored sample).
+inline constexpr bool is_early_refit(RefitTrigger t) {
+  return t == RefitTrigger::kFirst || t == RefitTrigger::kEarly;
+}
+
 // Outcome strings stored in refit_jobs.outcome.
 namespace job_outcome {
 constexpr const char* kRunning = "running";
