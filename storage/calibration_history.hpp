@@ -64,7 +64,7 @@ struct CalibrationRecord {
   // short-block biases show it moving (CalibrationResult::bias_variability_nT2), nT^2 per axis;
   // zero when none or unknown.
   std::array<double, 3> bias_variability_nT2{};
-  // Bias temperature model (issue 20): b(T) = bias_nT + k_T (T - reference_temperature_C), so
+  // Bias temperature model: b(T) = bias_nT + k_T (T - reference_temperature_C), so
   // bias_nT is the bias at reference_temperature_C. -1 unknown / not modelled (NULL), 0 a refit
   // whose data did not support it, 1 modelled (then the fields below are set).
   int has_temperature_model = -1;

@@ -6,8 +6,8 @@
 #include <string_view>
 #include <vector>
 
-#include "storage/database.hpp"
 #include "storage/postgres/pg_database.hpp"
+#include "storage/sqlite/database.hpp"
 
 namespace magcal::storage {
 

@@ -10,13 +10,13 @@
 #include <fmt/format.h>
 
 #include "service/io/fnv1a.hpp"
+#include "storage/sample_row.hpp"
 
 namespace magcal {
 namespace {
 
 constexpr char kMagic[8] = {'M', 'G', 'S', 'P', 'I', 'L', 'L', '1'};
 constexpr size_t kRecordHeaderBytes = sizeof(uint32_t) + sizeof(uint64_t);
-constexpr uint8_t kHasDirection = 1, kHasAttitude = 2, kHasPosition = 4;
 
 template <typename T>
 void put(std::vector<char>& out, const T& v) {
@@ -57,39 +57,88 @@ class Reader {
   bool ok_ = true;
 };
 
+// A record's payload walks the sample's field list (storage/sample_row.hpp) in its order: the key
+// as u32 length + bytes, each number in native byte order, every group's values whether present
+// or not. The presence flags (the stored one and those of the optional groups, in list order:
+// bits 1, 2, 4) share one byte, at the place of the stored flag.
+class Encoder {
+ public:
+  explicit Encoder(std::vector<char>& out) : out_(out) {}
+  void key(const char*, const std::string& v) {
+    put(out_, static_cast<uint32_t>(v.size()));
+    out_.insert(out_.end(), v.begin(), v.end());
+  }
+  void integer(const char*, int64_t v) { put(out_, v); }
+  void real(const char*, double v) { put(out_, v); }
+  void nullable_real(const char*, double v) { put(out_, v); }
+  template <size_t N, typename Array>
+  void reals(const char* const (&)[N], const Array& v) {
+    put(out_, v);
+  }
+  void flag(const char*, bool v) {
+    flags_at_ = out_.size();
+    put(out_, static_cast<uint8_t>(v ? 1 : 0));
+    next_bit_ = 2;
+  }
+  template <size_t N, typename Array>
+  void flagged(const char* const (&)[N], const Array& v, bool) {
+    put(out_, v);
+  }
+  template <size_t N, typename Array>
+  void optional(const char* const (&)[N], const Array& v, bool present) {
+    if (present) out_[flags_at_] = static_cast<char>(out_[flags_at_] | next_bit_);
+    next_bit_ = static_cast<uint8_t>(next_bit_ << 1);
+    put(out_, v);
+  }
+
+ private:
+  std::vector<char>& out_;
+  size_t flags_at_ = 0;
+  uint8_t next_bit_ = 0;
+};
+
+class Decoder {
+ public:
+  explicit Decoder(Reader& in) : in_(in) {}
+  void key(const char*, std::string& v) { v = in_.get_string(in_.get<uint32_t>()); }
+  void integer(const char*, int64_t& v) { v = in_.get<int64_t>(); }
+  void real(const char*, double& v) { v = in_.get<double>(); }
+  void nullable_real(const char*, double& v) { v = in_.get<double>(); }
+  template <size_t N, typename Array>
+  void reals(const char* const (&)[N], Array& v) {
+    v = in_.get<Array>();
+  }
+  void flag(const char*, bool& v) {
+    flags_ = in_.get<uint8_t>();
+    v = (flags_ & 1) != 0;
+    next_bit_ = 2;
+  }
+  template <size_t N, typename Array>
+  void flagged(const char* const (&)[N], Array& v, bool) {
+    v = in_.get<Array>();
+  }
+  template <size_t N, typename Array>
+  void optional(const char* const (&)[N], Array& v, bool& present) {
+    present = (flags_ & next_bit_) != 0;
+    next_bit_ = static_cast<uint8_t>(next_bit_ << 1);
+    v = in_.get<Array>();
+  }
+
+ private:
+  Reader& in_;
+  uint8_t flags_ = 0;
+  uint8_t next_bit_ = 0;
+};
+
 void encode(const storage::StoredSample& s, std::vector<char>& out) {
-  put(out, static_cast<uint32_t>(s.sat_id.size()));
-  out.insert(out.end(), s.sat_id.begin(), s.sat_id.end());
-  put(out, s.utime);
-  put(out, s.seq);
-  put(out, s.receive_utime);
-  put(out, s.b_sensor_nT);
-  put(out, static_cast<uint8_t>((s.has_direction ? kHasDirection : 0) |
-                                (s.has_attitude ? kHasAttitude : 0) |
-                                (s.has_position ? kHasPosition : 0)));
-  put(out, s.h_body_nT);
-  put(out, s.h_norm_nT);
-  put(out, s.q_body_from_eci);
-  put(out, s.r_ecef_m);
-  put(out, s.temperature_C);
+  Encoder encoder(out);
+  storage::sample_row::fields(s, encoder);
 }
 
 bool decode(const char* data, size_t n, storage::StoredSample& s) {
   Reader in(data, n);
-  s.sat_id = in.get_string(in.get<uint32_t>());
-  s.utime = in.get<int64_t>();
-  s.seq = in.get<int64_t>();
-  s.receive_utime = in.get<int64_t>();
-  s.b_sensor_nT = in.get<std::array<double, 3>>();
-  const auto flags = in.get<uint8_t>();
-  s.has_direction = (flags & kHasDirection) != 0;
-  s.has_attitude = (flags & kHasAttitude) != 0;
-  s.has_position = (flags & kHasPosition) != 0;
-  s.h_body_nT = in.get<std::array<double, 3>>();
-  s.h_norm_nT = in.get<double>();
-  s.q_body_from_eci = in.get<std::array<double, 4>>();
-  s.r_ecef_m = in.get<std::array<double, 3>>();
-  s.temperature_C = in.get<double>();
+  Decoder decoder(in);
+  storage::sample_row::fields(s, decoder);
   return in.done() && !s.sat_id.empty();
 }
 

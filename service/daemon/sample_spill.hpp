@@ -1,5 +1,5 @@
-// The spill file (issue 19, "Network faults"): validated samples a station received while its
-// PostgreSQL database was unreachable (each commit interval's batch while commits fail, so a
+// The spill file: validated samples a station received while its PostgreSQL database was
+// unreachable (each commit interval's batch while commits fail, so a
 // crash during an outage loses no more than one interval). The worker appends the pending batch
 // here instead of stopping intake, and commits the file back (chunk by chunk, oldest first) when
 // the database returns; a file left behind by a daemon that stopped or was killed during an outage
@@ -12,7 +12,9 @@
 //   header  "MGSPILL1", u64 offset of the first record not yet committed, u32 length + the
 //           database it was written for (its name without password, for the log)
 //           (holding nothing: the header alone)
-//   record  u32 payload length, u64 FNV-1a of the payload, payload (one storage::StoredSample)
+//   record  u32 payload length, u64 FNV-1a of the payload, payload (one storage::StoredSample,
+//           in the order of its field list, storage/sample_row.hpp: a new field changes the
+//           payload, so it needs a new magic and a reader for this one)
 // Appends are one write and an fdatasync each (a commit interval's batch), so a crash
 // leaves at most a torn last record: at open it is cut off and counted (dropped_records()), with
 // everything after the first record that is short or fails its checksum. The committed offset is

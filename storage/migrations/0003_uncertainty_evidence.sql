@@ -1,5 +1,6 @@
--- magcal schema version 3: the evidence behind every calibration's uncertainty (issue 10,
--- estimation.md section 7). Applied in one transaction that sets PRAGMA user_version = 3.
+-- magcal schema version 3: the evidence behind every calibration's uncertainty, so a reader can
+-- judge it (estimation.md section 7). Applied in one transaction that sets PRAGMA
+-- user_version = 3.
 -- NULL means unknown: rows written before version 3, or a method that does not compute it.
 ALTER TABLE calibrations ADD COLUMN noise_scale REAL;               -- sqrt(chi2 / (n - p))
 ALTER TABLE calibrations ADD COLUMN residual_autocorrelation REAL;  -- lag 1, normalised residuals

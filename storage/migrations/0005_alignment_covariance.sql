@@ -1,4 +1,4 @@
--- magcal schema version 5: the alignment's uncertainty (issue 20), so history and the API report
+-- magcal schema version 5: the alignment's uncertainty, so history and the API report
 -- the rotation-vector covariance and the roll/pitch/yaw sigmas of stored results as `fit` does.
 -- Applied in one transaction that sets PRAGMA user_version to this migration's number.
 -- 6 little-endian doubles, rad^2, in the order 11 22 33 12 13 23 (as D), of the covariance

@@ -1,4 +1,4 @@
--- magcal schema: the bias temperature model (issue 20). Applied in one transaction that sets
+-- magcal schema: the bias temperature model. Applied in one transaction that sets
 -- PRAGMA user_version to this migration's number. b(T) = bias + k_T (T - T0): the row's bias is
 -- the bias at T0 = reference_temperature_C. The numbers are NULL unless has_temperature_model
 -- is 1; has_temperature_model itself is NULL for rows written before this version and for

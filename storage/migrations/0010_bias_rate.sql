@@ -1,5 +1,5 @@
--- magcal schema version 10: the linear bias rate of a refit (issue 20):
--- b(t) = bias + r (t - window end), so the row's bias is the bias at window_end_utime. The
+-- magcal schema version 10: the linear bias rate of a refit, for a bias that drifts within its
+-- window: b(t) = bias + r (t - window end), so the row's bias is the bias at window_end_utime. The
 -- numbers are NULL unless has_bias_rate is 1; has_bias_rate itself is NULL for rows written
 -- before this version and for online results.
 ALTER TABLE calibrations ADD COLUMN has_bias_rate INTEGER;  -- 1: modelled, 0: a refit whose data

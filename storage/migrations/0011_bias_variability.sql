@@ -1,4 +1,4 @@
--- magcal schema version 11: the bias variability a refit measured (issue 20): the bias's
+-- magcal schema version 11: the bias variability a refit measured: the bias's
 -- variance about its window average, per axis, where the window's short-block biases show it
 -- moving (a swing the model has no term for). Already in `cov`; stored on its own so that a
 -- filter re-anchored on a refit read back from the database (after a restart or a takeover)

@@ -5,42 +5,10 @@
 #include <limits>
 
 #include "storage/calibration_row.hpp"
+#include "storage/postgres/pg_row.hpp"
 
 namespace magcal::storage {
 namespace {
-
-// calibration_row's sink and row on PostgreSQL parameters and results.
-struct PgBinder {
-  PgParams& params;
-  void integer(int64_t v) { params.add(v); }
-  void real(double v) {
-    if (std::isnan(v)) {
-      params.add_null();  // NaN is NULL, as on SQLite
-    } else {
-      params.add(v);
-    }
-  }
-  void text(std::string_view v) { params.add(v); }
-  void doubles(std::span<const double> v) { params.add_bytes(std::as_bytes(v)); }
-  void null() { params.add_null(); }
-};
-
-struct PgRow {
-  const PgResult& result;
-  int row;
-  bool is_null(int c) const { return result.is_null(row, c); }
-  int64_t integer(int c) const { return result.get_int64(row, c); }
-  double real(int c) const {
-    return result.get_optional_double(row, c).value_or(std::numeric_limits<double>::quiet_NaN());
-  }
-  std::string text(int c) const { return result.get_text(row, c); }
-  bool blob(int c, std::span<double> out, const std::string& what) const {
-    if (result.is_null(row, c)) return false;
-    const auto bytes = result.get_bytes(row, c);
-    doubles_from_blob(bytes.data(), bytes.size(), out, what);
-    return true;
-  }
-};
 
 // The INSERT of `rows` records.
 std::string insert_sql(size_t rows, std::string_view tail = {}) {

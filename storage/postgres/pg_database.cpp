@@ -11,9 +11,14 @@
 #include <thread>
 #include <utility>
 
+#include "pipeline/time_utc.hpp"
 #include "storage/postgres/pg_calibration_history.hpp"
+#include "storage/postgres/pg_filter_state_store.hpp"
+#include "storage/postgres/pg_lease_store.hpp"
+#include "storage/postgres/pg_meta_store.hpp"
 #include "storage/postgres/pg_migrations.hpp"
-#include "storage/postgres/pg_stores.hpp"
+#include "storage/postgres/pg_refit_job_log.hpp"
+#include "storage/postgres/pg_sample_window_store.hpp"
 
 namespace magcal::storage {
 namespace {
@@ -54,12 +59,6 @@ std::string duration_text(double seconds) {
   text.erase(text.find_last_not_of('0') + 1);
   if (text.back() == '.') text.pop_back();
   return text + " s";
-}
-
-int64_t now_utime() {
-  return std::chrono::duration_cast<std::chrono::microseconds>(
-             std::chrono::system_clock::now().time_since_epoch())
-      .count();
 }
 
 // The bookkeeping table: one row per applied migration. Created with migration 1 (the code's
@@ -616,7 +615,7 @@ void PgDatabase::check_and_migrate(const OpenOptions& options) {
     exec(m.sql);
     PgParams p;
     p.add(int64_t{m.version}).add(m.name).add(int64_t{kApplicationId}).add(MAGCAL_VERSION);
-    p.add(now_utime());
+    p.add(magcal::now_utime());
     execute(
         "INSERT INTO magcal_schema_version "
         "(version, name, application_id, software_version, applied_utime) "

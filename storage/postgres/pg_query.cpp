@@ -1,5 +1,7 @@
 #include "storage/postgres/pg_query.hpp"
 
+#include <algorithm>
+
 #include <endian.h>
 #include <libpq-fe.h>
 
@@ -8,7 +10,7 @@
 #include <cstring>
 #include <utility>
 
-#include "storage/database.hpp"
+#include "storage/sqlite/database.hpp"
 
 namespace magcal::storage {
 namespace {
@@ -134,6 +136,11 @@ const char* const* PgParams::values() const {
     values_[i] = offsets_[i] < 0 ? nullptr : bytes_.data() + offsets_[i];
   }
   return values_.data();
+}
+
+std::string dollar_params(std::string sql) {
+  std::replace(sql.begin(), sql.end(), '?', '$');
+  return sql;
 }
 
 std::string multi_row_values_sql(std::string_view head, std::size_t rows, int columns,

@@ -71,6 +71,10 @@ enum class PgFormat { kText, kBinary };
 // parameters numbered from `first_param`.
 std::string multi_row_values_sql(std::string_view head, std::size_t rows, int columns,
                                  int first_param, std::string_view row_tail, std::string_view tail);
+// SQL written once for both dialects, in SQLite's ?N parameters, as PostgreSQL's $N (no other
+// '?' in it).
+std::string dollar_params(std::string sql);
+
 // Splits n rows into statements of 2^max_log2 rows and the rest in its binary digits (2^k,
 // ..., 2, 1 rows): max_log2 + 1 statements serve every batch size. Calls
 // statement(first_row, log2_rows) for each, in row order.

@@ -16,7 +16,7 @@
 #include <Eigen/LU>
 
 #include "service/daemon/refit_runner.hpp"
-#include "storage/sqlite_stores.hpp"
+#include "storage/sqlite/sqlite_stores.hpp"
 
 using namespace magcal;
 

@@ -1,6 +1,6 @@
 // Connection, pragmas and migrations: new file, upgrade from version 1, foreign and newer files
 // refused, read-only never creates, embedded migrations identical to storage/migrations/*.sql.
-#include "storage/database.hpp"
+#include "storage/sqlite/database.hpp"
 
 #include <sys/wait.h>
 #include <unistd.h>
@@ -17,8 +17,8 @@
 #include "storage/calibration_history.hpp"
 #include "storage/meta_store.hpp"
 #include "storage/migrations.hpp"
-#include "storage/sqlite_stores.hpp"
-#include "storage/statement.hpp"
+#include "storage/sqlite/sqlite_stores.hpp"
+#include "storage/sqlite/statement.hpp"
 #include "tests/test_skip.hpp"
 
 namespace fs = std::filesystem;

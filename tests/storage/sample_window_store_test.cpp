@@ -15,7 +15,7 @@
 #include <random>
 
 #include "storage/calibration_history.hpp"
-#include "storage/sqlite_stores.hpp"
+#include "storage/sqlite/sqlite_stores.hpp"
 #include "tests/storage/storage_backends.hpp"
 
 namespace fs = std::filesystem;

@@ -27,10 +27,10 @@
 #include <vector>
 
 #include "storage/connection.hpp"
-#include "storage/database.hpp"
 #include "storage/migrations.hpp"
 #include "storage/postgres/pg_database.hpp"
-#include "storage/statement.hpp"
+#include "storage/sqlite/database.hpp"
+#include "storage/sqlite/statement.hpp"
 #include "tests/storage/postgres/pg_test_server.hpp"
 
 namespace magcal::test {

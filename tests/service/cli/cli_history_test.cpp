@@ -18,12 +18,12 @@
 #include "pipeline/rotation.hpp"
 #include "pipeline/time_utc.hpp"
 #include "storage/calibration_history.hpp"
-#include "storage/database.hpp"
 #include "storage/refit_job_log.hpp"
 #include "storage/sample_window_store.hpp"
+#include "storage/sqlite/database.hpp"
 
 namespace fs = std::filesystem;
-#include "storage/sqlite_stores.hpp"
+#include "storage/sqlite/sqlite_stores.hpp"
 #include "tests/service/cli_test_support.hpp"
 
 using namespace magcal;

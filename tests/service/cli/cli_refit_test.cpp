@@ -8,10 +8,10 @@
 
 #include <catch2/catch.hpp>
 
-#include "storage/database.hpp"
 #include "storage/sample_window_store.hpp"
-#include "storage/sqlite_stores.hpp"
-#include "storage/statement.hpp"
+#include "storage/sqlite/database.hpp"
+#include "storage/sqlite/sqlite_stores.hpp"
+#include "storage/sqlite/statement.hpp"
 #include "tests/service/cli_test_support.hpp"
 #include "tests/service/daemon_test_support.hpp"
 

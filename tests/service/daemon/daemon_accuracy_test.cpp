@@ -29,9 +29,9 @@
 #include <nlohmann/json.hpp>
 
 #include "storage/calibration_history.hpp"
-#include "storage/database.hpp"
 #include "storage/refit_job_log.hpp"
-#include "storage/sqlite_stores.hpp"
+#include "storage/sqlite/database.hpp"
+#include "storage/sqlite/sqlite_stores.hpp"
 #include "tests/service/cli_test_support.hpp"
 #include "tests/service/daemon_test_support.hpp"
 

@@ -29,9 +29,9 @@
 
 #include "service/daemon/daemon_config.hpp"
 #include "service/daemon/sample_spill.hpp"
-#include "storage/database.hpp"
 #include "storage/postgres/pg_database.hpp"
-#include "storage/statement.hpp"
+#include "storage/sqlite/database.hpp"
+#include "storage/sqlite/statement.hpp"
 #include "tests/service/cli_test_support.hpp"
 #include "tests/service/daemon_test_support.hpp"
 #include "tests/storage/storage_backends.hpp"

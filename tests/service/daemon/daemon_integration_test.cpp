@@ -27,7 +27,7 @@
 #include "schemas/magcal_messages.hpp"
 #include "storage/calibration_history.hpp"
 #include "storage/sample_window_store.hpp"
-#include "storage/sqlite_stores.hpp"
+#include "storage/sqlite/sqlite_stores.hpp"
 #include "tests/service/daemon_test_support.hpp"
 
 namespace {

@@ -17,7 +17,7 @@
 #include "storage/calibration_history.hpp"
 #include "storage/postgres/pg_database.hpp"
 #include "storage/refit_job_log.hpp"
-#include "storage/sqlite_stores.hpp"
+#include "storage/sqlite/sqlite_stores.hpp"
 #include "tests/service/cli_test_support.hpp"
 #include "tests/storage/storage_backends.hpp"
 

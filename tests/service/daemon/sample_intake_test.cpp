@@ -12,7 +12,7 @@
 #include "service/daemon/sample_intake.hpp"
 #include "storage/calibration_history.hpp"
 #include "storage/filter_state_store.hpp"
-#include "storage/sqlite_stores.hpp"
+#include "storage/sqlite/sqlite_stores.hpp"
 #include "tests/service/cli_test_support.hpp"
 #include "tests/service/daemon_test_support.hpp"
 

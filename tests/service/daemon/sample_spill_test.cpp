@@ -8,11 +8,14 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <limits>
 #include <optional>
+#include <string>
 
 #include <catch2/catch.hpp>
 
+#include "service/io/fnv1a.hpp"
 #include "tests/service/cli_test_support.hpp"
 
 using magcal::SampleSpill;
@@ -72,6 +75,45 @@ std::vector<StoredSample> drain(SampleSpill& spill, size_t chunk) {
   return all;
 }
 
+// A spill file as the first format lays it out, byte by byte, written here without SampleSpill:
+// "MGSPILL1", the committed offset, the database's name; then per sample u32 length, u64
+// FNV-1a, payload (sat_id length and bytes, utime, seq, receive_utime, b, a flags byte
+// direction 1 | attitude 2 | position 4, h, |h|, q, r, temperature; native byte order).
+std::string first_format_file(const std::string& database, const std::vector<StoredSample>& rows) {
+  auto put = [](std::string& out, const auto& v) {
+    out.append(reinterpret_cast<const char*>(&v), sizeof v);
+  };
+  std::string file = "MGSPILL1";
+  put(file, static_cast<uint64_t>(8 + 8 + 4 + database.size()));
+  put(file, static_cast<uint32_t>(database.size()));
+  file += database;
+  for (const StoredSample& s : rows) {
+    std::string payload;
+    put(payload, static_cast<uint32_t>(s.sat_id.size()));
+    payload += s.sat_id;
+    put(payload, s.utime);
+    put(payload, s.seq);
+    put(payload, s.receive_utime);
+    for (const double v : s.b_sensor_nT) put(payload, v);
+    put(payload, static_cast<uint8_t>((s.has_direction ? 1 : 0) | (s.has_attitude ? 2 : 0) |
+                                      (s.has_position ? 4 : 0)));
+    for (const double v : s.h_body_nT) put(payload, v);
+    put(payload, s.h_norm_nT);
+    for (const double v : s.q_body_from_eci) put(payload, v);
+    for (const double v : s.r_ecef_m) put(payload, v);
+    put(payload, s.temperature_C);
+    put(file, static_cast<uint32_t>(payload.size()));
+    put(file, magcal::fnv1a_64(payload));
+    file += payload;
+  }
+  return file;
+}
+
+std::string file_bytes(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
+
 }  // namespace
 
 TEST_CASE("spilled samples come back in order, in chunks, and the file goes", "[sample_spill]") {
@@ -107,6 +149,29 @@ TEST_CASE("spilled samples come back in order, in chunks, and the file goes", "[
   // Holding nothing, it goes with its holder.
   spill_holder.reset();
   CHECK_FALSE(std::filesystem::exists(path));
+}
+
+TEST_CASE("the file keeps its first format byte for byte, both ways", "[sample_spill]") {
+  TempDir dir("spill");
+  const auto rows = samples(0, 12);
+  const std::string expected = first_format_file("db-one", rows);
+  SECTION("an append writes exactly the first format's bytes") {
+    const std::string path = dir.file("new.bin");
+    SampleSpill spill(path, "db-one", 1 << 20);
+    REQUIRE(spill.append(rows));
+    CHECK(file_bytes(path) == expected);
+  }
+  SECTION("a file in the first format, written by an earlier build, reads back") {
+    const std::string path = dir.file("old.bin");
+    std::ofstream(path, std::ios::binary) << expected;
+    SampleSpill spill(path, "db-two", 1 << 20);
+    CHECK(spill.found_database() == "db-one");
+    CHECK(spill.dropped_records() == 0);
+    CHECK(spill.held_samples() == 12);
+    const auto back = drain(spill, 5);
+    REQUIRE(back.size() == rows.size());
+    for (size_t i = 0; i < back.size(); ++i) check_equal(back[i], rows[i]);
+  }
 }
 
 TEST_CASE("a spill file that cannot be created is an error naming its path and errno",

@@ -16,8 +16,8 @@
 #include <nlohmann/json.hpp>
 
 #include "storage/calibration_history.hpp"
-#include "storage/database.hpp"
-#include "storage/sqlite_stores.hpp"
+#include "storage/sqlite/database.hpp"
+#include "storage/sqlite/sqlite_stores.hpp"
 #include "tests/service/http_test_support.hpp"
 #include "tests/test_skip.hpp"
 

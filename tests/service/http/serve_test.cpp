@@ -11,7 +11,7 @@
 
 #include "storage/calibration_history.hpp"
 #include "storage/sample_window_store.hpp"
-#include "storage/sqlite_stores.hpp"
+#include "storage/sqlite/sqlite_stores.hpp"
 #include "tests/service/http_test_support.hpp"
 #include "tests/service/prometheus_text.hpp"
 

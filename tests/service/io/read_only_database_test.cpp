@@ -25,9 +25,9 @@
 #include "service/io/read_only_database.hpp"
 #include "service/io/status_report.hpp"
 #include "storage/calibration_history.hpp"
-#include "storage/database.hpp"
 #include "storage/sample_window_store.hpp"
-#include "storage/sqlite_stores.hpp"
+#include "storage/sqlite/database.hpp"
+#include "storage/sqlite/sqlite_stores.hpp"
 #include "tests/service/http_test_support.hpp"
 #include "tests/test_skip.hpp"
 

@@ -12,9 +12,9 @@
 #include <string>
 #include <vector>
 
-#include "storage/database.hpp"
 #include "storage/lease_store.hpp"
 #include "storage/sample_window_store.hpp"
+#include "storage/sqlite/database.hpp"
 
 using magcal::SpacecraftStatus;
 

@@ -23,10 +23,10 @@
 
 #include <catch2/catch.hpp>
 
-#include "storage/database.hpp"
 #include "storage/migrations.hpp"
 #include "storage/postgres/pg_migrations.hpp"
-#include "storage/statement.hpp"
+#include "storage/sqlite/database.hpp"
+#include "storage/sqlite/statement.hpp"
 #include "tests/process_support.hpp"
 #include "tests/storage/postgres/pg_test_server.hpp"
 

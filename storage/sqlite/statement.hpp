@@ -8,7 +8,7 @@
 #include <string>
 #include <string_view>
 
-#include "storage/database.hpp"
+#include "storage/sqlite/database.hpp"
 
 struct sqlite3_stmt;
 

@@ -1,4 +1,4 @@
-#include "storage/database.hpp"
+#include "storage/sqlite/database.hpp"
 
 #include <sqlite3.h>
 #include <sys/stat.h>
@@ -12,8 +12,8 @@
 #include <utility>
 
 #include "storage/migrations.hpp"
-#include "storage/sqlite_stores.hpp"
-#include "storage/statement.hpp"
+#include "storage/sqlite/sqlite_stores.hpp"
+#include "storage/sqlite/statement.hpp"
 
 namespace magcal::storage {
 namespace {

@@ -1,12 +1,11 @@
-#include "storage/meta_store.hpp"
+#include "storage/sqlite/sqlite_meta_store.hpp"
 
-#include "storage/sqlite_stores.hpp"
+#include "storage/meta_sql.hpp"
 
 namespace magcal::storage {
 
 SqliteMetaStore::SqliteMetaStore(Database& db)
-    : set_(db, "INSERT OR REPLACE INTO meta (key, value) VALUES (?1, ?2)"),
-      get_(db, "SELECT value FROM meta WHERE key = ?1") {}
+    : set_(db, meta_sql::kSet), get_(db, meta_sql::kGet) {}
 
 void SqliteMetaStore::set(std::string_view key, std::string_view value) {
   auto use = set_.use();
