@@ -7,6 +7,11 @@
 #include <vector>
 
 #include "storage/postgres/pg_database.hpp"
+#include "storage/sql_calibration_history.hpp"
+#include "storage/sql_filter_state_store.hpp"
+#include "storage/sql_lease_store.hpp"
+#include "storage/sql_meta_store.hpp"
+#include "storage/sql_refit_job_log.hpp"
 #include "storage/sqlite/database.hpp"
 
 namespace magcal::storage {
@@ -173,6 +178,26 @@ int migration_target(const OpenOptions& options, int latest) {
         "migrate_to " + std::to_string(target) + " > known schema " + std::to_string(latest));
   }
   return target;
+}
+
+std::unique_ptr<RefitJobLog> Connection::make_refit_job_log() {
+  return std::make_unique<SqlRefitJobLog>(sql_session());
+}
+
+std::unique_ptr<FilterStateStore> Connection::make_filter_state_store() {
+  return std::make_unique<SqlFilterStateStore>(sql_session());
+}
+
+std::unique_ptr<MetaStore> Connection::make_meta_store() {
+  return std::make_unique<SqlMetaStore>(sql_session());
+}
+
+std::unique_ptr<CalibrationHistory> Connection::make_calibration_history() {
+  return std::make_unique<SqlCalibrationHistory>(sql_session());
+}
+
+std::unique_ptr<LeaseStore> Connection::make_lease_store() {
+  return std::make_unique<SqlLeaseStore>(sql_session());
 }
 
 }  // namespace magcal::storage

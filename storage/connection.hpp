@@ -25,6 +25,7 @@ class FilterStateStore;
 class MetaStore;
 class CalibrationHistory;
 class LeaseStore;
+class SqlSession;
 
 // 'MGCL': SQLite's `PRAGMA application_id` of a magcal file, and the application_id of
 // PostgreSQL's magcal_schema_version rows.
@@ -114,6 +115,9 @@ enum class TransactionMode {
 class Connection {
  public:
   virtual ~Connection() = default;
+  // A connection owns its engine's session: moved, never copied.
+  Connection(const Connection&) = delete;
+  Connection& operator=(const Connection&) = delete;
 
   // The database for messages and logs: the file path, or the URI without its password.
   virtual const std::string& name() const = 0;
@@ -135,13 +139,21 @@ class Connection {
   virtual CommitOutcome commit_outcome(int64_t transaction_id);
 
   virtual std::unique_ptr<SampleWindowStore> make_sample_window_store() = 0;
-  virtual std::unique_ptr<RefitJobLog> make_refit_job_log() = 0;
-  virtual std::unique_ptr<FilterStateStore> make_filter_state_store() = 0;
-  virtual std::unique_ptr<MetaStore> make_meta_store() = 0;
-  virtual std::unique_ptr<CalibrationHistory> make_calibration_history() = 0;
-  virtual std::unique_ptr<LeaseStore> make_lease_store() = 0;
+  // The stores written once for both backends (storage/sql_*.hpp), unless a backend adds to them.
+  virtual std::unique_ptr<RefitJobLog> make_refit_job_log();
+  virtual std::unique_ptr<FilterStateStore> make_filter_state_store();
+  virtual std::unique_ptr<MetaStore> make_meta_store();
+  virtual std::unique_ptr<CalibrationHistory> make_calibration_history();
+  virtual std::unique_ptr<LeaseStore> make_lease_store();
 
  protected:
+  Connection() = default;
+  Connection(Connection&&) = default;
+  Connection& operator=(Connection&&) = default;
+
+  // Where the stores written once prepare their statements (storage/sql_statement.hpp).
+  virtual SqlSession& sql_session() = 0;
+
   friend class Transaction;
   // Opens a transaction, or a savepoint inside an open one (returns true then).
   virtual bool begin_transaction(TransactionMode mode) = 0;

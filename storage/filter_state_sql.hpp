@@ -1,5 +1,4 @@
-// The `filter_states` statements whose SQL the two dialects share, written with SQLite's ?N
-// (PostgreSQL runs them through dollar_params(), storage/postgres/pg_query.hpp). Internal to
+// The `filter_states` upsert, the same SQL on both backends for any number of rows. Internal to
 // storage/.
 #pragma once
 
@@ -9,17 +8,23 @@
 
 namespace magcal::storage::filter_state_sql {
 
-// What an upsert does with a key already stored: the new state replaces the old.
-inline constexpr const char* kReplace =
-    " ON CONFLICT (sat_id, method) DO UPDATE SET x = excluded.x, P = excluded.P, "
-    "last_utime = excluded.last_utime, n_samples = excluded.n_samples, "
-    "counters = excluded.counters, updated_utime = excluded.updated_utime, "
-    "anchor_calibration_id = excluded.anchor_calibration_id";
-inline std::string load() {
-  return row_codec::select_sql<FilterStateRow>("WHERE sat_id = ?1 AND method = ?2");
-}
-inline std::string load_all() {
-  return row_codec::select_sql<FilterStateRow>("ORDER BY sat_id, method");
+// The upsert of `rows` states (distinct keys: a statement cannot update one row twice), with
+// ?N parameters: a state already stored under its key is replaced.
+inline std::string upsert(size_t rows) {
+  const int columns = row_codec::column_count<FilterStateRow>();
+  std::string sql =
+      "INSERT INTO filter_states (" + row_codec::column_list<FilterStateRow>() + ") VALUES ";
+  int param = 1;
+  for (size_t row = 0; row < rows; ++row) {
+    sql += row > 0 ? ", (" : "(";
+    for (int c = 0; c < columns; ++c) sql += (c > 0 ? ", ?" : "?") + std::to_string(param++);
+    sql += ")";
+  }
+  return sql +
+         " ON CONFLICT (sat_id, method) DO UPDATE SET x = excluded.x, P = excluded.P, "
+         "last_utime = excluded.last_utime, n_samples = excluded.n_samples, "
+         "counters = excluded.counters, updated_utime = excluded.updated_utime, "
+         "anchor_calibration_id = excluded.anchor_calibration_id";
 }
 
 }  // namespace magcal::storage::filter_state_sql

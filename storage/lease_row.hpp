@@ -83,6 +83,15 @@ inline constexpr const char* kReclaim =
     "WHERE sat_id = ?1 AND owner = ?2 AND epoch = ?3 "
     "RETURNING sat_id, owner, epoch, acquired_utime, expires_utime";
 
+// Ends a lease now unless it already ended (CASE: SQLite's min() of two values is PostgreSQL's
+// least()).
+inline constexpr const char* kRelease =
+    "UPDATE leases SET expires_utime = CASE WHEN expires_utime < ?4 THEN expires_utime ELSE ?4 "
+    "END WHERE sat_id = ?1 AND owner = ?2 AND epoch = ?3";
+inline constexpr const char* kLeave =
+    "UPDATE stations SET expires_utime = CASE WHEN expires_utime < ?2 THEN expires_utime ELSE ?2 "
+    "END WHERE station = ?1";
+
 inline constexpr const char* kRenew =
     "UPDATE leases SET expires_utime = ?4 + ?5 WHERE sat_id = ?1 AND owner = ?2 AND epoch = ?3";
 
@@ -103,12 +112,10 @@ inline constexpr const char* kHeartbeat =
     "ON CONFLICT (station) DO UPDATE SET heartbeat_utime = excluded.heartbeat_utime, "
     "expires_utime = excluded.expires_utime, instance = excluded.instance, "
     "settings = excluded.settings, settings_hash = excluded.settings_hash";
-// Sorted by the bytes of the id on both backends (COLLATE "C" on PostgreSQL, as SQLite's BINARY).
+// Sorted by the bytes of the id on both backends (followed by SqlSession::byte_order()).
 inline constexpr const char* kStationList =
     "SELECT station, instance, heartbeat_utime, expires_utime, settings, settings_hash "
     "FROM stations ORDER BY station";
-inline constexpr const char* kStationBeat =
-    "SELECT instance, heartbeat_utime, expires_utime FROM stations WHERE station = ?1";
 
 }  // namespace lease_sql
 }  // namespace magcal::storage

@@ -15,9 +15,7 @@
 #include "storage/postgres/pg_calibration_history.hpp"
 #include "storage/postgres/pg_filter_state_store.hpp"
 #include "storage/postgres/pg_lease_store.hpp"
-#include "storage/postgres/pg_meta_store.hpp"
 #include "storage/postgres/pg_migrations.hpp"
-#include "storage/postgres/pg_refit_job_log.hpp"
 #include "storage/postgres/pg_sample_window_store.hpp"
 
 namespace magcal::storage {
@@ -702,16 +700,8 @@ std::unique_ptr<SampleWindowStore> PgDatabase::make_sample_window_store() {
   return std::make_unique<PgSampleWindowStore>(*this);
 }
 
-std::unique_ptr<RefitJobLog> PgDatabase::make_refit_job_log() {
-  return std::make_unique<PgRefitJobLog>(*this);
-}
-
 std::unique_ptr<FilterStateStore> PgDatabase::make_filter_state_store() {
   return std::make_unique<PgFilterStateStore>(*this);
-}
-
-std::unique_ptr<MetaStore> PgDatabase::make_meta_store() {
-  return std::make_unique<PgMetaStore>(*this);
 }
 
 std::unique_ptr<CalibrationHistory> PgDatabase::make_calibration_history() {

@@ -45,6 +45,7 @@
 
 #include "storage/connection.hpp"
 #include "storage/postgres/pg_query.hpp"
+#include "storage/sql_statement.hpp"
 
 struct pg_conn;  // libpq's PGconn; <libpq-fe.h> stays out of public headers
 
@@ -55,7 +56,7 @@ namespace magcal::storage {
 constexpr int32_t kPgLockClass = kApplicationId;
 constexpr int32_t kPgMigrationLock = 1;
 
-class PgDatabase final : public Connection {
+class PgDatabase final : public Connection, public SqlSession {
  public:
   // `uri`: any libpq connection URI (postgresql:// or postgres://, e.g. with ?host=/socket/dir).
   // Options as for SQLite: read_only never migrates or writes (the session is read-only);
@@ -67,10 +68,8 @@ class PgDatabase final : public Connection {
   ~PgDatabase();
   PgDatabase(PgDatabase&& other) noexcept;
   PgDatabase& operator=(PgDatabase&& other) noexcept;
-  PgDatabase(const PgDatabase&) = delete;
-  PgDatabase& operator=(const PgDatabase&) = delete;
 
-  // Newest schema version this code knows (= number of embedded migrations).
+  // The newest schema this build's PostgreSQL migrations make (postgres/migrations/*.sql).
   static int latest_schema_version();
   // The version recorded in the database (0: none).
   int schema_version();
@@ -105,14 +104,22 @@ class PgDatabase final : public Connection {
   CommitOutcome commit_outcome(int64_t transaction_id) override;
 
   std::unique_ptr<SampleWindowStore> make_sample_window_store() override;
-  std::unique_ptr<RefitJobLog> make_refit_job_log() override;
   std::unique_ptr<FilterStateStore> make_filter_state_store() override;
-  std::unique_ptr<MetaStore> make_meta_store() override;
   std::unique_ptr<CalibrationHistory> make_calibration_history() override;
   std::unique_ptr<LeaseStore> make_lease_store() override;
 
+  // SqlSession (storage/postgres/pg_sql_session.cpp): statements run by execute_prepared(),
+  // numbers in binary.
+  std::unique_ptr<SqlStatement> prepare(std::string_view sql) override;
+  const char* byte_order() const override { return " COLLATE \"C\""; }
+  const char* lock_rows_shared() const override { return " FOR SHARE"; }
+  const char* json_array_texts() const override {
+    return "SELECT json_array_elements_text(?1::json)";
+  }
+
  private:
   friend class PgTransaction;
+  SqlSession& sql_session() override { return *this; }
 
   // Transactions (storage::Transaction, PgTransaction): BEGIN at the isolation level, or
   // SAVEPOINT magcal_tx_<depth> inside an open transaction (returns true then).

@@ -8,33 +8,13 @@
 #include "storage/postgres/pg_row.hpp"
 
 namespace magcal::storage {
-namespace {
-
-// The upsert of `rows` states (distinct keys: a statement cannot update one row twice).
-std::string upsert_sql(size_t rows) {
-  return multi_row_values_sql(
-      "INSERT INTO filter_states (" + row_codec::column_list<FilterStateRow>() + ") VALUES ", rows,
-      row_codec::column_count<FilterStateRow>(), 1, "", filter_state_sql::kReplace);
-}
-
-std::vector<FilterState> states(const PgResult& r) {
-  std::vector<FilterState> out;
-  for (int row = 0; row < r.rows(); ++row) {
-    out.push_back(row_codec::read<FilterStateRow>(PgRow{r, row}));
-  }
-  return out;
-}
-
-}  // namespace
-
-void PgFilterStateStore::save(const FilterState& s) {
-  save_all(std::span(&s, 1));
-}
 
 void PgFilterStateStore::save_all(std::span<const FilterState> states) {
   static const std::vector<std::string> sql = [] {
     std::vector<std::string> out;
-    for (size_t k = 0; k <= kMaxLog2RowsPerUpsert; ++k) out.push_back(upsert_sql(size_t{1} << k));
+    for (size_t k = 0; k <= kMaxLog2RowsPerUpsert; ++k) {
+      out.push_back(dollar_params(filter_state_sql::upsert(size_t{1} << k)));
+    }
     return out;
   }();
   // Key order (stable: the later of two states of one key is the one kept, as by successive
@@ -57,21 +37,6 @@ void PgFilterStateStore::save_all(std::span<const FilterState> states) {
     }
     db_.execute_prepared(sql[k], params_);
   });
-}
-
-std::optional<FilterState> PgFilterStateStore::load(std::string_view sat_id,
-                                                    std::string_view method) {
-  static const std::string sql = dollar_params(filter_state_sql::load());
-  PgParams p;
-  p.add(sat_id).add(method);
-  auto found = states(db_.execute_prepared(sql, p, PgFormat::kBinary));
-  if (found.empty()) return std::nullopt;
-  return std::move(found.front());
-}
-
-std::vector<FilterState> PgFilterStateStore::load_all() {
-  static const std::string sql = filter_state_sql::load_all();
-  return states(db_.execute_prepared(sql, {}, PgFormat::kBinary));
 }
 
 }  // namespace magcal::storage

@@ -30,26 +30,16 @@ void check_sample_columns(const PgResult& r, int first) {
   });
 }
 
-// A statement's one value (count, min, max); nullopt without rows or when NULL.
-std::optional<int64_t> single_int(PgDatabase& db, const std::string& sql, PgParams& p) {
-  const PgResult r = db.execute_prepared(sql, p, PgFormat::kBinary);
-  if (r.rows() == 0) return std::nullopt;
-  return r.get_optional_int64(0, 0);
-}
-
 }  // namespace
 
-PgSampleWindowStore::PgSampleWindowStore(PgDatabase& db) : SampleWindowStore(db), pg_(db) {
+PgSampleWindowStore::PgSampleWindowStore(PgDatabase& db) : SqlSampleWindowStore(db, db), pg_(db) {
   for (size_t rows = 1; rows <= kMaxRowsPerInsert; rows *= 2)
     insert_sql_.push_back(insert_sql(rows));
 }
 
-InsertStats PgSampleWindowStore::insert_batch(std::span<const StoredSample> samples,
-                                              std::vector<size_t>* duplicate_rows,
-                                              std::string_view station) {
-  InsertStats stats;
-  if (duplicate_rows) duplicate_rows->clear();
-  if (samples.empty()) return stats;
+void PgSampleWindowStore::insert_rows(std::span<const StoredSample> samples,
+                                      std::vector<size_t>* duplicate_rows, std::string_view station,
+                                      InsertStats& stats) {
   // One global key order; stable, so of two copies of a key in the batch the first is stored.
   order_.resize(samples.size());
   std::iota(order_.begin(), order_.end(), size_t{0});
@@ -94,7 +84,6 @@ InsertStats PgSampleWindowStore::insert_batch(std::span<const StoredSample> samp
     }
   }
   if (duplicate_rows) std::sort(duplicate_rows->begin(), duplicate_rows->end());
-  return stats;
 }
 
 void PgSampleWindowStore::read_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime,
@@ -147,62 +136,6 @@ void PgSampleWindowStore::read_windows(std::span<const WindowRequest> requests,
     sample_row::read(PgBinaryRow{r, row}, 1, requests[of].sat_id, out[static_cast<size_t>(row)]);
   }
   while (ends.size() < requests.size()) ends.push_back(out.size());
-}
-
-int64_t PgSampleWindowStore::count_in_window(std::string_view sat_id, int64_t t0_utime,
-                                             int64_t t1_utime) {
-  static const std::string sql = dollar_params(sample_sql::kCountInWindow);
-  PgParams p;
-  p.add(sat_id).add(t0_utime).add(t1_utime);
-  return single_int(pg_, sql, p).value_or(0);
-}
-
-std::vector<StationCount> PgSampleWindowStore::count_by_station(std::string_view sat_id,
-                                                                int64_t t0_utime,
-                                                                int64_t t1_utime) {
-  static const std::string sql = dollar_params(sample_sql::count_by_station(" COLLATE \"C\""));
-  PgParams p;
-  p.add(sat_id).add(t0_utime).add(t1_utime);
-  const PgResult r = pg_.execute_prepared(sql, p, PgFormat::kBinary);
-  std::vector<StationCount> out;
-  for (int row = 0; row < r.rows(); ++row) out.push_back({r.get_text(row, 0), r.get_int64(row, 1)});
-  return out;
-}
-
-std::optional<int64_t> PgSampleWindowStore::single_utime(const char* sql, std::string_view sat_id) {
-  PgParams p;
-  p.add(sat_id);
-  return single_int(pg_, sql, p);
-}
-
-std::optional<int64_t> PgSampleWindowStore::newest_utime(std::string_view sat_id) {
-  static const std::string sql = dollar_params(sample_sql::kNewest);
-  return single_utime(sql.c_str(), sat_id);
-}
-
-std::optional<int64_t> PgSampleWindowStore::oldest_utime(std::string_view sat_id) {
-  static const std::string sql = dollar_params(sample_sql::kOldest);
-  return single_utime(sql.c_str(), sat_id);
-}
-
-int64_t PgSampleWindowStore::count(std::string_view sat_id) {
-  static const std::string sql = dollar_params(sample_sql::kCount);
-  return single_utime(sql.c_str(), sat_id).value_or(0);
-}
-
-std::optional<int64_t> PgSampleWindowStore::utime_at_rank(std::string_view sat_id, int64_t rank) {
-  static const std::string sql = dollar_params(sample_sql::kUtimeAtRank);
-  if (rank < 0) return std::nullopt;
-  PgParams p;
-  p.add(sat_id).add(rank);
-  return single_int(pg_, sql, p);
-}
-
-std::vector<std::string> PgSampleWindowStore::spacecraft() {
-  const PgResult r = pg_.execute_prepared(sample_sql::kSpacecraft);
-  std::vector<std::string> out;
-  for (int row = 0; row < r.rows(); ++row) out.push_back(r.get_text(row, 0));
-  return out;
 }
 
 int64_t PgSampleWindowStore::delete_chunk(std::string_view sat_id, int64_t cutoff_utime,

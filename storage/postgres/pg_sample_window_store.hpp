@@ -17,11 +17,11 @@
 #include <vector>
 
 #include "storage/postgres/pg_database.hpp"
-#include "storage/sample_window_store.hpp"
+#include "storage/sql_sample_window_store.hpp"
 
 namespace magcal::storage {
 
-class PgSampleWindowStore final : public SampleWindowStore {
+class PgSampleWindowStore final : public SqlSampleWindowStore {
  public:
   // Rows per INSERT statement (for_each_power_of_two_run): 20 parameters each, well below
   // PostgreSQL's 65 535.
@@ -29,25 +29,15 @@ class PgSampleWindowStore final : public SampleWindowStore {
 
   explicit PgSampleWindowStore(PgDatabase& db);
 
-  InsertStats insert_batch(std::span<const StoredSample> samples,
-                           std::vector<size_t>* duplicate_rows = nullptr,
-                           std::string_view station = {}) override;
   void read_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime,
                    std::vector<StoredSample>& out) override;
   void read_windows(std::span<const WindowRequest> requests, std::vector<StoredSample>& out,
                     std::vector<size_t>& ends) override;
-  int64_t count_in_window(std::string_view sat_id, int64_t t0_utime, int64_t t1_utime) override;
-  std::vector<StationCount> count_by_station(std::string_view sat_id, int64_t t0_utime,
-                                             int64_t t1_utime) override;
-  std::optional<int64_t> newest_utime(std::string_view sat_id) override;
-  std::optional<int64_t> oldest_utime(std::string_view sat_id) override;
-  int64_t count(std::string_view sat_id) override;
-  std::optional<int64_t> utime_at_rank(std::string_view sat_id, int64_t rank) override;
-  std::vector<std::string> spacecraft() override;
 
  private:
+  void insert_rows(std::span<const StoredSample> samples, std::vector<size_t>* duplicate_rows,
+                   std::string_view station, InsertStats& stats) override;
   int64_t delete_chunk(std::string_view sat_id, int64_t cutoff_utime, int chunk_rows) override;
-  std::optional<int64_t> single_utime(const char* sql, std::string_view sat_id);
 
   PgDatabase& pg_;
   std::vector<std::string> insert_sql_;  // [k]: the INSERT of 2^k rows

@@ -355,24 +355,4 @@ std::unique_ptr<SampleWindowStore> Database::make_sample_window_store() {
   return std::make_unique<SqliteSampleWindowStore>(*this);
 }
 
-std::unique_ptr<RefitJobLog> Database::make_refit_job_log() {
-  return std::make_unique<SqliteRefitJobLog>(*this);
-}
-
-std::unique_ptr<FilterStateStore> Database::make_filter_state_store() {
-  return std::make_unique<SqliteFilterStateStore>(*this);
-}
-
-std::unique_ptr<MetaStore> Database::make_meta_store() {
-  return std::make_unique<SqliteMetaStore>(*this);
-}
-
-std::unique_ptr<CalibrationHistory> Database::make_calibration_history() {
-  return std::make_unique<SqliteCalibrationHistory>(*this);
-}
-
-std::unique_ptr<LeaseStore> Database::make_lease_store() {
-  return std::make_unique<SqliteLeaseStore>(*this);
-}
-
 }  // namespace magcal::storage

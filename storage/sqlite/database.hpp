@@ -23,6 +23,7 @@
 #include <utility>
 
 #include "storage/connection.hpp"
+#include "storage/sql_statement.hpp"
 #include "storage/storage_error.hpp"
 
 struct sqlite3;  // <sqlite3.h> stays out of public headers
@@ -33,17 +34,15 @@ namespace magcal::storage {
 // (Database::check_file_in_place()); equals SQLite's own code.
 constexpr int kSqliteReadonlyDbMoved = 8 | (4 << 8);
 
-class Database final : public Connection {
+class Database final : public Connection, public SqlSession {
  public:
   // `path` may be ":memory:". Throws StorageError.
   explicit Database(const std::string& path, const OpenOptions& options = {});
   ~Database();
   Database(Database&& other) noexcept;
   Database& operator=(Database&& other) noexcept;
-  Database(const Database&) = delete;
-  Database& operator=(const Database&) = delete;
 
-  // Newest schema version this code knows (= number of embedded migrations).
+  // The newest schema this build's SQLite migrations make (storage/migrations/*.sql).
   static int latest_schema_version();
   // PRAGMA user_version of the open file.
   int schema_version() const;
@@ -73,15 +72,17 @@ class Database final : public Connection {
   void check_file_in_place();
 
   std::unique_ptr<SampleWindowStore> make_sample_window_store() override;
-  std::unique_ptr<RefitJobLog> make_refit_job_log() override;
-  std::unique_ptr<FilterStateStore> make_filter_state_store() override;
-  std::unique_ptr<MetaStore> make_meta_store() override;
-  std::unique_ptr<CalibrationHistory> make_calibration_history() override;
-  std::unique_ptr<LeaseStore> make_lease_store() override;
+
+  // SqlSession (storage/sqlite/sqlite_sql_session.cpp): statements on this connection.
+  std::unique_ptr<SqlStatement> prepare(std::string_view sql) override;
+  const char* byte_order() const override { return ""; }
+  const char* lock_rows_shared() const override { return ""; }
+  const char* json_array_texts() const override { return "SELECT value FROM json_each(?1)"; }
 
  private:
   friend class Statement;  // the one user of the raw connection
   sqlite3* handle() const { return db_; }
+  SqlSession& sql_session() override { return *this; }
 
   // BEGIN IMMEDIATE (a writer; checks check_file_in_place() first) or BEGIN DEFERRED (a read
   // snapshot); a SAVEPOINT inside an open transaction.

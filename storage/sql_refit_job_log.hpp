@@ -1,15 +1,18 @@
-// The PostgreSQL RefitJobLog (storage/refit_job_log.hpp) on one PgDatabase, made by
-// PgDatabase::make_refit_job_log().
+// The RefitJobLog (storage/refit_job_log.hpp) of both backends, written once on their SqlSession
+// (storage/sql_statement.hpp): statements prepared once, rows read by RefitJobRow. Made by
+// Connection::make_refit_job_log(); tests and tools that hold a database may construct it.
 #pragma once
 
-#include "storage/postgres/pg_database.hpp"
+#include <memory>
+
 #include "storage/refit_job_log.hpp"
+#include "storage/sql_statement.hpp"
 
 namespace magcal::storage {
 
-class PgRefitJobLog final : public RefitJobLog {
+class SqlRefitJobLog final : public RefitJobLog {
  public:
-  explicit PgRefitJobLog(PgDatabase& db) : db_(db) {}
+  explicit SqlRefitJobLog(SqlSession& db);  // prepares its statements; throws StorageError
 
   int64_t start(std::string_view sat_id, std::string_view trigger, int64_t scheduled_utime,
                 int64_t started_utime) override;
@@ -28,7 +31,8 @@ class PgRefitJobLog final : public RefitJobLog {
   std::vector<RefitJob> recent(std::string_view sat_id, int limit) override;
 
  private:
-  PgDatabase& db_;
+  std::unique_ptr<SqlStatement> start_, claim_, claim_holder_, finish_, interrupt_station_,
+      interrupt_spacecraft_, newest_reanchor_, newest_scheduled_, get_, recent_;
 };
 
 }  // namespace magcal::storage

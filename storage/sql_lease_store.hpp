@@ -1,17 +1,19 @@
-// The SQLite LeaseStore (storage/lease_store.hpp) on one Database: statements prepared once in
-// the constructor, reset and re-bound for every use. Made by Database::make_*(); tests and tools
-// that hold a Database may construct it directly.
+// The LeaseStore (storage/lease_store.hpp) of both backends, written once on their SqlSession
+// (storage/sql_statement.hpp): statements prepared once, rows read by LeaseRow. PostgreSQL's
+// adds a fence of many leases in one statement (storage/postgres/pg_lease_store.hpp). Made by
+// Connection::make_lease_store(); tests and tools that hold a database may construct it.
 #pragma once
 
+#include <memory>
+
 #include "storage/lease_store.hpp"
-#include "storage/sqlite/database.hpp"
-#include "storage/sqlite/statement.hpp"
+#include "storage/sql_statement.hpp"
 
 namespace magcal::storage {
 
-class SqliteLeaseStore final : public LeaseStore {
+class SqlLeaseStore : public LeaseStore {
  public:
-  explicit SqliteLeaseStore(Database& db);
+  explicit SqlLeaseStore(SqlSession& db);  // prepares its statements; throws StorageError
 
   std::optional<Lease> try_acquire(std::string_view sat_id, std::string_view owner,
                                    int64_t now_utime, int64_t ttl_utime) override;
@@ -35,20 +37,8 @@ class SqliteLeaseStore final : public LeaseStore {
   std::vector<StationRow> stations() override;
 
  private:
-  Statement acquire_;
-  Statement renew_;
-  Statement reclaim_;
-  Statement release_;
-  Statement holds_;
-  Statement get_;
-  Statement list_;
-  Statement ensure_;
-  Statement renew_all_;
-  Statement heartbeat_;
-  Statement beat_;
-  Statement leave_;
-  Statement live_;
-  Statement stations_;
+  std::unique_ptr<SqlStatement> acquire_, renew_, reclaim_, release_, holds_, get_, list_, ensure_,
+      renew_all_, heartbeat_, beat_, leave_, live_, stations_;
 };
 
 }  // namespace magcal::storage

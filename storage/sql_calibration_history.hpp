@@ -1,17 +1,22 @@
-// The SQLite CalibrationHistory (storage/calibration_history.hpp) on one Database: statements
-// prepared once in the constructor, reset and re-bound for every use. Made by Database::make_*();
-// tests and tools that hold a Database may construct it directly.
+// The CalibrationHistory (storage/calibration_history.hpp) of both backends, written once on
+// their SqlSession (storage/sql_statement.hpp): rows written and read by calibration_row.
+// PostgreSQL's appends many records per statement (storage/postgres/pg_calibration_history.hpp).
+// Made by Connection::make_calibration_history(); tests and tools that hold a database may
+// construct it.
 #pragma once
 
+#include <memory>
+#include <string>
+#include <vector>
+
 #include "storage/calibration_history.hpp"
-#include "storage/sqlite/database.hpp"
-#include "storage/sqlite/statement.hpp"
+#include "storage/sql_statement.hpp"
 
 namespace magcal::storage {
 
-class SqliteCalibrationHistory final : public CalibrationHistory {
+class SqlCalibrationHistory : public CalibrationHistory {
  public:
-  explicit SqliteCalibrationHistory(Database& db);
+  explicit SqlCalibrationHistory(SqlSession& db);  // prepares its statements; throws StorageError
 
   int64_t append(const CalibrationRecord& record) override;
   std::vector<CalibrationRecord> query(const HistoryQuery& q) override;
@@ -27,21 +32,11 @@ class SqliteCalibrationHistory final : public CalibrationHistory {
  private:
   std::optional<CalibrationRecord> newest_refit_until(std::string_view sat_id,
                                                       int64_t until_utime) override;
-  static std::string insert_sql();
-  CalibrationRecord read_row(Statement& st);
-  std::vector<CalibrationRecord> rows(Statement& st);
-  std::optional<CalibrationRecord> first(Statement& st);
+  CalibrationRecord read_row(const SqlRow& row);
+  std::vector<std::string> reasons(const std::string& json);
 
-  Database& db_;
-  Statement insert_;
-  Statement query_all_;
-  Statement query_method_;
-  Statement latest_;
-  Statement get_;
-  Statement refits_;
-  Statement accepted_refit_;
-  Statement spacecraft_;
-  Statement reasons_;
+  std::unique_ptr<SqlStatement> insert_, query_all_, query_method_, latest_, get_, refits_,
+      accepted_refit_, spacecraft_, reasons_;
 };
 
 }  // namespace magcal::storage
