@@ -605,8 +605,9 @@ std::string Daemon::open() {
         c, d.counters, std::move(field),
         IngestWorker::Hooks{
             [&d](const std::string& sat, const CalibrationResult& r) { d.on_snapshot(sat, r); },
-            [&d](const std::string& sat, int64_t t, const char* trigger) {
-              d.on_refit_due(sat, t, trigger);
+            [&d](const std::string& sat, int64_t t, storage::RefitTrigger trigger) {
+              // (to_string() views a string literal: null-terminated, never freed.)
+              d.on_refit_due(sat, t, storage::to_string(trigger).data());
             }},
         &d.stop_deadline);
     d.refit_db = storage::open_database(c.storage.db_path, c.database_options());

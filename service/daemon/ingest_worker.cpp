@@ -10,13 +10,14 @@ IngestWorker::IngestWorker(const DaemonConfig& config, DaemonCounters& counters,
                            std::unique_ptr<ReferenceField> field, Hooks hooks,
                            const StopDeadline* stop)
     : config_(config),
-      // (A PostgreSQL server unreachable now: restore() says.)
+      storage_(config_.storage_capabilities()),
+      hooks_(std::move(hooks)),
+      // (A server unreachable now: restore() says.)
       db_(storage::open_database(config.storage.db_path, config.database_options())),
       samples_(db_->make_sample_window_store()),
       fleet_(config.ukf.filter, &counters),
       intake_(config_, counters, std::move(field), *db_, *samples_, fleet_, stop),
-      owner_(config_, counters, *db_, *samples_, fleet_, intake_, std::move(hooks),
-             OwnedSpacecraftTracker::Links{[this](bool block) { return commit_all(block); }}) {}
+      owner_(config_, counters, *db_, *samples_, fleet_, hooks_.on_snapshot) {}
 
 IngestWorker::~IngestWorker() = default;
 
@@ -25,10 +26,10 @@ bool IngestWorker::restore() {
     restore_from_database();
     return true;
   } catch (const storage::StorageError& e) {
-    // On SQLite every failure here is a start error, and on PostgreSQL a permanent one (a
-    // missing database or role, authentication, a foreign schema); an unreachable server is
-    // an outage that began before the start.
-    if (!config_.postgres() || !e.transient()) throw;
+    // A start error, unless the engine makes an unreachable server an outage that began before
+    // the start and the error is transient (a permanent one: a missing database or role,
+    // authentication, a foreign schema).
+    if (!storage_.unreachable_at_start_is_outage || !e.transient()) throw;
     const std::string spill = config_.spill_path();
     // (The error names the database.)
     spdlog::warn(
@@ -72,7 +73,19 @@ bool IngestWorker::try_restore() {
 
 void IngestWorker::lease_round() {
   owner_.register_spacecraft(intake_.take_new_spacecraft());
-  owner_.maintain_leases();
+  // Over its share, a station hands over the excess once its snapshots and states are
+  // committed (one attempt: never waits through an outage).
+  if (owner_.begin_lease_round()) owner_.hand_over_excess(commit_once());
+  owner_.end_lease_round();
+  // Not received here (yet): its time base from the stored window, before its filter starts.
+  for (const auto& sat : owner_.acquired_unreceived()) {
+    try {
+      intake_.restore_spacecraft(sat);
+    } catch (const storage::StorageError& e) {
+      owner_.takeover_failed(sat, e);
+    }
+  }
+  owner_.take_over_acquired();
   intake_.set_other_stations_live(owner_.live_stations() > 1);
 }
 
@@ -99,7 +112,7 @@ void IngestWorker::track_all_now() {
       lease_round();
     } while (owner_.next_lease_round() == std::chrono::steady_clock::time_point{});  // more
   }
-  owner_.track_owned(true);
+  filter(true);
   intake_.retention_at_next_commit();
 }
 
@@ -141,50 +154,89 @@ void IngestWorker::commit_if_due() {
         std::chrono::duration<double, std::milli>(now - intake_.first_pending_time()).count();
     if (age_ms >= config_.storage.commit_every_ms || intake_.pending_samples() == 0) commit();
   }
-  if (restored && !intake_.commit_failing()) owner_.track_owned(false);
-  intake_.run_retention_if_due(false);
+  if (restored && !intake_.commit_failing()) filter(false);
+  run_retention_if_due(false);
 }
 
 void IngestWorker::commit() {
-  // Commits failing (a PostgreSQL outage): the batch goes to the spill file at once, written and
-  // fdatasync'ed, so a crash during an outage loses no more than one commit interval, as outside
-  // one (memory is no safe place to wait out an outage); intake goes on.
+  // Commits failing (an outage where the engine spills): the batch goes to the spill file at
+  // once, written and fdatasync'ed, so a crash during an outage loses no more than one commit
+  // interval, as outside one (memory is no safe place to wait out an outage); intake goes on.
   if (intake_.commit_failing()) intake_.spill_pending(true);
   if (!try_restore()) return;
-  // Two rounds: the samples, then what the owned filters made of them (snapshots, states), so
-  // that after commit() everything they produced from committed samples is stored too (not
-  // while the spill drains: one slice per call).
+  // The round (file comment): the samples, then what the owned filters made of them (snapshots,
+  // states), so that after commit() everything they produced from committed samples is stored
+  // too (not while the spill drains: one slice per call).
   for (int round = 0; round < 2; ++round) {
     if (!uncommitted() || (round > 0 && intake_.spill_held() > 0)) break;
-    if (!intake_.try_commit(owner_)) return;  // failing: everything stays pending
-    // Their samples are committed now; requested before retention runs (their floor).
-    if (!uncommitted()) owner_.request_deferred_refits();
-    if (owner_.tracking()) break;  // a commit inside track_owned(): it goes on by itself
+    if (!commit_pending()) return;  // failing: everything stays pending
     if (std::chrono::steady_clock::now() >= owner_.next_lease_round()) lease_round();
-    owner_.track_owned(false);
+    filter(false);
   }
   // Retention by data time too, so a fast replay keeps its windows as a live feed would.
-  intake_.run_retention_if_due(true);
+  run_retention_if_due(true);
 }
 
-bool IngestWorker::commit_all(bool block) {
-  if (block) {
-    flush();
-    return true;
-  }
-  commit();  // one attempt, or none during the backoff: never waits through an outage
+bool IngestWorker::commit_pending() {
+  if (!intake_.try_commit(owner_)) return false;
+  // Their samples are committed now; requested before retention runs (their floor).
+  if (!uncommitted()) request_refits(owner_.take_deferred_refits());
+  return true;
+}
+
+bool IngestWorker::commit_once() {
+  if (intake_.commit_failing()) intake_.spill_pending(true);
+  if (!try_restore()) return false;
+  if (uncommitted() && !commit_pending()) return false;
+  run_retention_if_due(true);
   return !uncommitted();
+}
+
+bool IngestWorker::commit_for_refit() {
+  if (!storage_.commit_may_block) return commit_once();
+  while (uncommitted()) {
+    await_commit_attempt();
+    commit_once();
+  }
+  return true;
+}
+
+void IngestWorker::filter(bool drain) {
+  owner_.track_owned(drain);
+  while (owner_.refits_waiting()) {
+    // A refit reads the committed window: everything up to the sample its filter stopped at
+    // is committed first.
+    const bool committed = commit_for_refit();
+    request_refits(owner_.refits_after_commit(committed));
+    owner_.resume_tracking();
+  }
+}
+
+void IngestWorker::request_refits(const std::vector<DueRefit>& refits) {
+  if (!hooks_.on_refit_due) return;
+  for (const auto& r : refits) hooks_.on_refit_due(r.sat_id, r.t_ref_utime, r.trigger);
+}
+
+void IngestWorker::run_retention_if_due(bool by_data_time) {
+  for (const auto& [sat, utime] : owner_.take_retention_edges()) {
+    intake_.allow_retention(sat, utime);
+  }
+  intake_.run_retention_if_due(by_data_time);
 }
 
 void IngestWorker::flush() {
   while (uncommitted()) {
-    if (!intake_.commit_due()) std::this_thread::sleep_until(intake_.next_commit_attempt());
+    await_commit_attempt();
     commit();
   }
 }
 
+void IngestWorker::await_commit_attempt() {
+  if (!intake_.commit_due()) std::this_thread::sleep_until(intake_.next_commit_attempt());
+}
+
 void IngestWorker::flush_at_stop() {
-  if (intake_.has_spill() && uncommitted()) {
+  if (storage_.spill_during_outage && uncommitted()) {
     commit();
     if (intake_.commit_failing() &&
         (intake_.pending_samples() == 0 || intake_.spill_pending(true, /*at_exit=*/true))) {

@@ -1,5 +1,6 @@
 // The daemon's worker (design.md "Daemon data flow" and "Fleet"): the two parts of the fleet's
-// seam, on one thread and one database connection, and the order in which they run.
+// seam, on one thread and one database connection, and the one place that says in which order
+// they run. Like a rate group, it calls each part in turn; neither calls back into it.
 //
 //   SampleIntake (sample_intake.hpp), every station: validates each decoded sample, puts it on
 //     its spacecraft's time base and stores it once, with the station id (pending batch,
@@ -8,18 +9,23 @@
 //     reads the union of all stations' stored samples back into the UKF; snapshots, filter
 //     states, refit triggers, re-anchors, leases.
 //
-// They share the per-spacecraft records (SpacecraftFleet: each touches its own half) and meet
-// only here:
-//   commit(): round 1 commits the pending samples, with the owner's snapshots and due states in
-//     the last transaction, fenced by the lease (CommitParticipant); then the owned filters read
-//     what is committed, and round 2 commits what they made of it. So after commit() a stored
-//     state includes exactly the committed samples.
-//   A refit is requested only with everything committed (the refit reads the database):
-//     OwnedSpacecraftTracker::Links::commit_all, which is flush() (SQLite) or one commit attempt
-//     (PostgreSQL, where an outage defers the refit: the spill and the retry gate it).
-//   Retention deletes only behind the owner's filter (SampleIntake::allow_retention).
-//   The lease round tells the intake whether other stations are live (then only the owner
-//   counts seq gaps, on the union) and registers the spacecraft the intake saw first.
+// A round (commit()):
+//   1. receive and validate (process(): the intake's pending batch);
+//   2. commit the samples, with the owner's snapshots and due states in the last transaction,
+//      fenced by the lease (CommitParticipant);
+//   3. the lease round, when due (lease_round());
+//   4. the owners read back what is committed and filter it (filter());
+//   5. commit what the filters made (a second pass of 2-4);
+//   6. the refits the filters ask for (DueRefit), once everything up to their time is
+//      committed: a filter stops at a sample after which a refit is due, the worker commits
+//      (waiting through the retry backoff where commits may block: storage::Capabilities), hands
+//      the refits to Hooks::on_refit_due and the filter goes on at the next sample.
+// So a stored filter state includes exactly the committed samples: the owner's writes only ever
+// ride in the transaction of samples, and the filters only read committed ones.
+// What the owner needs from the intake passes through here as data: the spacecraft new to this
+// process (their lease rows), the time base of one taken over without being received, where
+// retention may delete (behind the owner's filter), and whether other stations are live (then
+// only the owner counts seq gaps, on the union).
 //
 // Storage faults: see sample_intake.hpp. Storage broken for [storage] max_failure_s
 // (pg_max_failure_s on PostgreSQL), or a permanent error, throws StorageOutage out of
@@ -28,17 +34,19 @@
 //
 // Restart (restore()), after a SIGTERM or a crash: the receive side comes back from the stored
 // windows, then the leases this daemon may hold are taken over (owned_spacecraft_tracker.hpp).
-// A PostgreSQL server unreachable at start (issue 19, "Network faults") is an outage from the
-// first moment: samples are received, validated and held or spilled as in any outage, no lease
-// is taken and no filter runs; the restore is the commit path's first step, retried on its
-// cadence, and once it goes through the spill is committed and the worker goes on as usual
-// (past pg_max_failure_s: StorageOutage, as in any outage; a permanent error then is the start
-// error it would have been: RefusedAtFirstContact).
+// A database whose engine makes an unreachable server at start an outage
+// (Capabilities::unreachable_at_start_is_outage: a server on the network) starts in that outage:
+// samples are received, validated and held or spilled as in any outage, no lease is taken and
+// no filter runs; the restore is the commit path's first step, retried on its cadence, and once
+// it goes through the spill is committed and the worker goes on as usual (past
+// pg_max_failure_s: StorageOutage, as in any outage; a permanent error then is the start error
+// it would have been: RefusedAtFirstContact).
 #pragma once
 
 #include <atomic>
 #include <chrono>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <stdexcept>
 
@@ -51,6 +59,7 @@
 #include "service/daemon/spacecraft_tracker.hpp"
 #include "service/io/reference_field.hpp"
 #include "storage/connection.hpp"
+#include "storage/refit_job_log.hpp"
 #include "storage/sample_window_store.hpp"
 
 namespace magcal {
@@ -65,7 +74,17 @@ class RefusedAtFirstContact : public std::runtime_error {
 
 class IngestWorker {
  public:
-  using Hooks = OwnedSpacecraftTracker::Hooks;
+  // The worker's outputs to the daemon.
+  struct Hooks {
+    // A UKF snapshot was committed (publish it).
+    OwnedSpacecraftTracker::SnapshotHook on_snapshot;
+    // A refit of sat_id's window ending at t_ref is due, and its samples up to t_ref are
+    // committed (DueRefit). In a replay it waits for the refit, so that its re-anchor lands at
+    // the same sample every time.
+    std::function<void(const std::string& sat_id, int64_t t_ref_utime,
+                       storage::RefitTrigger trigger)>
+        on_refit_due;
+  };
 
   // Opens its own connection to config.storage.db_path (throws storage::StorageError; a
   // PostgreSQL server that cannot be reached now is not an error: OpenOptions::connect_later)
@@ -86,8 +105,8 @@ class IngestWorker {
   // From any thread: the database was reached and the restore done (at restore(), or since).
   bool restored() const { return restored_.load(); }
 
-  // Heartbeat, lease renewal, takeovers and handovers (OwnedSpacecraftTracker). commit_if_due()
-  // runs it every [fleet] lease_s / 3; public for tests.
+  // The lease round (lease_round()); commit_if_due() runs it every [fleet] lease_s / 3; public
+  // for tests.
   void maintain_leases();
   // At a clean stop: hands every owned spacecraft back (its state committed first) and ends
   // the heartbeat, so the other daemons take over at once instead of after the lease time.
@@ -120,9 +139,10 @@ class IngestWorker {
   // Commits everything pending, retrying through the backoff until it is stored; throws
   // StorageOutage when storage stays broken (shutdown, and before a data-clock refit).
   void flush();
-  // At shutdown: flush(), except that with a spill file (PostgreSQL) while storage fails the
-  // pending samples are spilled at once (committed at the next start) instead of waiting up to
-  // pg_max_failure_s; UKF snapshots not yet stored are then dropped (logged).
+  // At shutdown: flush(), except that with a spill file (Capabilities::spill_during_outage)
+  // while storage fails the pending samples are spilled at once (committed at the next start)
+  // instead of waiting up to pg_max_failure_s; UKF snapshots not yet stored are then dropped
+  // (logged).
   void flush_at_stop();
   // Moves every pending sample to the spill file (when there is one and it has room); returns
   // how many. After StorageOutage: what the daemon would otherwise count as not committed.
@@ -169,9 +189,24 @@ class IngestWorker {
  private:
   // Samples, snapshots or filter states await their commit.
   bool uncommitted() const { return intake_.uncommitted() || owner_.has_writes(); }
-  // Everything committed (OwnedSpacecraftTracker::Links::commit_all).
-  bool commit_all(bool block);
-  // The lease round, then what the intake needs from it.
+  // Step 2 of a round: one attempt (none during the retry backoff) at the pending samples and
+  // the owner's writes; the deferred refits are requested once everything is committed. False
+  // when it failed (everything stays pending).
+  bool commit_pending();
+  // One attempt at committing everything (step 2 alone, no filter pass): true when everything
+  // is committed.
+  bool commit_once();
+  // Everything committed before a refit: commit_once() until it is, through the retry backoff,
+  // where commits may block; else one commit_once().
+  bool commit_for_refit();
+  // Sleeps until the retry backoff lets the next commit attempt run.
+  void await_commit_attempt();
+  // Step 4: the owners read back and filter; their refits (step 6) when they ask.
+  void filter(bool drain);
+  void request_refits(const std::vector<DueRefit>& refits);
+  // Retention, where the owner allows it (its retention edges passed to the intake first).
+  void run_retention_if_due(bool by_data_time);
+  // The lease round, with what the owner and the intake need from each other.
   void lease_round();
   // restore()'s work (throws storage::StorageError).
   void restore_from_database();
@@ -179,6 +214,8 @@ class IngestWorker {
   bool try_restore();
 
   const DaemonConfig config_;  // a copy: callers may pass a temporary
+  const storage::Capabilities storage_;
+  Hooks hooks_;
   std::unique_ptr<storage::Connection> db_;
   std::unique_ptr<storage::SampleWindowStore> samples_;
   SpacecraftFleet fleet_;

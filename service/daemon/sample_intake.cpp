@@ -23,12 +23,6 @@ constexpr int64_t kRetentionStep_utime = 600'000'000;
 // large spill (1 GiB: minutes of inserts) must not stall intake or the systemd watchdog.
 constexpr double kSpillDrainSlice_s = 1.0;
 
-int64_t wall_utime() {
-  return std::chrono::duration_cast<std::chrono::microseconds>(
-             std::chrono::system_clock::now().time_since_epoch())
-      .count();
-}
-
 ValidatorOptions validator_options(const DaemonConfig& c) {
   ValidatorOptions v;
   v.range_nT = c.sensor.range_nT;
@@ -48,7 +42,7 @@ uint64_t pending_key(const std::string& sat_id, int64_t utime) {
 
 void SampleIntake::begin_frame() {
   ++frame_counter_;
-  frame_wall_utime_ = wall_utime();
+  frame_wall_utime_ = now_utime();
 }
 
 SampleIntake::SampleIntake(const DaemonConfig& config, DaemonCounters& counters,
@@ -251,36 +245,37 @@ void SampleIntake::ingest(const mag_sample_t& s, const std::string& batch_sat_id
   }
   count_missing(t, s.seq);
   // Telemetry cannot come from the future (beyond clock skew): a corrupt time tag.
-  const int64_t now = receive_utime > 0 ? receive_utime : wall_utime();
+  const int64_t now = receive_utime > 0 ? receive_utime : now_utime();
   // (This daemon's clock, whatever the frame's receive time says: the lease rounds compare it.)
-  t.received_wall_utime = frame_wall_utime_ > 0 ? frame_wall_utime_ : wall_utime();
+  t.received_wall_utime = frame_wall_utime_ > 0 ? frame_wall_utime_ : now_utime();
   if (s.utime > saturating_add(now, config_.max_future_utime())) {
     reject_sample(RejectReason::kFutureTime, sat, s);
     return;
   }
   if (t.on_time_base(s.utime, config_.max_time_jump_utime())) {
-    accept_sample(sat, t, s, receive_utime);
+    // A base moved forward may put held samples on it.
+    if (accept_sample(sat, t, s, receive_utime) && !t.held.empty()) resolve_held(sat, t);
   } else {
     hold_sample(sat, t, s, receive_utime);
   }
 }
 
-void SampleIntake::accept_sample(const std::string& sat, ReceivedSpacecraft& t,
+bool SampleIntake::accept_sample(const std::string& sat, ReceivedSpacecraft& t,
                                  const mag_sample_t& s, int64_t receive_utime) {
   if (t.newest_utime != kNoTime) {
     if (s.utime <= saturating_sub(t.newest_utime, config_.window_utime())) {
       reject_sample(RejectReason::kOlderThanWindow, sat, s);
-      return;
+      return false;
     }
     if (s.utime <= t.newest_utime && is_duplicate(sat, t, s.utime)) {
       reject_sample(RejectReason::kDuplicate, sat, s);
-      return;
+      return false;
     }
   }
   const auto sample = to_reference_sample(s, *field_);
   if (!sample) {
     reject_sample(RejectReason::kReferenceFailed, sat, s);
-    return;
+    return false;
   }
   // Its spacecraft's owner (this daemon or another) filters it once it is stored.
   if (pending_.empty()) first_pending_time_ = std::chrono::steady_clock::now();
@@ -292,7 +287,7 @@ void SampleIntake::accept_sample(const std::string& sat, ReceivedSpacecraft& t,
     ++t.advances;
   }
   data_clock_utime_ = std::max(data_clock_utime_, s.utime);
-  if (advanced && !t.held.empty()) resolve_held(sat, t);
+  return advanced;
 }
 
 void SampleIntake::hold_sample(const std::string& sat, ReceivedSpacecraft& t, const mag_sample_t& s,
@@ -329,11 +324,10 @@ void SampleIntake::hold_sample(const std::string& sat, ReceivedSpacecraft& t, co
 }
 
 void SampleIntake::resolve_held(const std::string& sat, ReceivedSpacecraft& t) {
-  if (resolving_held_) return;  // accept_sample() below advanced the base: this loop goes on
-  resolving_held_ = true;
   const int64_t max_jump = config_.max_time_jump_utime();
   size_t keep = 0;
-  // In place (accept_sample() never adds to the hold): arrival order, no allocation.
+  // In place (accept_sample() never adds to the hold): arrival order, no allocation. A sample
+  // accepted here may advance the base: the rest of the loop sees the new one.
   for (size_t i = 0; i < t.held.size(); ++i) {
     HeldSample& h = t.held[i];
     if (t.on_time_base(h.sample.utime, max_jump)) {
@@ -347,7 +341,6 @@ void SampleIntake::resolve_held(const std::string& sat, ReceivedSpacecraft& t) {
   }
   t.held.erase(t.held.begin() + static_cast<std::ptrdiff_t>(keep), t.held.end());
   if (t.held.empty()) t.held.shrink_to_fit();  // a hold is rare: give its memory back
-  resolving_held_ = false;
 }
 
 void SampleIntake::base_from_held(const std::string& sat, ReceivedSpacecraft& t) {

@@ -21,7 +21,8 @@
 // place. Storage broken for [storage] max_failure_s (pg_max_failure_s on PostgreSQL), or a
 // permanent error, throws StorageOutage out of try_commit() and ingest().
 //
-// PostgreSQL outages (issue 19, "Network faults"): while commits fail, the pending batch goes
+// Outages of a database that spills (Capabilities::spill_during_outage: PostgreSQL, design.md
+// "Network faults"): while commits fail, the pending batch goes
 // to the spill file (sample_spill.hpp) at each commit interval and intake goes on; the file is
 // committed first when the database returns (a slice of at most 1 s per commit, the pending batch
 // queued behind it in the file until it is empty), and at start when an earlier run left one.
@@ -145,7 +146,6 @@ class SampleIntake {
   // Samples not committed yet (pending or spilled).
   bool uncommitted() const { return !pending_.empty() || spill_held() > 0; }
   int64_t spill_held() const { return spill_ ? spill_->held_samples() : 0; }
-  bool has_spill() const { return spill_ != nullptr; }
   // A failed commit is waiting for its retry.
   bool commit_failing() const { return commit_retry_.failing(); }
   bool commit_due() const { return commit_retry_.due(); }
@@ -197,8 +197,9 @@ class SampleIntake {
   int64_t data_clock_utime() const { return data_clock_utime_; }
 
  private:
-  // The per-spacecraft checks and the store of a sample on its spacecraft's time base.
-  void accept_sample(const std::string& sat, ReceivedSpacecraft& t, const mag_sample_t& s,
+  // The per-spacecraft checks and the store of a sample on its spacecraft's time base; true
+  // when it moved the base forward (the caller resolves the held samples then).
+  bool accept_sample(const std::string& sat, ReceivedSpacecraft& t, const mag_sample_t& s,
                      int64_t receive_utime);
   void hold_sample(const std::string& sat, ReceivedSpacecraft& t, const mag_sample_t& s,
                    int64_t receive_utime);
@@ -283,7 +284,6 @@ class SampleIntake {
   int64_t data_clock_utime_ = std::numeric_limits<int64_t>::min();
   int64_t frame_counter_ = 0;     // frames begun (a hold needs more than one to resolve)
   int64_t frame_wall_utime_ = 0;  // this daemon's wall clock when the frame began
-  bool resolving_held_ = false;   // resolve_held() is running (no re-entry)
   bool other_stations_live_ = false;
 
   // Retention: spacecraft whose edge advanced, the newest edge of any (the data-time cadence).

@@ -6,7 +6,7 @@
 // appears on its first valid frame. Size is what the memory target counts (design.md: < 4 KB per
 // spacecraft; held samples only while held).
 //
-// Time plausibility (issue 11: one frame must not move a spacecraft's time). The "time base" is
+// Time plausibility (one frame must not move a spacecraft's time). The "time base" is
 // newest_utime, the newest ACCEPTED sample; retention, the data clock and the UKF only ever see
 // accepted samples. A valid sample is
 //   on the base   when utime <= newest_utime + max_time_jump: it goes on to older_than_window /
@@ -132,7 +132,7 @@ struct ReceivedSpacecraft {
   SeqGapCounter received_seq;
   int64_t advances = 0;  // accepted samples that moved newest_utime forward
   // Wall time this station last received a valid sample of it (kNoTime: never): the owner side
-  // prefers the spacecraft this station receives (OwnedSpacecraftTracker::maintain_leases).
+  // prefers the spacecraft this station receives (decide_lease_round()).
   int64_t received_wall_utime = kNoTime;
   // Retention (SampleIntake::run_retention): the owner's filter time while this daemon owns
   // the spacecraft (kNoTime: not owned here, nothing is deleted), and a lower bound of what
@@ -186,7 +186,7 @@ struct OwnedSpacecraft {
   // [refit] clock = "data": this spacecraft's scheduled refits, on its own data time (its
   // filter's time): a spacecraft backfilled behind the others gets the refits of its own days.
   std::optional<RefitScheduler> data_refits;
-  // Early refits (EarlyRefitPlan, OwnedSpacecraftTracker::check_early_refit): stored samples of
+  // Early refits (EarlyRefitPlan, OwnedSpacecraftTracker::early_refit()): stored samples of
   // all stations the owner's filter has taken (at a takeover: the stored count up to its
   // state), and the count at which the next one is due (0 = none: its data span window_hours,
   // the schedule's business from then on).

@@ -1,4 +1,4 @@
-// How the daemon rides out storage faults (issue 11): a failed storage operation is never
+// How the daemon rides out storage faults: a failed storage operation is never
 // dropped. Each storage path of the daemon (the worker's commit, its duplicate check, the
 // refit thread) owns one StorageRetry: after a transient failure (StorageError::transient():
 // lock past the busy timeout, I/O error, full disk, file deleted / moved / read-only) the

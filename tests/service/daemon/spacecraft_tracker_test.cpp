@@ -1,4 +1,4 @@
-// The tracker's temperature correction (issue 20): a UKF anchored on a refit with a bias
+// The tracker's temperature correction: a UKF anchored on a refit with a bias
 // temperature model filters B' = B - (I + D)^-1 k_T (T - T0), so it estimates the bias at T0.
 // Checked on the simulator's pure sensor with an orbit-synchronous +-15 degC swing and a known
 // k_T (truth the filter never sees): the ok snapshots are within their sigmas of the bias at T0,
