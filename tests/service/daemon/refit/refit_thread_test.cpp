@@ -8,6 +8,7 @@
 #include <condition_variable>
 #include <limits>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <thread>
 #include <vector>
@@ -31,13 +32,13 @@ class Recorder {
     return {[reached] { return reached; },
             [this] {
               std::lock_guard lock(mutex_);
-              before_first_calls_++;
+              state_.before_first_calls++;
               cv_.notify_all();
             },
             [this](const RefitRequest& req) { run(req); },
             [this](int64_t floor_utime) {
               std::lock_guard lock(mutex_);
-              floors_.push_back(floor_utime);
+              state_.floors.push_back(floor_utime);
             }};
   }
   // Lets `n` refits (the running one or later ones) finish.
@@ -49,55 +50,41 @@ class Recorder {
   // Waits until `n` refits have started; false past the deadline.
   bool wait_started(size_t n) {
     std::unique_lock lock(mutex_);
-    return cv_.wait_for(lock, kDeadline, [&] { return started_.size() >= n; });
+    return cv_.wait_for(lock, kDeadline, [&] { return state_.started.size() >= n; });
   }
-  std::vector<RefitRequest> started() {
+  // What the thread called so far.
+  struct State {
+    std::vector<RefitRequest> started;
+    size_t finished = 0;
+    std::vector<int64_t> floors;  // each retention floor it set, in order
+    int before_first_calls = 0;
+    bool ran_before_first = false;  // a refit started before before_first
+  };
+  State state() {
     std::lock_guard lock(mutex_);
-    return started_;
-  }
-  size_t finished() {
-    std::lock_guard lock(mutex_);
-    return finished_;
-  }
-  std::vector<int64_t> floors() {
-    std::lock_guard lock(mutex_);
-    return floors_;
-  }
-  int before_first_calls() {
-    std::lock_guard lock(mutex_);
-    return before_first_calls_;
-  }
-  bool ran_before_first() {
-    std::lock_guard lock(mutex_);
-    return ran_before_first_;
+    return state_;
   }
 
  private:
   void run(const RefitRequest& req) {
     std::unique_lock lock(mutex_);
-    if (before_first_calls_ != 1) ran_before_first_ = true;  // the database part comes first
-    started_.push_back(req);
+    // The database part (before_first) comes first.
+    if (state_.before_first_calls != 1) state_.ran_before_first = true;
+    state_.started.push_back(req);
     cv_.notify_all();
     cv_.wait(lock, [this] { return permits_ > 0; });
     --permits_;
-    ++finished_;
+    ++state_.finished;
   }
 
   std::mutex mutex_;
   std::condition_variable cv_;
-  std::vector<RefitRequest> started_;
-  size_t finished_ = 0;
   int permits_ = 0;
-  std::vector<int64_t> floors_;
-  int before_first_calls_ = 0;
-  bool ran_before_first_ = false;
+  State state_;
 };
 
 RefitThread::Settings data_clock(bool replay = false) {
-  RefitThread::Settings s;
-  s.window_utime = kWindow_utime;
-  s.replay = replay;
-  return s;
+  return {kWindow_utime, /*wall_schedule=*/std::nullopt, replay};
 }
 
 }  // namespace
@@ -111,16 +98,16 @@ TEST_CASE("a request is run once, as asked", "[refit_thread]") {
   REQUIRE(rec.wait_started(1));
   refits.stop(/*drain=*/true);
   thread.join();
-  const auto started = rec.started();
+  const auto started = rec.state().started;
   REQUIRE(started.size() == 1);
   CHECK(started[0].sat_id == "SAT-A");
   REQUIRE(started[0].t_ref_utime.has_value());
   CHECK(*started[0].t_ref_utime == 5000);
   CHECK(started[0].scheduled_utime == 5000);
   CHECK(started[0].trigger == RefitTrigger::kFirst);
-  CHECK(rec.finished() == 1);
-  CHECK(rec.before_first_calls() == 1);
-  CHECK_FALSE(rec.ran_before_first());
+  CHECK(rec.state().finished == 1);
+  CHECK(rec.state().before_first_calls == 1);
+  CHECK_FALSE(rec.state().ran_before_first);
 }
 
 TEST_CASE("the retention floor holds the oldest due window until its refit ran", "[refit_thread]") {
@@ -137,8 +124,9 @@ TEST_CASE("the retention floor holds the oldest due window until its refit ran",
   refits.stop(/*drain=*/true);
   thread.join();
   // Each change, in order: A's window start, then B's (older), again after A ran, none.
-  CHECK(rec.floors() == std::vector<int64_t>{1000 - kWindow_utime + 1, 500 - kWindow_utime + 1,
-                                             500 - kWindow_utime + 1, kNoFloor});
+  CHECK(rec.state().floors == std::vector<int64_t>{1000 - kWindow_utime + 1,
+                                                   500 - kWindow_utime + 1, 500 - kWindow_utime + 1,
+                                                   kNoFloor});
 }
 
 TEST_CASE("a replay's request returns once its refit has run", "[refit_thread]") {
@@ -153,7 +141,7 @@ TEST_CASE("a replay's request returns once its refit has run", "[refit_thread]")
     rec.release(1);
   });
   refits.request("SAT-A", 1000, RefitTrigger::kScheduled);
-  CHECK(rec.finished() == 1);
+  CHECK(rec.state().finished == 1);
   releaser.join();
   CHECK(started);
   refits.stop(/*drain=*/false);
@@ -176,7 +164,7 @@ TEST_CASE("a stop with drain runs every queued request, one without only the run
   rec.release(3);
   thread.join();
   std::vector<std::string> sats;
-  for (const auto& r : rec.started()) sats.push_back(r.sat_id);
+  for (const auto& r : rec.state().started) sats.push_back(r.sat_id);
   if (drain) {
     CHECK(sats == std::vector<std::string>{"SAT-A", "SAT-B", "SAT-C"});
     CHECK(refits.queued() == 0);
@@ -194,6 +182,6 @@ TEST_CASE("nothing runs before the database was reached, and a stop then ends th
   refits.request("SAT-A", 1000, RefitTrigger::kScheduled);
   refits.stop(/*drain=*/true);
   thread.join();
-  CHECK(rec.started().empty());
-  CHECK(rec.before_first_calls() == 0);
+  CHECK(rec.state().started.empty());
+  CHECK(rec.state().before_first_calls == 0);
 }
