@@ -56,6 +56,8 @@ struct Families {
   prometheus::Family<prometheus::Gauge>* fleet_settings_mismatch;
 };
 
+void register_storage_and_fleet_families(prometheus::Registry& r, Families& f);
+
 // Every family of the contract, registered in one place for the daemon and `magcal serve`.
 Families register_families(prometheus::Registry& r, const std::string& version) {
   using prometheus::BuildCounter;
@@ -122,6 +124,20 @@ Families register_families(prometheus::Registry& r, const std::string& version) 
                               .Name("magcal_last_refit_success_timestamp_seconds")
                               .Help("Time (s since 1970, data time) of the newest accepted refit")
                               .Register(r);
+  register_storage_and_fleet_families(r, f);
+  BuildGauge()
+      .Name("magcal_build_info")
+      .Help("Build of magcal (value 1)")
+      .Register(r)
+      .Add({{"version", version}})
+      .Set(1.0);
+  return f;
+}
+
+// The storage, spill and fleet families of `f` (register_families' second half).
+void register_storage_and_fleet_families(prometheus::Registry& r, Families& f) {
+  using prometheus::BuildCounter;
+  using prometheus::BuildGauge;
   f.storage_healthy = &BuildGauge()
                            .Name("magcal_storage_healthy")
                            .Help("1, or 0 while a storage operation fails and is retried")
@@ -171,13 +187,6 @@ Families register_families(prometheus::Registry& r, const std::string& version) 
                "Live stations of the fleet whose result-affecting settings differ from this "
                "daemon's (the results of a spacecraft then depend on which station owns it)")
            .Register(r);
-  BuildGauge()
-      .Name("magcal_build_info")
-      .Help("Build of magcal (value 1)")
-      .Register(r)
-      .Add({{"version", version}})
-      .Set(1.0);
-  return f;
 }
 
 std::string serialize(const prometheus::Registry& r) {
