@@ -1,16 +1,13 @@
 #include "service/daemon/daemon.hpp"
 
-#include <sys/resource.h>
-#include <unistd.h>
-
+#include <algorithm>
+#include <atomic>
 #include <chrono>
-#include <condition_variable>
 #include <cstdlib>
-#include <deque>
 #include <mutex>
-#include <optional>
-#include <set>
+#include <string>
 #include <thread>
+#include <vector>
 
 #include <spdlog/spdlog.h>
 #include <lcm/lcm-cpp.hpp>
@@ -20,12 +17,13 @@
 #include "service/daemon/ingest_worker.hpp"
 #include "service/daemon/lcm_ingest.hpp"
 #include "service/daemon/lcm_publisher.hpp"
-#include "service/daemon/refit_runner.hpp"
-#include "service/daemon/refit_scheduler.hpp"
+#include "service/daemon/ops/daemon_status.hpp"
+#include "service/daemon/ops/health_probes.hpp"
+#include "service/daemon/ops/operations_endpoint.hpp"
+#include "service/daemon/refit/refit_executor.hpp"
+#include "service/daemon/refit/refit_thread.hpp"
 #include "service/daemon/storage_retry.hpp"
 #include "service/daemon/systemd_notifier.hpp"
-#include "service/http/metrics.hpp"
-#include "service/http/operations_server.hpp"
 #include "service/io/calibration_record.hpp"
 #include "storage/refit_job_log.hpp"
 
@@ -33,38 +31,33 @@ namespace magcal {
 namespace {
 
 constexpr double kFilterStateEvery_s = 30.0;
-// nice of the operations server's threads (ingest runs at the process's own, usually 0).
-constexpr int kServerNice = 10;
 
-int64_t wall_utime() {
-  return std::chrono::duration_cast<std::chrono::microseconds>(
-             std::chrono::system_clock::now().time_since_epoch())
-      .count();
+RefitThread::Settings refit_settings(const DaemonConfig& config, bool replay) {
+  RefitThread::Settings s;
+  s.window_utime = config.window_utime();
+  if (!config.data_clock()) {
+    s.wall_schedule = RefitSchedule{parse_daily_time_utc(config.refit.daily_at_utc).value_or(120),
+                                    config.refit.every_hours};
+  }
+  s.replay = replay;
+  return s;
 }
-
-struct RefitRequest {
-  std::string sat_id;                  // data clock: that spacecraft; "" (wall clock): every one
-  std::optional<int64_t> t_ref_utime;  // nullopt: each spacecraft's newest sample (wall clock)
-  int64_t scheduled_utime = 0;
-  const char* trigger = "scheduled";  // or "first" / "early" (IngestWorker::Hooks::on_refit_due)
-};
 
 }  // namespace
 
 struct Daemon::Impl {
-  DaemonConfig config;
+  explicit Impl(DaemonConfig c) : config(std::move(c)) {}
+
+  const DaemonConfig config;
+  const bool replay = is_file_url(config.lcm.url);
   DaemonCounters counters;
   std::chrono::steady_clock::time_point start_time = std::chrono::steady_clock::now();
-  const int64_t start_utime = wall_utime();  // what the probes quote for "unreachable since"
-  bool replay = false;
-  bool postgres = false;  // config.postgres(), once
 
   std::unique_ptr<lcm::LCM> lcm;
   std::unique_ptr<LcmPublisher> publisher;
   std::unique_ptr<IngestQueue> queue;
   std::unique_ptr<IngestWorker> worker;
-  std::unique_ptr<storage::Connection> refit_db;
-  std::unique_ptr<RefitRunner> refits;
+  std::unique_ptr<RefitExecutor> refit_executor;  // the refit thread's, on its own connection
   // Type=notify + WatchdogSec (deploy/magcald.service); a no-op outside systemd.
   SystemdNotifier systemd;
   // Set when a signal stops run(): every storage retry gives up [storage] stop_max_failure_s
@@ -72,14 +65,11 @@ struct Daemon::Impl {
   StopDeadline stop_deadline;
 
   // Refit requests (worker -> refit thread) and the retention floor they imply.
-  std::mutex refit_mutex;
-  std::condition_variable refit_cv;
-  std::deque<RefitRequest> refit_queue;
-  std::multiset<int64_t> floors;  // window starts of due, unfinished refits
-  std::condition_variable refit_idle_cv;
-  bool refit_busy = false;
-  bool refit_stop = false;
-  bool refit_drain = false;  // finish queued requests before stopping (replay)
+  RefitThread refit{
+      refit_settings(config, replay),
+      {[this] { return worker->restored(); }, [this] { refit_executor->mark_interrupted_jobs(); },
+       [this](const RefitRequest& req) { refit_executor->run(req); },
+       [this](int64_t floor_utime) { worker->set_retention_floor(floor_utime); }}};
 
   // A fatal failure (storage broken for max_failure_s, a thread died): the first one wins.
   std::atomic<bool> fatal{false};
@@ -87,11 +77,10 @@ struct Daemon::Impl {
   int fatal_exit = 0;
   std::string fatal_reason;
 
-  // The operations server ([http] listen; none when ""): /metrics from `metrics`, health from
-  // the flags below. Declared after everything its hooks read, so it stops first.
-  std::unique_ptr<http::DaemonMetrics> metrics;
-  std::atomic<bool> lcm_live{false};  // subscribed and receiving (ready)
-  std::unique_ptr<http::OperationsServer> server;
+  // The probes and the operations server ([http] listen), declared after everything they read,
+  // so that the server stops first.
+  HealthProbes probes{config, counters, fatal, [this] { return worker->restored(); }, now_utime()};
+  OperationsEndpoint server{config, {counters, probes, [this] { return queue_gauge(*queue); }}};
 
   // From any thread: log why, stop receiving, stop the worker and the refit thread; run() then
   // returns `exit_code`. Never half-alive: nothing keeps receiving what cannot be stored.
@@ -105,13 +94,7 @@ struct Daemon::Impl {
     spdlog::critical("{}: stopping magcald (exit code {})", why, exit_code);
     fatal.store(true);
     queue->close();  // the receive side stops; a blocked replay push returns
-    {
-      std::lock_guard lock(refit_mutex);
-      refit_stop = true;
-      refit_drain = false;
-    }
-    refit_cv.notify_all();
-    refit_idle_cv.notify_all();
+    refit.stop(/*drain=*/false);
   }
 
   // Runs a thread's body; whatever escapes it ends the process (non-zero), never the thread
@@ -133,40 +116,23 @@ struct Daemon::Impl {
     }
   }
 
-  // Worker thread, or the main thread after the join.
+  // Worker thread, or the main thread after the join. Samples the worker holds uncommitted;
+  // after a fatal stop they are counted as storage_error instead.
   daemon_status_t status() {
-    // Samples the worker holds uncommitted; after a fatal stop they are counted as
-    // storage_error instead.
-    counters.storage_pending.store(fatal.load() ? 0 : worker->pending_samples(),
-                                   std::memory_order_relaxed);
-    const QueueGauge g{queue->depth_samples(), queue->capacity_samples(),
-                       queue->overflow_samples()};
-    const auto uptime = std::chrono::duration_cast<std::chrono::seconds>(
-                            std::chrono::steady_clock::now() - start_time)
-                            .count();
-    return make_status_message(counters, g, wall_utime(), uptime);
-  }
-
-  void update_floor_locked() {
-    worker->set_retention_floor(floors.empty() ? std::numeric_limits<int64_t>::max()
-                                               : *floors.begin());
+    return current_status(counters, queue_gauge(*queue),
+                          fatal.load() ? 0 : worker->pending_samples(), start_time);
   }
 
   // Worker thread: a refit of sat's window ending at t_ref is due (its data clock passed a
   // scheduled time, or its first refit: IngestWorker::Hooks), and its samples are committed.
+  void on_refit_due(const std::string& sat, int64_t t_ref, storage::RefitTrigger trigger) {
+    refit.request(sat, t_ref, trigger);
+  }
+  // The worker's hook as it stands before it passes a RefitTrigger (dropped with it).
   void on_refit_due(const std::string& sat, int64_t t_ref, const char* trigger) {
-    std::unique_lock lock(refit_mutex);
-    floors.insert(t_ref - config.window_utime() + 1);
-    update_floor_locked();
-    refit_queue.push_back({sat, t_ref, t_ref, trigger});
-    refit_cv.notify_one();
-    if (replay) {
-      // A replay has no live source to fall behind: wait for the refit so its re-anchoring
-      // lands at the same point of the data every time (deterministic backfill). Live
-      // ingestion never waits for refits.
-      refit_idle_cv.wait(lock,
-                         [this] { return (refit_queue.empty() && !refit_busy) || refit_stop; });
-    }
+    on_refit_due(
+        sat, t_ref,
+        storage::refit_trigger_from_string(trigger).value_or(storage::RefitTrigger::kScheduled));
   }
 
   void on_snapshot(const std::string& sat, const CalibrationResult& snap) {
@@ -177,287 +143,8 @@ struct Daemon::Impl {
         {true, {bias.x(), bias.y(), bias.z()}, {sigma.x(), sigma.y(), sigma.z()}, snap.accepted});
   }
 
-  void count_refit(const std::string& sat, SpacecraftCounters::RefitVerdict verdict,
-                   int64_t utime) {
-    counters.spacecraft.spacecraft(sat).count_refit(verdict, utime);
-  }
-
-  // /-/healthy: ingest, storage and the scheduler work. A dead thread or storage broken past
-  // its limit ends the process (fatal). On SQLite "working" also means storage is not failing
-  // right now (a failing operation is being retried): a local disk that fails wants this
-  // host's attention, and a restart reopens the file. On PostgreSQL an outage is the network's
-  // or the server's, ridden out for pg_max_failure_s (samples held, then spilled): a liveness
-  // probe must not restart a daemon for it (that would not help, and would drop what it holds
-  // in memory), so it stays healthy and /-/ready answers 503 instead; both bodies say why.
-  bool healthy() const { return !fatal.load() && (postgres || counters.storage_healthy()); }
-  // /-/ready: the database is open (the server only starts after it is) and LCM is live; on
-  // PostgreSQL, and storage is not failing (also not while unreachable since the start).
-  bool ready() const {
-    return lcm_live.load() && !fatal.load() && (!postgres || counters.storage_healthy());
-  }
-  double storage_failing_s() const {
-    const int64_t since = counters.storage_failing_since_utime.load();
-    return since == 0 ? 0.0
-                      : std::max<double>(0.0, static_cast<double>(wall_utime() - since) * 1e-6);
-  }
-  // The probes' extra line during a storage failure ("" otherwise).
-  std::string storage_outage_note() const {
-    if (counters.storage_healthy()) return "";
-    const int64_t since = counters.storage_failing_since_utime.load();
-    return fmt::format(
-        "storage failing for {:.0f} s of [storage] {} = {:.0f} s (database {}{}): {} samples held "
-        "in memory{}\n",
-        storage_failing_s(), config.storage_max_failure_key(), config.storage_max_failure_s(),
-        storage::database_name(config.storage.db_path),
-        worker->restored() || since == 0
-            ? ""
-            : ", unreachable since magcald started at " + format_iso8601_utc(start_utime),
-        counters.storage_pending.load(), postgres ? spill_note() : "");
-  }
-  // ", N in the spill file" (and an earlier run's there, not committed yet).
-  std::string spill_note() const {
-    const int64_t earlier = counters.spill_held_earlier.load();
-    return fmt::format(
-        ", {} in the spill file{}", counters.spill_held.load(),
-        earlier > 0 ? fmt::format(" (and {} an earlier run left there)", earlier) : "");
-  }
-
-  http::DaemonMetrics::Totals metric_totals() const {
-    http::DaemonMetrics::Totals t;
-    t.rejected_by_reason.reserve(kRejectReasonCount);
-    for (int i = 0; i < kRejectReasonCount; ++i) {
-      const auto r = static_cast<RejectReason>(i);
-      t.rejected_by_reason.emplace_back(to_string(r), counters.rejected_count(r));
-    }
-    t.queue_depth = queue->depth_samples();
-    t.queue_overflow = queue->overflow_samples();
-    t.storage_healthy = counters.storage_healthy();
-    t.storage_failing_s = storage_failing_s();
-    t.storage_pending = counters.storage_pending.load(std::memory_order_relaxed);
-    t.spilled = counters.spilled.load(std::memory_order_relaxed);
-    // Everything the file holds: what an operator watches for (the books count this run's).
-    t.spill_held = counters.spill_held.load(std::memory_order_relaxed) +
-                   counters.spill_held_earlier.load(std::memory_order_relaxed);
-    t.spill_bytes = counters.spill_bytes.load(std::memory_order_relaxed);
-    t.spill_recovered = counters.spill_recovered.load(std::memory_order_relaxed);
-    t.spill_dropped = counters.spill_dropped.load(std::memory_order_relaxed);
-    t.leases_lost = counters.leases_lost.load(std::memory_order_relaxed);
-    t.fleet_settings_mismatch = counters.fleet_settings_mismatch.load(std::memory_order_relaxed);
-    counters.spacecraft.for_each([&t](const SpacecraftCounters& c) {
-      http::DaemonMetrics::SpacecraftTotals s;
-      s.sat_label = c.sat_label;
-      s.received = c.received.load(std::memory_order_relaxed);
-      s.stored = c.stored.load(std::memory_order_relaxed);
-      s.missing = c.missing.load(std::memory_order_relaxed);
-      s.refits_accepted = c.refits_accepted.load(std::memory_order_relaxed);
-      s.refits_rejected = c.refits_rejected.load(std::memory_order_relaxed);
-      s.refits_error = c.refits_error.load(std::memory_order_relaxed);
-      s.refits_claimed_elsewhere = c.refits_claimed_elsewhere.load(std::memory_order_relaxed);
-      s.owned = c.owned.load(std::memory_order_relaxed);
-      s.last_refit_success_utime = c.last_refit_success_utime.load(std::memory_order_relaxed);
-      const SpacecraftCounters::UkfSnapshot ukf = c.ukf_snapshot();
-      s.has_ukf_snapshot = ukf.present;
-      s.ukf_bias_nT = ukf.bias_nT;
-      s.ukf_bias_sigma_nT = ukf.bias_sigma_nT;
-      s.ukf_accepted = ukf.accepted;
-      t.spacecraft.push_back(std::move(s));
-    });
-    const auto buckets = counters.commit_seconds.bucket_counts();
-    t.commit_bucket_counts.assign(buckets.begin(), buckets.end());
-    t.commit_sum_s = counters.commit_seconds.sum_s();
-    return t;
-  }
-
-  // Before the database is opened: a listen address that cannot be bound must not leave a new,
-  // empty database behind. Empty, or why it could not bind.
-  std::string bind_server() {
-    if (config.http.listen.empty()) return "";
-    metrics->set_totals_source([this] { return metric_totals(); });
-    http::ServerHooks hooks;
-    hooks.metrics_text = [this] { return metrics->text(); };
-    hooks.healthy = [this] { return healthy(); };
-    hooks.ready = [this] { return ready(); };
-    hooks.probe_detail = [this] { return storage_outage_note(); };
-    hooks.status_window_utime = config.window_utime();
-    std::string error;
-    server = http::OperationsServer::bind(config.http.listen, std::move(hooks), &error);
-    if (!server) return "[http] listen " + config.http.listen + ": " + error;
-    return "";
-  }
-
-  // After the database and LCM are open: empty, or why the server could not start.
-  std::string start_server() {
-    if (!server) return "";
-    std::string error;
-    bool served = false;
-    // Started from a thread at a lower CPU priority, which every server thread inherits (Linux
-    // nice is per thread, inherited at creation): on a saturated machine a client hammering the
-    // API gets slower answers instead of slowing ingest (BM_DaemonReplayHttp measures both).
-    std::thread starter([&] {
-      ::setpriority(PRIO_PROCESS, static_cast<id_t>(::gettid()), kServerNice);
-      const storage::OpenOptions db = config.database_options();
-      served = server->serve(config.storage.db_path, &error, db.connect_later, db.reply_timeout_ms);
-    });
-    starter.join();
-    if (!served) {
-      server.reset();
-      return "[http] listen " + config.http.listen + ": " + error;
-    }
-    return "";  // the server logs its URL
-  }
-
-  // The refit thread's storage retries.
-  StorageRetry refit_retry() {
-    return StorageRetry("refit", config.storage_max_failure_s(), counters,
-                        config.storage_max_failure_key(), &stop_deadline);
-  }
-
-  // Refit thread: one refit, its storage errors retried with backoff (each attempt has its job
-  // row); StorageOutage once storage stays broken.
-  RefitOutcome run_refit(StorageRetry& retry, const std::string& sat, const RefitRequest& req) {
-    return retry.run_blocking([&] {
-      RefitOutcome out = refits->run(sat, req.t_ref_utime, req.trigger, req.scheduled_utime);
-      if (out.kind == RefitOutcome::Kind::kError && out.storage_error &&
-          out.storage_error->transient()) {
-        throw *out.storage_error;
-      }
-      return out;
-    });
-  }
-
-  void refit_all(const RefitRequest& req) {
-    StorageRetry retry = refit_retry();
-    // The wall-clock schedule refits the spacecraft this daemon owns (design.md "Fleet"); the
-    // others' owners refit theirs.
-    std::vector<std::string> sats = req.sat_id.empty()
-                                        ? retry.run_blocking([&] { return refits->spacecraft(); })
-                                        : std::vector<std::string>{req.sat_id};
-    if (req.sat_id.empty()) {
-      std::erase_if(sats, [this](const std::string& sat) { return !worker->owns(sat); });
-    }
-    for (const auto& sat : sats) {
-      const auto out = run_refit(retry, sat, req);
-      if (out.kind == RefitOutcome::Kind::kClaimedElsewhere) {
-        // Another daemon runs it (and stores, publishes its result); this one's filter is not
-        // re-anchored on it.
-        counters.spacecraft.spacecraft(sat).refits_claimed_elsewhere.fetch_add(
-            1, std::memory_order_relaxed);
-        spdlog::info("refit {} at {}: not run here ({})", sat,
-                     format_iso8601_utc(req.scheduled_utime), out.message);
-        continue;
-      }
-      if (out.kind == RefitOutcome::Kind::kSkipped) {
-        spdlog::info("refit {} at {}: skipped ({})", sat, format_iso8601_utc(req.scheduled_utime),
-                     out.message);
-        continue;
-      }
-      counters.refits_run.fetch_add(1);
-      if (out.kind == RefitOutcome::Kind::kError) {
-        counters.refits_failed.fetch_add(1);
-        count_refit(sat, SpacecraftCounters::RefitVerdict::kError, 0);
-        spdlog::error("refit {}: {}", sat, out.message);
-        continue;
-      }
-      const auto& r = out.result;
-      if (r.status == CalibrationStatus::kFailed || r.status == CalibrationStatus::kUnobservable) {
-        counters.refits_failed.fetch_add(1);
-      }
-      counters.set_last_refit(sat, r.utime);
-      // The verdict as stored in the history (magcal serve counts the same rows).
-      count_refit(sat,
-                  r.accepted ? SpacecraftCounters::RefitVerdict::kAccepted
-                             : SpacecraftCounters::RefitVerdict::kRejected,
-                  r.utime);
-      publisher->publish(message_from_result(sat, r));
-      const Eigen::Vector3d sb = r.bias_sigma_nT();
-      const std::string trigger =
-          std::string_view(req.trigger) == "scheduled" ? "" : fmt::format(" ({})", req.trigger);
-      if (r.status == CalibrationStatus::kFailed ||
-          r.status == CalibrationStatus::kUnobservable) {  // no estimate, no window to show
-        spdlog::warn("refit {}{} due {} ({} samples): {}: {}", sat, trigger,
-                     format_iso8601_utc(req.scheduled_utime), r.n_samples, to_string(r.status),
-                     r.message);
-      } else {
-        spdlog::info(
-            "refit {}{} window {} .. {} ({} samples): {}, bias [{:.1f} {:.1f} {:.1f}] +- "
-            "[{:.1f} {:.1f} {:.1f}] nT, residual {:.2f} nT{}{}",
-            sat, trigger, format_iso8601_utc(r.window_start_utime),
-            format_iso8601_utc(r.window_end_utime), r.n_samples,
-            r.accepted ? to_string(r.status) : "rejected", r.parameters.bias_nT.x(),
-            r.parameters.bias_nT.y(), r.parameters.bias_nT.z(), sb.x(), sb.y(), sb.z(),
-            r.residual_rms_nT, r.rejection_reasons.empty() ? "" : ": ",
-            fmt::format("{}", fmt::join(r.rejection_reasons, "; ")));
-      }
-      if (out.accepted()) {
-        counters.refits_accepted.fetch_add(1);
-        worker->post_reanchor(sat, r, out.calibration_id);
-      }
-    }
-  }
-
   void refit_thread() {
-    guarded("refit", [this] { refit_loop(); });
-  }
-
-  void mark_interrupted_jobs() {
-    StorageRetry retry = refit_retry();
-    // Only this station's (and unclaimed) jobs: other daemons sharing the database run theirs.
-    const int n = retry.run_blocking([this] {
-      return refit_db->make_refit_job_log()->mark_station_running_interrupted(config.station.id,
-                                                                              wall_utime());
-    });
-    if (n > 0) {
-      spdlog::warn("{} refit job(s) were running when the daemon last stopped: interrupted", n);
-    }
-  }
-
-  void refit_loop() {
-    const bool wall = !config.data_clock();
-    const RefitSchedule schedule{parse_daily_time_utc(config.refit.daily_at_utc).value_or(120),
-                                 config.refit.every_hours};
-    int64_t next_wall = next_scheduled_utime(schedule, wall_utime());
-    if (wall) spdlog::info("next scheduled refit {}", format_iso8601_utc(next_wall));
-    std::unique_lock lock(refit_mutex);
-    // Nothing before the worker reached the database (unreachable at start: a stop meanwhile
-    // must not wait for it here), and then this station's jobs an earlier run left running are
-    // ended first, so that none of this run's is taken for one.
-    while (!worker->restored() && !refit_stop) {
-      refit_cv.wait_for(lock, std::chrono::milliseconds(200));
-    }
-    if (!worker->restored()) return;
-    lock.unlock();
-    mark_interrupted_jobs();
-    lock.lock();
-    while (true) {
-      if (!refit_queue.empty() && !(refit_stop && !refit_drain)) {
-        const RefitRequest req = refit_queue.front();
-        refit_queue.pop_front();
-        refit_busy = true;
-        lock.unlock();
-        refit_all(req);
-        lock.lock();
-        refit_busy = false;
-        if (req.t_ref_utime) {
-          const auto it = floors.find(*req.t_ref_utime - config.window_utime() + 1);
-          if (it != floors.end()) floors.erase(it);
-          update_floor_locked();
-        }
-        refit_idle_cv.notify_all();
-        continue;
-      }
-      if (refit_stop) break;
-      if (wall && wall_utime() >= next_wall) {
-        refit_queue.push_back({"", std::nullopt, next_wall});
-        next_wall = next_scheduled_utime(schedule, wall_utime());
-        continue;
-      }
-      const auto wait_ms =
-          wall ? std::clamp<int64_t>((next_wall - wall_utime()) / 1000, 1, 1000) : int64_t{1000};
-      refit_cv.wait_for(lock, std::chrono::milliseconds(wait_ms));
-    }
-    if (!refit_queue.empty()) {
-      spdlog::warn("{} scheduled refit(s) not run: shutting down", refit_queue.size());
-    }
+    guarded("refit", [this] { refit.run(); });
   }
 
   void worker_thread() {
@@ -550,9 +237,7 @@ struct Daemon::Impl {
   }
 };
 
-Daemon::Daemon(DaemonConfig config) : impl_(std::make_unique<Impl>()) {
-  impl_->config = std::move(config);
-}
+Daemon::Daemon(DaemonConfig config) : impl_(std::make_unique<Impl>(std::move(config))) {}
 
 Daemon::~Daemon() = default;
 
@@ -561,14 +246,12 @@ const DaemonCounters& Daemon::counters() const {
 }
 
 int Daemon::http_port() const {
-  return impl_->server ? impl_->server->port() : 0;
+  return impl_->server.port();
 }
 
 std::string Daemon::open() {
   auto& d = *impl_;
   const auto& c = d.config;
-  d.replay = is_file_url(c.lcm.url);
-  d.postgres = c.postgres();
   std::string error;
   auto field = ReferenceField::from_file(c.igrf.coefficients_file, &error);
   if (!field) return "[igrf] coefficients_file: " + error;
@@ -592,14 +275,8 @@ std::string Daemon::open() {
     d.publisher = std::make_unique<LcmPublisher>();  // replay without publish_url: no output
   }
   d.queue = std::make_unique<IngestQueue>(c.service.queue_capacity_samples, d.replay);
-  if (!c.http.listen.empty()) {
-    d.metrics = std::make_unique<http::DaemonMetrics>(
-        MAGCAL_VERSION, c.station.id,
-        std::vector<double>(CommitLatencyHistogram::kUpperBounds_s.begin(),
-                            CommitLatencyHistogram::kUpperBounds_s.end()));
-  }
   // The listen socket before the database, for the same reason as LCM.
-  if (std::string e = d.bind_server(); !e.empty()) return e;
+  if (std::string e = d.server.bind(); !e.empty()) return e;
   try {
     d.worker = std::make_unique<IngestWorker>(
         c, d.counters, std::move(field),
@@ -610,8 +287,8 @@ std::string Daemon::open() {
               d.on_refit_due(sat, t, storage::to_string(trigger).data());
             }},
         &d.stop_deadline);
-    d.refit_db = storage::open_database(c.storage.db_path, c.database_options());
-    d.refits = std::make_unique<RefitRunner>(d.config, *d.refit_db);
+    d.refit_executor =
+        std::make_unique<RefitExecutor>(c, d.counters, *d.publisher, *d.worker, &d.stop_deadline);
     // False: a PostgreSQL server unreachable now, an outage from the start (IngestWorker).
     d.worker->restore();
   } catch (const storage::StorageError& e) {
@@ -634,7 +311,7 @@ std::string Daemon::open() {
                                      : std::string("unset (the working directory)"),
         e.what());
   }
-  return d.start_server();
+  return d.server.serve();
 }
 
 int Daemon::run(const std::atomic<bool>& stop) {
@@ -651,12 +328,12 @@ int Daemon::run(const std::atomic<bool>& stop) {
   // The database is open (open(); or PostgreSQL unreachable, an outage /-/ready reports) and
   // the subscription live (the constructor): it receives, systemd may start what is ordered
   // after magcald, and the watchdog runs from here.
-  d.lcm_live.store(true);
+  d.probes.set_lcm_live(true);
   d.systemd.ready();
   const auto end = ingest.run(stop, d.replay, &d.fatal);
   // A stop must end before systemd's TimeoutStopSec: storage that fails gives up at this bound.
   if (end == LcmIngest::End::kStopped) d.stop_deadline.start(c.storage.stop_max_failure_s);
-  d.lcm_live.store(false);
+  d.probes.set_lcm_live(false);
   d.worker->input_ended(end == LcmIngest::End::kEndOfLog);
   // The drain (bounded by [storage] max_failure_s, and after a signal by stop_max_failure_s)
   // runs under TimeoutStopSec, not the watchdog.
@@ -669,13 +346,8 @@ int Daemon::run(const std::atomic<bool>& stop) {
                d.queue->depth_samples());
   d.queue->close();
   worker.join();
-  {
-    std::lock_guard lock(d.refit_mutex);
-    d.refit_stop = true;
-    // A replay finishes its refits (unless storage failed).
-    d.refit_drain = end == LcmIngest::End::kEndOfLog && !d.fatal.load();
-  }
-  d.refit_cv.notify_all();
+  // A replay finishes its refits (unless storage failed).
+  d.refit.stop(/*drain=*/end == LcmIngest::End::kEndOfLog && !d.fatal.load());
   refitter.join();
   if (!d.fatal.load()) {
     d.guarded("main", [&d] {
@@ -708,17 +380,10 @@ int Daemon::run(const std::atomic<bool>& stop) {
   }
   const auto st = d.status();
   d.publisher->publish(st);
-  // On PostgreSQL the books also count what waits in the spill file for the next start
-  // (received = stored + rejected + overflow + spill_held).
-  std::string spill_books;
-  if (d.postgres) {
-    spill_books = fmt::format(" spill_held={}", d.counters.spill_held.load());
-    if (const int64_t earlier = d.counters.spill_held_earlier.load(); earlier > 0) {
-      spill_books += fmt::format(" (and {} of an earlier run)", earlier);
-    }
-  }
-  spdlog::info("final {}{}", format_status_line(st), spill_books);
-  if (d.server) d.server->stop();
+  // With a spill file the books also count what waits there for the next start.
+  spdlog::info("final {}{}", format_status_line(st),
+               spill_books(d.counters, c.storage_capabilities()));
+  d.server.stop();
   if (d.fatal.load()) {
     std::lock_guard lock(d.fatal_mutex);
     spdlog::critical("magcald stopped: {} (exit code {})", d.fatal_reason, d.fatal_exit);

@@ -7,12 +7,13 @@
 //                     [service] status_every_s, counters in the log every [log] status_every_s,
 //                     filter states every 30 s
 //   refit thread    : scheduled refits (wall clock: its own timer, every spacecraft; data
-//                     clock: requests from the worker, each spacecraft on its own data time) on
-//                     its own connection; publishes results and posts accepted
-//                     ones back to the worker for re-anchoring. Never blocks ingestion.
-//   http threads    : the operations server ([http] listen, service/http/operations_server.hpp):
-//                     its own read-only connection; /metrics from DaemonMetrics, /-/healthy and
-//                     /-/ready from the flags here. Bound by open() before the database is
+//                     clock: requests from the worker, each spacecraft on its own data time:
+//                     refit/refit_thread.hpp) on its own connection (refit/refit_executor.hpp);
+//                     publishes results and posts accepted ones back to the worker for
+//                     re-anchoring. Never blocks ingestion.
+//   http threads    : the operations server ([http] listen, ops/operations_endpoint.hpp): its
+//                     own read-only connection; /metrics from the counters, /-/healthy and
+//                     /-/ready from ops/health_probes.hpp. Bound by open() before the database is
 //                     opened (a port it cannot bind is an error at start that leaves no file
 //                     behind), served once the database is open (or, on PostgreSQL, found
 //                     unreachable), stopped by run().

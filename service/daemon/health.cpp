@@ -1,10 +1,11 @@
 #include "service/daemon/health.hpp"
 
 #include <algorithm>
-#include <chrono>
 #include <cmath>
 
 #include <fmt/format.h>
+
+#include "pipeline/time_utc.hpp"
 
 namespace magcal {
 
@@ -112,9 +113,7 @@ int64_t DaemonCounters::rejected_total() const {
 
 void DaemonCounters::storage_path_failing() {
   if (storage_failing_paths.fetch_add(1) == 0) {
-    storage_failing_since_utime.store(std::chrono::duration_cast<std::chrono::microseconds>(
-                                          std::chrono::system_clock::now().time_since_epoch())
-                                          .count());
+    storage_failing_since_utime.store(now_utime());
   }
 }
 

@@ -8,7 +8,7 @@
 // Storage health: a storage operation that fails is kept and retried with backoff
 // (service/daemon/storage_retry.hpp); while any is failing, storage_healthy() is false (the status
 // message says so, and /-/healthy answers 503 on SQLite; on PostgreSQL /-/ready does, while
-// /-/healthy stays 200: daemon.cpp). An undecodable frame counts as one
+// /-/healthy stays 200: service/daemon/ops/health_probes.hpp). An undecodable frame counts as one
 // received and one rejected (decode_error / wrong_type): its sample count is unknowable.
 #pragma once
 

@@ -1,8 +1,15 @@
 #include "service/http/metrics.hpp"
 
 #include <limits>
+#include <mutex>
 #include <sstream>
+#include <unordered_map>
 
+#include <prometheus/counter.h>
+#include <prometheus/family.h>
+#include <prometheus/gauge.h>
+#include <prometheus/histogram.h>
+#include <prometheus/registry.h>
 #include <prometheus/text_serializer.h>
 
 #include "pipeline/time_utc.hpp"
@@ -48,6 +55,8 @@ struct Families {
   prometheus::Family<prometheus::Counter>* leases_lost;
   prometheus::Family<prometheus::Gauge>* fleet_settings_mismatch;
 };
+
+void register_storage_and_fleet_families(prometheus::Registry& r, Families& f);
 
 // Every family of the contract, registered in one place for the daemon and `magcal serve`.
 Families register_families(prometheus::Registry& r, const std::string& version) {
@@ -115,6 +124,20 @@ Families register_families(prometheus::Registry& r, const std::string& version) 
                               .Name("magcal_last_refit_success_timestamp_seconds")
                               .Help("Time (s since 1970, data time) of the newest accepted refit")
                               .Register(r);
+  register_storage_and_fleet_families(r, f);
+  BuildGauge()
+      .Name("magcal_build_info")
+      .Help("Build of magcal (value 1)")
+      .Register(r)
+      .Add({{"version", version}})
+      .Set(1.0);
+  return f;
+}
+
+// The storage, spill and fleet families of `f` (register_families' second half).
+void register_storage_and_fleet_families(prometheus::Registry& r, Families& f) {
+  using prometheus::BuildCounter;
+  using prometheus::BuildGauge;
   f.storage_healthy = &BuildGauge()
                            .Name("magcal_storage_healthy")
                            .Help("1, or 0 while a storage operation fails and is retried")
@@ -164,13 +187,6 @@ Families register_families(prometheus::Registry& r, const std::string& version) 
                "Live stations of the fleet whose result-affecting settings differ from this "
                "daemon's (the results of a spacecraft then depend on which station owns it)")
            .Register(r);
-  BuildGauge()
-      .Name("magcal_build_info")
-      .Help("Build of magcal (value 1)")
-      .Register(r)
-      .Add({{"version", version}})
-      .Set(1.0);
-  return f;
 }
 
 std::string serialize(const prometheus::Registry& r) {
@@ -183,7 +199,7 @@ std::string serialize(const prometheus::Registry& r) {
 
 // One spacecraft's series, created when the daemon first counts it. The UKF gauges and the
 // last-success time appear with their first value: no bias of 0 nT before there is one.
-struct DaemonMetrics::SpacecraftSeries {
+struct SpacecraftSeries {
   prometheus::Counter* received = nullptr;
   prometheus::Counter* stored = nullptr;
   prometheus::Counter* missing = nullptr;
@@ -198,144 +214,170 @@ struct DaemonMetrics::SpacecraftSeries {
   prometheus::Gauge* owned = nullptr;
 };
 
-DaemonMetrics::DaemonMetrics(const std::string& version, const std::string& station,
-                             std::vector<double> commit_bucket_bounds_s)
-    : registry_(std::make_shared<prometheus::Registry>()) {
-  const Families f = register_families(*registry_, version);
+struct DaemonMetrics::Impl {
+  Impl(const std::string& version, const std::string& station,
+       const std::vector<double>& commit_bucket_bounds_s);
+  SpacecraftSeries& series(const std::string& sat_label);
+  void apply_totals(const Totals& t);
+  void apply_spacecraft(const SpacecraftTotals& sc);
+  void apply_commit_seconds(const Totals& t);
+
+  std::shared_ptr<prometheus::Registry> registry = std::make_shared<prometheus::Registry>();
+  Families f;
+  prometheus::Gauge* queue_depth;
+  prometheus::Counter* queue_overflow;
+  std::array<prometheus::Histogram*, 2> commit_seconds{};  // storage_, sqlite_ (deprecated)
+  std::vector<int64_t> commit_counts_seen;
+  double commit_sum_seen_s = 0.0;
+  prometheus::Gauge* storage_healthy;
+  prometheus::Gauge* storage_failing_s;
+  prometheus::Gauge* storage_pending;
+  prometheus::Counter* spilled;
+  prometheus::Gauge* spill_held;
+  prometheus::Gauge* spill_bytes;
+  prometheus::Counter* spill_recovered;
+  prometheus::Counter* spill_dropped;
+  prometheus::Counter* leases_lost;
+  prometheus::Gauge* fleet_settings_mismatch;
+
+  std::mutex mutex;  // the totals source and scrapes
+  std::unordered_map<std::string, std::unique_ptr<SpacecraftSeries>> series_by_sat;
+  std::function<Totals()> totals_source;
+  std::unordered_map<std::string, prometheus::Counter*> rejected_by_reason;
+};
+
+DaemonMetrics::Impl::Impl(const std::string& version, const std::string& station,
+                          const std::vector<double>& commit_bucket_bounds_s)
+    : f(register_families(*registry, version)) {
   prometheus::BuildGauge()
       .Name("magcal_station_info")
       .Help("The daemon's ground station, its [station] id (value 1)")
-      .Register(*registry_)
+      .Register(*registry)
       .Add({{"station", station}})
       .Set(1.0);
-  received_ = f.received;
-  stored_ = f.stored;
-  rejected_ = f.rejected;
-  missing_ = f.missing;
-  queue_depth_ = &f.queue_depth->Add({});
-  queue_overflow_ = &f.queue_overflow->Add({});
-  commit_counts_seen_.assign(commit_bucket_bounds_s.size() + 1, 0);
-  for (size_t i = 0; i < commit_seconds_.size(); ++i) {
-    commit_seconds_[i] = &f.commit_seconds[i]->Add({}, commit_bucket_bounds_s);
+  queue_depth = &f.queue_depth->Add({});
+  queue_overflow = &f.queue_overflow->Add({});
+  commit_counts_seen.assign(commit_bucket_bounds_s.size() + 1, 0);
+  for (size_t i = 0; i < commit_seconds.size(); ++i) {
+    commit_seconds[i] = &f.commit_seconds[i]->Add({}, commit_bucket_bounds_s);
   }
-  ukf_bias_ = f.ukf_bias;
-  ukf_sigma_ = f.ukf_sigma;
-  ukf_accepted_ = f.ukf_accepted;
-  refits_ = f.refits;
-  refits_claimed_elsewhere_ = f.refits_claimed_elsewhere;
-  last_refit_success_ = f.last_refit_success;
-  storage_healthy_ = &f.storage_healthy->Add({});
-  storage_healthy_->Set(1.0);
-  storage_failing_s_ = &f.storage_failing_s->Add({});
-  storage_pending_ = &f.storage_pending->Add({});
-  spilled_ = &f.spilled->Add({});
-  spill_held_ = &f.spill_held->Add({});
-  spill_bytes_ = &f.spill_bytes->Add({});
-  spill_recovered_ = &f.spill_recovered->Add({});
-  spill_dropped_ = &f.spill_dropped->Add({});
-  owned_ = f.owned;
-  leases_lost_ = &f.leases_lost->Add({});
-  fleet_settings_mismatch_ = &f.fleet_settings_mismatch->Add({});
+  storage_healthy = &f.storage_healthy->Add({});
+  storage_healthy->Set(1.0);
+  storage_failing_s = &f.storage_failing_s->Add({});
+  storage_pending = &f.storage_pending->Add({});
+  spilled = &f.spilled->Add({});
+  spill_held = &f.spill_held->Add({});
+  spill_bytes = &f.spill_bytes->Add({});
+  spill_recovered = &f.spill_recovered->Add({});
+  spill_dropped = &f.spill_dropped->Add({});
+  leases_lost = &f.leases_lost->Add({});
+  fleet_settings_mismatch = &f.fleet_settings_mismatch->Add({});
 }
 
-DaemonMetrics::~DaemonMetrics() = default;
-
-DaemonMetrics::SpacecraftSeries& DaemonMetrics::series(const std::string& label) {
-  if (const auto it = series_.find(label); it != series_.end()) return *it->second;
+SpacecraftSeries& DaemonMetrics::Impl::series(const std::string& label) {
+  if (const auto it = series_by_sat.find(label); it != series_by_sat.end()) return *it->second;
   auto m = std::make_unique<SpacecraftSeries>();
-  m->received = &received_->Add({{"sat", label}});
-  m->stored = &stored_->Add({{"sat", label}});
-  m->missing = &missing_->Add({{"sat", label}});
-  m->refits_accepted = &refits_->Add({{"sat", label}, {"verdict", "accepted"}});
-  m->refits_rejected = &refits_->Add({{"sat", label}, {"verdict", "rejected"}});
-  m->refits_error = &refits_->Add({{"sat", label}, {"verdict", "error"}});
-  m->refits_claimed_elsewhere = &refits_claimed_elsewhere_->Add({{"sat", label}});
-  m->owned = &owned_->Add({{"sat", label}});
-  return *series_.emplace(label, std::move(m)).first->second;
+  m->received = &f.received->Add({{"sat", label}});
+  m->stored = &f.stored->Add({{"sat", label}});
+  m->missing = &f.missing->Add({{"sat", label}});
+  m->refits_accepted = &f.refits->Add({{"sat", label}, {"verdict", "accepted"}});
+  m->refits_rejected = &f.refits->Add({{"sat", label}, {"verdict", "rejected"}});
+  m->refits_error = &f.refits->Add({{"sat", label}, {"verdict", "error"}});
+  m->refits_claimed_elsewhere = &f.refits_claimed_elsewhere->Add({{"sat", label}});
+  m->owned = &f.owned->Add({{"sat", label}});
+  return *series_by_sat.emplace(label, std::move(m)).first->second;
 }
 
-void DaemonMetrics::set_totals_source(std::function<Totals()> source) {
-  std::lock_guard lock(mutex_);
-  totals_source_ = std::move(source);
-}
-
-void DaemonMetrics::apply_totals(const Totals& t) {
+void DaemonMetrics::Impl::apply_totals(const Totals& t) {
   for (const auto& [reason, total] : t.rejected_by_reason) {
-    auto it = rejected_by_reason_.find(reason);
-    if (it == rejected_by_reason_.end()) {
-      it = rejected_by_reason_.emplace(reason, &rejected_->Add({{"reason", reason}})).first;
+    auto it = rejected_by_reason.find(reason);
+    if (it == rejected_by_reason.end()) {
+      it = rejected_by_reason.emplace(reason, &f.rejected->Add({{"reason", reason}})).first;
     }
     raise_to(*it->second, total);
   }
-  queue_depth_->Set(static_cast<double>(t.queue_depth));
-  raise_to(*queue_overflow_, t.queue_overflow);
-  storage_healthy_->Set(t.storage_healthy ? 1.0 : 0.0);
-  storage_failing_s_->Set(t.storage_failing_s);
-  storage_pending_->Set(static_cast<double>(t.storage_pending));
-  raise_to(*spilled_, t.spilled);
-  spill_held_->Set(static_cast<double>(t.spill_held));
-  spill_bytes_->Set(static_cast<double>(t.spill_bytes));
-  raise_to(*spill_recovered_, t.spill_recovered);
-  raise_to(*spill_dropped_, t.spill_dropped);
-  raise_to(*leases_lost_, t.leases_lost);
-  fleet_settings_mismatch_->Set(static_cast<double>(t.fleet_settings_mismatch));
+  queue_depth->Set(static_cast<double>(t.queue_depth));
+  raise_to(*queue_overflow, t.queue_overflow);
+  storage_healthy->Set(t.storage_healthy ? 1.0 : 0.0);
+  storage_failing_s->Set(t.storage_failing_s);
+  storage_pending->Set(static_cast<double>(t.storage_pending));
+  raise_to(*spilled, t.spilled);
+  spill_held->Set(static_cast<double>(t.spill_held));
+  spill_bytes->Set(static_cast<double>(t.spill_bytes));
+  raise_to(*spill_recovered, t.spill_recovered);
+  raise_to(*spill_dropped, t.spill_dropped);
+  raise_to(*leases_lost, t.leases_lost);
+  fleet_settings_mismatch->Set(static_cast<double>(t.fleet_settings_mismatch));
+  for (const SpacecraftTotals& sc : t.spacecraft) apply_spacecraft(sc);
+  apply_commit_seconds(t);
+}
 
-  for (const SpacecraftTotals& sc : t.spacecraft) {
-    SpacecraftSeries& m = series(sc.sat_label);
-    raise_to(*m.received, sc.received);
-    raise_to(*m.stored, sc.stored);
-    raise_to(*m.missing, sc.missing);
-    raise_to(*m.refits_accepted, sc.refits_accepted);
-    raise_to(*m.refits_rejected, sc.refits_rejected);
-    raise_to(*m.refits_error, sc.refits_error);
-    raise_to(*m.refits_claimed_elsewhere, sc.refits_claimed_elsewhere);
-    m.owned->Set(sc.owned ? 1.0 : 0.0);
-    if (sc.has_ukf_snapshot) {
-      if (!m.ukf_snapshot_accepted) {
-        for (size_t i = 0; i < 3; ++i) {
-          m.ukf_bias_nT[i] = &ukf_bias_->Add({{"sat", sc.sat_label}, {"axis", kAxes[i]}});
-          m.ukf_bias_sigma_nT[i] = &ukf_sigma_->Add({{"sat", sc.sat_label}, {"axis", kAxes[i]}});
-        }
-        m.ukf_snapshot_accepted = &ukf_accepted_->Add({{"sat", sc.sat_label}});
-      }
+void DaemonMetrics::Impl::apply_spacecraft(const SpacecraftTotals& sc) {
+  SpacecraftSeries& m = series(sc.sat_label);
+  raise_to(*m.received, sc.received);
+  raise_to(*m.stored, sc.stored);
+  raise_to(*m.missing, sc.missing);
+  raise_to(*m.refits_accepted, sc.refits_accepted);
+  raise_to(*m.refits_rejected, sc.refits_rejected);
+  raise_to(*m.refits_error, sc.refits_error);
+  raise_to(*m.refits_claimed_elsewhere, sc.refits_claimed_elsewhere);
+  m.owned->Set(sc.owned ? 1.0 : 0.0);
+  if (sc.has_ukf_snapshot) {
+    if (!m.ukf_snapshot_accepted) {
       for (size_t i = 0; i < 3; ++i) {
-        m.ukf_bias_nT[i]->Set(sc.ukf_bias_nT[i]);
-        m.ukf_bias_sigma_nT[i]->Set(sc.ukf_bias_sigma_nT[i]);
+        m.ukf_bias_nT[i] = &f.ukf_bias->Add({{"sat", sc.sat_label}, {"axis", kAxes[i]}});
+        m.ukf_bias_sigma_nT[i] = &f.ukf_sigma->Add({{"sat", sc.sat_label}, {"axis", kAxes[i]}});
       }
-      m.ukf_snapshot_accepted->Set(sc.ukf_accepted ? 1.0 : 0.0);
+      m.ukf_snapshot_accepted = &f.ukf_accepted->Add({{"sat", sc.sat_label}});
     }
-    if (sc.last_refit_success_utime != 0) {
-      if (!m.last_refit_success_s) {
-        m.last_refit_success_s = &last_refit_success_->Add({{"sat", sc.sat_label}});
-      }
-      m.last_refit_success_s->Set(static_cast<double>(sc.last_refit_success_utime) * 1e-6);
+    for (size_t i = 0; i < 3; ++i) {
+      m.ukf_bias_nT[i]->Set(sc.ukf_bias_nT[i]);
+      m.ukf_bias_sigma_nT[i]->Set(sc.ukf_bias_sigma_nT[i]);
     }
+    m.ukf_snapshot_accepted->Set(sc.ukf_accepted ? 1.0 : 0.0);
   }
-
-  // The histogram takes what was observed since the last scrape.
-  if (t.commit_bucket_counts.size() == commit_counts_seen_.size()) {
-    std::vector<double> increments(commit_counts_seen_.size(), 0.0);
-    bool any = false;
-    for (size_t i = 0; i < increments.size(); ++i) {
-      const int64_t delta = t.commit_bucket_counts[i] - commit_counts_seen_[i];
-      if (delta <= 0) continue;
-      increments[i] = static_cast<double>(delta);
-      commit_counts_seen_[i] = t.commit_bucket_counts[i];
-      any = true;
+  if (sc.last_refit_success_utime != 0) {
+    if (!m.last_refit_success_s) {
+      m.last_refit_success_s = &f.last_refit_success->Add({{"sat", sc.sat_label}});
     }
-    if (any) {
-      for (prometheus::Histogram* h : commit_seconds_) {
-        h->ObserveMultiple(increments, t.commit_sum_s - commit_sum_seen_s_);
-      }
-      commit_sum_seen_s_ = t.commit_sum_s;
-    }
+    m.last_refit_success_s->Set(static_cast<double>(sc.last_refit_success_utime) * 1e-6);
   }
 }
 
+// The histogram takes what was observed since the last scrape.
+void DaemonMetrics::Impl::apply_commit_seconds(const Totals& t) {
+  if (t.commit_bucket_counts.size() != commit_counts_seen.size()) return;
+  std::vector<double> increments(commit_counts_seen.size(), 0.0);
+  bool any = false;
+  for (size_t i = 0; i < increments.size(); ++i) {
+    const int64_t delta = t.commit_bucket_counts[i] - commit_counts_seen[i];
+    if (delta <= 0) continue;
+    increments[i] = static_cast<double>(delta);
+    commit_counts_seen[i] = t.commit_bucket_counts[i];
+    any = true;
+  }
+  if (!any) return;
+  for (prometheus::Histogram* h : commit_seconds) {
+    h->ObserveMultiple(increments, t.commit_sum_s - commit_sum_seen_s);
+  }
+  commit_sum_seen_s = t.commit_sum_s;
+}
+
+DaemonMetrics::DaemonMetrics(const std::string& version, const std::string& station,
+                             std::vector<double> commit_bucket_bounds_s)
+    : impl_(std::make_unique<Impl>(version, station, commit_bucket_bounds_s)) {}
+
+DaemonMetrics::~DaemonMetrics() = default;
+
+void DaemonMetrics::set_totals_source(std::function<Totals()> source) {
+  std::lock_guard lock(impl_->mutex);
+  impl_->totals_source = std::move(source);
+}
+
 std::string DaemonMetrics::text() {
-  std::lock_guard lock(mutex_);
-  if (totals_source_) apply_totals(totals_source_());
-  return serialize(*registry_);
+  std::lock_guard lock(impl_->mutex);
+  if (impl_->totals_source) impl_->apply_totals(impl_->totals_source());
+  return serialize(*impl_->registry);
 }
 
 std::string database_metrics_text(storage::Connection& db, const std::string& version,

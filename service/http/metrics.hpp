@@ -60,17 +60,9 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
-#include <mutex>
 #include <string>
-#include <string_view>
-#include <unordered_map>
+#include <utility>
 #include <vector>
-
-#include <prometheus/counter.h>
-#include <prometheus/family.h>
-#include <prometheus/gauge.h>
-#include <prometheus/histogram.h>
-#include <prometheus/registry.h>
 
 #include "storage/connection.hpp"
 
@@ -133,42 +125,8 @@ class DaemonMetrics {
   std::string text();
 
  private:
-  struct SpacecraftSeries;
-  SpacecraftSeries& series(const std::string& sat_label);
-  void apply_totals(const Totals& t);
-
-  std::shared_ptr<prometheus::Registry> registry_;
-  prometheus::Family<prometheus::Counter>* received_;
-  prometheus::Family<prometheus::Counter>* stored_;
-  prometheus::Family<prometheus::Counter>* rejected_;
-  prometheus::Family<prometheus::Counter>* missing_;
-  prometheus::Gauge* queue_depth_;
-  prometheus::Counter* queue_overflow_;
-  std::array<prometheus::Histogram*, 2> commit_seconds_{};  // storage_, sqlite_ (deprecated)
-  std::vector<int64_t> commit_counts_seen_;
-  double commit_sum_seen_s_ = 0.0;
-  prometheus::Family<prometheus::Gauge>* ukf_bias_;
-  prometheus::Family<prometheus::Gauge>* ukf_sigma_;
-  prometheus::Family<prometheus::Gauge>* ukf_accepted_;
-  prometheus::Family<prometheus::Counter>* refits_;
-  prometheus::Family<prometheus::Counter>* refits_claimed_elsewhere_;
-  prometheus::Family<prometheus::Gauge>* last_refit_success_;
-  prometheus::Gauge* storage_healthy_;
-  prometheus::Gauge* storage_failing_s_;
-  prometheus::Gauge* storage_pending_;
-  prometheus::Counter* spilled_;
-  prometheus::Gauge* spill_held_;
-  prometheus::Gauge* spill_bytes_;
-  prometheus::Counter* spill_recovered_;
-  prometheus::Counter* spill_dropped_;
-  prometheus::Family<prometheus::Gauge>* owned_;
-  prometheus::Counter* leases_lost_;
-  prometheus::Gauge* fleet_settings_mismatch_;
-
-  std::mutex mutex_;  // the totals source and scrapes
-  std::unordered_map<std::string, std::unique_ptr<SpacecraftSeries>> series_;
-  std::function<Totals()> totals_source_;
-  std::unordered_map<std::string, prometheus::Counter*> rejected_by_reason_;
+  struct Impl;  // the registry and its series (prometheus-cpp stays out of this header)
+  std::unique_ptr<Impl> impl_;
 };
 
 // What a database alone knows, for `magcal serve` (same names and types as the daemon's):
