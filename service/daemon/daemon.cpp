@@ -316,7 +316,10 @@ struct Daemon::Impl {
   // row); StorageOutage once storage stays broken.
   RefitOutcome run_refit(StorageRetry& retry, const std::string& sat, const RefitRequest& req) {
     return retry.run_blocking([&] {
-      RefitOutcome out = refits->run(sat, req.t_ref_utime, req.trigger, req.scheduled_utime);
+      // RefitRequest still carries the trigger's text until it takes a RefitTrigger.
+      const storage::RefitTrigger trigger = storage::refit_trigger_from_string(req.trigger)
+                                                .value_or(storage::RefitTrigger::kScheduled);
+      RefitOutcome out = refits->run(sat, req.t_ref_utime, trigger, req.scheduled_utime);
       if (out.kind == RefitOutcome::Kind::kError && out.storage_error &&
           out.storage_error->transient()) {
         throw *out.storage_error;
