@@ -1,4 +1,4 @@
-// RefitRunner's choice of the change-gate reference (issue 10): a refit on a short window (the
+// RefitRunner's choice of the change-gate reference: a refit on a short window (the
 // first 8 h of a spacecraft, 2 881 samples) is judged on its own evidence and never becomes the
 // reference of later full-window refits; with honest covariances every full-window refit of a
 // paper-scenario day is accepted, and the evidence columns (schema 3) round-trip.
@@ -107,7 +107,7 @@ TEST_CASE("refits: the short first window is no reference, every full-window ref
   RefitRunner runner(config, db);
   const int64_t t0 = sc.epoch_utime;
   const int64_t hour = 3'600'000'000LL;
-  // The issue's schedule: first refit after 8 h of data, then every 6 h.
+  // A new spacecraft's schedule: first refit after 8 h of data, then every 6 h.
   int full_refits = 0;
   for (const int h : {8, 14, 20, 24}) {
     const int64_t t_ref = t0 + h * hour - 10'000'000LL;
