@@ -1,4 +1,4 @@
-// Acceptance gates (issue 7). Definitions and defaults in the header.
+// Acceptance gates. Definitions and defaults in the header.
 #include "pipeline/acceptance_gates.hpp"
 
 #include <algorithm>

@@ -1,4 +1,4 @@
-// Acceptance gates (issue 7): every calibration result (batch refit or filter snapshot) gets a
+// Acceptance gates: every calibration result (batch refit or filter snapshot) gets a
 // verdict, accepted or rejected with short stable reasons, before operators or an uplink see
 // it. Each gate can be disabled; a gate whose input is unavailable (NaN / <= 0 / no previous
 // result) is skipped and listed in GateVerdict::skipped, never silently passed as "checked".
@@ -42,7 +42,7 @@ struct GateOptions {
   enum class ResidualTest { kFactor, kChiSquare };
 
   bool residual_enabled = true;
-  // What a healthy residual is (nT): ~7.5 nT on the paper scenario per issue 7 (3 nT noise +
+  // What a healthy residual is (nT): ~7.5 nT on the paper scenario (3 nT noise +
   // unmodelled nonlinearity/hysteresis/quantisation); measured at the truth parameters on the
   // simulator's 12 h paper preset: 8.2 nT, after the batch refit 7.4 nT (tumbling 6.6, pure
   // model 3.0). Real low-cost sensors need their own value (ISS Astro Pi: ~545 nT).

@@ -1,4 +1,4 @@
-// How much the bias moves within a refit's window beyond what its model explains (issue 20: an
+// How much the bias moves within a refit's window beyond what its model explains (an
 // orbit-synchronous thermal swing without a temperature channel). A batch fit estimates the bias
 // averaged over its window; a bias that swings within it (a thermal cycle per orbit, an eclipse
 // step) leaves the current bias that far from the estimate while the covariance describes only the

@@ -101,7 +101,7 @@ struct CalibrationResult {
   // Covariance of [nonlinearity_k3; hysteresis_nT] ((1/nT)^2, nT^2; HAC, as `covariance`).
   Matrix6d extension_covariance = Matrix6d::Zero();
 
-  // Bias temperature model (issue 20), when the data support it (BIC) and enough samples carry
+  // Bias temperature model, when the data support it (BIC) and enough samples carry
   // a temperature: b(T) = bias_nT + k_T (T - reference_temperature_C), k_T per axis in nT/degC;
   // `parameters.bias_nT` and `covariance` are then those of the bias at the reference temperature
   // (the mean temperature of the samples used). Covariance of k_T in (nT/degC)^2.

@@ -60,7 +60,7 @@ struct CalibrationSample {
   // is meaningful (stage 1 uses |h| only); stage 2 (alignment) skips such samples.
   Eigen::Vector3d h_body_nT = Eigen::Vector3d::Zero();
   bool has_reference_direction = true;
-  // Sensor temperature, deg C; NaN = unknown. The bias temperature model (issue 20) uses only
+  // Sensor temperature, deg C; NaN = unknown. The bias temperature model uses only
   // samples that carry it.
   double temperature_C = std::numeric_limits<double>::quiet_NaN();
 };

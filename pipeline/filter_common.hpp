@@ -65,7 +65,7 @@
 // stamp read P (cheap, per sample). With process noise (q > 0) A and old blocks are not forgotten
 // as P forgets them: C is then conservative.
 //
-// Bias motion (issue 20: drift, thermal swing without a temperature channel): a static filter
+// Bias motion (drift, thermal swing without a temperature channel): a static filter
 // estimates the bias averaged over its memory; when the bias moves it stays close to that
 // average and its P (and the sandwich, which describes the scatter around the average) claims
 // the current bias to a fraction of the lag (measured: 1.5 nT/h drift + 10 nT thermal swing,

@@ -1,4 +1,4 @@
-// Sensor-model extension for the batch refit (issue 10, estimation.md section 7): the effects a
+// Sensor-model extension for the batch refit (estimation.md section 7): the effects a
 // real AMR / fluxgate magnetometer has beyond b and D, as linear columns of the scalar model.
 //
 // Truth (estimation.md section 5): (I + D) B - b = x + n(x) + eps with, per axis i,
@@ -19,8 +19,8 @@
 // b (tumbling scenario spinning at 3 deg/s about body z, 1 s samples, 30 x 3 h: bias
 // RMS(error/sigma) (2.66, 2.50, 0.98) with the sample differences; signs wrong on 2.5 % of the
 // spin axis's samples, 0.2 % now). Like every lag here it assumes
-// time order, and across a gap it joins the runs on both sides. The odd cubic term k3 x_i^3 the
-// issue suggests was measured in its place (with the same hysteresis columns): paper scenario, 20 x
+// time order, and across a gap it joins the runs on both sides. An odd cubic term k3 x_i^3 was
+// measured in its place (with the same hysteresis columns): paper scenario, 20 x
 // 12 h, bias MSE 3.7 nT^2 with the cubic vs 1.15 nT^2 with this quadratic term (the truth
 // nonlinearity is even).
 //

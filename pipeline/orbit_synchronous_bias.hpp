@@ -1,5 +1,5 @@
 // How far the current bias can be from a fit's constant bias when the sensor reports no
-// temperature (issue 20): a thermal bias swing that follows the orbit (eclipse, sun angle) is a
+// temperature: a thermal bias swing that follows the orbit (eclipse, sun angle) is a
 // first harmonic of the orbital period, b(t) = b + c cos(w t) + s sin(w t). In a nadir-pointed
 // attitude the body-frame field is itself a first harmonic of the orbit on two axes (for a
 // dipole: along-track ~ cos u, radial ~ 2 sin u), so such a swing is almost exactly a change of D
@@ -37,7 +37,7 @@ namespace magcal {
 struct OrbitSynchronousBiasOptions {
   double min_period_s = 85.0 * 60.0;   // a 200 km orbit: 88 min
   double max_period_s = 130.0 * 60.0;  // a 2 000 km orbit: 127 min
-  // Prior 1-sigma of each swing coefficient (c_i, s_i): a +-30 nT swing is the issue's plausible
+  // Prior 1-sigma of each swing coefficient (c_i, s_i): a +-30 nT swing is the plausible
   // worst case (2 nT/degC over +-15 degC); what no data constrain comes back at this size.
   double prior_amplitude_nT = 30.0;
 };

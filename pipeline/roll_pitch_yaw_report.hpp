@@ -1,4 +1,4 @@
-// Roll, pitch, yaw as reported with their uncertainty (issue 20: gimbal lock).
+// Roll, pitch, yaw as reported with their uncertainty, and what is reportable at gimbal lock.
 #pragma once
 
 #include <limits>

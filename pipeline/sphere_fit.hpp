@@ -1,4 +1,5 @@
-// Algebraic sphere fit (4 parameters) for constant-field data (issue 7, BROAD lab recording).
+// Algebraic sphere fit (4 parameters) for constant-field data (a lab recording such as BROAD's,
+// where the field does not change).
 //
 // Model: |B_k - c| = r for every sample (nT). Expanding,
 //   |B_k|^2 = 2 c^T B_k + k,   k = r^2 - |c|^2,

@@ -1,4 +1,4 @@
-// Bias temperature model for the batch refit (issue 20): the bias of a fluxgate or AMR sensor
+// Bias temperature model for the batch refit: the bias of a fluxgate or AMR sensor
 // follows its temperature, b(T) = b0 + k (T - T0), k per axis in nT/degC, T0 the mean temperature
 // of the samples used (so b0 is the bias at the window's mean temperature).
 //
@@ -106,7 +106,7 @@ Eigen::Vector3d temperature_shift_per_C(const Eigen::Matrix3d& D,
 // (the refit's change gate, `magcal status`): each is the bias at its own window's T0.
 CalibrationResult at_temperature(CalibrationResult result, double temperature_C);
 
-// Linear bias rate (issue 20 item 3): b(t) = b_end + r (t - t_end) is the temperature model with
+// Linear bias rate: b(t) = b_end + r (t - t_end) is the temperature model with
 // time in hours before the window's end in place of the temperature (the same columns, the same
 // BIC choice; batch_calibration.cpp makes it a candidate when no temperature model is taken). A
 // refit over a window in which the bias moves otherwise estimates the window's mean bias, with a

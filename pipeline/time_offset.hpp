@@ -1,4 +1,5 @@
-// Time-tag offset between the measurement stream and the reference (position) stream (issue 7).
+// Time-tag offset between the measurement stream and the reference (position) stream: real
+// recordings tag the two streams with clocks that disagree.
 //
 // Sign: tau > 0 means the reference for a measurement taken at t is evaluated at t + tau
 // (e.g. position time tags that lag the magnetometer by 480 s give tau = +480 s).

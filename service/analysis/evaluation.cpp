@@ -208,23 +208,13 @@ void run_thermal(const EvaluationOptions& options, Scenario sc, double sigma, Ac
   }
 }
 
-}  // namespace
-
-EvaluationReport run_evaluation(const EvaluationOptions& options) {
-  const auto wall0 = Clock::now();
-  EvaluationReport report;
-  report.scenario = options.scenario.name;
-  report.runs = options.runs;
-  report.seed = options.seed;
-  const double sigma =
-      options.scenario.sensor.noise_sigma_nT > 0.0 ? options.scenario.sensor.noise_sigma_nT : 3.0;
-  report.noise_sigma_nT = options.scenario.sensor.noise_sigma_nT;
-
+// The report's rows, labelled: offline methods, then the online filters (options.online), then
+// the thermal rows from `thermal_row` on (options.thermal).
+std::vector<Accumulator> labelled_rows(const EvaluationOptions& options, int thermal_row) {
   const std::string off = fmt::format("{:g} h", options.offline_hours);
   const std::string on = fmt::format("{:g} h", options.online_hours);
   const std::string warm = fmt::format("{:g} h + {:g} h", options.offline_hours,
                                        options.online_hours - options.offline_hours);
-  const int thermal_row = options.online ? 8 : 4;
   std::vector<Accumulator> acc(static_cast<std::size_t>(thermal_row + (options.thermal ? 2 : 0)));
   auto label = [&](int i, const char* method, const std::string& data, PaperFigures paper) {
     acc[i].stats.method = method;
@@ -249,6 +239,119 @@ EvaluationReport run_evaluation(const EvaluationOptions& options) {
     label(thermal_row, "LM thermal, no temp", thermal, {});
     label(thermal_row + 1, "LM thermal + k_T", thermal, {});
   }
+  return acc;
+}
+
+// Offline: centered (acc[0]), centered+LM (acc[1], Procrustes inside the pipeline). Returns the
+// centered+LM result (status kFailed when it produced none).
+CalibrationResult run_offline(const SampleSet& offline, double sigma, const TruthParameters& truth,
+                              const CrlbResult& crlb_off, std::vector<Accumulator>& acc) {
+  CalibrationResult lm_result;
+  for (int m = 0; m < 2; ++m) {
+    BatchCalibrationOptions bo;
+    bo.method = m == 0 ? BatchCalibrationOptions::Method::kCentered
+                       : BatchCalibrationOptions::Method::kTwoStep;
+    bo.sigma_nT = sigma;
+    const auto t0 = Clock::now();
+    const CalibrationResult r = calibrate_batch(offline, bo);
+    add_batch_result(r, ms_since(t0), truth, crlb_off, offline.size(), &acc[m]);
+    if (m == 1 && r.status != CalibrationStatus::kFailed &&
+        r.status != CalibrationStatus::kUnobservable) {
+      lm_result = r;
+    }
+  }
+  return lm_result;
+}
+
+// The alignment on the centered+LM calibration: Procrustes (acc[2]), small-angle LS (acc[3]).
+void run_alignment(const SampleSet& offline, const CalibrationResult& lm_result,
+                   const TruthParameters& truth, std::vector<Accumulator>& acc) {
+  const std::vector<AlignmentPair> pairs = make_alignment_pairs(offline, lm_result.parameters);
+  auto t0 = Clock::now();
+  const AlignmentResult pr = align_procrustes(pairs);
+  const double t_pr = ms_since(t0);
+  t0 = Clock::now();
+  const SmallAngleResult ls = align_small_angle_ls(pairs);
+  const double t_ls = ms_since(t0);
+  if (pr.ok()) {
+    acc[2].add_alignment(pr.estimate.R_sensor_from_body, truth);
+    acc[2].compute += t_pr;
+  }
+  if (ls.relinearised.ok()) {
+    acc[3].add_alignment(ls.relinearised.estimate.R_sensor_from_body, truth);
+    acc[3].compute += t_ls;
+  }
+  acc[2].stats.memory_bytes = acc[3].stats.memory_bytes =
+      static_cast<double>(offline.size() * sizeof(CalibrationSample));
+}
+
+// Online: EKF and UKF from data (acc[4], acc[6]) and warm from the offline refit (acc[5],
+// acc[7]) over `all`, the warm ones from sample n_off on.
+void run_online(const EvaluationOptions& options, const SampleSet& all, std::size_t n_off,
+                const CalibrationResult& lm_result, double sigma, const TruthParameters& truth,
+                const CrlbResult& crlb_on, std::vector<Accumulator>& acc) {
+  const bool have_warm = lm_result.status == CalibrationStatus::kOk ||
+                         lm_result.status == CalibrationStatus::kRejected ||
+                         lm_result.status == CalibrationStatus::kNotConverged;
+  // The filters' noise: the scenario's white noise (default: the filters adapt from there), or
+  // (filter_sigma_from_residual, the old hand-tuning) the residual rms of the offline refit.
+  const double filter_sigma = options.filter_sigma_from_residual &&
+                                      std::isfinite(lm_result.residual_rms_nT) &&
+                                      lm_result.residual_rms_nT > sigma
+                                  ? lm_result.residual_rms_nT
+                                  : sigma;
+  {
+    MagnetometerEkf::Options o;
+    o.sigma_nT = filter_sigma;
+    MagnetometerEkf cold(o);
+    // `ok` needs the model error (FilterOptions::ok_needs_model_error): the offline refit's,
+    // as `magcal fit --method ekf|ukf` passes its refit's.
+    if (have_warm) cold.set_model_error_covariance(lm_result.model_error_covariance());
+    run_filter(cold, all, 0, acc[4], truth, crlb_on);
+    if (have_warm) {
+      MagnetometerEkf w(o);
+      // Started as the daemon re-anchors: the refit's state, covariance and model error.
+      w.reanchor(lm_result.parameters.packed(), lm_result.covariance,
+                 lm_result.model_error_covariance());
+      // What the daemon does on a re-anchor (service/daemon/owned_spacecraft_tracker.cpp): the
+      // noise from the refit's 9-parameter residual; not its autocorrelation, which describes the
+      // extended model's (whitened) residual when the refit used the model extension.
+      w.seed_noise(lm_result.residual_rms_nT);
+      run_filter(w, all, n_off, acc[5], truth, crlb_on);
+    }
+  }
+  {
+    MagnetometerUkf::Options o;
+    o.sigma_nT = filter_sigma;
+    MagnetometerUkf cold(o);
+    if (have_warm) cold.set_model_error_covariance(lm_result.model_error_covariance());  // above
+    run_filter(cold, all, 0, acc[6], truth, crlb_on);
+    if (have_warm) {
+      MagnetometerUkf w(o);
+      w.reanchor(lm_result.parameters.packed(), lm_result.covariance,
+                 lm_result.model_error_covariance());
+      w.seed_noise(lm_result.residual_rms_nT);  // as above
+      run_filter(w, all, n_off, acc[7], truth, crlb_on);
+    }
+  }
+  // The filter objects: the state and a pointer to options a fleet shares.
+  acc[4].stats.memory_bytes = acc[5].stats.memory_bytes = sizeof(MagnetometerEkf);
+  acc[6].stats.memory_bytes = acc[7].stats.memory_bytes = sizeof(MagnetometerUkf);
+}
+
+}  // namespace
+
+EvaluationReport run_evaluation(const EvaluationOptions& options) {
+  const auto wall0 = Clock::now();
+  EvaluationReport report;
+  report.scenario = options.scenario.name;
+  report.runs = options.runs;
+  report.seed = options.seed;
+  const double sigma =
+      options.scenario.sensor.noise_sigma_nT > 0.0 ? options.scenario.sensor.noise_sigma_nT : 3.0;
+  report.noise_sigma_nT = options.scenario.sensor.noise_sigma_nT;
+  const int thermal_row = options.online ? 8 : 4;
+  std::vector<Accumulator> acc = labelled_rows(options, thermal_row);
 
   for (int run = 0; run < options.runs; ++run) {
     Scenario sc = options.scenario;
@@ -268,91 +371,13 @@ EvaluationReport run_evaluation(const EvaluationOptions& options) {
     truth_p.D = truth.D;
     const CrlbResult crlb_off = compute_crlb(offline, truth_p, sigma);
 
-    // Offline: centered, centered+LM (+ Procrustes inside the pipeline), small-angle LS.
-    CalibrationResult lm_result;
-    for (int m = 0; m < 2; ++m) {
-      BatchCalibrationOptions bo;
-      bo.method = m == 0 ? BatchCalibrationOptions::Method::kCentered
-                         : BatchCalibrationOptions::Method::kTwoStep;
-      bo.sigma_nT = sigma;
-      const auto t0 = Clock::now();
-      const CalibrationResult r = calibrate_batch(offline, bo);
-      add_batch_result(r, ms_since(t0), truth, crlb_off, n_off, &acc[m]);
-      if (m == 1 && r.status != CalibrationStatus::kFailed &&
-          r.status != CalibrationStatus::kUnobservable) {
-        lm_result = r;
-      }
-    }
+    const CalibrationResult lm_result = run_offline(offline, sigma, truth, crlb_off, acc);
     if (options.thermal) run_thermal(options, sc, sigma, &acc[thermal_row], &acc[thermal_row + 1]);
-    if (lm_result.status != CalibrationStatus::kFailed) {
-      const std::vector<AlignmentPair> pairs = make_alignment_pairs(offline, lm_result.parameters);
-      auto t0 = Clock::now();
-      const AlignmentResult pr = align_procrustes(pairs);
-      const double t_pr = ms_since(t0);
-      t0 = Clock::now();
-      const SmallAngleResult ls = align_small_angle_ls(pairs);
-      const double t_ls = ms_since(t0);
-      if (pr.ok()) {
-        acc[2].add_alignment(pr.estimate.R_sensor_from_body, truth);
-        acc[2].compute += t_pr;
-      }
-      if (ls.relinearised.ok()) {
-        acc[3].add_alignment(ls.relinearised.estimate.R_sensor_from_body, truth);
-        acc[3].compute += t_ls;
-      }
-      acc[2].stats.memory_bytes = acc[3].stats.memory_bytes =
-          static_cast<double>(n_off * sizeof(CalibrationSample));
-    }
-
+    if (lm_result.status != CalibrationStatus::kFailed)
+      run_alignment(offline, lm_result, truth, acc);
     if (!options.online) continue;
     const CrlbResult crlb_on = compute_crlb(all, truth_p, sigma);
-    const bool have_warm = lm_result.status == CalibrationStatus::kOk ||
-                           lm_result.status == CalibrationStatus::kRejected ||
-                           lm_result.status == CalibrationStatus::kNotConverged;
-    // The filters' noise: the scenario's white noise (default: the filters adapt from there), or
-    // (filter_sigma_from_residual, the old hand-tuning) the residual rms of the offline refit.
-    const double filter_sigma = options.filter_sigma_from_residual &&
-                                        std::isfinite(lm_result.residual_rms_nT) &&
-                                        lm_result.residual_rms_nT > sigma
-                                    ? lm_result.residual_rms_nT
-                                    : sigma;
-    {
-      MagnetometerEkf::Options o;
-      o.sigma_nT = filter_sigma;
-      MagnetometerEkf cold(o);
-      // `ok` needs the model error (FilterOptions::ok_needs_model_error): the offline refit's,
-      // as `magcal fit --method ekf|ukf` passes its refit's.
-      if (have_warm) cold.set_model_error_covariance(lm_result.model_error_covariance());
-      run_filter(cold, all, 0, acc[4], truth, crlb_on);
-      if (have_warm) {
-        MagnetometerEkf w(o);
-        // Started as the daemon re-anchors: the refit's state, covariance and model error.
-        w.reanchor(lm_result.parameters.packed(), lm_result.covariance,
-                   lm_result.model_error_covariance());
-        // What the daemon does on a re-anchor (service/daemon/owned_spacecraft_tracker.cpp): the
-        // noise from the refit's 9-parameter residual; not its autocorrelation, which describes the
-        // extended model's (whitened) residual when the refit used the model extension.
-        w.seed_noise(lm_result.residual_rms_nT);
-        run_filter(w, all, n_off, acc[5], truth, crlb_on);
-      }
-    }
-    {
-      MagnetometerUkf::Options o;
-      o.sigma_nT = filter_sigma;
-      MagnetometerUkf cold(o);
-      if (have_warm) cold.set_model_error_covariance(lm_result.model_error_covariance());  // above
-      run_filter(cold, all, 0, acc[6], truth, crlb_on);
-      if (have_warm) {
-        MagnetometerUkf w(o);
-        w.reanchor(lm_result.parameters.packed(), lm_result.covariance,
-                   lm_result.model_error_covariance());
-        w.seed_noise(lm_result.residual_rms_nT);  // as above
-        run_filter(w, all, n_off, acc[7], truth, crlb_on);
-      }
-    }
-    // The filter objects: the state and a pointer to options a fleet shares.
-    acc[4].stats.memory_bytes = acc[5].stats.memory_bytes = sizeof(MagnetometerEkf);
-    acc[6].stats.memory_bytes = acc[7].stats.memory_bytes = sizeof(MagnetometerUkf);
+    run_online(options, all, n_off, lm_result, sigma, truth, crlb_on, acc);
   }
   for (Accumulator& a : acc) report.rows.push_back(a.finish(options.runs));
   report.wall_s = ms_since(wall0) * 1e-3;

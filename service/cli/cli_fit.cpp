@@ -19,6 +19,7 @@
 #include <fstream>
 #include <iostream>
 #include <memory>
+#include <optional>
 
 #include <fmt/format.h>
 #include <fmt/ranges.h>
@@ -29,9 +30,9 @@
 #include "pipeline/magnetometer_ukf.hpp"
 #include "pipeline/roll_pitch_yaw_report.hpp"
 #include "pipeline/rotation.hpp"
+#include "pipeline/temperature_correction.hpp"
 #include "pipeline/temperature_model.hpp"
 #include "service/cli/cli_commands.hpp"
-#include "service/daemon/spacecraft_tracker.hpp"
 #include "service/io/field_recording.hpp"
 #include "service/io/reference_field.hpp"
 #include "service/io/result_json.hpp"
@@ -103,7 +104,7 @@ Loaded load_samples(const FitArgs& args) {
   note_duplicates(args.input, lcm.duplicates_dropped, "samples", "spacecraft, utime");
   if (lcm.undecodable > 0) {
     // What magcald counts as decode_error: the fit goes on without those frames' samples, but
-    // the user must know data were lost (second trial: one lost batch of 200 went unmentioned).
+    // the user must know data were lost.
     std::cerr << fmt::format(
         "magcal fit: {}: {} of {} frames on the sample channels could not be decoded (corrupt); "
         "their samples are left out\n",
@@ -312,11 +313,8 @@ void print_text(const CalibrationResult& r, double compute_ms, double convergenc
   line("compute_ms", fmt::format("{:.3f}", compute_ms));
 }
 
-}  // namespace
-
-int run_fit(const FitArgs& args) {
-  const bool batch = args.method == "centered" || args.method == "twostep";
-  const bool filter = args.method == "ekf" || args.method == "ukf";
+// The options' usage errors, printed: kExitUsage, or kExitOk when there are none.
+int fit_options_error(const FitArgs& args, bool batch, bool filter) {
   if (!batch && !filter) {
     std::cerr << "magcal fit: --method must be centered, twostep, ekf or ukf (got '" << args.method
               << "')\n";
@@ -339,17 +337,12 @@ int run_fit(const FitArgs& args) {
     std::cerr << "magcal fit: --robust applies to centered/twostep only\n";
     return kExitUsage;
   }
-  if (!std::filesystem::exists(args.input)) {
-    std::cerr << "magcal fit: input " << args.input << " does not exist\n";
-    return kExitData;
-  }
-  if (ends_with(args.input, ".csv")) {  // foreign layouts (Astro Pi, BROAD): real_data_fit.hpp
-    std::ifstream head(args.input);
-    std::string header;
-    if (std::getline(head, header) && !is_design_sample_csv_header(header))
-      return run_recording_fit(args);
-  }
-  // The recording options mean nothing for the design's sample files: say so, never ignore.
+  return kExitOk;
+}
+
+// The recording options mean nothing for the design's sample files: say so, never ignore.
+// kExitUsage when one is given, else kExitOk.
+int recording_options_error(const FitArgs& args) {
   const std::pair<bool, const char*> recording_only[] = {
       {!args.field_unit.empty(), "--field-unit"},
       {args.alt_km.has_value(), "--alt-km"},
@@ -366,6 +359,225 @@ int run_fit(const FitArgs& args) {
       return kExitUsage;
     }
   }
+  return kExitOk;
+}
+
+// centered / twostep: the batch pipeline, with a note when a thermal bias stays unmodelled.
+CalibrationResult fit_batch(const FitArgs& args, const SampleSet& samples) {
+  BatchCalibrationOptions opt;
+  parse_batch_method(args.method, &opt.method);
+  opt.sigma_nT = args.sigma_nT;
+  opt.robust = args.robust;
+  // The residual gate judges against what this sensor should leave: the stated
+  // --expected-residual-nT, else at least the stated noise (a 600 nT-noise sensor cannot
+  // leave the paper sensor's 7.5 nT).
+  opt.gate_options.expected_residual_nT =
+      args.expected_residual_nT ? *args.expected_residual_nT
+                                : std::max(opt.gate_options.expected_residual_nT, args.sigma_nT);
+  CalibrationResult r = calibrate_batch(samples, opt);
+  // Temperatures that vary but are too few for the model leave a thermal bias unmodelled: say
+  // so (the fit itself cannot tell a thermal swing it does not model from noise).
+  const TemperatureSpread spread = temperature_spread(samples);
+  if (!r.has_temperature_model && spread.n_with_temperature > 0 &&
+      spread.std_C >= kMinTemperatureSpread_C) {
+    if (const std::string why =
+            temperature_model_unusable(spread, static_cast<int>(samples.size()));
+        !why.empty()) {
+      std::cerr << fmt::format(
+          "magcal fit: note: {}: too few for the bias temperature model (at least {:.0f} % and "
+          "{} samples); a thermal bias (temperature spread {:.2g} degC) stays unmodelled\n",
+          why, 100.0 * kMinTemperatureSampleFraction, kMinTemperatureSamples, spread.std_C);
+    }
+  }
+  return r;
+}
+
+// Why the filters cannot take these samples (the batch path's input validation), "" when they
+// can.
+std::string filter_input_problem(const std::string& input, const SampleSet& samples) {
+  const BatchCalibrationOptions check;
+  if (static_cast<int>(samples.size()) < check.min_samples) {
+    return fmt::format("{}: too few samples: {} < {}", input, samples.size(), check.min_samples);
+  }
+  for (std::size_t k = 0; k < samples.size(); ++k) {
+    if (std::string problem = sample_input_problem(samples[k], check.max_field_nT);
+        !problem.empty()) {
+      return input + ": " + sample_label(k, samples[k].utime) + ": " + problem;
+    }
+  }
+  const double coverage = direction_coverage_eigenvalues(samples)(0);
+  if (!(coverage >= check.min_coverage_eigenvalue)) {
+    return fmt::format(
+        "unusable geometry: the field direction barely changes (smallest direction-scatter "
+        "eigenvalue {:.2g})",
+        coverage);
+  }
+  return "";
+}
+
+// The --trace file, written under a temporary name and renamed once complete (a failed run
+// leaves no partial trace behind).
+class TraceFile {
+ public:
+  explicit TraceFile(const std::string& path) : path_(path), tmp_path_(path + ".tmp") {}
+  ~TraceFile() { discard(); }
+  TraceFile(const TraceFile&) = delete;
+  TraceFile& operator=(const TraceFile&) = delete;
+
+  // Opens it with its header; false when it cannot be written.
+  bool open() {
+    file_ = std::fopen(tmp_path_.c_str(), "w");
+    if (!file_) return false;
+    std::fputs(
+        "t_s,b1_nT,b2_nT,b3_nT,D11,D22,D33,D12,D13,D23,sigma_b1_nT,sigma_b2_nT,"
+        "sigma_b3_nT,sigma_D11,sigma_D22,sigma_D33,sigma_D12,sigma_D13,sigma_D23,status,"
+        "noise_nT,innovation_rho,fisher_condition\n",
+        file_);
+    return true;
+  }
+  std::FILE* file() const { return file_; }
+  // Closes it under its name; false (and nothing left behind) when it could not be written.
+  bool commit() {
+    const bool ok = std::fclose(file_) == 0;
+    file_ = nullptr;
+    std::error_code ec;
+    if (ok) std::filesystem::rename(tmp_path_, path_, ec);
+    if (!ok || ec) {
+      std::filesystem::remove(tmp_path_, ec);
+      return false;
+    }
+    return true;
+  }
+
+ private:
+  void discard() {
+    if (!file_) return;
+    std::fclose(file_);
+    file_ = nullptr;
+    std::error_code ec;
+    std::filesystem::remove(tmp_path_, ec);
+  }
+
+  std::string path_;
+  std::string tmp_path_;
+  std::FILE* file_ = nullptr;
+};
+
+// The twostep refit that measures the filters' model error. The filters' model has 9
+// parameters; where the data show more (the batch refit takes the sensor-model extension), they
+// converge to the 9-parameter optimum, a distance the batch refit measures
+// (CalibrationResult::model_error). It is in their reported covariance, as the daemon's re-anchor
+// passes it (MagnetometerUkf::reanchor); the refit's extension is what their alignment removes
+// (estimate_alignment).
+CalibrationResult model_error_refit(const FitArgs& args, const SampleSet& samples) {
+  BatchCalibrationOptions batch;
+  batch.sigma_nT = args.sigma_nT;
+  batch.alignment = false;
+  batch.gates = false;
+  return calibrate_batch(samples, batch);
+}
+
+// The samples the filter takes. Where the refit took a temperature model, the filter sees the
+// samples moved to its T0, as the daemon's UKF does (TemperatureCorrection): a bias swinging with
+// the temperature is faster than the filter follows (the shipped tumbling scenario, +-20 nT per
+// orbit: `ok` snapshots up to 16.6 sigma off the current bias without it). Its bias is then the
+// bias at T0; a sample without a temperature (none within 60 s) is left out, as there.
+SampleSet temperature_corrected(const SampleSet& samples, TemperatureCorrection& temperature) {
+  SampleSet filtered;
+  filtered.reserve(samples.size());
+  for (const CalibrationSample& s : samples) {
+    CalibrationSample moved = s;
+    if (temperature.correct(s, moved.b_sensor_nT)) filtered.push_back(moved);
+  }
+  return filtered;
+}
+
+// ekf / ukf over the samples in time order, anchored as the daemon's filters are on a refit
+// that measured the model error. kExitOk with the result, or the exit code of an error printed.
+int fit_filter(const FitArgs& args, SampleSet& samples, CalibrationResult& r,
+               double& convergence_time_s) {
+  if (const std::string problem = filter_input_problem(args.input, samples); !problem.empty()) {
+    std::cerr << "magcal fit: " << problem << "\n";
+    return kExitData;
+  }
+  std::stable_sort(
+      samples.begin(), samples.end(),
+      [](const CalibrationSample& a, const CalibrationSample& b) { return a.utime < b.utime; });
+  std::optional<TraceFile> trace;
+  if (!args.trace_file.empty() && !trace.emplace(args.trace_file).open()) {
+    std::cerr << "magcal fit: cannot write trace " << args.trace_file << "\n";
+    return kExitData;
+  }
+  // A refit that failed measured nothing: the filter is then never `ok`
+  // (FilterOptions::ok_needs_model_error).
+  const CalibrationResult refit = model_error_refit(args, samples);
+  const bool model_error_measured = refit.status == CalibrationStatus::kOk;
+  if (!model_error_measured) {  // the snapshot's reason alone reads "waiting for a refit"
+    std::cerr << "magcal fit: note: " << args.input
+              << ": the twostep refit that measures the model error gave "
+              << to_string(refit.status) << ": " << refit.message
+              << "; without it the filter is never ok\n";
+  }
+  const Matrix9d model_error = refit.model_error_covariance();
+  TemperatureCorrection temperature;
+  if (model_error_measured) temperature.take_from(refit, 0);
+  const SampleSet filtered = temperature_corrected(samples, temperature);
+  if (!filtered.empty() && filtered.size() < samples.size()) {
+    std::cerr << "magcal fit: note: " << args.input << ": " << samples.size() - filtered.size()
+              << " of " << samples.size() << " samples without a temperature within "
+              << TemperatureCorrection::kTemperatureHoldMax_utime / 1'000'000
+              << " s left out of the filter (the refit's temperature model needs one)\n";
+  }
+  if (filtered.empty()) {  // (the temperature model needs half the samples to carry one)
+    trace.reset();
+    std::cerr << "magcal fit: " << args.input << ": no sample carries a temperature within "
+              << TemperatureCorrection::kTemperatureHoldMax_utime / 1'000'000
+              << " s, which the refit's temperature model needs\n";
+    return kExitData;
+  }
+  std::FILE* const trace_file = trace ? trace->file() : nullptr;
+  FilterRun run;
+  if (args.method == "ekf") {
+    MagnetometerEkf::Options o;
+    o.sigma_nT = args.sigma_nT;
+    MagnetometerEkf f(o);
+    if (model_error_measured) f.set_model_error_covariance(model_error);
+    run = run_filter(f, filtered, trace_file);
+  } else {
+    MagnetometerUkf::Options o;
+    o.sigma_nT = args.sigma_nT;
+    MagnetometerUkf f(o);
+    if (model_error_measured) f.set_model_error_covariance(model_error);
+    run = run_filter(f, filtered, trace_file);
+  }
+  if (trace && !trace->commit()) {
+    std::cerr << "magcal fit: cannot write trace " << args.trace_file << "\n";
+    return kExitData;
+  }
+  r = run.result;
+  convergence_time_s = run.convergence_time_s;
+  finish_filter_result(r, filtered, args.sigma_nT, refit);
+  temperature.describe(r);
+  return kExitOk;
+}
+
+}  // namespace
+
+int run_fit(const FitArgs& args) {
+  const bool batch = args.method == "centered" || args.method == "twostep";
+  const bool filter = args.method == "ekf" || args.method == "ukf";
+  if (const int usage = fit_options_error(args, batch, filter); usage != kExitOk) return usage;
+  if (!std::filesystem::exists(args.input)) {
+    std::cerr << "magcal fit: input " << args.input << " does not exist\n";
+    return kExitData;
+  }
+  if (ends_with(args.input, ".csv")) {  // foreign layouts (Astro Pi, BROAD): real_data_fit.hpp
+    std::ifstream head(args.input);
+    std::string header;
+    if (std::getline(head, header) && !is_design_sample_csv_header(header))
+      return run_recording_fit(args);
+  }
+  if (const int usage = recording_options_error(args); usage != kExitOk) return usage;
   Loaded loaded = load_samples(args);
   if (!loaded.error.empty()) {
     std::cerr << "magcal fit: " << loaded.error << "\n";
@@ -377,149 +589,9 @@ int run_fit(const FitArgs& args) {
   double convergence_time_s = std::numeric_limits<double>::quiet_NaN();
   const auto t_start = std::chrono::steady_clock::now();
   if (batch) {
-    BatchCalibrationOptions opt;
-    parse_batch_method(args.method, &opt.method);
-    opt.sigma_nT = args.sigma_nT;
-    opt.robust = args.robust;
-    // The residual gate judges against what this sensor should leave: the stated
-    // --expected-residual-nT, else at least the stated noise (a 600 nT-noise sensor cannot
-    // leave the paper sensor's 7.5 nT).
-    opt.gate_options.expected_residual_nT =
-        args.expected_residual_nT ? *args.expected_residual_nT
-                                  : std::max(opt.gate_options.expected_residual_nT, args.sigma_nT);
-    r = calibrate_batch(samples, opt);
-    // Temperatures that vary but are too few for the model leave a thermal bias unmodelled: say
-    // so (the fit itself cannot tell a thermal swing it does not model from noise).
-    const TemperatureSpread spread = temperature_spread(samples);
-    if (!r.has_temperature_model && spread.n_with_temperature > 0 &&
-        spread.std_C >= kMinTemperatureSpread_C) {
-      if (const std::string why =
-              temperature_model_unusable(spread, static_cast<int>(samples.size()));
-          !why.empty()) {
-        std::cerr << fmt::format(
-            "magcal fit: note: {}: too few for the bias temperature model (at least {:.0f} % and "
-            "{} samples); a thermal bias (temperature spread {:.2g} degC) stays unmodelled\n",
-            why, 100.0 * kMinTemperatureSampleFraction, kMinTemperatureSamples, spread.std_C);
-      }
-    }
-  } else {
-    BatchCalibrationOptions check;  // same input validation as the batch path
-    if (static_cast<int>(samples.size()) < check.min_samples) {
-      std::cerr << "magcal fit: " << args.input << ": too few samples: " << samples.size() << " < "
-                << check.min_samples << "\n";
-      return kExitData;
-    }
-    for (std::size_t k = 0; k < samples.size(); ++k) {
-      if (std::string problem = sample_input_problem(samples[k], check.max_field_nT);
-          !problem.empty()) {
-        std::cerr << "magcal fit: " << args.input << ": " << sample_label(k, samples[k].utime)
-                  << ": " << problem << "\n";
-        return kExitData;
-      }
-    }
-    const double coverage = direction_coverage_eigenvalues(samples)(0);
-    if (!(coverage >= check.min_coverage_eigenvalue)) {
-      std::cerr << fmt::format(
-          "magcal fit: unusable geometry: the field direction barely "
-          "changes (smallest direction-scatter eigenvalue {:.2g})\n",
-          coverage);
-      return kExitData;
-    }
-    std::stable_sort(
-        samples.begin(), samples.end(),
-        [](const CalibrationSample& a, const CalibrationSample& b) { return a.utime < b.utime; });
-    std::FILE* trace = nullptr;
-    const std::string trace_tmp = args.trace_file + ".tmp";
-    if (!args.trace_file.empty()) {
-      trace = std::fopen(trace_tmp.c_str(), "w");
-      if (!trace) {
-        std::cerr << "magcal fit: cannot write trace " << args.trace_file << "\n";
-        return kExitData;
-      }
-      std::fputs(
-          "t_s,b1_nT,b2_nT,b3_nT,D11,D22,D33,D12,D13,D23,sigma_b1_nT,sigma_b2_nT,"
-          "sigma_b3_nT,sigma_D11,sigma_D22,sigma_D33,sigma_D12,sigma_D13,sigma_D23,status,"
-          "noise_nT,innovation_rho,fisher_condition\n",
-          trace);
-    }
-    // The filters' model has 9 parameters; where the data show more (the batch refit takes the
-    // sensor-model extension), they converge to the 9-parameter optimum, a distance the batch
-    // refit measures (CalibrationResult::model_error). It is in their reported covariance, as the
-    // daemon's re-anchor passes it (MagnetometerUkf::reanchor); the refit's extension is what
-    // their alignment removes (estimate_alignment).
-    BatchCalibrationOptions batch;
-    batch.sigma_nT = args.sigma_nT;
-    batch.alignment = false;
-    batch.gates = false;
-    // A refit that failed measured nothing: the filter is then never `ok`
-    // (FilterOptions::ok_needs_model_error).
-    const CalibrationResult refit = calibrate_batch(samples, batch);
-    const bool model_error_measured = refit.status == CalibrationStatus::kOk;
-    if (!model_error_measured) {  // the snapshot's reason alone reads "waiting for a refit"
-      std::cerr << "magcal fit: note: " << args.input
-                << ": the twostep refit that measures the model error gave "
-                << to_string(refit.status) << ": " << refit.message
-                << "; without it the filter is never ok\n";
-    }
-    const Matrix9d model_error = refit.model_error_covariance();
-    // Where the refit took a temperature model, the filter sees the samples moved to its T0, as
-    // the daemon's UKF does (TemperatureCorrection): a bias swinging with the temperature is
-    // faster than the filter follows (the shipped tumbling scenario, +-20 nT per orbit: `ok`
-    // snapshots up to 16.6 sigma off the current bias without it). Its bias is then the bias at
-    // T0; a sample without a temperature (none within 60 s) is left out, as there.
-    TemperatureCorrection temperature;
-    if (model_error_measured) temperature.take_from(refit, 0);
-    SampleSet filtered;
-    filtered.reserve(samples.size());
-    for (const CalibrationSample& s : samples) {
-      CalibrationSample moved = s;
-      if (temperature.correct(s, moved.b_sensor_nT)) filtered.push_back(moved);
-    }
-    if (!filtered.empty() && filtered.size() < samples.size()) {
-      std::cerr << "magcal fit: note: " << args.input << ": " << samples.size() - filtered.size()
-                << " of " << samples.size() << " samples without a temperature within "
-                << TemperatureCorrection::kTemperatureHoldMax_utime / 1'000'000
-                << " s left out of the filter (the refit's temperature model needs one)\n";
-    }
-    if (filtered.empty()) {  // (the temperature model needs half the samples to carry one)
-      if (trace) {
-        std::fclose(trace);
-        std::error_code ec;
-        std::filesystem::remove(trace_tmp, ec);
-      }
-      std::cerr << "magcal fit: " << args.input << ": no sample carries a temperature within "
-                << TemperatureCorrection::kTemperatureHoldMax_utime / 1'000'000
-                << " s, which the refit's temperature model needs\n";
-      return kExitData;
-    }
-    FilterRun run;
-    if (args.method == "ekf") {
-      MagnetometerEkf::Options o;
-      o.sigma_nT = args.sigma_nT;
-      MagnetometerEkf f(o);
-      if (model_error_measured) f.set_model_error_covariance(model_error);
-      run = run_filter(f, filtered, trace);
-    } else {
-      MagnetometerUkf::Options o;
-      o.sigma_nT = args.sigma_nT;
-      MagnetometerUkf f(o);
-      if (model_error_measured) f.set_model_error_covariance(model_error);
-      run = run_filter(f, filtered, trace);
-    }
-    if (trace) {
-      const bool ok = std::fclose(trace) == 0;
-      std::error_code ec;
-      if (ok) std::filesystem::rename(trace_tmp, args.trace_file, ec);
-      if (!ok || ec) {
-        std::filesystem::remove(trace_tmp, ec);
-        std::cerr << "magcal fit: cannot write trace " << args.trace_file << "\n";
-        return kExitData;
-      }
-    }
-    r = run.result;
-    convergence_time_s = run.convergence_time_s;
-    finish_filter_result(r, filtered, args.sigma_nT, refit);
-    temperature.describe(r);
+    r = fit_batch(args, samples);
+  } else if (const int code = fit_filter(args, samples, r, convergence_time_s); code != kExitOk) {
+    return code;
   }
   const double compute_ms =
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_start).count();

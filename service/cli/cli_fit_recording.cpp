@@ -1,4 +1,4 @@
-// `magcal fit` on a real recording in a foreign CSV layout (issue 7): reads the recording,
+// `magcal fit` on a real recording in a foreign CSV layout: reads the recording,
 // runs service/analysis/real_data_fit.hpp and prints its report as text or JSON.
 #include <filesystem>
 #include <iostream>

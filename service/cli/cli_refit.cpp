@@ -7,7 +7,6 @@
 // database, no or too few samples (refused: nothing written), failed fit, database error; 1 bad
 // config.
 #include <algorithm>
-#include <chrono>
 #include <filesystem>
 #include <iostream>
 
@@ -53,10 +52,7 @@ int run_refit(const RefitArgs& args) {
                 << "; nothing written\n";
       return kExitData;
     }
-    const auto now = std::chrono::duration_cast<std::chrono::microseconds>(
-                         std::chrono::system_clock::now().time_since_epoch())
-                         .count();
-    out = runner.run(args.sat, std::nullopt, "manual", now);
+    out = runner.run(args.sat, std::nullopt, storage::RefitTrigger::kManual, now_utime());
   } catch (const storage::StorageError& e) {
     std::cerr << "magcal refit: database " << db_name << ": " << e.what() << "\n";
     return kExitData;

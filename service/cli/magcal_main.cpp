@@ -3,10 +3,13 @@
 #include <charconv>
 #include <cmath>
 #include <cstdint>
+#include <functional>
 #include <iostream>
 #include <limits>
+#include <optional>
 #include <sstream>
 #include <string>
+#include <utility>
 
 #include <CLI/CLI.hpp>
 
@@ -122,134 +125,152 @@ std::string unknown_subcommand(const CLI::App& app, int argc, char** argv) {
   return "unknown subcommand '" + word + "' (subcommands: " + names + ")";
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
-  using namespace magcal::cli;
-  CLI::App app{"magcal - spacecraft magnetometer calibration (version " MAGCAL_VERSION ")"};
-  app.require_subcommand(1);
-  app.set_version_flag("--version", MAGCAL_VERSION);
-
-  FieldArgs field;
-  auto* field_cmd = app.add_subcommand("field", "IGRF field at a point");
-  field_cmd->add_option("--time", field.time_iso, "UTC time, ISO 8601")->required();
+// `magcal field`: IGRF at a point, given geocentric (--r-km, --colat-deg) or geodetic
+// (--lat-deg, --alt-km) coordinates.
+CLI::App* add_field_command(CLI::App& app, magcal::cli::FieldArgs& args) {
+  CLI::App* const command = app.add_subcommand("field", "IGRF field at a point");
+  command->add_option("--time", args.time_iso, "UTC time, ISO 8601")->required();
   auto* r_opt =
-      field_cmd->add_option("--r-km", field.r_km, "geocentric radius, km")->check(real_number());
-  auto* colat_opt =
-      field_cmd->add_option("--colat-deg", field.colat_deg, "geocentric colatitude, deg")
-          ->check(real_number());
-  auto* lat_opt =
-      field_cmd->add_option("--lat-deg", field.lat_deg, "geodetic (WGS-84) latitude, deg")
-          ->check(real_number());
-  auto* alt_opt = field_cmd->add_option("--alt-km", field.alt_km, "altitude above WGS-84, km")
+      command->add_option("--r-km", args.r_km, "geocentric radius, km")->check(real_number());
+  auto* colat_opt = command->add_option("--colat-deg", args.colat_deg, "geocentric colatitude, deg")
+                        ->check(real_number());
+  auto* lat_opt = command->add_option("--lat-deg", args.lat_deg, "geodetic (WGS-84) latitude, deg")
                       ->check(real_number());
-  field_cmd->add_option("--lon-deg", field.lon_deg, "longitude, deg east")
+  auto* alt_opt = command->add_option("--alt-km", args.alt_km, "altitude above WGS-84, km")
+                      ->check(real_number());
+  command->add_option("--lon-deg", args.lon_deg, "longitude, deg east")
       ->required()
       ->check(real_number());
-  field_cmd->add_option("--coefficients", field.coefficients_file,
-                        "IGRF coefficient file (official .txt or .shc); default built-in IGRF-14");
-  field_cmd->add_flag("--json", field.json, "print JSON");
+  command->add_option("--coefficients", args.coefficients_file,
+                      "IGRF coefficient file (official .txt or .shc); default built-in IGRF-14");
+  command->add_flag("--json", args.json, "print JSON");
   r_opt->excludes(lat_opt)->excludes(alt_opt);
   colat_opt->excludes(lat_opt)->excludes(alt_opt);
+  return command;
+}
 
-  SimArgs sim;
-  auto* sim_cmd = app.add_subcommand("sim", "simulate a spacecraft magnetometer");
-  sim_cmd->add_option("--scenario", sim.scenario,
+// `magcal sim`: a simulated spacecraft magnetometer into a sample file.
+CLI::App* add_sim_command(CLI::App& app, magcal::cli::SimArgs& args) {
+  CLI::App* const command = app.add_subcommand("sim", "simulate a spacecraft magnetometer");
+  command->add_option("--scenario", args.scenario,
                       "preset name (" + preset_list() + ") or scenario FILE.toml");
-  sim_cmd->add_option("--hours", sim.hours, "duration, hours (overrides the scenario)")
+  command->add_option("--hours", args.hours, "duration, hours (overrides the scenario)")
       ->check(real_number());
-  sim_cmd->add_option("--seed", sim.seed, "random seed (overrides the scenario)")
+  command->add_option("--seed", args.seed, "random seed (overrides the scenario)")
       ->check(seed_number());
-  sim_cmd->add_option("--out", sim.out, "output FILE.lcm (LCM log) or FILE.csv")->required();
-  sim_cmd->add_option("--truth", sim.truth, "write the true parameters to FILE.json");
-  sim_cmd->add_option("--sat-id", sim.sat_id, "spacecraft id (overrides the scenario)");
-  sim_cmd
-      ->add_option("--batch", sim.batch_size,
+  command->add_option("--out", args.out, "output FILE.lcm (LCM log) or FILE.csv")->required();
+  command->add_option("--truth", args.truth, "write the true parameters to FILE.json");
+  command->add_option("--sat-id", args.sat_id, "spacecraft id (overrides the scenario)");
+  command
+      ->add_option("--batch", args.batch_size,
                    "LCM output: mag_batch_t packets of N samples on MAGCAL_BATCH")
       ->check(whole_number(0, kIntMax));
+  return command;
+}
 
-  FitArgs fit;
-  auto* fit_cmd = app.add_subcommand("fit", "calibrate from a file");
-  fit_cmd->add_option("--input", fit.input, "FILE.csv or FILE.lcm")->required();
-  fit_cmd->add_option("--method", fit.method, "centered|twostep|ekf|ukf")
+// `magcal fit`: a calibration from a sample file or a recording in a foreign CSV layout.
+CLI::App* add_fit_command(CLI::App& app, magcal::cli::FitArgs& args) {
+  CLI::App* const command = app.add_subcommand("fit", "calibrate from a file");
+  command->add_option("--input", args.input, "FILE.csv or FILE.lcm")->required();
+  command->add_option("--method", args.method, "centered|twostep|ekf|ukf")
       ->check(CLI::IsMember({"centered", "twostep", "ekf", "ukf"}));
-  fit_cmd->add_option("--sigma-nT", fit.sigma_nT, "measurement noise, nT per axis (default 3)")
-      ->check(real_number());
-  fit_cmd->add_flag("--robust", fit.robust,
+  const CLI::Option* sigma =
+      command->add_option("--sigma-nT", args.sigma_nT, "measurement noise, nT per axis (default 3)")
+          ->check(real_number());
+  command->add_flag("--robust", args.robust,
                     "centered/twostep: find outliers (Huber IRLS, robust scale), fit without them");
-  fit_cmd->add_option("--sat", fit.sat, "spacecraft id (required when a log holds several)");
-  fit_cmd->add_option("--trace", fit.trace_file,
+  command->add_option("--sat", args.sat, "spacecraft id (required when a log holds several)");
+  command->add_option("--trace", args.trace_file,
                       "ekf/ukf: write state and 1-sigma per sample (CSV)");
-  fit_cmd->add_flag("--json", fit.json, "print JSON");
-  fit_cmd
-      ->add_option("--gimbal-lock-margin-deg", fit.gimbal_lock_margin_deg,
+  command->add_flag("--json", args.json, "print JSON");
+  command
+      ->add_option("--gimbal-lock-margin-deg", args.gimbal_lock_margin_deg,
                    "roll/yaw reported as a canonical split (roll 0) within this of pitch +-90 deg "
                    "(default 2)")
       ->check(real_number_in(0.0, 45.0));
-  fit_cmd->add_option("--field-unit", fit.field_unit, "recording CSV: field unit nT|uT|G|mG");
-  fit_cmd->add_option("--alt-km", fit.alt_km, "recording CSV: assumed altitude (km) when absent")
+  command->add_option("--field-unit", args.field_unit, "recording CSV: field unit nT|uT|G|mG");
+  command->add_option("--alt-km", args.alt_km, "recording CSV: assumed altitude (km) when absent")
       ->check(real_number());
-  fit_cmd->add_option("--skip-first", fit.skip_first, "recording CSV: drop the first N rows")
+  command->add_option("--skip-first", args.skip_first, "recording CSV: drop the first N rows")
       ->check(whole_number(0, kIntMax));
-  fit_cmd->add_flag("--estimate-time-offset", fit.estimate_time_offset,
+  command->add_flag("--estimate-time-offset", args.estimate_time_offset,
                     "recording CSV: estimate the time-tag offset of the position stream");
-  fit_cmd->add_option("--offset-range-s", fit.offset_range_s,
+  command->add_option("--offset-range-s", args.offset_range_s,
                       "MIN:MAX search range of the offset (default -1000:1000)");
-  fit_cmd
-      ->add_option("--time-offset-s", fit.time_offset_s,
+  command
+      ->add_option("--time-offset-s", args.time_offset_s,
                    "recording CSV: apply this offset (reference at t + tau)")
       ->check(real_number());
-  fit_cmd->add_option("--reference-magnitude", fit.reference_magnitude,
+  command->add_option("--reference-magnitude", args.reference_magnitude,
                       "recording CSV: constant field magnitude, auto|VALUE_nT");
-  fit_cmd->add_flag("--split-halves", fit.split_halves,
+  command->add_flag("--split-halves", args.split_halves,
                     "recording CSV: also fit the two halves separately");
-  fit_cmd
-      ->add_option("--expected-residual-nT", fit.expected_residual_nT,
+  command
+      ->add_option("--expected-residual-nT", args.expected_residual_nT,
                    "expected residual rms for the acceptance gate (default max(7.5, --sigma-nT))")
       ->check(real_number());
+  command->callback([&args, sigma] { args.sigma_given = sigma->count() > 0; });
+  return command;
+}
 
-  EvaluateArgs evaluate;
-  auto* eval_cmd = app.add_subcommand("evaluate", "Monte-Carlo evaluation against the paper");
-  eval_cmd->add_option("--scenario", evaluate.scenario,
-                       "preset name (" + preset_list() + ") or FILE.toml");
-  eval_cmd->add_option("--runs", evaluate.runs, "Monte-Carlo runs")
-      ->check(whole_number(1, kIntMax));
-  eval_cmd->add_option("--seed", evaluate.seed, "first random seed")->check(seed_number());
-  eval_cmd->add_flag("--json", evaluate.json, "print JSON");
+// `magcal evaluate`: the Monte-Carlo evaluation against truth.
+CLI::App* add_evaluate_command(CLI::App& app, magcal::cli::EvaluateArgs& args) {
+  CLI::App* const command =
+      app.add_subcommand("evaluate", "Monte-Carlo evaluation against the paper");
+  command->add_option("--scenario", args.scenario,
+                      "preset name (" + preset_list() + ") or FILE.toml");
+  command->add_option("--runs", args.runs, "Monte-Carlo runs")->check(whole_number(1, kIntMax));
+  command->add_option("--seed", args.seed, "first random seed")->check(seed_number());
+  command->add_flag("--json", args.json, "print JSON");
+  return command;
+}
 
-  RefitArgs refit;
-  auto* refit_cmd = app.add_subcommand("refit", "run an offline refit of a stored window now");
-  add_db_option(refit_cmd, refit.db);
-  refit_cmd->add_option("--sat", refit.sat, "spacecraft id")->required();
-  refit_cmd->add_option("--config", refit.config, "magcald config (gates, sigma, window)");
-  refit_cmd->add_flag("--json", refit.json, "print JSON");
+// `magcal refit`, `history`, `status` and `serve` read (refit: and write) a database.
+CLI::App* add_refit_command(CLI::App& app, magcal::cli::RefitArgs& args) {
+  CLI::App* const command =
+      app.add_subcommand("refit", "run an offline refit of a stored window now");
+  add_db_option(command, args.db);
+  command->add_option("--sat", args.sat, "spacecraft id")->required();
+  command->add_option("--config", args.config, "magcald config (gates, sigma, window)");
+  command->add_flag("--json", args.json, "print JSON");
+  return command;
+}
 
-  HistoryArgs history;
-  auto* hist_cmd = app.add_subcommand("history", "query stored calibration results");
-  add_db_option(hist_cmd, history.db);
-  hist_cmd->add_option("--sat", history.sat, "spacecraft id")->required();
-  hist_cmd->add_option("--method", history.method, "ukf|ekf|centered|twostep");
-  hist_cmd->add_option("--since", history.since, "ISO 8601 UTC, inclusive");
-  hist_cmd->add_option("--until", history.until, "ISO 8601 UTC, inclusive");
-  hist_cmd->add_option("--limit", history.limit, "only the N newest")
-      ->check(whole_number(1, kIntMax));
-  hist_cmd->add_option("--order", history.order, "asc|desc (default asc)")
+CLI::App* add_history_command(CLI::App& app, magcal::cli::HistoryArgs& args) {
+  CLI::App* const command = app.add_subcommand("history", "query stored calibration results");
+  add_db_option(command, args.db);
+  command->add_option("--sat", args.sat, "spacecraft id")->required();
+  command->add_option("--method", args.method, "ukf|ekf|centered|twostep");
+  command->add_option("--since", args.since, "ISO 8601 UTC, inclusive");
+  command->add_option("--until", args.until, "ISO 8601 UTC, inclusive");
+  command->add_option("--limit", args.limit, "only the N newest")->check(whole_number(1, kIntMax));
+  command->add_option("--order", args.order, "asc|desc (default asc)")
       ->check(CLI::IsMember({"asc", "desc"}));
-  hist_cmd->add_option("--format", history.format, "table|csv|json")
+  command->add_option("--format", args.format, "table|csv|json")
       ->check(CLI::IsMember({"table", "csv", "json"}));
+  return command;
+}
 
-  StatusArgs status;
-  auto* status_cmd = app.add_subcommand("status", "per-spacecraft summary");
-  add_db_option(status_cmd, status.db);
-  status_cmd->add_flag("--json", status.json, "print JSON");
+CLI::App* add_status_command(CLI::App& app, magcal::cli::StatusArgs& args) {
+  CLI::App* const command = app.add_subcommand("status", "per-spacecraft summary");
+  add_db_option(command, args.db);
+  command->add_flag("--json", args.json, "print JSON");
+  return command;
+}
 
-  ServeArgs serve;
-  auto* serve_cmd = app.add_subcommand(
+CLI::App* add_serve_command(CLI::App& app, magcal::cli::ServeArgs& args) {
+  CLI::App* const command = app.add_subcommand(
       "serve", "HTTP operations server over a database (read-only): API, plots page");
-  add_db_option(serve_cmd, serve.db);
-  serve_cmd->add_option("--listen", serve.listen,
-                        "ADDR:PORT to listen on (default 127.0.0.1:9780; port 0: any free)");
+  add_db_option(command, args.db);
+  command->add_option("--listen", args.listen,
+                      "ADDR:PORT to listen on (default 127.0.0.1:9780; port 0: any free)");
+  return command;
+}
 
+// Parses the command line into the subcommands' arguments: nullopt to go on, else the exit code
+// (help, version, or a usage error printed).
+std::optional<int> parse_command_line(CLI::App& app, int argc, char** argv) {
+  using magcal::cli::kExitUsage;
   if (const std::string error = unknown_subcommand(app, argc, argv); !error.empty()) {
     std::cerr << "magcal: " << error << "\n";
     return kExitUsage;
@@ -275,17 +296,37 @@ int main(int argc, char** argv) {
               << " --help)\n";
     return kExitUsage;
   }
+  return std::nullopt;
+}
 
-  if (*field_cmd) return run_field(field);
-  if (*sim_cmd) return run_sim(sim);
-  if (*fit_cmd) {
-    fit.sigma_given = fit_cmd->get_option("--sigma-nT")->count() > 0;
-    return run_fit(fit);
+}  // namespace
+
+int main(int argc, char** argv) {
+  using namespace magcal::cli;
+  CLI::App app{"magcal - spacecraft magnetometer calibration (version " MAGCAL_VERSION ")"};
+  app.require_subcommand(1);
+  app.set_version_flag("--version", MAGCAL_VERSION);
+  FieldArgs field;
+  SimArgs sim;
+  FitArgs fit;
+  EvaluateArgs evaluate;
+  RefitArgs refit;
+  HistoryArgs history;
+  StatusArgs status;
+  ServeArgs serve;
+  // In the order of --help; the one the command line names runs.
+  const std::pair<const CLI::App*, std::function<int()>> subcommands[] = {
+      {add_field_command(app, field), [&] { return run_field(field); }},
+      {add_sim_command(app, sim), [&] { return run_sim(sim); }},
+      {add_fit_command(app, fit), [&] { return run_fit(fit); }},
+      {add_evaluate_command(app, evaluate), [&] { return run_evaluate(evaluate); }},
+      {add_refit_command(app, refit), [&] { return run_refit(refit); }},
+      {add_history_command(app, history), [&] { return run_history(history); }},
+      {add_status_command(app, status), [&] { return run_status(status); }},
+      {add_serve_command(app, serve), [&] { return run_serve(serve); }}};
+  if (const auto exit_code = parse_command_line(app, argc, argv)) return *exit_code;
+  for (const auto& [command, run] : subcommands) {
+    if (*command) return run();
   }
-  if (*eval_cmd) return run_evaluate(evaluate);
-  if (*refit_cmd) return run_refit(refit);
-  if (*hist_cmd) return run_history(history);
-  if (*status_cmd) return run_status(status);
-  if (*serve_cmd) return run_serve(serve);
   return kExitUsage;
 }

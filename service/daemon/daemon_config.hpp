@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstdint>
 #include <map>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -145,8 +146,8 @@ struct DaemonConfig {
   struct Fleet {
     // A spacecraft's owner renews its lease every lease_s / 3; when the owner dies another
     // daemon takes the spacecraft over within about lease_s * 4/3 (the lease runs out, then
-    // the next renewal round of a live daemon takes it). 30 s: a takeover within the issue's
-    // 60 s, and a database hiccup of up to 20 s costs no handover.
+    // the next renewal round of a live daemon takes it). 30 s: a takeover within a
+    // minute, and a database hiccup of up to 20 s costs no handover.
     double lease_s = 30.0;
     // The owner's UKF takes the union of all stations' stored samples in time order, up to
     // this much data time behind the newest stored one (or all of them once no new sample
@@ -205,6 +206,9 @@ struct DaemonConfig {
   int64_t lease_utime() const { return static_cast<int64_t>(fleet.lease_s * 1e6); }
   int64_t reorder_delay_utime() const { return static_cast<int64_t>(fleet.reorder_delay_s * 1e6); }
 };
+
+// [refit] daily_at_utc "HH:MM" (00:00-23:59) -> minutes after midnight; nullopt if malformed.
+std::optional<int> parse_daily_time_utc(const std::string& text);
 
 struct ConfigLoad {
   DaemonConfig config;

@@ -2,22 +2,16 @@
 
 #include <unistd.h>
 
-#include <chrono>
 #include <cstdio>
 #include <cstdlib>
 #include <sstream>
 
+#include "pipeline/time_utc.hpp"
 #include "schemas/magcal_messages.hpp"
-#include "service/io/sample_files.hpp"
+#include "service/io/sample_checks.hpp"
 
 namespace magcal {
 namespace {
-
-int64_t wall_utime() {
-  return std::chrono::duration_cast<std::chrono::microseconds>(
-             std::chrono::system_clock::now().time_since_epoch())
-      .count();
-}
 
 // The fingerprint LCM writes in front of every encoded message (big-endian int64).
 bool has_fingerprint(const void* data, int size, int64_t hash) {
@@ -166,7 +160,7 @@ void LcmIngest::on_frame(const lcm::ReceiveBuffer* rbuf, bool batch) {
     count_received(item.samples[0].sat_id, 1);
   }
   if (item.samples.empty()) return;
-  item.receive_utime = wall_utime();
+  item.receive_utime = now_utime();
   queue_.push(std::move(item));  // overflow is counted by the queue
 }
 

@@ -78,7 +78,7 @@ std::string lcm_url_for_log(const std::string& url);
 std::unique_ptr<lcm::LCM> open_lcm(const std::string& url, std::string* why);
 
 // Why LCM could not open the log of a file:// URL, for the start error: what
-// unreadable_lcm_log_reason (service/io/sample_files.hpp) says of its file, else that LCM
+// unreadable_lcm_log_reason (service/io/sample_checks.hpp) says of its file, else that LCM
 // refused the URL's options.
 std::string unreadable_log_reason(const std::string& file_url);
 

@@ -1,7 +1,6 @@
 #include "service/daemon/refit_runner.hpp"
 
 #include <algorithm>
-#include <chrono>
 #include <cmath>
 #include <limits>
 
@@ -15,14 +14,8 @@ namespace magcal {
 namespace {
 
 // A refit whose window spans at least this fraction of window_hours is a full-window refit
-// (a 12 h window sampled every 10 s spans 99.98 %; the first refit, 8 h, spans 67 %).
+// (a 12 h window sampled every 10 s spans 99.98 %; an early refit at 8 h spans 67 %).
 constexpr double kFullWindowFraction = 0.9;
-
-int64_t wall_utime() {
-  return std::chrono::duration_cast<std::chrono::microseconds>(
-             std::chrono::system_clock::now().time_since_epoch())
-      .count();
-}
 
 // Why a refit does not run here: `done`, its job, ran it already (here, or unclaimed) or another
 // station holds its claim.
@@ -108,13 +101,13 @@ bool RefitRunner::accept_corroborated_change(const std::string& sat_id,
 }
 
 std::optional<storage::RefitJob> RefitRunner::finished_early_refit(const std::string& sat_id,
-                                                                   const std::string& trigger,
+                                                                   storage::RefitTrigger trigger,
                                                                    int64_t scheduled_utime) {
-  if (trigger != "first" && trigger != "early") return std::nullopt;
+  if (!storage::is_early_refit(trigger)) return std::nullopt;
   // A spacecraft's early refits are few (about five in its first window): the recent jobs hold
   // them.
   for (auto& job : jobs_->recent(sat_id, 32)) {
-    if (job.trigger == trigger && job.scheduled_utime == scheduled_utime &&
+    if (job.trigger == to_string(trigger) && job.scheduled_utime == scheduled_utime &&
         job.calibration_id.has_value()) {
       return std::move(job);
     }
@@ -122,26 +115,27 @@ std::optional<storage::RefitJob> RefitRunner::finished_early_refit(const std::st
   return std::nullopt;
 }
 
-bool RefitRunner::claim_job(const std::string& sat_id, const std::string& trigger,
+bool RefitRunner::claim_job(const std::string& sat_id, storage::RefitTrigger trigger,
                             int64_t scheduled_utime, RefitOutcome& out) {
   const std::string& station = config_.station.id;
   std::optional<storage::RefitJob> holder;
   // No holder after a refused claim: it was interrupted in between (its station restarted),
   // and the claim is free again.
   for (int attempt = 0; attempt < 3 && !holder; ++attempt) {
-    if (const auto id = jobs_->claim(sat_id, trigger, scheduled_utime, wall_utime(), station)) {
+    if (const auto id =
+            jobs_->claim(sat_id, to_string(trigger), scheduled_utime, now_utime(), station)) {
       out.job_id = *id;
       return true;
     }
-    holder = jobs_->claim_holder(sat_id, trigger, scheduled_utime);
+    holder = jobs_->claim_holder(sat_id, to_string(trigger), scheduled_utime);
     if (holder && holder->claimed_by != station &&
         holder->outcome == storage::job_outcome::kRunning) {
       // Claimed by a station that died while running it (its heartbeat ran out: this daemon
       // took its spacecraft over): its jobs will never finish, so their claims are given up
       // and the refit runs here.
-      const auto live = leases_->live_stations(wall_utime());
+      const auto live = leases_->live_stations(now_utime());
       if (std::find(live.begin(), live.end(), holder->claimed_by) == live.end()) {
-        const int n = jobs_->mark_station_running_interrupted(holder->claimed_by, wall_utime());
+        const int n = jobs_->mark_station_running_interrupted(holder->claimed_by, now_utime());
         spdlog::warn("{} refit job(s) of station {}, no longer live, were running: interrupted", n,
                      holder->claimed_by);
         holder.reset();
@@ -159,8 +153,8 @@ bool RefitRunner::claim_job(const std::string& sat_id, const std::string& trigge
     not_run_here(*holder, station, out);
   } else {
     out.kind = RefitOutcome::Kind::kClaimedElsewhere;
-    out.message = "the " + trigger + " refit ending at " + format_iso8601_utc(scheduled_utime) +
-                  " was claimed by another station";
+    out.message = "the " + std::string(to_string(trigger)) + " refit ending at " +
+                  format_iso8601_utc(scheduled_utime) + " was claimed by another station";
   }
   return false;
 }
@@ -180,18 +174,19 @@ std::string RefitRunner::too_few_samples_reason(int64_t n_in_window) const {
 }
 
 RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> t_ref_utime,
-                              const std::string& trigger, int64_t scheduled_utime) {
+                              storage::RefitTrigger trigger, int64_t scheduled_utime) {
   RefitOutcome out;
   // `magcal refit` runs whenever asked; the daemons' refits run once for all of them.
-  const bool claimed = trigger != "manual";
+  const bool claimed = trigger != storage::RefitTrigger::kManual;
   // An unclaimed (manual) job is written with its end, in the end's transaction: a 'running'
   // row of its own would stay running for good if the process died (Ctrl-C) or its COMMIT got
   // no reply and landed later, since no daemon owns a manual job to interrupt it.
-  const int64_t started_utime = wall_utime();
+  const int64_t started_utime = now_utime();
   const auto finish_job = [&](std::string_view outcome, const std::string& message,
                               std::optional<int64_t> calibration_id) {
-    if (!claimed) out.job_id = jobs_->start(sat_id, trigger, scheduled_utime, started_utime);
-    jobs_->finish(out.job_id, outcome, wall_utime(), message, calibration_id);
+    if (!claimed)
+      out.job_id = jobs_->start(sat_id, to_string(trigger), scheduled_utime, started_utime);
+    jobs_->finish(out.job_id, outcome, now_utime(), message, calibration_id);
   };
   try {
     if (const auto done = finished_early_refit(sat_id, trigger, scheduled_utime)) {

@@ -1,4 +1,4 @@
-// One offline refit of a spacecraft's stored window (design.md "Daemon data flow", issue 6):
+// One offline refit of a spacecraft's stored window (design.md "Daemon data flow"):
 //   job row 'running' -> window (t_ref - window_hours, t_ref] from the store
 //   -> calibrate_batch (centered -> LM -> alignment when the samples carry reference
 //      directions -> acceptance gates; the change gate compares with the previous accepted
@@ -57,15 +57,14 @@ class RefitRunner {
   RefitRunner(const DaemonConfig& config, storage::Connection& db);
 
   // t_ref: end of the window (data clock: the scheduled time); nullopt = the newest stored
-  // sample of the spacecraft. trigger: "scheduled" | "manual" | "first" | "early". An early
-  // refit ("first" | "early", keyed by its window end: IngestWorker::Hooks::on_refit_due) whose
-  // job already produced a result is skipped without a job row: each runs once. A daemon's
-  // refit (any trigger but "manual") is claimed under [station] id, so that daemons sharing a
-  // database run it once: kClaimedElsewhere when another station holds the claim, kSkipped when
-  // this station's job already ended; a transient storage error ends the job 'interrupted',
-  // which gives the claim up for the retry. Never throws.
+  // sample of the spacecraft. An early refit (storage::is_early_refit, keyed by its window end:
+  // IngestWorker::Hooks::on_refit_due) whose job already produced a result is skipped without a
+  // job row: each runs once. A daemon's refit (any trigger but kManual) is claimed under [station]
+  // id, so that daemons sharing a database run it once: kClaimedElsewhere when another station
+  // holds the claim, kSkipped when this station's job already ended; a transient storage error ends
+  // the job 'interrupted', which gives the claim up for the retry. Never throws.
   RefitOutcome run(const std::string& sat_id, std::optional<int64_t> t_ref_utime,
-                   const std::string& trigger, int64_t scheduled_utime);
+                   storage::RefitTrigger trigger, int64_t scheduled_utime);
 
   std::vector<std::string> spacecraft();  // with stored samples
 
@@ -84,11 +83,11 @@ class RefitRunner {
                                   CalibrationResult& result);
   // The finished job of the early refit (sat_id, trigger, scheduled_utime), if there is one.
   std::optional<storage::RefitJob> finished_early_refit(const std::string& sat_id,
-                                                        const std::string& trigger,
+                                                        storage::RefitTrigger trigger,
                                                         int64_t scheduled_utime);
   // Claims the refit's job for this station into out.job_id; false, with out.kind and
   // out.message saying why, when it must not run here.
-  bool claim_job(const std::string& sat_id, const std::string& trigger, int64_t scheduled_utime,
+  bool claim_job(const std::string& sat_id, storage::RefitTrigger trigger, int64_t scheduled_utime,
                  RefitOutcome& out);
 
   const DaemonConfig config_;  // a copy: callers may pass a temporary

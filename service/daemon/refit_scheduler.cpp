@@ -32,18 +32,6 @@ void walk_early_levels(const EarlyRefitPlan& plan, Visit visit) {
 
 }  // namespace
 
-std::optional<int> parse_daily_time_utc(const std::string& text) {
-  if (text.size() != 5 || text[2] != ':') return std::nullopt;
-  for (int i : {0, 1, 3, 4}) {
-    if (text[static_cast<size_t>(i)] < '0' || text[static_cast<size_t>(i)] > '9')
-      return std::nullopt;
-  }
-  const int h = (text[0] - '0') * 10 + (text[1] - '0');
-  const int m = (text[3] - '0') * 10 + (text[4] - '0');
-  if (h > 23 || m > 59) return std::nullopt;
-  return h * 60 + m;
-}
-
 int64_t next_scheduled_utime(const RefitSchedule& schedule, int64_t after_utime) {
   const int64_t anchor = schedule.daily_minute_utc * kMicrosPerMinute;  // on 1970-01-01
   // Daily sequence: anchor + k * day.

@@ -20,13 +20,10 @@ struct RefitSchedule {
   double every_hours = 0.0;    // 0 = off
 };
 
-// "HH:MM" (00:00-23:59) -> minutes after midnight; nullopt if malformed.
-std::optional<int> parse_daily_time_utc(const std::string& text);
-
 // The first scheduled time strictly after t (utime).
 int64_t next_scheduled_utime(const RefitSchedule& schedule, int64_t after_utime);
 
-// Early refits of a new spacecraft (issue 20): on the daily schedule alone its first refit, at
+// Early refits of a new spacecraft: on the daily schedule alone its first refit, at
 // [refit] min_samples, is followed by the next scheduled one up to a day later, and its UKF stays
 // not_converged until then. While its stored data span less than window_hours it therefore gets a
 // refit each time its stored samples reach N_k = ceil(min_samples * growth^k), k = 0, 1, ...

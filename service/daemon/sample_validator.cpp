@@ -4,7 +4,7 @@
 #include <cmath>
 
 #include "pipeline/time_utc.hpp"
-#include "service/io/sample_files.hpp"
+#include "service/io/sample_checks.hpp"
 
 namespace magcal {
 namespace {

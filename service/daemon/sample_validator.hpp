@@ -54,7 +54,7 @@ inline const std::string& sample_sat_id(const mag_sample_t& s, const std::string
 }
 
 // The sample as the estimators and the store see it, with its reference field and its
-// temperature (NaN when unknown or implausible: plausible_temperature_C, service/io/sample_files;
+// temperature (NaN when unknown or implausible: plausible_temperature_C, service/io/sample_checks;
 // the field reading itself stays valid); nullopt when IGRF refuses the date (reason
 // reference_failed). `field` is used only without has_reference.
 std::optional<CalibrationSample> to_reference_sample(const mag_sample_t& s, ReferenceField& field);

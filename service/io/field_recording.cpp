@@ -4,9 +4,9 @@
 #include <charconv>
 #include <cmath>
 #include <fstream>
-#include <sstream>
 
 #include "pipeline/time_utc.hpp"
+#include "service/io/csv_line.hpp"
 
 namespace magcal {
 namespace {
@@ -23,12 +23,11 @@ std::string trim(const std::string& s) {
   return s.substr(b, e - b + 1);
 }
 
+// The cells of a CSV line, without the blanks and double quotes around them.
 std::vector<std::string> split_csv(const std::string& line) {
   std::vector<std::string> out;
-  std::string cell;
-  std::istringstream in(line);
-  while (std::getline(in, cell, ',')) out.push_back(trim(cell));
-  if (!line.empty() && line.back() == ',') out.emplace_back();
+  if (line.empty()) return out;
+  for (const std::string_view cell : split_csv_line(line)) out.push_back(trim(std::string(cell)));
   return out;
 }
 

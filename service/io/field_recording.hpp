@@ -1,4 +1,4 @@
-// Reader for real magnetometer recordings in "foreign" CSV layouts (issue 7): a time column,
+// Reader for real magnetometer recordings in "foreign" CSV layouts: a time column,
 // a measured field in any unit, and optionally a sub-satellite geodetic position (latitude,
 // longitude, altitude — or an assumed constant altitude) and/or an attitude quaternion.
 // Columns are found by header name (known aliases, or given explicitly); the field is converted

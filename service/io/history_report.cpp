@@ -146,14 +146,14 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
     line += ',' + csv_number(r.residual_rms_nT) + ',' + std::to_string(r.iterations) + ',' +
             storage::status_name(r.status) + ',' + r.verdict + ',' + csv_quoted(reasons) + ',' +
             csv_quoted(r.software_version) + ',' + std::to_string(r.id);
-    // Issue 10 evidence, appended after the design.md columns (empty = unknown).
+    // The noise and residual evidence, appended after the design.md columns (empty = unknown).
     line += ',' + csv_number(r.noise_scale) + ',' + csv_number(r.residual_autocorrelation) + ',' +
             (r.covariance_lag_window >= 0 ? std::to_string(r.covariance_lag_window) : "") + ',' +
             csv_number(r.residual_rms_all_nT) + ',' +
             (r.has_nonlinearity >= 0 ? std::to_string(r.has_nonlinearity) : "");
     for (const double v : r.k3) line += ',' + (r.has_nonlinearity == 1 ? csv_number(v) : "");
     line += ',' + csv_number(r.nis_mean) + ',' + csv_number(r.measurement_noise_nT);
-    // Appended (issue 20), empty without an alignment: alignment_singular (1 when roll/yaw are
+    // Appended, empty without an alignment: alignment_singular (1 when roll/yaw are
     // the canonical split near pitch +-90 deg), the quaternion, the angles and their sigmas
     // (empty when unknown: rows stored before schema 5; the combination's sigma only when
     // singular), the rotation-vector covariance in deg^2 (as D: 11 22 33 12 13 23). The same
@@ -174,7 +174,7 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
       for (const double v : pack_symmetric(a.angle_covariance_rad2))
         line += ',' + csv_number(v * (kRadToDeg * kRadToDeg));
     }
-    // Appended (issue 20): the bias temperature model; bias_x_nT.. are then at its T0.
+    // Appended: the bias temperature model; bias_x_nT.. are then at its T0.
     line += ',' + (r.has_temperature_model >= 0 ? std::to_string(r.has_temperature_model) : "");
     const bool modelled = r.has_temperature_model == 1;
     line += ',' + (modelled ? csv_number(r.reference_temperature_C) : "");
@@ -195,7 +195,7 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
     } else {
       line += ",,";
     }
-    // Appended (issue 20): the linear bias rate; bias_x_nT.. are then at window_end_utime.
+    // Appended: the linear bias rate; bias_x_nT.. are then at window_end_utime.
     line += ',' + (r.has_bias_rate >= 0 ? std::to_string(r.has_bias_rate) : "");
     const bool drifting = r.has_bias_rate == 1;
     for (const double v : r.bias_rate_nT_per_h) line += ',' + (drifting ? csv_number(v) : "");

@@ -18,7 +18,7 @@
 // null, and alignment_determined_deg / alignment_determined_sigma_deg {yaw_minus_roll |
 // yaw_plus_roll} give the combination. An unknown covariance (NaN: history rows stored before
 // schema 5) leaves alignment_covariance_deg2 and both sigma keys out.
-// When result.has_temperature_model (issue 20; bias_nT is then the bias at T0):
+// When result.has_temperature_model (bias_nT is then the bias at T0):
 // reference_temperature_C (T0), temperature_coefficient_nT_per_C [3] and
 // temperature_coefficient_sigma_nT_per_C [3].
 // Non-finite numbers become null (JSON has no NaN).

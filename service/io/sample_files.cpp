@@ -1,15 +1,10 @@
 #include "service/io/sample_files.hpp"
 
-#include <sys/stat.h>
-
 #include <algorithm>
 #include <array>
-#include <cerrno>
 #include <charconv>
 #include <cmath>
-#include <cstring>
 #include <fstream>
-#include <limits>
 #include <memory>
 #include <set>
 #include <unordered_map>
@@ -17,75 +12,11 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "pipeline/time_utc.hpp"
+#include "service/io/csv_line.hpp"
 
 namespace magcal {
 
 namespace {
-
-int32_t read_int32_be(const uint8_t* b) {
-  uint32_t v = 0;
-  for (int i = 0; i < 4; ++i) v = (v << 8) | b[i];
-  return static_cast<int32_t>(v);
-}
-
-// Bytes of an encoded mag_sample_t after its sat_id: seq, b_sensor_nT, has_position,
-// r_ecef_m, has_attitude, q_body_from_eci, has_reference, h_body_nT, temperature_C.
-constexpr int64_t kSampleTailBytes = 8 + 3 * 8 + 1 + 3 * 8 + 1 + 4 * 8 + 1 + 3 * 8 + 4;
-constexpr int64_t kMinEncodedSampleBytes = 8 + 4 + 1 + kSampleTailBytes;  // sat_id ""
-
-// An LCM string at pos (int32 length including the NUL, then the bytes) that fits.
-bool skip_string(const uint8_t* b, int64_t size, int64_t& pos) {
-  if (size - pos < 4) return false;
-  const int32_t len = read_int32_be(b + pos);
-  pos += 4;
-  if (len < 1 || len > size - pos) return false;
-  pos += len;
-  return true;
-}
-
-bool skip_sample(const uint8_t* b, int64_t size, int64_t& pos) {
-  if (size - pos < 8) return false;
-  pos += 8;  // utime
-  if (!skip_string(b, size, pos) || size - pos < kSampleTailBytes) return false;
-  pos += kSampleTailBytes;
-  return true;
-}
-
-}  // namespace
-
-bool well_formed_lcm_frame(const void* data, int size, bool batch) {
-  if (size < 8) return false;
-  const auto* b = static_cast<const uint8_t*>(data);
-  int64_t pos = 8;  // fingerprint, checked by the caller
-  if (!batch) return skip_sample(b, size, pos) && pos == size;
-  if (!skip_string(b, size, pos) || size - pos < 4) return false;
-  const int32_t n = read_int32_be(b + pos);
-  pos += 4;
-  if (n < 0 || n > (size - pos) / kMinEncodedSampleBytes) return false;
-  for (int32_t i = 0; i < n; ++i) {
-    if (!skip_sample(b, size, pos)) return false;
-  }
-  return pos == size;
-}
-
-namespace {
-
-std::vector<std::string_view> split_commas(std::string_view line) {
-  std::vector<std::string_view> out;
-  size_t start = 0;
-  while (true) {
-    const size_t comma = line.find(',', start);
-    std::string_view f = line.substr(
-        start, comma == std::string_view::npos ? std::string_view::npos : comma - start);
-    while (!f.empty() && (f.front() == ' ' || f.front() == '\t')) f.remove_prefix(1);
-    while (!f.empty() && (f.back() == ' ' || f.back() == '\t' || f.back() == '\r'))
-      f.remove_suffix(1);
-    out.push_back(f);
-    if (comma == std::string_view::npos) break;
-    start = comma + 1;
-  }
-  return out;
-}
 
 bool parse_double(std::string_view text, double* value) {
   if (text.empty()) return false;
@@ -134,12 +65,99 @@ constexpr std::array<const char*, 3> kPos = {"r_ecef_x_m", "r_ecef_y_m", "r_ecef
 
 }  // namespace
 
-double plausible_temperature_C(double temperature_C) {
-  // (NaN fails both comparisons: stays unknown)
-  return temperature_C >= kMinPlausibleTemperature_C && temperature_C <= kMaxPlausibleTemperature_C
-             ? temperature_C
-             : std::numeric_limits<double>::quiet_NaN();
+namespace {
+
+// Where a sample CSV's columns are (their index in each row; -1: absent).
+struct CsvColumns {
+  std::array<int, 7> required{};  // kRequired
+  std::array<int, 4> q{};         // kQuat, when has_q
+  std::array<int, 3> r{};         // kPos, when has_r
+  bool has_q = true;
+  bool has_r = true;
+  int temperature = -1;
+};
+
+// Locates the columns in the header; "" or what the header lacks.
+std::string locate_columns(const std::vector<std::string>& header, CsvColumns* c) {
+  auto column = [&](const char* name) -> int {
+    const auto it = std::find(header.begin(), header.end(), name);
+    return it == header.end() ? -1 : static_cast<int>(it - header.begin());
+  };
+  for (size_t i = 0; i < kRequired.size(); ++i) {
+    c->required[i] = column(kRequired[i]);
+    if (c->required[i] < 0) return std::string("header lacks column ") + kRequired[i];
+  }
+  for (size_t i = 0; i < 4; ++i) c->has_q = (c->q[i] = column(kQuat[i])) >= 0 && c->has_q;
+  for (size_t i = 0; i < 3; ++i) c->has_r = (c->r[i] = column(kPos[i])) >= 0 && c->has_r;
+  c->temperature = column("temperature_C");
+  return "";
 }
+
+// The temperature_C field into the row (left unknown when empty or NaN); "" or what is wrong.
+std::string parse_temperature(std::string_view text, CsvSampleRow* row) {
+  while (!text.empty() && (text.front() == ' ' || text.front() == '\t')) text.remove_prefix(1);
+  while (!text.empty() && (text.back() == ' ' || text.back() == '\t' || text.back() == '\r'))
+    text.remove_suffix(1);
+  const bool unknown = text.empty() || text == "nan" || text == "NaN" || text == "NAN";
+  if (unknown) return "";
+  double tc = 0.0;
+  if (!parse_double(text, &tc))
+    return "column temperature_C: not a number (empty or NaN = unknown)";
+  if (std::isnan(plausible_temperature_C(tc))) {
+    char value[32];
+    std::snprintf(value, sizeof value, "%g", tc);
+    return std::string("column temperature_C: ") + value +
+           " degC is no sensor temperature (within [-150, 200] degC; empty or NaN = unknown)";
+  }
+  row->extras.temperature_C = row->sample.temperature_C = tc;
+  return "";
+}
+
+// One data row's fields into `row`; "" or what is wrong with them.
+std::string parse_row(const std::vector<std::string_view>& fields, const CsvColumns& c,
+                      CsvSampleRow* row) {
+  auto field = [&](int col, double* v) {
+    return col < static_cast<int>(fields.size()) &&
+           parse_double(fields[static_cast<size_t>(col)], v);
+  };
+  std::array<double, 7> v{};
+  for (size_t i = 0; i < 7; ++i) {
+    if (c.required[i] >= static_cast<int>(fields.size())) return "too few fields";
+    if (!field(c.required[i], &v[i]))
+      return std::string("column ") + kRequired[i] + ": not a finite number";
+  }
+  if (std::abs(v[0]) > 1e11) return "column t_s: out of range";
+  for (size_t i = 1; i < 7; ++i) {
+    if (std::abs(v[i]) > kMaxFieldComponent_nT) {
+      char value[32];
+      std::snprintf(value, sizeof value, "%g", v[i]);
+      return std::string("column ") + kRequired[i] + ": " + value +
+             " nT is beyond any magnetometer's range (|value| <= 1e7 nT)";
+    }
+  }
+  row->sample.utime = utime_from_seconds(v[0]);
+  row->sample.b_sensor_nT = Eigen::Vector3d(v[1], v[2], v[3]);
+  row->sample.h_body_nT = Eigen::Vector3d(v[4], v[5], v[6]);
+  row->sample.has_reference_direction = true;
+  // Extras are optional per row too: an empty or bad field leaves the extra unset.
+  if (c.has_q) {
+    Eigen::Vector4d qq;
+    bool ok = true;
+    for (int i = 0; i < 4; ++i) ok = field(c.q[static_cast<size_t>(i)], &qq(i)) && ok;
+    if (ok) row->extras.q_body_from_eci = qq;
+  }
+  if (c.has_r) {
+    Eigen::Vector3d rr;
+    bool ok = true;
+    for (int i = 0; i < 3; ++i) ok = field(c.r[static_cast<size_t>(i)], &rr(i)) && ok;
+    if (ok) row->extras.r_ecef_m = rr;
+  }
+  if (c.temperature >= 0 && c.temperature < static_cast<int>(fields.size()))
+    return parse_temperature(fields[static_cast<size_t>(c.temperature)], row);
+  return "";
+}
+
+}  // namespace
 
 CsvReadResult read_sample_csv(const std::string& path) {
   CsvReadResult result;
@@ -155,101 +173,34 @@ CsvReadResult read_sample_csv(const std::string& path) {
   while (std::getline(in, line)) {
     ++line_no;
     if (line.find_first_not_of(" \t\r") == std::string::npos) continue;
-    for (auto f : split_commas(line)) header.emplace_back(f);
+    for (auto f : split_csv_line(line)) header.emplace_back(f);
     break;
   }
   if (header.empty()) {
     result.error = path + ": empty file (header t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT required)";
     return result;
   }
-  auto column = [&](const char* name) -> int {
-    const auto it = std::find(header.begin(), header.end(), name);
-    return it == header.end() ? -1 : static_cast<int>(it - header.begin());
-  };
-  std::array<int, 7> req{};
-  for (size_t i = 0; i < kRequired.size(); ++i) {
-    req[i] = column(kRequired[i]);
-    if (req[i] < 0) {
-      result.error =
-          path + " line " + std::to_string(line_no) + ": header lacks column " + kRequired[i];
-      return result;
-    }
+  CsvColumns columns;
+  if (const std::string lacks = locate_columns(header, &columns); !lacks.empty()) {
+    result.error = path + " line " + std::to_string(line_no) + ": " + lacks;
+    return result;
   }
-  std::array<int, 4> q{};
-  std::array<int, 3> r{};
-  bool has_q = true, has_r = true;
-  for (size_t i = 0; i < 4; ++i) has_q = (q[i] = column(kQuat[i])) >= 0 && has_q;
-  for (size_t i = 0; i < 3; ++i) has_r = (r[i] = column(kPos[i])) >= 0 && has_r;
-  const int temp = column("temperature_C");
   // utime -> index in rows and the line of that row, for the one-sample-per-time-tag rule.
   std::unordered_map<int64_t, std::pair<size_t, int>> row_of_utime;
 
   while (std::getline(in, line)) {
     ++line_no;
     if (line.find_first_not_of(" \t\r") == std::string::npos) continue;
-    const auto fields = split_commas(line);
     auto fail = [&](const std::string& what) {
       result.rows.clear();
       result.duplicates_dropped = 0;
       result.error = path + " line " + std::to_string(line_no) + ": " + what;
       return result;
     };
-    auto field = [&](int col, double* v) {
-      return col < static_cast<int>(fields.size()) &&
-             parse_double(fields[static_cast<size_t>(col)], v);
-    };
-    std::array<double, 7> v{};
-    for (size_t i = 0; i < 7; ++i) {
-      if (req[i] >= static_cast<int>(fields.size())) return fail("too few fields");
-      if (!field(req[i], &v[i]))
-        return fail(std::string("column ") + kRequired[i] + ": not a finite number");
-    }
-    if (std::abs(v[0]) > 1e11) return fail("column t_s: out of range");
-    for (size_t i = 1; i < 7; ++i) {
-      if (std::abs(v[i]) > kMaxFieldComponent_nT) {
-        char value[32];
-        std::snprintf(value, sizeof value, "%g", v[i]);
-        return fail(std::string("column ") + kRequired[i] + ": " + value +
-                    " nT is beyond any magnetometer's range (|value| <= 1e7 nT)");
-      }
-    }
     CsvSampleRow row;
-    row.sample.utime = utime_from_seconds(v[0]);
-    row.sample.b_sensor_nT = Eigen::Vector3d(v[1], v[2], v[3]);
-    row.sample.h_body_nT = Eigen::Vector3d(v[4], v[5], v[6]);
-    row.sample.has_reference_direction = true;
-    // Extras are optional per row too: an empty or bad field leaves the extra unset.
-    if (has_q) {
-      Eigen::Vector4d qq;
-      bool ok = true;
-      for (int i = 0; i < 4; ++i) ok = field(q[static_cast<size_t>(i)], &qq(i)) && ok;
-      if (ok) row.extras.q_body_from_eci = qq;
-    }
-    if (has_r) {
-      Eigen::Vector3d rr;
-      bool ok = true;
-      for (int i = 0; i < 3; ++i) ok = field(r[static_cast<size_t>(i)], &rr(i)) && ok;
-      if (ok) row.extras.r_ecef_m = rr;
-    }
-    if (temp >= 0 && temp < static_cast<int>(fields.size())) {
-      std::string_view text = fields[static_cast<size_t>(temp)];
-      while (!text.empty() && (text.front() == ' ' || text.front() == '\t')) text.remove_prefix(1);
-      while (!text.empty() && (text.back() == ' ' || text.back() == '\t' || text.back() == '\r'))
-        text.remove_suffix(1);
-      const bool unknown = text.empty() || text == "nan" || text == "NaN" || text == "NAN";
-      if (!unknown) {
-        double tc = 0.0;
-        if (!parse_double(text, &tc))
-          return fail("column temperature_C: not a number (empty or NaN = unknown)");
-        if (std::isnan(plausible_temperature_C(tc))) {
-          char value[32];
-          std::snprintf(value, sizeof value, "%g", tc);
-          return fail(std::string("column temperature_C: ") + value +
-                      " degC is no sensor temperature (within [-150, 200] degC; empty or NaN = "
-                      "unknown)");
-        }
-        row.extras.temperature_C = row.sample.temperature_C = tc;
-      }
+    if (const std::string problem = parse_row(split_csv_line(line), columns, &row);
+        !problem.empty()) {
+      return fail(problem);
     }
     const auto [seen, first] =
         row_of_utime.try_emplace(row.sample.utime, result.rows.size(), line_no);
@@ -403,23 +354,6 @@ std::string SampleLcmLogWriter::close() {
   impl_->log.reset();
   if (e.empty() && impl_->failed) e = impl_->path + ": write error";
   return e;
-}
-
-std::string unreadable_lcm_log_reason(const std::string& path) {
-  struct stat st {};
-  if (::stat(path.c_str(), &st) != 0) return path + ": " + std::strerror(errno);
-  if (S_ISDIR(st.st_mode)) return path + ": is a directory, not an LCM log";
-  if (FILE* f = std::fopen(path.c_str(), "rb")) {
-    std::fclose(f);
-  } else {
-    return path + ": " + std::strerror(errno);
-  }
-  if (st.st_size == 0) return path + ": empty file, not an LCM log";
-  lcm::LogFile log(path, "r");
-  if (!log.good() || log.readNextEvent() == nullptr) {
-    return path + ": no LCM event can be read at its start (not an LCM log, or corrupt)";
-  }
-  return "";
 }
 
 LcmReadResult read_sample_lcm_log(const std::string& path, const LcmReadOptions& options) {

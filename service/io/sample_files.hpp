@@ -25,6 +25,7 @@
 
 #include "pipeline/calibration_types.hpp"
 #include "schemas/magcal_messages.hpp"
+#include "service/io/sample_checks.hpp"
 
 namespace magcal {
 
@@ -53,14 +54,6 @@ struct CsvSampleRow {
 // parts); a value beyond 1e7 nT is no measurement of any sensor but a corrupt number, which
 // would otherwise only surface as a singular fit.
 inline constexpr double kMaxFieldComponent_nT = 1e7;
-
-// A sensor temperature outside this range (deg C) is a telemetry fault, not a reading: beyond
-// what space-qualified parts survive (-55..125 deg C) with a wide margin. One such value among
-// thousands moved a thermal fit's bias by 7 sigma (one row at -300 deg C).
-inline constexpr double kMinPlausibleTemperature_C = -150.0;
-inline constexpr double kMaxPlausibleTemperature_C = 200.0;
-// temperature_C when plausible, else NaN (unknown); NaN stays NaN.
-double plausible_temperature_C(double temperature_C);
 
 struct CsvReadResult {
   std::vector<CsvSampleRow> rows;
@@ -122,20 +115,6 @@ class SampleLcmLogWriter {
   struct Impl;
   Impl* impl_;
 };
-
-// Why `path` cannot be read as an LCM log: the OS error (missing, unreadable, a directory), an
-// empty file, or a file in which no LCM event can be read (no valid event header: not an LCM
-// log, or corrupt). Empty when its first event reads. Shared by `magcal fit` and magcald's
-// replay start error.
-std::string unreadable_lcm_log_reason(const std::string& path);
-
-// True when an encoded magcal.mag_sample_t (batch false) or mag_batch_t (batch true) frame of
-// `size` bytes (from its 8-byte fingerprint on, which is not checked here) has every length
-// inside it fitting the bytes. lcm-gen's decoders trust those lengths: a string length <= 0
-// overflows `length - 1` (undefined behaviour) and std::string::assign throws; a batch's n
-// sizes `samples` before any sample is read (2^31 - 1 would ask for hundreds of GB). Decode only
-// frames for which this holds (magcald's ingest, `magcal fit` on a log).
-bool well_formed_lcm_frame(const void* data, int size, bool batch);
 
 struct LcmReadOptions {
   std::optional<std::string> sat_id;  // keep only this spacecraft when set

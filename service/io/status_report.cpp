@@ -1,7 +1,6 @@
 #include "service/io/status_report.hpp"
 
 #include <algorithm>
-#include <chrono>
 #include <cmath>
 #include <map>
 #include <set>
@@ -149,9 +148,7 @@ FleetStatus read_status(storage::Connection& db, int64_t window_utime) {
   const auto history = db.make_calibration_history();
   const auto jobs = db.make_refit_job_log();
   const auto leases = db.make_lease_store();
-  const int64_t now_utime = std::chrono::duration_cast<std::chrono::microseconds>(
-                                std::chrono::system_clock::now().time_since_epoch())
-                                .count();
+  const int64_t wall_now_utime = now_utime();
   std::set<std::string> sats;
   for (auto& id : samples->spacecraft()) sats.insert(std::move(id));
   for (auto& id : history->spacecraft()) sats.insert(std::move(id));
@@ -175,12 +172,12 @@ FleetStatus read_status(storage::Connection& db, int64_t window_utime) {
     s.last_job = jobs->latest(id);
     s.lease = leases->get(id);
     if (s.lease && s.lease->owner.empty()) s.lease.reset();  // registered, never owned
-    s.owner_now = s.lease && s.lease->held_at(now_utime);
+    s.owner_now = s.lease && s.lease->held_at(wall_now_utime);
     all.push_back(std::move(s));
   }
   for (auto& row : leases->stations()) {
     StationStatus st;
-    st.live = row.live_at(now_utime);
+    st.live = row.live_at(wall_now_utime);
     for (const auto& s : all) st.spacecraft_owned += s.owner_now && s.lease->owner == row.station;
     st.row = std::move(row);
     fleet.stations.push_back(std::move(st));
@@ -299,10 +296,10 @@ std::string status_text(const FleetStatus& fleet, int64_t window_utime) {
       // refit is due when it runs.
       const storage::RefitJob& job = *s.last_job;
       std::string when;
-      if (job.trigger != "manual") {
+      const auto trigger = storage::refit_trigger_from_string(job.trigger);
+      if (trigger != storage::RefitTrigger::kManual) {
         when = ", due " + format_iso8601_utc(job.scheduled_utime) +
-               (job.trigger == "first" || job.trigger == "early" ? " (data time)"
-                                                                 : " ([refit] clock)");
+               (trigger && storage::is_early_refit(*trigger) ? " (data time)" : " ([refit] clock)");
       }
       if (job.started_utime) {
         when += ", ran " + format_iso8601_utc(*job.started_utime) + " (wall clock)";

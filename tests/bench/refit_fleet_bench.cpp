@@ -73,7 +73,7 @@ void BM_NightlyRefitFleet(benchmark::State& state) {
     for (auto _ : state) {
       accepted = computed = 0;
       for (const auto& sat : runner.spacecraft()) {
-        const auto out = runner.run(sat, t_ref, "scheduled", t_ref);
+        const auto out = runner.run(sat, t_ref, storage::RefitTrigger::kScheduled, t_ref);
         computed += out.kind == RefitOutcome::Kind::kComputed;
         accepted += out.accepted();
       }

@@ -337,7 +337,7 @@ TEST_CASE("fit --robust reports down-weighted samples", "[cli][fit]") {
   const auto csv = temp_path("spikes.csv");
   REQUIRE(write_sample_csv(csv.string(), s).empty());
   for (const char* method : {"twostep", "centered"}) {
-    // centered too: before, --robust was silently ignored there (trial).
+    // centered too: an option that is silently ignored misleads.
     INFO(method);
     const Run r =
         run_magcal("fit --input " + csv.string() + " --method " + method + " --robust --json");
@@ -376,7 +376,7 @@ TEST_CASE("fit on an LCM log: --sat required with several spacecraft", "[cli][fi
 }
 
 TEST_CASE("fit on an LCM log with a corrupt frame: its samples left out, and said", "[cli][fit]") {
-  // Second trial: a lost batch went unmentioned (magcald counts it as decode_error).
+  // A lost batch must be said (magcald counts it as decode_error).
   const auto log = temp_path("corrupt_frame.lcm");
   {
     SampleLcmLogWriter w;
@@ -431,9 +431,9 @@ TEST_CASE("fit --method ukf|ekf with --trace writes state and 1-sigma per sample
 TEST_CASE("fit --method ukf|ekf on a thermal sensor: ok only within 3 sigma of the bias at T0",
           "[cli][fit]") {
   // Tumbling, +-10 degC with every orbit, k_T (2, -1.5, 1) nT/degC: the bias swings +-20 nT per
-  // orbit, faster than a filter follows. A fresh-user trial: the filter saw the raw samples and
-  // was `ok` up to 16.6 sigma off the current bias on 24 h of deploy/scenarios/tumbling.toml.
-  // It now sees them moved to the refit's T0 (as the daemon's UKF) and reports the bias there.
+  // orbit, faster than a filter follows: on the raw samples it is `ok` up to 16.6 sigma off the
+  // current bias on 24 h of deploy/scenarios/tumbling.toml. It sees them moved to the refit's T0
+  // (as the daemon's UKF) and reports the bias there.
   const auto csv = simulate_thermal_csv("filter_thermal", "tumbling", 4, "2.0, -1.5, 1.0", 10.0);
   const auto trace = temp_path("filter_thermal_trace.csv");
   const Eigen::Vector3d k(2.0, -1.5, 1.0);
@@ -509,8 +509,8 @@ TEST_CASE("fit --method ukf|ekf: a failed refit says why the filter is not ok", 
 
 TEST_CASE("fit --method ukf|ekf: a result that is not ok is never accepted", "[cli][fit]") {
   // 3 h of the paper scenario: the filters start but their bias 1-sigma is still above the
-  // 10 nT convergence threshold (found by a fresh-user trial: `not_converged` yet `accepted`,
-  // 5.8 sigma off).
+  // 10 nT convergence threshold: a `not_converged` result can be 5.8 sigma off, and accepting it
+  // would pass that on.
   const auto csv = temp_path("short.csv");
   REQUIRE(run_magcal("sim --scenario paper --hours 3 --seed 1 --out " + csv.string()).exit_code ==
           0);
@@ -564,8 +564,7 @@ TEST_CASE("fit errors: one line on stderr, exit 1 usage / 2 data", "[cli][fit]")
 
 TEST_CASE("fit: a field beyond any magnetometer's range is a data error naming line and column",
           "[cli][fit]") {
-  // Found by a fresh-user trial: 1e300 in a field column read as "centered normal matrix is
-  // singular".
+  // 1e300 in a field column is a corrupt number: said as such, not as a singular normal matrix.
   const auto csv = temp_path("range.csv");
   const auto trace = temp_path("range_trace.csv");
   REQUIRE(write_sample_csv(csv.string(), model_data(600, 3.0, 9)).empty());
@@ -640,8 +639,8 @@ TEST_CASE(
                            2, "e+06 nT: beyond the sensor range (wrapped or wrong unit?");
   }
 
-  // One spike beyond the range (a fresh-user trial: --robust refused it, naming "sample 1000"
-  // without its time): named with its time tag; --robust leaves it out.
+  // One spike beyond the range: named with its time tag (an index alone cannot be found in the
+  // file); --robust leaves it out.
   SampleSet spike = model_data(600, 3.0, 13);
   spike[321].b_sensor_nT = spike[321].b_sensor_nT.normalized() * 5e6;
   REQUIRE(write_sample_csv(csv.string(), spike).empty());
@@ -661,7 +660,7 @@ TEST_CASE(
 }
 
 TEST_CASE("fit: a sample CSV without its reference columns names what is missing", "[cli][fit]") {
-  // A fresh-user trial: dropping hx_nT..hz_nT was answered "no position columns".
+  // The missing columns are named, not a consequence of them ("no position columns").
   const auto csv = temp_path("noref.csv");
   std::vector<std::string> rows;
   rows.push_back("t_s,bx_nT,by_nT,bz_nT");
@@ -709,7 +708,7 @@ TEST_CASE("fit: a file that is no LCM log, or a log without our samples, says so
 
 TEST_CASE("fit: repeated rows count once (same sigma), a conflicting repeat is a data error",
           "[cli][fit]") {
-  // Found by a fresh-user trial: every row twice shrank the reported sigma by sqrt(2).
+  // Every row twice would shrink the reported sigma by sqrt(2): the repeats are dropped.
   const auto once = temp_path("once.csv");
   const auto twice = temp_path("twice.csv");
   REQUIRE(write_sample_csv(once.string(), model_data(600, 3.0, 12)).empty());

@@ -386,3 +386,14 @@ TEST_CASE("the settings results depend on: every key but the operational ones, a
   CHECK(igrf("b.txt") != a);
   std::filesystem::remove_all(dir);
 }
+
+TEST_CASE("daily time parsing", "[daemon_config]") {
+  CHECK(magcal::parse_daily_time_utc("02:00") == 120);
+  CHECK(magcal::parse_daily_time_utc("00:00") == 0);
+  CHECK(magcal::parse_daily_time_utc("23:59") == 23 * 60 + 59);
+  CHECK_FALSE(magcal::parse_daily_time_utc("24:00"));
+  CHECK_FALSE(magcal::parse_daily_time_utc("2:00"));
+  CHECK_FALSE(magcal::parse_daily_time_utc("02:60"));
+  CHECK_FALSE(magcal::parse_daily_time_utc("0200"));
+  CHECK_FALSE(magcal::parse_daily_time_utc(""));
+}

@@ -1,4 +1,4 @@
-// RefitRunner's choice of the change-gate reference (issue 10): a refit on a short window (the
+// RefitRunner's choice of the change-gate reference: a refit on a short window (the
 // first 8 h of a spacecraft, 2 881 samples) is judged on its own evidence and never becomes the
 // reference of later full-window refits; with honest covariances every full-window refit of a
 // paper-scenario day is accepted, and the evidence columns (schema 3) round-trip.
@@ -107,11 +107,11 @@ TEST_CASE("refits: the short first window is no reference, every full-window ref
   RefitRunner runner(config, db);
   const int64_t t0 = sc.epoch_utime;
   const int64_t hour = 3'600'000'000LL;
-  // The issue's schedule: first refit after 8 h of data, then every 6 h.
+  // A new spacecraft's schedule: first refit after 8 h of data, then every 6 h.
   int full_refits = 0;
   for (const int h : {8, 14, 20, 24}) {
     const int64_t t_ref = t0 + h * hour - 10'000'000LL;
-    const RefitOutcome out = runner.run("PAPER-1", t_ref, "scheduled", t_ref);
+    const RefitOutcome out = runner.run("PAPER-1", t_ref, storage::RefitTrigger::kScheduled, t_ref);
     REQUIRE(out.kind == RefitOutcome::Kind::kComputed);
     const CalibrationResult& r = out.result;
     const Eigen::Vector3d err = r.parameters.bias_nT - truth.bias_nT;
@@ -176,7 +176,7 @@ TEST_CASE("refits: a real bias change is accepted once two windows corroborate i
   bool last_accepted = false;
   for (int h = 12; h <= 48; h += 6) {
     const int64_t t_ref = t0 + h * hour - 10'000'000LL;
-    const RefitOutcome out = runner.run("STEP-1", t_ref, "scheduled", t_ref);
+    const RefitOutcome out = runner.run("STEP-1", t_ref, storage::RefitTrigger::kScheduled, t_ref);
     REQUIRE(out.kind == RefitOutcome::Kind::kComputed);
     const CalibrationResult& r = out.result;
     INFO(h << " h: bias " << r.parameters.bias_nT.transpose() << " sigma "
@@ -236,7 +236,8 @@ TEST_CASE("refits: a reference with a temperature model is compared at this wind
       storage::SqliteCalibrationHistory(db).append(record_from_result("WARM-1", reference));
 
       RefitRunner runner(config, db);
-      const RefitOutcome out = runner.run("WARM-1", t_ref, "scheduled", t_ref);
+      const RefitOutcome out =
+          runner.run("WARM-1", t_ref, storage::RefitTrigger::kScheduled, t_ref);
       REQUIRE(out.kind == RefitOutcome::Kind::kComputed);
       const CalibrationResult& r = out.result;
       std::string reasons;
@@ -283,7 +284,8 @@ TEST_CASE("refits: a reference with a bias rate is moved by it to this window's 
       storage::SqliteCalibrationHistory(db).append(record_from_result("DRIFT-1", reference));
 
       RefitRunner runner(config, db);
-      const RefitOutcome out = runner.run("DRIFT-1", t_ref, "scheduled", t_ref);
+      const RefitOutcome out =
+          runner.run("DRIFT-1", t_ref, storage::RefitTrigger::kScheduled, t_ref);
       REQUIRE(out.kind == RefitOutcome::Kind::kComputed);
       const CalibrationResult& r = out.result;
       std::string reasons;
@@ -312,23 +314,25 @@ TEST_CASE("the first 3 h of a spacecraft: early and short-window refits") {
   RefitRunner runner(config, db);
 
   SECTION("an early refit runs once: the same key again is skipped without a job row") {
-    const RefitOutcome first = runner.run("PAPER-1", t_ref, "first", t_ref);
+    const RefitOutcome first = runner.run("PAPER-1", t_ref, storage::RefitTrigger::kFirst, t_ref);
     REQUIRE(first.kind == RefitOutcome::Kind::kComputed);
     CHECK(first.result.n_samples == config.refit.min_samples);  // keyed by its count
-    const RefitOutcome again = runner.run("PAPER-1", t_ref, "first", t_ref);
+    const RefitOutcome again = runner.run("PAPER-1", t_ref, storage::RefitTrigger::kFirst, t_ref);
     CHECK(again.kind == RefitOutcome::Kind::kSkipped);
     CHECK(again.job_id == first.job_id);
     CHECK_THAT(again.message, Catch::Contains("already ran"));
     storage::SqliteRefitJobLog jobs(db);
     CHECK(jobs.recent("PAPER-1", 10).size() == 1);
     // A scheduled refit of the same end is not an early one: it runs.
-    CHECK(runner.run("PAPER-1", t_ref, "scheduled", t_ref).kind == RefitOutcome::Kind::kComputed);
+    CHECK(runner.run("PAPER-1", t_ref, storage::RefitTrigger::kScheduled, t_ref).kind ==
+          RefitOutcome::Kind::kComputed);
   }
 
   SECTION("a window short of [refit] min_samples is skipped with its count, as skip_reason says") {
     const auto skipped = [&](const std::string& sat, std::optional<int64_t> t_end) {
       const std::string why = runner.skip_reason(sat, t_end);
-      const RefitOutcome out = runner.run(sat, t_end, "manual", t_end.value_or(0));
+      const RefitOutcome out =
+          runner.run(sat, t_end, storage::RefitTrigger::kManual, t_end.value_or(0));
       CHECK(out.kind == RefitOutcome::Kind::kSkipped);
       CHECK(out.job_outcome == storage::job_outcome::kSkipped);
       CHECK(out.message == why);
@@ -341,7 +345,8 @@ TEST_CASE("the first 3 h of a spacecraft: early and short-window refits") {
     CHECK_THAT(skipped("NOPE", std::nullopt), Catch::Contains("no stored samples for 'NOPE'"));
     // One sample more (t_ref) is enough.
     CHECK(runner.skip_reason("PAPER-1", t_ref).empty());
-    CHECK(runner.run("PAPER-1", t_ref, "manual", t_ref).kind == RefitOutcome::Kind::kComputed);
+    CHECK(runner.run("PAPER-1", t_ref, storage::RefitTrigger::kManual, t_ref).kind ==
+          RefitOutcome::Kind::kComputed);
   }
 }
 
@@ -372,12 +377,12 @@ TEST_CASE("a daemon's refit runs once for the fleet: claimed under its station, 
   storage::SqliteLeaseStore(db).heartbeat("station-B", "b1", {}, now, 3'600'000'000LL);
   const auto b_job = jobs.claim("PAPER-1", "scheduled", t_ref, 1, "station-B");
   REQUIRE(b_job.has_value());
-  RefitOutcome out = runner.run("PAPER-1", t_ref, "scheduled", t_ref);
+  RefitOutcome out = runner.run("PAPER-1", t_ref, storage::RefitTrigger::kScheduled, t_ref);
   CHECK(out.kind == RefitOutcome::Kind::kClaimedElsewhere);
   CHECK(out.job_id == *b_job);
   CHECK_THAT(out.message, Catch::Contains("station-B") && Catch::Contains("running"));
   jobs.finish(*b_job, storage::job_outcome::kFailed, 2, "whatever it was");
-  CHECK(runner.run("PAPER-1", t_ref, "scheduled", t_ref).kind ==
+  CHECK(runner.run("PAPER-1", t_ref, storage::RefitTrigger::kScheduled, t_ref).kind ==
         RefitOutcome::Kind::kClaimedElsewhere);
   CHECK(refit_rows() == 0);
   CHECK(jobs.recent("PAPER-1", 10).size() == 1);
@@ -387,7 +392,7 @@ TEST_CASE("a daemon's refit runs once for the fleet: claimed under its station, 
   const auto lost = jobs.claim("PAPER-1", "early", t_early, 1, "station-B");
   REQUIRE(lost.has_value());
   jobs.mark_running_interrupted("PAPER-1", 3);
-  out = runner.run("PAPER-1", t_early, "early", t_early);
+  out = runner.run("PAPER-1", t_early, storage::RefitTrigger::kEarly, t_early);
   REQUIRE(out.kind == RefitOutcome::Kind::kComputed);
   CHECK(jobs.get(out.job_id)->claimed_by == "station-A");
   CHECK(refit_rows() == 1);
@@ -397,7 +402,7 @@ TEST_CASE("a daemon's refit runs once for the fleet: claimed under its station, 
   const int64_t t_dead = t_ref - 900'000'000;
   const auto dead = jobs.claim("PAPER-1", "scheduled", t_dead, 1, "station-C");
   REQUIRE(dead.has_value());
-  out = runner.run("PAPER-1", t_dead, "scheduled", t_dead);
+  out = runner.run("PAPER-1", t_dead, storage::RefitTrigger::kScheduled, t_dead);
   REQUIRE(out.kind == RefitOutcome::Kind::kComputed);
   CHECK(jobs.get(*dead)->outcome == storage::job_outcome::kInterrupted);
   CHECK(jobs.get(out.job_id)->claimed_by == "station-A");
@@ -408,18 +413,18 @@ TEST_CASE("a daemon's refit runs once for the fleet: claimed under its station, 
   const int64_t t_sched = t_ref - 300'000'000;
   const auto own = jobs.claim("PAPER-1", "scheduled", t_sched, 1, "station-A");
   REQUIRE(own.has_value());
-  out = runner.run("PAPER-1", t_sched, "scheduled", t_sched);
+  out = runner.run("PAPER-1", t_sched, storage::RefitTrigger::kScheduled, t_sched);
   REQUIRE(out.kind == RefitOutcome::Kind::kComputed);
   CHECK(out.job_id == *own);
   CHECK(jobs.get(*own)->calibration_id == out.calibration_id);
-  out = runner.run("PAPER-1", t_sched, "scheduled", t_sched);
+  out = runner.run("PAPER-1", t_sched, storage::RefitTrigger::kScheduled, t_sched);
   CHECK(out.kind == RefitOutcome::Kind::kSkipped);
   CHECK_THAT(out.message, Catch::Contains("already ran"));
   CHECK(refit_rows() == 3);
 
   // `magcal refit` is not claimed: it runs whenever asked.
   for (int i = 0; i < 2; ++i) {
-    out = runner.run("PAPER-1", t_ref, "manual", t_ref);
+    out = runner.run("PAPER-1", t_ref, storage::RefitTrigger::kManual, t_ref);
     REQUIRE(out.kind == RefitOutcome::Kind::kComputed);
     CHECK(jobs.get(out.job_id)->claimed_by.empty());
   }
@@ -448,7 +453,8 @@ TEST_CASE("a transient storage error ends a claimed refit's job interrupted: the
   RefitRunner runner(config, *db);
   const auto jobs = db->make_refit_job_log();
 
-  const RefitOutcome failed = runner.run("PAPER-1", t_ref, "scheduled", t_ref);
+  const RefitOutcome failed =
+      runner.run("PAPER-1", t_ref, storage::RefitTrigger::kScheduled, t_ref);
   REQUIRE(failed.kind == RefitOutcome::Kind::kError);
   REQUIRE(failed.storage_error.has_value());
   CHECK(failed.storage_error->transient());
@@ -458,7 +464,8 @@ TEST_CASE("a transient storage error ends a claimed refit's job interrupted: the
   CHECK_FALSE(jobs->claim_holder("PAPER-1", "scheduled", t_ref).has_value());  // given up
 
   // The daemon's retry (StorageRetry) runs it again: claimed anew, computed once.
-  const RefitOutcome retried = runner.run("PAPER-1", t_ref, "scheduled", t_ref);
+  const RefitOutcome retried =
+      runner.run("PAPER-1", t_ref, storage::RefitTrigger::kScheduled, t_ref);
   REQUIRE(retried.kind == RefitOutcome::Kind::kComputed);
   CHECK(retried.job_id != failed.job_id);
   CHECK(jobs->claim_holder("PAPER-1", "scheduled", t_ref)->id == retried.job_id);
@@ -466,7 +473,7 @@ TEST_CASE("a transient storage error ends a claimed refit's job interrupted: the
 
   // `magcal refit` holds no claim to give up: its failure stays 'failed', as before.
   db->exec("ALTER SEQUENCE inserts_seen RESTART WITH 1");
-  const RefitOutcome manual = runner.run("PAPER-1", t_ref, "manual", t_ref);
+  const RefitOutcome manual = runner.run("PAPER-1", t_ref, storage::RefitTrigger::kManual, t_ref);
   REQUIRE(manual.kind == RefitOutcome::Kind::kError);
   CHECK(jobs->get(manual.job_id)->outcome == storage::job_outcome::kFailed);
 }
@@ -511,7 +518,7 @@ TEST_CASE("a refit whose COMMIT gets no reply is not run twice: the retry finds 
           30);
     });
   }
-  const RefitOutcome held = runner.run("PAPER-1", t_ref, "scheduled", t_ref);
+  const RefitOutcome held = runner.run("PAPER-1", t_ref, storage::RefitTrigger::kScheduled, t_ref);
   if (terminator.joinable()) terminator.join();
   REQUIRE(held.kind == RefitOutcome::Kind::kError);
   REQUIRE(held.storage_error.has_value());
@@ -534,7 +541,7 @@ TEST_CASE("a refit whose COMMIT gets no reply is not run twice: the retry finds 
   RefitOutcome retried;
   REQUIRE(test::wait_until(
       [&] {
-        retried = runner.run("PAPER-1", t_ref, "scheduled", t_ref);
+        retried = runner.run("PAPER-1", t_ref, storage::RefitTrigger::kScheduled, t_ref);
         return retried.kind != RefitOutcome::Kind::kError;  // (the connection set aside first)
       },
       10));
@@ -566,7 +573,7 @@ TEST_CASE("a manual refit whose COMMIT gets no reply leaves no job running when 
   const auto jobs = observer->make_refit_job_log();
   hold_result_commits(*db);
   test::set_absent_synchronous_standby(uri, true);
-  const RefitOutcome held = runner.run("PAPER-1", t_ref, "manual", t_ref);
+  const RefitOutcome held = runner.run("PAPER-1", t_ref, storage::RefitTrigger::kManual, t_ref);
   REQUIRE(held.kind == RefitOutcome::Kind::kError);
   REQUIRE(held.storage_error.has_value());
   CHECK(held.storage_error->in_doubt_transaction() != 0);

@@ -15,17 +15,6 @@ int64_t t(const char* iso) {
 }
 }  // namespace
 
-TEST_CASE("daily time parsing", "[refit_scheduler]") {
-  CHECK(parse_daily_time_utc("02:00") == 120);
-  CHECK(parse_daily_time_utc("00:00") == 0);
-  CHECK(parse_daily_time_utc("23:59") == 23 * 60 + 59);
-  CHECK_FALSE(parse_daily_time_utc("24:00"));
-  CHECK_FALSE(parse_daily_time_utc("2:00"));
-  CHECK_FALSE(parse_daily_time_utc("02:60"));
-  CHECK_FALSE(parse_daily_time_utc("0200"));
-  CHECK_FALSE(parse_daily_time_utc(""));
-}
-
 TEST_CASE("next scheduled time: daily only", "[refit_scheduler]") {
   const RefitSchedule s{120, 0.0};
   CHECK(next_scheduled_utime(s, t("2020-01-01T00:00:00Z")) == t("2020-01-01T02:00:00Z"));

@@ -1,8 +1,8 @@
-// What goes out on LCM (calibration_t) never carries NaN or Inf (issue 11): a failed refit's
-// unknown residual and non-finite estimates are replaced by the documented conventions
-// (service/io/calibration_record.hpp), and a finite result goes out unchanged. calibration_t <->
-// history record. The filter-state blob: one versioned format, round trip on SQLite and
-// PostgreSQL, unknown versions refused.
+// What goes out on LCM (calibration_t) never carries NaN or Inf (a receiver cannot tell it from
+// data): a failed refit's unknown residual and non-finite estimates are replaced by the documented
+// conventions (service/io/calibration_record.hpp), and a finite result goes out unchanged.
+// calibration_t <-> history record. The filter-state blob: one versioned format, round trip on
+// SQLite and PostgreSQL, unknown versions refused.
 #include <catch2/catch.hpp>
 
 #include <cmath>

@@ -268,8 +268,8 @@ TEST_CASE("LCM log reader counts undecodable events and survives a truncated fil
 }
 
 TEST_CASE("LCM log reader: frames whose lengths lie are counted, never decoded (no throw)") {
-  // Found by a trial: zeroed bytes inside a log made lcm-gen's decoder throw std::length_error
-  // (a string length of 0) and `magcal fit` abort. magcald walked the layout first; now both do.
+  // Zeroed bytes inside a log give a string length of 0, on which lcm-gen's decoder throws
+  // std::length_error: the layout is walked before decoding, by `magcal fit` as by magcald.
   const std::string path = temp_file("lying_lengths.lcm");
   {
     lcm::LogFile log(path, "w");
