@@ -97,8 +97,7 @@ struct AxisStats {
 
 }  // namespace
 
-TEST_CASE(
-    "paper scenario, 50 x 12 h: err/sigma RMS per axis within 0.5..1.5, bias MSE <= 5 nT^2") {
+TEST_CASE("paper scenario, 50 x 12 h: err/sigma RMS per axis within 0.5..1.5, bias MSE <= 5 nT^2") {
   AxisStats stats, stats_9;  // with the default model extension / 9-parameter model + HAC only
   const int runs = 50;
   for (int run = 0; run < runs; ++run) {
