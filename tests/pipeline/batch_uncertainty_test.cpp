@@ -22,6 +22,11 @@ using namespace magcal;
 
 namespace {
 
+// The lower bar on RMS(err/sigma) per axis: a sigma at most 2x too wide. With 10 draws it flags a
+// sigma 3x too wide in 99 % of sets (chi-square, 10 degrees of freedom), with 15 or more in
+// 99.6 %, and an honest sigma in under 1 %.
+constexpr double kNotUselesslyWide = 0.5;
+
 struct SimulatedSet {
   SampleSet samples;
   TruthParameters truth;
@@ -92,8 +97,7 @@ struct AxisStats {
 
 }  // namespace
 
-TEST_CASE(
-    "paper scenario, 50 x 12 h: err/sigma RMS per axis within 0.25..1.5, bias MSE <= 5 nT^2") {
+TEST_CASE("paper scenario, 50 x 12 h: err/sigma RMS per axis within 0.5..1.5, bias MSE <= 5 nT^2") {
   AxisStats stats, stats_9;  // with the default model extension / 9-parameter model + HAC only
   const int runs = 50;
   for (int run = 0; run < runs; ++run) {
@@ -128,7 +132,7 @@ TEST_CASE(
       runs, z(0), z(1), z(2), stats.bias_mse(), stats.extended);
   INFO("RMS(err/sigma) " << z.transpose() << ", bias MSE " << stats.bias_mse());
   CHECK(z.maxCoeff() <= 1.5);
-  CHECK(z.minCoeff() >= 0.25);
+  CHECK(z.minCoeff() >= kNotUselesslyWide);
   CHECK(stats.bias_mse() <= 5.0);
   // Stage 2 on the same fits: the angle sigma covers the error (hysteresis, a lag much like a
   // rotation about the orbit normal, is removed with the fitted extension; the stage-1 error and
@@ -171,7 +175,7 @@ TEST_CASE("paper scenario, short windows (4 h and 6 h): sigmas still cover the e
     // taken on short windows: 4.2 (6 h, bias x).
     CHECK(z.maxCoeff() <= 2.0);
     CHECK(za.maxCoeff() <= 2.0);
-    CHECK(z.minCoeff() >= 0.25);
+    CHECK(z.minCoeff() >= kNotUselesslyWide);
   }
 }
 
@@ -205,7 +209,7 @@ TEST_CASE("fast spin (3 deg/s about body z, 1 s samples), 20 x 3 h: sigmas cover
       runs, z(0), z(1), z(2), za(0), za(1), za(2), stats.bias_mse());
   INFO("bias " << z.transpose() << ", alignment " << za.transpose());
   CHECK(z.maxCoeff() <= 1.5);
-  CHECK(z.minCoeff() >= 0.25);
+  CHECK(z.minCoeff() >= kNotUselesslyWide);
   CHECK(za.maxCoeff() <= 1.5);
   CHECK(za.minCoeff() >= 0.25);
 }
@@ -283,7 +287,7 @@ TEST_CASE("robust mode, paper scenario with spikes: the clean data's fit and hon
       runs, z(0), z(1), z(2), za(0), za(1), za(2));
   CHECK(z.maxCoeff() <= 1.5);
   CHECK(za.maxCoeff() <= 1.5);
-  CHECK(z.minCoeff() >= 0.25);
+  CHECK(z.minCoeff() >= kNotUselesslyWide);
 }
 
 TEST_CASE(
@@ -338,7 +342,7 @@ TEST_CASE(
   CHECK(zp.maxCoeff() <= 1.5);  // the bias sigma covers even where the verdict is no
   CHECK(z.maxCoeff() <= 1.5);
   CHECK(za.maxCoeff() <= 1.5);
-  CHECK(z.minCoeff() >= 0.25);
+  CHECK(z.minCoeff() >= kNotUselesslyWide);
 }
 
 TEST_CASE(
@@ -352,7 +356,10 @@ TEST_CASE(
   for (const char* preset : {"paper", "tumbling"}) {
     AxisStats stats;
     double worst_d_z = 0.0;
-    const int runs = 5;
+    // 40 draws: an RMS(err/sigma) above 1.5 flags a sigma 2x too small in 99 % of such sets
+    // (chi-square, 40 degrees of freedom), and an honest one in 1e-5; 5 draws (before) flagged
+    // only sigmas 3x too small reliably, and honest ones in 5 %.
+    const int runs = 40;
     for (int run = 0; run < runs; ++run) {
       const SimulatedSet set = simulate(preset, 8000 + static_cast<uint64_t>(run), 24.0);
       BatchCalibrationOptions batch;
@@ -418,7 +425,7 @@ TEST_CASE("3 h windows: where the extension is refused, its disagreement covers 
   CHECK(refused >= 2);  // the case is exercised
   CHECK(worst <= 3.5);
   CHECK(z.maxCoeff() <= 1.5);
-  CHECK(z.minCoeff() >= 0.25);
+  CHECK(z.minCoeff() >= kNotUselesslyWide);
 }
 
 TEST_CASE("robust mode, 4 h windows with one 3 G spike: the outlier is found before the start") {

@@ -29,12 +29,16 @@ constexpr double kMeanNeesLow = 7.0;
 constexpr double kMeanNeesHigh = 11.0;
 constexpr double kMaxErrorOverSigma = 5.0;  // "a wrong estimate must not claim a small sigma"
 constexpr int kCheckEvery = 30;             // samples between checks of the claimed sigma
+// Checks while converged a run must have made for its worst one to say anything: an hour of
+// 10 s samples (a filter that never converges passes a bound on them vacuously).
+constexpr int kMinClaimedOkChecks = 12;
 
 struct RunSummary {
   Vector9d error = Vector9d::Zero();
   double nees = 0.0;
   double final_bias_error_over_sigma = 0.0;  // max over axes at the end
   double worst_claimed_ok = 0.0;  // max |bias error| / sigma over checks where converged()
+  int claimed_ok_checks = 0;      // those checks: worst_claimed_ok means something when many
   double converged_after_s = -1.0;
 };
 
@@ -48,6 +52,7 @@ RunSummary run(Filter& f, const std::vector<SimSample>& data, const Vector9d& p_
       const Eigen::Vector3d r =
           (f.x() - p_true).template head<3>().cwiseQuotient(f.bias_sigma_nT());
       s.worst_claimed_ok = std::max(s.worst_claimed_ok, r.cwiseAbs().maxCoeff());
+      ++s.claimed_ok_checks;
     }
   }
   s.error = f.x() - p_true;
@@ -110,6 +115,7 @@ TEST_CASE("Mis-stated noise (15 nT data, 3 nT configured): the filter adapts and
   CHECK(f.consistent());
   CHECK(r.nis_mean == Approx(1.0).margin(0.3));
   CHECK(s.worst_claimed_ok < kMaxErrorOverSigma);
+  CHECK(s.claimed_ok_checks >= kMinClaimedOkChecks);
   CHECK(s.final_bias_error_over_sigma < kMaxErrorOverSigma);
   CHECK(r.status == CalibrationStatus::kOk);
 }
@@ -159,6 +165,7 @@ TEST_CASE("Data start on nadir-like geometry: not_converged until observed, then
     const RunSummary su = run(ukf, data, p_true);
     for (const RunSummary* s : {&se, &su}) {
       CHECK(s->worst_claimed_ok < kMaxErrorOverSigma);
+      CHECK(s->claimed_ok_checks >= kMinClaimedOkChecks);
       CHECK(s->final_bias_error_over_sigma < kMaxErrorOverSigma);
       CHECK(s->converged_after_s > 0.0);
     }
@@ -286,6 +293,8 @@ TEST_CASE("Warm start (re-anchored) on nadir-like geometry: the claimed sigma ho
       const RunSummary su = run(ukf, data, p_true);
       CHECK(se.worst_claimed_ok < kMaxErrorOverSigma);
       CHECK(su.worst_claimed_ok < kMaxErrorOverSigma);
+      CHECK(se.claimed_ok_checks >= kMinClaimedOkChecks);
+      CHECK(su.claimed_ok_checks >= kMinClaimedOkChecks);
       CHECK(se.final_bias_error_over_sigma < kMaxErrorOverSigma);
       CHECK(su.final_bias_error_over_sigma < kMaxErrorOverSigma);
     }
@@ -307,6 +316,7 @@ TEST_CASE("Harsh parameters (3000 nT, D 0.05): a data start converges for both f
       CHECK(s->error.head<3>().cwiseAbs().maxCoeff() < 1.0);
       CHECK(s->final_bias_error_over_sigma < kMaxErrorOverSigma);
       CHECK(s->worst_claimed_ok < kMaxErrorOverSigma);
+      CHECK(s->claimed_ok_checks >= kMinClaimedOkChecks);
     }
     CHECK(ekf.converged());
     CHECK(ukf.converged());

@@ -402,6 +402,12 @@ TEST_CASE(
                  << " beyond 3 sigma of the current bias, worst " << worst << "; " << n_swing_refits
                  << " accepted refits with a bias variability");
     CHECK(n_swing_refits > 0);
+    // "Within 4 sigma" of the ok snapshots means something only when there are some: most of
+    // the day after the first refits.
+    CHECK(n_ok > static_cast<int>(ukf.size()) / 4);
+    // What two seeds can detect: the worst ok snapshot of each (measured 3.1 and 2.9 sigma) past
+    // 4 sigma, i.e. its sigma 1.3x too small. A day's snapshots follow one filter, so they are
+    // two draws, not a thousand: a sigma too small on rare days only may pass.
     CHECK(worst < 4.0);
   }
 }

@@ -10,6 +10,7 @@
 #include <catch2/catch.hpp>
 
 #include <cmath>
+#include <filesystem>
 #include <fstream>
 #include <map>
 #include <memory>
@@ -19,8 +20,10 @@
 #include <tuple>
 #include <vector>
 
+#include "pipeline/time_utc.hpp"
 #include "storage/calibration_history.hpp"
 #include "storage/connection.hpp"
+#include "storage/lease_store.hpp"
 #include "storage/refit_job_log.hpp"
 #include "tests/service/cli_test_support.hpp"
 #include "tests/service/daemon_test_support.hpp"
@@ -33,6 +36,7 @@ using magcal::test::slurp;
 using magcal::test::spawn;
 using magcal::test::TempDir;
 using magcal::test::wait_exit;
+using magcal::test::wait_until;
 namespace storage = magcal::storage;
 
 const std::string kBin = MAGCAL_BIN_DIR;
@@ -116,8 +120,37 @@ size_t count_lines_with(const std::string& text, const std::string& what) {
   return n;
 }
 
+// The time stamp of the first line of a daemon's log holding `what` ("YYYY-MM-DD HH:MM:SS.mmm",
+// spdlog's: it sorts as the time), empty when there is none.
+std::string time_of_first_line_with(const std::string& text, const std::string& what) {
+  const size_t at = text.find(what);
+  if (at == std::string::npos) return "";
+  const size_t newline = text.rfind('\n', at);
+  const size_t start = newline == std::string::npos ? 0 : newline + 1;
+  const size_t end = text.find(']', start);
+  if (text[start] != '[' || end == std::string::npos || end > at) return "";
+  return text.substr(start + 1, end - start - 1);
+}
+
+// Both stations live at once in `db` (false while the database or its tables do not exist yet).
+bool both_stations_live(const std::string& db) {
+  if (!storage::is_postgres_uri(db) && !std::filesystem::exists(db)) return false;
+  try {
+    storage::OpenOptions read_only;
+    read_only.read_only = true;
+    return storage::open_database(db, read_only)
+               ->make_lease_store()
+               ->live_stations(magcal::now_utime())
+               .size() == 2;
+  } catch (const storage::StorageError&) {
+    return false;
+  }
+}
+
 // Two daemons (stations A and B) replaying `log` at once into `db`: each refit of `alone` (one
-// daemon, the same log) ran once, by one of them, with the same result.
+// daemon, the same log) ran once, by one of them, with the same result. The replays overlap
+// (both stations live at once). Whichever ends first hands its spacecraft back as it stops, so
+// the other may take kSat over for the rest of its own replay: legitimately, and only then.
 void check_fleet_runs_each_refit_once(
     const std::string& log, const std::string& db, const std::map<RefitKey, RefitRun>& alone,
     const std::map<int64_t, storage::CalibrationRecord>& alone_ukf, const std::string& config,
@@ -127,12 +160,15 @@ void check_fleet_runs_each_refit_once(
   const pid_t b = start_daemon(log, db, "station-B", config, log_b);
   REQUIRE(a > 0);
   REQUIRE(b > 0);
+  // A replay takes seconds, a daemon's start a fraction of one: both beat while both replay.
+  const bool overlapped = wait_until([&] { return both_stations_live(db); }, 30);
   const int rc_a = wait_exit(a, kDaemonTimeout_s);
   const int rc_b = wait_exit(b, kDaemonTimeout_s);
   const std::string text_a = slurp(log_a), text_b = slurp(log_b);
   INFO("station A:\n" << text_a << "\nstation B:\n" << text_b);
   REQUIRE(rc_a == 0);
   REQUIRE(rc_b == 0);
+  REQUIRE(overlapped);
 
   const auto fleet = finished_refits(db);
   std::vector<RefitKey> keys_fleet, keys_alone;
@@ -159,10 +195,19 @@ void check_fleet_runs_each_refit_once(
   // One owner scheduled them all; the other daemon only stored samples.
   std::set<std::string> by;
   for (const auto& [key, ran] : fleet) by.insert(ran.job.claimed_by);
-  CHECK(by.size() == 1);
-  CHECK(count_lines_with(text_a, "PAPER-1: owned here") +
-            count_lines_with(text_b, "PAPER-1: owned here") ==
-        1);
+  REQUIRE(by.size() == 1);
+  const bool a_owned = *by.begin() == "station-A";
+  const std::string& owner_text = a_owned ? text_a : text_b;
+  const std::string& other_text = a_owned ? text_b : text_a;
+  CHECK(count_lines_with(owner_text, "PAPER-1: owned here") == 1);
+  // The other station owned kSat at most once: after the owner's replay had ended.
+  const size_t taken_over = count_lines_with(other_text, "PAPER-1: owned here");
+  CHECK(taken_over <= 1);
+  if (taken_over == 1) {
+    const std::string owner_ended = time_of_first_line_with(owner_text, "end of log");
+    REQUIRE_FALSE(owner_ended.empty());
+    CHECK(time_of_first_line_with(other_text, "PAPER-1: owned here") >= owner_ended);
+  }
   CHECK(count_lines_with(text_a + text_b, ": not run here (the ") == 0);
   // One series of UKF snapshots, the lone daemon's: the owner's filter read every sample in time
   // order, whichever station stored it.

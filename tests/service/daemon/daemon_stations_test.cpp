@@ -221,9 +221,15 @@ TEST_CASE("three stations, one database: one window, one series, each refit once
   const auto connection = storage::open_database(db);
   const auto leases = connection->make_lease_store();
 
-  // Mid-day (about 10 h of data): kill the owner.
-  std::this_thread::sleep_until(std::chrono::steady_clock::now() +
-                                std::chrono::duration<double>(10 * 3600 / kSpeed));
+  // Mid-day (10 h of data stored): kill the owner. The replay's clock, not the wall's: a loaded
+  // machine replays slower than kSpeed.
+  const auto samples = connection->make_sample_window_store();
+  REQUIRE(wait_until(
+      [&] {
+        const auto newest = samples->newest_utime(kSat);
+        return newest && *newest >= t0 + 10 * 3600 * kSecond;
+      },
+      10 * 3600 / kSpeed * 4 + 30));
   const auto owner = leases->owner_of(kSat, wall_utime());
   REQUIRE(owner.has_value());
   int killed = -1;
@@ -521,7 +527,9 @@ TEST_CASE("two magcald with one station id: both stop with the reason, none keep
                          "--http-listen", "", "--lcm-url", "file://" + log + "?speed=1"},
                         log_a);
   REQUIRE(a > 0);
-  std::this_thread::sleep_for(std::chrono::milliseconds(1500));
+  // The first one holds the spacecraft before the newcomer starts.
+  REQUIRE(wait_until(
+      [&] { return slurp(log_a).find("owned here (lease epoch 1)") != std::string::npos; }, 15));
   const pid_t b = spawn({kBin + "/magcald", "--config", config, "--db", db, "--station", "dup",
                          "--http-listen", "", "--lcm-url", "file://" + log + "?speed=1"},
                         log_b);
@@ -581,11 +589,18 @@ TEST_CASE(
     };
     // Both have seen the other live (their gauges are set at each lease round, kLease_s / 3).
     const auto connection = storage::open_database(db);
+    const auto leases = connection->make_lease_store();
+    REQUIRE(wait_until([&] { return leases->live_stations(wall_utime()).size() == 2; }, 10));
+    // Each compares the settings of the live stations in the lease round of its heartbeat, after
+    // the beat: a beat after both were live means a comparison that saw both.
+    const int64_t both_live_utime = wall_utime();
     REQUIRE(wait_until(
-        [&] { return connection->make_lease_store()->live_stations(wall_utime()).size() == 2; },
+        [&] {
+          const auto rows = leases->stations();
+          return rows.size() == 2 && rows[0].heartbeat_utime > both_live_utime &&
+                 rows[1].heartbeat_utime > both_live_utime;
+        },
         10));
-    std::this_thread::sleep_for(
-        std::chrono::milliseconds(static_cast<int>(kLease_s / 3 * 1000 * 2)));
     const std::string warning_a =
         "settings differ from station gs-b: refit.every_hours 0 here, 6 there; results of a "
         "spacecraft depend on which station owns it";

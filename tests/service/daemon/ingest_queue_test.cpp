@@ -2,9 +2,16 @@
 // close() drains.
 #include <catch2/catch.hpp>
 
+#include <sys/types.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <fstream>
+#include <string>
 #include <thread>
 
 #include "service/daemon/ingest_queue.hpp"
+#include "tests/process_support.hpp"
 
 using magcal::IngestItem;
 using magcal::IngestQueue;
@@ -14,6 +21,15 @@ IngestItem item(int n) {
   IngestItem it;
   it.samples.resize(static_cast<size_t>(n));
   return it;
+}
+
+// Whether thread `tid` of this process sleeps in the kernel (state S in /proc): a thread that
+// only pushes to the queue sleeps when its push waits for room, and at no other point.
+bool thread_sleeps(pid_t tid) {
+  std::ifstream stat("/proc/self/task/" + std::to_string(tid) + "/stat");
+  std::string text((std::istreambuf_iterator<char>(stat)), std::istreambuf_iterator<char>());
+  const size_t name_end = text.rfind(')');  // the name may hold spaces and parentheses
+  return name_end != std::string::npos && name_end + 2 < text.size() && text[name_end + 2] == 'S';
 }
 }  // namespace
 
@@ -42,10 +58,18 @@ TEST_CASE("an item larger than the capacity still enters an empty queue", "[inge
 TEST_CASE("a replay queue blocks instead of dropping", "[ingest_queue]") {
   IngestQueue q(1000, true);
   REQUIRE(q.push(item(1000)));
+  std::atomic<pid_t> producer_tid{0};
+  std::atomic<int> pushed{0};
   std::thread producer([&] {
-    for (int i = 0; i < 10; ++i) q.push(item(500));
+    producer_tid = ::gettid();
+    for (int i = 0; i < 10; ++i) pushed += q.push(item(500)) ? 1 : 0;
     q.close();
   });
+  // The first push waits for room (the queue is full): nothing dropped while it does.
+  REQUIRE(magcal::test::wait_until([&] { return producer_tid != 0 && thread_sleeps(producer_tid); },
+                                   10));
+  CHECK(pushed == 0);
+  CHECK(q.depth_samples() == 1000);
   int64_t received = 0;
   std::vector<IngestItem> out;
   while (q.pop_all(out, 1000)) {
@@ -54,6 +78,7 @@ TEST_CASE("a replay queue blocks instead of dropping", "[ingest_queue]") {
   }
   producer.join();
   CHECK(received == 6000);
+  CHECK(pushed == 10);
   CHECK(q.overflow_samples() == 0);
 }
 
@@ -78,9 +103,15 @@ TEST_CASE("a replay push blocked on a full queue returns at close, not counted a
   IngestQueue q(1000, true);
   REQUIRE(q.push(item(1000)));
   std::atomic<int> result{-1};
-  std::thread producer([&] { result = q.push(item(500)) ? 1 : 0; });
-  std::this_thread::sleep_for(std::chrono::milliseconds(50));
-  CHECK(result == -1);  // blocked: the queue is full
+  std::atomic<pid_t> producer_tid{0};
+  std::thread producer([&] {
+    producer_tid = ::gettid();
+    result = q.push(item(500)) ? 1 : 0;
+  });
+  // Blocked inside push before the close (a push begun after it would be refused all the same).
+  REQUIRE(magcal::test::wait_until([&] { return producer_tid != 0 && thread_sleeps(producer_tid); },
+                                   10));
+  CHECK(result == -1);
   q.close();
   producer.join();
   CHECK(result == 0);

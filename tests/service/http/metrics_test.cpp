@@ -275,6 +275,7 @@ TEST_CASE("database metrics (magcal serve): what the database holds", "[metrics]
     const auto q =
         parse_prometheus_text(magcal::http::database_metrics_text(db, "2.0", window_utime));
     REQUIRE(q.error.empty());
+    REQUIRE(stored_rows.size() == 2);  // SAT-A and SAT-B: the loop below checks both
     for (const auto& [sat, rows] : stored_rows) {
       int64_t newest = rows.front().first;
       for (const auto& r : rows) newest = std::max(newest, r.first);
@@ -284,6 +285,7 @@ TEST_CASE("database metrics (magcal serve): what the database holds", "[metrics]
         if (utime > newest - window_utime) ++in_window[station], ++total;
       }
       INFO(sat);
+      CHECK(total > 0);
       CHECK(total < stored[sat]);
       CHECK(q.value("magcal_window_samples", {{"sat", sat}}) == total);
       for (const auto& [station, n] : in_window) {
@@ -294,6 +296,7 @@ TEST_CASE("database metrics (magcal serve): what the database holds", "[metrics]
   }
   CHECK(p.value("magcal_window_samples", {{"sat", "SAT-A"}}) == stored["SAT-A"]);
   CHECK(p.value("magcal_window_samples", {{"sat", "SAT-B"}}) == stored["SAT-B"]);
+  REQUIRE(stored_by_station.size() == 6);  // both spacecraft from each of the three batches
   for (const auto& [key, n] : stored_by_station) {
     INFO(key.first << " by '" << key.second << "'");
     CHECK(p.value("magcal_window_samples_by_station",

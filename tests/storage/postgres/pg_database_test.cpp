@@ -464,8 +464,13 @@ TEST_CASE("PostgreSQL without a reply: transient at the deadline, one session, c
     CHECK(std::string(waiting.what()).find("still no reply to SELECT pg_sleep(2.5), sent") !=
           std::string::npos);
     CHECK(other_sessions(admin) == 1);
-    // Once it has answered: a new session.
-    std::this_thread::sleep_until(t0 + std::chrono::milliseconds(2700));
+    // Once it has answered (its server session no longer active): a new session.
+    REQUIRE(magcal::test::wait_until(
+        [&] {
+          return query_int(admin, "SELECT count(*) FROM pg_stat_activity WHERE pid = " +
+                                      std::to_string(pid) + " AND state = 'active'") == 0;
+        },
+        10));
     CHECK(query_int(db, "SELECT 7") == 7);
     CHECK(db.backend_pid() != pid);
     CHECK(other_sessions(admin) == 1);
