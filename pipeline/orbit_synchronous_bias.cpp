@@ -151,6 +151,16 @@ UnresolvedBiasSwing unresolved_orbit_synchronous_bias_swing(
     out.variance_nT2 += w * p.added_nT2.cwiseMax(0.0);
   }
   out.variance_nT2 /= total;
+  // Whether there is a swing at all: its Bayes factor against none, averaged over the periods
+  // (ln BF = the log weight - 1/2 ln det of the prior's covariance, 6 ln prior_amplitude_nT), and
+  // the posterior probability from the stated prior odds. The variance the swing adds enters in
+  // that proportion, so a constant bias, whose data put the swing well inside the prior, keeps the
+  // fit's own sigma, while a swing the data show keeps the whole of it.
+  const double log_bayes_factor = best->log_weight +
+                                  std::log(total / static_cast<double>(periods.size())) -
+                                  6.0 * std::log(options.prior_amplitude_nT);
+  const double prior_odds = options.prior_probability / (1.0 - options.prior_probability);
+  out.variance_nT2 *= 1.0 / (1.0 + std::exp(-log_bayes_factor) / prior_odds);
   out.period_s = best->period_s;
   out.period_probability = 1.0 / total;
   out.amplitude_nT = best->amplitude_nT;
