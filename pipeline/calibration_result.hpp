@@ -52,11 +52,11 @@ struct UnresolvedBiasSwing {
   Eigen::Vector3d amplitude_nT = Eigen::Vector3d::Zero();
   Eigen::Vector3d amplitude_sigma_nT = Eigen::Vector3d::Zero();
   int periods_tried = 0;  // 0: not computed
-  // Some axis's swing beyond 3 of its sigmas at the most probable period: a swing seen, not only
-  // one the data cannot exclude (variance_nT2 holds either).
-  bool detected() const {
-    return periods_tried > 0 && (amplitude_nT.array() > 3.0 * amplitude_sigma_nT.array()).any();
-  }
+  // Posterior probability that the bias swings with the orbit (variance_nT2 is weighted by it).
+  double probability = 0.0;
+  // A swing seen (probability above kDetectedProbability), not only one the data cannot exclude.
+  bool detected() const { return periods_tried > 0 && probability > kDetectedProbability; }
+  static constexpr double kDetectedProbability = 0.99;
 };
 
 struct CalibrationResult {

@@ -160,7 +160,8 @@ UnresolvedBiasSwing unresolved_orbit_synchronous_bias_swing(
                                   std::log(total / static_cast<double>(periods.size())) -
                                   6.0 * std::log(options.prior_amplitude_nT);
   const double prior_odds = options.prior_probability / (1.0 - options.prior_probability);
-  out.variance_nT2 *= 1.0 / (1.0 + std::exp(-log_bayes_factor) / prior_odds);
+  out.probability = 1.0 / (1.0 + std::exp(-log_bayes_factor) / prior_odds);
+  out.variance_nT2 *= out.probability;
   out.period_s = best->period_s;
   out.period_probability = 1.0 / total;
   out.amplitude_nT = best->amplitude_nT;
