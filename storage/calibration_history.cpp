@@ -1,16 +1,6 @@
 #include "storage/calibration_history.hpp"
 
-#include <algorithm>
-#include <chrono>
-#include <cstdio>
 #include <limits>
-
-#include "storage/calibration_row.hpp"
-#include "storage/sqlite/sqlite_stores.hpp"
-
-#ifndef MAGCAL_VERSION
-#define MAGCAL_VERSION "unknown"
-#endif
 
 namespace magcal::storage {
 

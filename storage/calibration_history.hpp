@@ -1,6 +1,6 @@
 // Table `calibrations`: every calibration result the service produces (UKF/EKF snapshots and
-// every refit), never deleted by retention. An interface: SqliteCalibrationHistory
-// (storage/sqlite_stores.hpp) and PgCalibrationHistory
+// every refit), never deleted by retention. An interface: SqlCalibrationHistory
+// (storage/sql_calibration_history.hpp, both backends) and PgCalibrationHistory
 // (storage/postgres/pg_calibration_history.hpp), made by Connection::make_calibration_history();
 // both store the same columns under the same rules (storage/calibration_row.hpp).
 //

@@ -1,5 +1,5 @@
 // One thread's connection to a magcal database, whichever engine holds it: an SQLite file (the
-// embedded default, storage/database.hpp) or a PostgreSQL database shared by a fleet
+// embedded default, storage/sqlite/database.hpp) or a PostgreSQL database shared by a fleet
 // (storage/postgres/pg_database.hpp, design.md "Fleet"). open_database() chooses by the --db /
 // [storage] db_path value. A connection makes its stores (make_*: the sample window, the
 // calibration history, the refit job log, the filter states, the meta values, the spacecraft

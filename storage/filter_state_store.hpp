@@ -1,8 +1,8 @@
 // Table `filter_states`: the latest online filter state per (sat_id, method), so the daemon
 // resumes exactly after a restart (with the refit it was last re-anchored on). x and P are stored
 // as blobs of raw little-endian IEEE-754 doubles: the round trip is bit-exact. An interface:
-// SqliteFilterStateStore (storage/sqlite_stores.hpp) and PgFilterStateStore
-// (storage/postgres/pg_stores.hpp), made by Connection::make_filter_state_store().
+// SqlFilterStateStore (storage/sql_filter_state_store.hpp, both backends) and PgFilterStateStore
+// (storage/postgres/pg_filter_state_store.hpp), made by Connection::make_filter_state_store().
 #pragma once
 
 #include <array>

@@ -9,8 +9,8 @@
 // Times are wall-clock utime given by the caller: daemons sharing a database keep their clocks
 // in step (NTP) to well within a lease's time to live.
 //
-// An interface: SqliteLeaseStore (storage/sqlite_stores.hpp) and PgLeaseStore
-// (storage/postgres/pg_stores.hpp), made by Connection::make_lease_store(). Each call is one
+// An interface: SqlLeaseStore (storage/sql_lease_store.hpp, both backends) and PgLeaseStore
+// (storage/postgres/pg_lease_store.hpp), made by Connection::make_lease_store(). Each call is one
 // statement, atomic on its own: of daemons racing for one lease exactly one gets it.
 #pragma once
 

@@ -1,6 +1,7 @@
 // Table `meta`: a few named text values about the database itself (e.g. which daemon version
 // wrote it last, when it started). Not a store for data: every kind of data has its own table.
-// An interface: SqliteMetaStore and PgMetaStore, made by Connection::make_meta_store().
+// An interface: SqlMetaStore (storage/sql_meta_store.hpp, both backends), made by
+// Connection::make_meta_store().
 #pragma once
 
 #include <optional>

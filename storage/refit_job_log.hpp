@@ -1,7 +1,6 @@
 // Table `refit_jobs`: one row per scheduled or manual refit — when it was due, when it ran, how
-// it ended, and the calibration row it produced. An interface: SqliteRefitJobLog
-// (storage/sqlite_stores.hpp) and PgRefitJobLog (storage/postgres/pg_stores.hpp), made by
-// Connection::make_refit_job_log().
+// it ended, and the calibration row it produced. An interface: SqlRefitJobLog
+// (storage/sql_refit_job_log.hpp, both backends), made by Connection::make_refit_job_log().
 #pragma once
 
 #include <cstdint>

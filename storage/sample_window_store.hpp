@@ -6,8 +6,9 @@
 // recomputes IGRF. Duplicate (sat_id, utime) rows are refused and counted, never stored twice:
 // the first station to deliver a sample stores it (and is recorded as its station).
 //
-// An interface: SqliteSampleWindowStore (storage/sqlite_stores.hpp) and PgSampleWindowStore
-// (storage/postgres/pg_stores.hpp), made by Connection::make_sample_window_store().
+// An interface: SqliteSampleWindowStore (storage/sqlite/sqlite_sample_window_store.hpp) and
+// PgSampleWindowStore (storage/postgres/pg_sample_window_store.hpp), made by
+// Connection::make_sample_window_store().
 //
 // Units: nT for fields, metres for r_ecef_m, microseconds since 1970-01-01Z (utime) for times,
 // quaternion (w, x, y, z) body-from-ECI as in mag_sample_t (estimation.md section 0).

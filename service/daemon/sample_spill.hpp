@@ -1,7 +1,7 @@
 // The spill file: validated samples a station received while its PostgreSQL database was
-// unreachable (each commit interval's batch while commits fail, so a
-// crash during an outage loses no more than one interval). The worker appends the pending batch
-// here instead of stopping intake, and commits the file back (chunk by chunk, oldest first) when
+// unreachable (each commit interval's batch while commits fail, so a crash during an outage
+// loses no more than one interval). The worker appends the pending batch here instead of
+// stopping intake, and commits the file back (chunk by chunk, oldest first) when
 // the database returns; a file left behind by a daemon that stopped or was killed during an outage
 // is committed at its next start. The file is created (or opened) when the daemon starts and
 // stays open, locked and holding nothing until an outage: a spill_dir that cannot take it is a

@@ -1,6 +1,6 @@
 // The PostgreSQL connection of magcal (fleet mode, design.md "Fleet"): opening a libpq URI,
 // schema migrations, statements, transactions and errors. The counterpart of
-// storage/database.hpp, with the same error policy and the same threading rule.
+// storage/sqlite/database.hpp, with the same error policy and the same threading rule.
 //
 // Errors: every failure is a StorageError (Kind kEngine unless a more specific kind applies)
 // carrying the SQLSTATE, classified by storage_error.cpp; transient() is true for what a retry can
