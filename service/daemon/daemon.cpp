@@ -128,12 +128,6 @@ struct Daemon::Impl {
   void on_refit_due(const std::string& sat, int64_t t_ref, storage::RefitTrigger trigger) {
     refit.request(sat, t_ref, trigger);
   }
-  // The worker's hook as it stands before it passes a RefitTrigger (dropped with it).
-  void on_refit_due(const std::string& sat, int64_t t_ref, const char* trigger) {
-    on_refit_due(
-        sat, t_ref,
-        storage::refit_trigger_from_string(trigger).value_or(storage::RefitTrigger::kScheduled));
-  }
 
   void on_snapshot(const std::string& sat, const CalibrationResult& snap) {
     publisher->publish(message_from_result(sat, snap));
@@ -283,8 +277,7 @@ std::string Daemon::open() {
         IngestWorker::Hooks{
             [&d](const std::string& sat, const CalibrationResult& r) { d.on_snapshot(sat, r); },
             [&d](const std::string& sat, int64_t t, storage::RefitTrigger trigger) {
-              // (to_string() views a string literal: null-terminated, never freed.)
-              d.on_refit_due(sat, t, storage::to_string(trigger).data());
+              d.on_refit_due(sat, t, trigger);
             }},
         &d.stop_deadline);
     d.refit_executor =

@@ -44,8 +44,7 @@ void RefitExecutor::mark_interrupted_jobs() {
 RefitOutcome RefitExecutor::run_one(StorageRetry& retry, const std::string& sat,
                                     const RefitRequest& req) {
   return retry.run_blocking([&] {
-    RefitOutcome out = runner_->run(sat, req.t_ref_utime, std::string(to_string(req.trigger)),
-                                    req.scheduled_utime);
+    RefitOutcome out = runner_->run(sat, req.t_ref_utime, req.trigger, req.scheduled_utime);
     if (out.kind == RefitOutcome::Kind::kError && out.storage_error &&
         out.storage_error->transient()) {
       throw *out.storage_error;
