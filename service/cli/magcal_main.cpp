@@ -191,6 +191,8 @@ int main(int argc, char** argv) {
       ->check(real_number());
   fit_cmd->add_option("--skip-first", fit.skip_first, "recording CSV: drop the first N rows")
       ->check(whole_number(0, kIntMax));
+  fit_cmd->add_flag("--estimate-attitude-lag", fit.estimate_attitude_lag,
+                    "sample files: fit the attitude-magnetometer time lag with the alignment");
   fit_cmd->add_flag("--estimate-time-offset", fit.estimate_time_offset,
                     "recording CSV: estimate the time-tag offset of the position stream");
   fit_cmd->add_option("--offset-range-s", fit.offset_range_s,
