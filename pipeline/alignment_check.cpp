@@ -85,8 +85,8 @@ std::string name_axis_mixup(const std::vector<AlignmentPair>& pairs, double* rms
       const AlignmentResult r = align_procrustes(mapped, o);
       if (!r.ok()) return {};
       const double angle = rotation_angle(r.estimate.R_sensor_from_body);
-      const double tolerance = kEqualFitTolerance * std::max(best_rms, r.residual_rms_nT);
-      const bool better = r.residual_rms_nT < best_rms - tolerance ||
+      const double tolerance = kEqualFitTolerance * r.residual_rms_nT;
+      const bool better = !std::isfinite(best_rms) || r.residual_rms_nT < best_rms - tolerance ||
                           (r.residual_rms_nT <= best_rms + tolerance && angle < best_angle);
       if (better) best_rms = r.residual_rms_nT, best_angle = angle, best_P = P;
     }
@@ -140,16 +140,19 @@ AlignmentCheck check_alignment(const TimedAlignmentPairs& timed, const Alignment
     out.angle_covariance_rad2 = out.lag.angle_covariance_rad2;
     // The residual's structure at the lag (the samples the lag was fitted on).
     std::vector<Eigen::Vector3d> e_lag;
-    std::vector<AlignmentPair> shifted;
+    const double tau = out.lag.lag_s;
     for (std::size_t k = 0; k < timed.pairs.size(); ++k) {
       if (!timed.h_rate_nT_per_s[k].allFinite()) continue;
-      const double tau = out.lag.lag_s;
       const Eigen::Vector3d h = timed.pairs[k].h_body_nT + tau * timed.h_rate_nT_per_s[k] +
                                 0.5 * tau * tau * timed.h_accel_nT_per_s2[k];
       e_lag.push_back(timed.pairs[k].u_sensor_nT - out.R_sensor_from_body * h);
     }
     out.residual_per_axis_nT = rms_per_axis(e_lag);
     split_residual(e_lag, &out.white_per_axis_nT, &out.systematic_per_axis_nT);
+    // What the h-only lag model leaves (the inertial field's motion shifted with the lag).
+    out.expected_per_axis_nT =
+        std::hypot(out.expected_per_axis_nT,
+                   std::abs(tau) * out.lag.field_inertial_rate_bound_nT_per_s / std::sqrt(3.0));
   } else if (lag_moves_rotation) {
     out.refusal = format(
         "%s (a constant rotation leaves %.1f nT per axis, %.1f nT with the lag, against %.1f nT "

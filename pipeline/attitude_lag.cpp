@@ -166,15 +166,24 @@ AttitudeLagResult estimate_attitude_lag(const TimedAlignmentPairs& timed, int mi
   const Eigen::Matrix4d covariance =
       covariance_not_below<4>(s2 * F_inv, F_inv * newey_west_meat<4>(scores, window) * F_inv);
   out.lag_s = tau;
+  out.field_inertial_rate_bound_nT_per_s =
+      kInertialRateOverMagnitudeRate * std::sqrt(magnitude_rate2 / nd);
   out.model_sigma_s = kInertialRateOverMagnitudeRate * std::abs(tau) *
                       std::sqrt(magnitude_rate2 / std::max(rate2, 1e-300));
   out.sigma_s = std::hypot(std::sqrt(std::max(0.0, covariance(3, 3))), out.model_sigma_s);
   out.R_sensor_from_body = R;
   // The angles move with tau (their cross-covariance): the model's bound moves them too.
   const Eigen::Vector3d angle_per_lag = covariance.topRightCorner<3, 1>() / covariance(3, 3);
+  // And the inertial field's motion shifted with the lag is a misfit the rotation partly
+  // absorbs: up to its size over |h| in angle, per axis.
+  double h2 = 0.0;
+  for (const AlignmentPair& p : pairs) h2 += p.h_body_nT.squaredNorm();
+  const double misfit_rad =
+      std::abs(tau) * out.field_inertial_rate_bound_nT_per_s / std::sqrt(3.0 * h2 / nd);
   out.angle_covariance_rad2 =
       covariance.topLeftCorner<3, 3>() +
-      angle_per_lag * angle_per_lag.transpose() * out.model_sigma_s * out.model_sigma_s;
+      angle_per_lag * angle_per_lag.transpose() * out.model_sigma_s * out.model_sigma_s +
+      misfit_rad * misfit_rad * Eigen::Matrix3d::Identity();
   out.residual_rms_nT = std::sqrt(ss / nd);
   out.residual_rms_zero_lag_nT = std::sqrt(ss0 / nd);
   out.estimated = std::isfinite(out.sigma_s);

@@ -47,8 +47,11 @@ struct AttitudeLagResult {
   bool estimated = false;
   std::string message;  // why not, when not estimated
   double lag_s = 0.0;
-  double sigma_s = std::numeric_limits<double>::quiet_NaN();         // all terms below
-  double model_sigma_s = std::numeric_limits<double>::quiet_NaN();   // bound of the h-only bias
+  double sigma_s = std::numeric_limits<double>::quiet_NaN();        // all terms below
+  double model_sigma_s = std::numeric_limits<double>::quiet_NaN();  // bound of the h-only bias
+  // Bound of the inertial field's rate that the h-only model shifts with the lag: it leaves
+  // about |lag_s| times this in the residual (vector rms, nT).
+  double field_inertial_rate_bound_nT_per_s = 0.0;
   Eigen::Matrix3d R_sensor_from_body = Eigen::Matrix3d::Identity();  // at lag_s
   Eigen::Matrix3d angle_covariance_rad2 = Eigen::Matrix3d::Zero();   // marginal, tau free
   double residual_rms_nT = 0.0;                                      // at lag_s
