@@ -19,7 +19,11 @@ constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 constexpr double kMaxStepTurn_rad = 0.5;
 constexpr double kEvenGridTolerance = 1e-6;
 constexpr int kMaxIterations = 30;
-constexpr double kLagTolerance_s = 1e-9;
+constexpr double kLagTolerance_s = 1e-6;
+// The coarse profile the fit starts from: the quadratic model holds to a few seconds at a few
+// deg/s.
+constexpr double kProfileHalfWidth_s = 3.0;
+constexpr double kProfileStep_s = 0.25;
 // The inertial field's direction turns up to about three times as fast as its magnitude changes
 // (dipole field along an orbit), and only the magnitude's rate is seen in h: the bound of the
 // h-only model's bias of tau relative to |tau| is this times rms(d|h|/dt) / rms |dh/dt|.
@@ -110,10 +114,19 @@ AttitudeLagResult estimate_attitude_lag(const TimedAlignmentPairs& timed, int mi
     for (std::size_t k = 0; k < n; ++k)
       g[k] = pairs[k].h_body_nT + tau * rate[k] + 0.5 * tau * tau * accel[k];
   };
-  double tau = 0.0;
   shift(0.0);
   out.R_zero_lag = best_rotation(pairs, g);
-  Eigen::Matrix3d R = out.R_zero_lag;
+  // Gauss-Newton starts from the best point of a coarse profile (as time_offset.hpp's search).
+  double tau = 0.0, best_ss = std::numeric_limits<double>::infinity();
+  for (double t = -kProfileHalfWidth_s; t <= kProfileHalfWidth_s + 1e-9; t += kProfileStep_s) {
+    shift(t);
+    const Eigen::Matrix3d R_t = best_rotation(pairs, g);
+    double ss = 0.0;
+    for (std::size_t k = 0; k < n; ++k) ss += (pairs[k].u_sensor_nT - R_t * g[k]).squaredNorm();
+    if (ss < best_ss) best_ss = ss, tau = t;
+  }
+  shift(tau);
+  Eigen::Matrix3d R = best_rotation(pairs, g);
   // Jacobian of u - R g(tau) in (dtheta, tau): [(R g) x] and R g'(tau) (negated residual slope).
   auto normal_equations = [&](Eigen::Matrix4d* F, Eigen::Vector4d* rhs,
                               std::vector<Eigen::Vector4d>* scores,
@@ -134,7 +147,8 @@ AttitudeLagResult estimate_attitude_lag(const TimedAlignmentPairs& timed, int mi
   };
   Eigen::Matrix4d F;
   Eigen::Vector4d rhs;
-  for (int it = 0; it < kMaxIterations; ++it) {
+  bool converged = false;
+  for (int it = 0; it < kMaxIterations && !converged; ++it) {
     normal_equations(&F, &rhs, nullptr, nullptr);
     const Eigen::LDLT<Eigen::Matrix4d> ldlt(F);
     if (ldlt.info() != Eigen::Success || !(ldlt.vectorD().minCoeff() > 0.0)) {
@@ -146,7 +160,11 @@ AttitudeLagResult estimate_attitude_lag(const TimedAlignmentPairs& timed, int mi
     tau += step;
     shift(tau);
     R = best_rotation(pairs, g);
-    if (std::abs(step) < kLagTolerance_s) break;
+    converged = std::abs(step) < kLagTolerance_s;
+  }
+  if (!converged) {
+    out.message = "attitude lag: the fit did not converge";
+    return out;
   }
   std::vector<Eigen::Vector4d> scores(n);
   std::vector<Eigen::Vector3d> residuals(n);

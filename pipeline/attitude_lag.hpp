@@ -17,7 +17,8 @@
 // own motion (about twice the orbital rate in LEO), which the true lag does not. That leaves a
 // model error of |tau| times the field's inertial rate (~90 nT/s in LEO), with a bias of tau of
 // the order of that rate over the body rate; its sigma takes the bias's bound into account
-// (model_sigma_s).
+// (model_sigma_s), and the angles' covariance the misfit's size over |h| (per axis), so the
+// lag-corrected rotation's sigma is conservative (Monte-Carlo in alignment_check_test).
 #pragma once
 
 #include <cstdint>
