@@ -434,6 +434,16 @@ TEST_CASE("a recording's quaternion order or conjugate mix-up is refused and nam
   const ConstantFieldTruth t;
   const double sigma = 150.0;
   const FieldRecording good = simulate_constant_field(t, 3000, sigma, 21);
+  const auto fit = [&](const FieldRecording& rec) {
+    RecordingFitOptions o;
+    o.reference_magnitude_nT = t.f_enu_nT.norm();
+    o.sigma_nT = sigma;
+    o.batch.gate_options.expected_residual_nT = sigma;
+    std::string error;
+    const auto rep = fit_recording(rec, o, &error);
+    REQUIRE(rep);
+    return *rep;
+  };
   struct Mixup {
     bool scalar_last, conjugate;
     const char* named;
@@ -446,30 +456,18 @@ TEST_CASE("a recording's quaternion order or conjugate mix-up is refused and nam
       const QuaternionWxyz q = m.conjugate ? quaternion_conjugate(row.q_file) : row.q_file;
       row.q_file = m.scalar_last ? QuaternionWxyz(q(1), q(2), q(3), q(0)) : q;
     }
-    RecordingFitOptions o;
-    o.reference_magnitude_nT = t.f_enu_nT.norm();
-    o.sigma_nT = sigma;
-    o.batch.gate_options.expected_residual_nT = sigma;
-    std::string error;
-    const auto rep = fit_recording(rec, o, &error);
-    REQUIRE(rep);
-    INFO(rep->alignment.inconsistency);
-    CHECK_FALSE(rep->result.accepted);
-    CHECK(rep->alignment.inconsistency.find(m.named) != std::string::npos);
-    CHECK(rep->alignment.residual_per_axis_nT > 20.0 * sigma);
+    const RecordingFitReport rep = fit(rec);
+    INFO(rep.alignment.inconsistency);
+    CHECK_FALSE(rep.result.accepted);
+    CHECK(rep.alignment.inconsistency.find(m.named) != std::string::npos);
+    CHECK(rep.alignment.residual_per_axis_nT > 20.0 * sigma);
   }
   // The right convention stays accepted, its residual at the noise.
-  RecordingFitOptions o;
-  o.reference_magnitude_nT = t.f_enu_nT.norm();
-  o.sigma_nT = sigma;
-  o.batch.gate_options.expected_residual_nT = sigma;
-  std::string error;
-  const auto rep = fit_recording(good, o, &error);
-  REQUIRE(rep);
-  INFO(rep->alignment.inconsistency);
-  CHECK(rep->result.accepted);
-  CHECK(rep->alignment.inconsistency.empty());
-  CHECK(rep->alignment.residual_per_axis_nT < 1.5 * sigma);
+  const RecordingFitReport rep = fit(good);
+  INFO(rep.alignment.inconsistency);
+  CHECK(rep.result.accepted);
+  CHECK(rep.alignment.inconsistency.empty());
+  CHECK(rep.alignment.residual_per_axis_nT < 1.5 * sigma);
 }
 
 // --sigma-nT sets the residual gate's expectation as --help says: max(7.5, --sigma-nT).
