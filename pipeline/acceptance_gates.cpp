@@ -115,6 +115,8 @@ void bounds_gate(const CalibrationResult& r, const GateOptions& o, GateVerdict& 
                "order (a left-handed frame) and the attitude",
                100.0 * r.alignment.residual_fraction, 100.0 * o.max_alignment_residual_fraction));
   }
+  if (r.has_alignment && !r.alignment.inconsistency.empty())
+    v.reasons.push_back("alignment_inconsistent: " + r.alignment.inconsistency);
 }
 
 // d^T (P1 + P2)^-1 d for one block of the parameter difference; NaN when P1 + P2 is not

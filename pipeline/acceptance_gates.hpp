@@ -14,7 +14,9 @@
 //               min_fisher_eigenvalue.
 //  coverage     smallest eigenvalue of mean(d_k d_k^T), d_k = B_k / |B_k| the unit field
 //               direction in the sensor frame (1/3 for isotropic coverage, 0 for a plane).
-//  bounds       |b_i| <= max_bias_nT, |D_ii| <= max_scale, |D_ij| <= max_nonorthogonality.
+//  bounds       |b_i| <= max_bias_nT, |D_ii| <= max_scale, |D_ij| <= max_nonorthogonality;
+//               the alignment's residual fraction (alignment_mismatch) and its check of itself
+//               (alignment_inconsistent: AlignmentEstimate::inconsistency, alignment_check.hpp).
 //  change       vs the last accepted (full-window) result, using both covariances: bias and D
 //               separately, d^T (P + P_prev)^-1 d against the chi-square(3 resp. 6) quantile at
 //               1 - change_tail_probability; a block whose every component is within its floor

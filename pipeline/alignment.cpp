@@ -127,14 +127,17 @@ Eigen::Vector3d small_angle_step(const std::vector<AlignmentPair>& pairs,
 }  // namespace
 
 std::vector<AlignmentPair> make_alignment_pairs(const SampleSet& samples,
-                                                const std::vector<Eigen::Vector3d>& u_sensor_nT) {
+                                                const std::vector<Eigen::Vector3d>& u_sensor_nT,
+                                                std::vector<int64_t>* utime) {
   assert(u_sensor_nT.size() == samples.size());
   std::vector<AlignmentPair> pairs;
   pairs.reserve(samples.size());
+  if (utime) utime->clear();
   for (std::size_t k = 0; k < samples.size(); ++k) {
     const CalibrationSample& s = samples[k];
     if (!s.has_reference_direction || !finite(u_sensor_nT[k]) || !finite(s.h_body_nT)) continue;
     pairs.push_back({u_sensor_nT[k], s.h_body_nT});
+    if (utime) utime->push_back(s.utime);
   }
   return pairs;
 }

@@ -28,6 +28,7 @@
 //    Procrustes (h_k = A_k f) and f = mean_k A_k^T R^T u_k.
 #pragma once
 
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -51,8 +52,10 @@ std::vector<AlignmentPair> make_alignment_pairs(const SampleSet& samples,
                                                 const CalibrationParameters& params);
 // The same with the stage-1 calibrated vectors given (one per sample, sample order; e.g.
 // extension_corrected_vectors() when the batch fit enabled the sensor-model extension).
+// utime: when given, receives each pair's time tag.
 std::vector<AlignmentPair> make_alignment_pairs(const SampleSet& samples,
-                                                const std::vector<Eigen::Vector3d>& u_sensor_nT);
+                                                const std::vector<Eigen::Vector3d>& u_sensor_nT,
+                                                std::vector<int64_t>* utime = nullptr);
 
 // What stage-1 errors do to the angles (first order): Cov = G_p C_p G_p^T + G_a C_a G_a^T,
 // G_p = F^-1 sum_k J_k^T du_k/dp, J_k = [(R h_k) x], du_k/dp = 3 x 9 (-I for b, B_k entries for

@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "pipeline/alignment.hpp"
+#include "pipeline/alignment_check.hpp"
 #include "pipeline/batch_estimator_bias.hpp"
 #include "pipeline/batch_model_selection.hpp"
 #include "pipeline/batch_screening.hpp"
@@ -186,7 +187,8 @@ CalibrationResult calibrate_batch_window(const SampleSet& samples,
   }
 
   if (options.alignment) {
-    estimate_alignment(corrected, options.sigma_nT, options.min_alignment_samples, &r);
+    estimate_alignment(corrected, options.sigma_nT, options.min_alignment_samples, &r, nullptr,
+                       options.estimate_attitude_lag);
   }
 
   if (options.gates) {
@@ -325,7 +327,8 @@ CalibrationResult calibrate_batch_core(const SampleSet& samples,
 }  // namespace
 
 void estimate_alignment(const SampleSet& samples, double sigma_nT, int min_alignment_samples,
-                        CalibrationResult* r, const CalibrationResult* refit) {
+                        CalibrationResult* r, const CalibrationResult* refit,
+                        bool estimate_attitude_lag) {
   const ExtensionInputs in = extension_inputs(samples, r->parameters, sigma_nT);
   // The extension removed from the vectors: the one fitted jointly with b, D, else one fitted at
   // b, D when the data support it (the hysteresis is a lag of the field, much like a rotation
@@ -348,21 +351,19 @@ void estimate_alignment(const SampleSet& samples, double sigma_nT, int min_align
       a_covariance = fit.covariance;
     }
   }
+  std::vector<int64_t> utime;
   const std::vector<AlignmentPair> pairs = make_alignment_pairs(
-      samples, corrected ? extension_corrected_vectors(in, a.head<3>(), a.tail<3>()) : in.y_nT);
+      samples, corrected ? extension_corrected_vectors(in, a.head<3>(), a.tail<3>()) : in.y_nT,
+      &utime);
   if (static_cast<int>(pairs.size()) < min_alignment_samples) return;
   const AlignmentResult al = align_procrustes(pairs);  // covariance from the residuals' structure
   if (!al.ok()) return;
-  r->has_alignment = true;
-  r->alignment = al.estimate;
-  double sum_h2 = 0.0;
-  for (const AlignmentPair& p : pairs) sum_h2 += p.h_body_nT.squaredNorm();
-  r->alignment.residual_fraction =
-      al.residual_rms_nT / std::sqrt(sum_h2 / static_cast<double>(pairs.size()));
   // The stage-1 estimate's own error moves the rotation too.
-  r->alignment.angle_covariance_rad2 +=
+  const Eigen::Matrix3d stage1_covariance =
       alignment_covariance_from_stage1(samples, al.estimate.R_sensor_from_body, r->covariance,
                                        corrected ? &in : nullptr, a_covariance);
+  apply_alignment_check(timed_alignment_pairs(pairs, utime), al, stage1_covariance,
+                        {sigma_nT, r->residual_rms_nT, estimate_attitude_lag}, r);
 }
 
 namespace {

@@ -86,7 +86,8 @@ struct BatchCalibrationOptions {
   double max_fisher_condition = 1e10;     // scaled Fisher matrix at the estimate
   bool alignment = true;                  // stage 2 when reference directions are available
   int min_alignment_samples = 10;
-  bool gates = true;  // apply the acceptance gates
+  bool estimate_attitude_lag = false;  // fit the attitude-magnetometer lag with the rotation
+  bool gates = true;                   // apply the acceptance gates
   // twostep: remove the estimator's bias measured by a parametric bootstrap where it can matter
   // (header comment); bootstrap_replicates refits when it runs.
   bool bias_correction = true;
@@ -124,7 +125,10 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
 // when fewer than min_alignment_samples carry a direction or Procrustes fails. The joint fit's
 // extension is the better one: at a 9-parameter b, D part of the hysteresis is already absorbed
 // (tumbling, 24 h: fitted amplitude 7 nT against 10 in truth, yaw 20 arcsec off; joint: 0.5).
+// The rotation then checks itself (pipeline/alignment_check.hpp: r->alignment.inconsistency,
+// the attitude lag), with the lag fitted jointly when estimate_attitude_lag.
 void estimate_alignment(const SampleSet& samples, double sigma_nT, int min_alignment_samples,
-                        CalibrationResult* r, const CalibrationResult* refit = nullptr);
+                        CalibrationResult* r, const CalibrationResult* refit = nullptr,
+                        bool estimate_attitude_lag = false);
 
 }  // namespace magcal

@@ -37,6 +37,14 @@ struct AlignmentEstimate {
   // attitude errors, ~1 when no rotation maps one set on the other (a sign-flipped or swapped
   // sensor axis is a reflection). Not persisted.
   double residual_fraction = 0.0;
+  // The stage's check of itself (pipeline/alignment_check.hpp), not persisted: why the rotation
+  // is refused ("" = its residual is what the noise leaves), and the time lag between attitude
+  // and magnetometer estimated from the same pairs (s, pipeline/attitude_lag.hpp's sign; NaN:
+  // not estimated), applied to the rotation or only reported.
+  std::string inconsistency;
+  double attitude_lag_s = std::numeric_limits<double>::quiet_NaN();
+  double attitude_lag_sigma_s = std::numeric_limits<double>::quiet_NaN();
+  bool attitude_lag_applied = false;
 };
 
 // What a refit without a temperature channel estimated of a bias swing at the orbital period

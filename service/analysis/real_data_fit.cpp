@@ -7,6 +7,7 @@
 
 #include <fmt/format.h>
 
+#include "pipeline/alignment_check.hpp"
 #include "pipeline/frames.hpp"
 #include "pipeline/rotation.hpp"
 #include "pipeline/time_utc.hpp"
@@ -22,6 +23,8 @@ constexpr double kFirstPassSigma_nT = 100.0;
 constexpr int kMaxSigmaPasses = 4;
 constexpr double kJointToleranceRad = 1e-7;
 constexpr double kSigmaRelTolerance = 0.02;
+// As the batch alignment's check (AlignmentCheckOptions::max_systematic_ratio).
+constexpr double kMaxResidualRatio = AlignmentCheckOptions{}.max_systematic_ratio;
 
 bool usable(const CalibrationResult& r) {
   return r.status != CalibrationStatus::kFailed && r.status != CalibrationStatus::kUnobservable;
@@ -37,25 +40,59 @@ Eigen::Vector3d per_axis_std(const std::vector<Eigen::Vector3d>& v, Eigen::Vecto
   return (sq / static_cast<double>(v.size())).cwiseSqrt();
 }
 
-RecordingAlignment align_constant_field(const FieldRecording& rec, const CalibrationParameters& p) {
+// The quaternion conventions a recording may hold under its w, x, y, z headers, as the
+// q_body_from_enu they give (the file's q maps IMU (body) -> ENU, so q_body_from_enu = conj(q)).
+struct QuaternionConvention {
+  const char* name;  // how a refusal names it
+  bool scalar_last;  // the columns hold x, y, z, w
+  bool conjugate;    // the file's q maps ENU -> IMU
+};
+constexpr QuaternionConvention kQuaternionConventions[] = {
+    {"", false, false},
+    {"the quaternion columns look like x, y, z, w (scalar last) under w, x, y, z headers", true,
+     false},
+    {"the quaternions look conjugated (ENU -> IMU, not IMU -> ENU)", false, true},
+    {"the quaternion columns look like x, y, z, w (scalar last) under w, x, y, z headers, and "
+     "conjugated",
+     true, true}};
+
+Eigen::Matrix3d body_from_enu(const QuaternionWxyz& q_file, const QuaternionConvention& c) {
+  const QuaternionWxyz q =
+      c.scalar_last ? QuaternionWxyz(q_file(3), q_file(0), q_file(1), q_file(2)) : q_file;
+  return dcm_from_quaternion(c.conjugate ? q : quaternion_conjugate(q));
+}
+
+JointAlignmentResult joint_alignment(const std::vector<Eigen::Vector3d>& u,
+                                     const std::vector<Eigen::Matrix3d>& A) {
+  JointAlignmentOptions jo;
+  // The default 1e-12 rad takes hundreds of alternations on 51 000 BROAD pairs (slow under
+  // ASan). The alternation converges linearly (rate ~0.85 on BROAD), so the error is ~7x the
+  // last step: 1e-7 rad leaves < 1e-6 rad, ~1 % of the angles' sigma there (~1e-4 rad).
+  jo.tolerance_rad = kJointToleranceRad;
+  return align_with_unknown_reference(u, A, jo);
+}
+
+// Residual rms per axis of u_k against R A_k f.
+double residual_per_axis_nT(const JointAlignmentResult& joint) {
+  return joint.alignment.residual_rms_nT / std::sqrt(3.0);
+}
+
+RecordingAlignment align_constant_field(const FieldRecording& rec, const CalibrationParameters& p,
+                                        double expected_per_axis_nT) {
   RecordingAlignment out;
   std::vector<Eigen::Vector3d> u;
+  std::vector<const QuaternionWxyz*> q_file;
   std::vector<Eigen::Matrix3d> A;
   u.reserve(rec.rows.size());
   A.reserve(rec.rows.size());
   for (const FieldRecordingRow& row : rec.rows) {
     if (!row.has_quaternion) continue;
     u.push_back(p.apply(row.b_sensor_nT));
-    // q_file: IMU (body) -> ENU, so q_body_from_enu = conj(q_file).
-    A.push_back(dcm_from_quaternion(quaternion_conjugate(row.q_file)));
+    q_file.push_back(&row.q_file);
+    A.push_back(body_from_enu(row.q_file, kQuaternionConventions[0]));
   }
   out.n_pairs = static_cast<int>(u.size());
-  JointAlignmentOptions jo;
-  // The default 1e-12 rad takes hundreds of alternations on 51 000 BROAD pairs (slow under
-  // ASan). The alternation converges linearly (rate ~0.85 on BROAD), so the error is ~7x the
-  // last step: 1e-7 rad leaves < 1e-6 rad, ~1 % of the angles' sigma there (~1e-4 rad).
-  jo.tolerance_rad = kJointToleranceRad;
-  out.joint = align_with_unknown_reference(u, A, jo);
+  out.joint = joint_alignment(u, A);
   if (!out.joint.alignment.ok() && out.joint.alignment.status != AlignmentStatus::kNotConverged) {
     out.message =
         std::string(to_string(out.joint.alignment.status)) + ": " + out.joint.alignment.message;
@@ -71,6 +108,31 @@ RecordingAlignment align_constant_field(const FieldRecording& rec, const Calibra
   out.enu_std_nT = per_axis_std(f_hat, &out.field_enu_nT);
   out.enu_std_identity_nT = per_axis_std(f_id, nullptr);
   out.estimated = true;
+
+  // The check of itself: a constant field leaves the noise; beyond it is a wrong attitude (a
+  // convention mix-up, named when another convention fits). Bench captures hold the attitude
+  // in arbitrary order, so the whole residual is judged (the batch check's slowly varying part
+  // assumes an orbit's smooth time series).
+  out.residual_per_axis_nT = residual_per_axis_nT(out.joint);
+  if (!(out.residual_per_axis_nT > kMaxResidualRatio * expected_per_axis_nT)) return out;
+  out.inconsistency = fmt::format(
+      "after the best rotation the residual is {:.1f} nT per axis, more than {:g} x the {:.1f} nT "
+      "the noise leaves",
+      out.residual_per_axis_nT, kMaxResidualRatio, expected_per_axis_nT);
+  double best = out.residual_per_axis_nT;
+  const char* named = nullptr;
+  std::vector<Eigen::Matrix3d> A_other(u.size());
+  for (const QuaternionConvention& c : kQuaternionConventions) {
+    if (!c.scalar_last && !c.conjugate) continue;
+    for (std::size_t k = 0; k < u.size(); ++k) A_other[k] = body_from_enu(*q_file[k], c);
+    const double s = residual_per_axis_nT(joint_alignment(u, A_other));
+    if (s < best) best = s, named = c.name;
+  }
+  if (named && best <= kMaxResidualRatio * expected_per_axis_nT)
+    out.inconsistency +=
+        fmt::format(": {} ({:.1f} nT per axis so; a diagnosis, not applied)", named, best);
+  else
+    out.inconsistency += ": check the quaternions' convention, the sensor axes and the field";
   return out;
 }
 
@@ -236,10 +298,19 @@ std::optional<RecordingFitReport> fit_recording(const FieldRecording& rec,
   }
 
   if (options.alignment && constant && rec.has_quaternion_columns && usable(rep.result)) {
-    rep.alignment = align_constant_field(rec, rep.result.parameters);
+    rep.alignment = align_constant_field(rec, rep.result.parameters,
+                                         std::max(rep.sigma_used_nT, rep.result.residual_rms_nT));
     if (rep.alignment.estimated) {
       rep.result.has_alignment = true;
       rep.result.alignment = rep.alignment.joint.alignment.estimate;
+      rep.result.alignment.inconsistency = rep.alignment.inconsistency;
+    }
+    if (!rep.alignment.inconsistency.empty()) {  // refused as the batch gates refuse it
+      GateVerdict verdict;
+      verdict.accepted = false;
+      verdict.reasons = rep.result.rejection_reasons;
+      verdict.reasons.push_back("alignment_inconsistent: " + rep.alignment.inconsistency);
+      apply_verdict(rep.result, verdict);
     }
   } else if (rec.has_quaternion_columns) {
     rep.alignment.message = constant ? "stage 1 failed" : "only with a constant reference field";

@@ -68,6 +68,11 @@ struct RecordingAlignment {
   Eigen::Vector3d enu_std_nT = Eigen::Vector3d::Zero();           // per-axis std, R_hat
   Eigen::Vector3d enu_std_identity_nT = Eigen::Vector3d::Zero();  // per-axis std, R = I
   int n_pairs = 0;
+  // The check of itself: the residual rms per axis of u_k against R A_k f, and why the rotation
+  // is refused ("" = within 5 x the noise; otherwise the result is rejected with
+  // alignment_inconsistent), naming a quaternion convention that fits.
+  double residual_per_axis_nT = 0.0;
+  std::string inconsistency;
 };
 
 struct RecordingFitReport {

@@ -59,10 +59,13 @@ struct FitArgs {
   std::string reference_magnitude;  // "auto" | value in nT (constant field); empty: IGRF
   bool split_halves = false;
   std::optional<double> expected_residual_nT;  // residual gate's expected rms
+  bool estimate_attitude_lag = false;          // fit the attitude lag with the rotation
   // Roll/pitch/yaw within this of pitch +-90 deg are reported singular (roll_pitch_yaw_report).
   double gimbal_lock_margin_deg = kDefaultGimbalLockMargin_deg;
 };
 int run_fit(const FitArgs& args);
+// The residual gate's expected rms: --expected-residual-nT, else at least the stated noise.
+double gate_expected_residual_nT(const FitArgs& args);
 // Dispatched from run_fit when the CSV is not the design's sample format.
 int run_recording_fit(const FitArgs& args);
 

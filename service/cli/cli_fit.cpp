@@ -196,7 +196,7 @@ FilterRun run_filter(Filter& filter, const SampleSet& samples, std::FILE* trace)
 }
 
 void finish_filter_result(CalibrationResult& r, const SampleSet& samples, double sigma_nT,
-                          const CalibrationResult& refit) {
+                          const CalibrationResult& refit, bool estimate_attitude_lag) {
   r.n_samples = static_cast<int>(samples.size());
   r.window_start_utime = samples.front().utime;
   r.window_end_utime = samples.back().utime;
@@ -207,8 +207,8 @@ void finish_filter_result(CalibrationResult& r, const SampleSet& samples, double
   }
   r.residual_rms_nT = std::sqrt(sum_sq / static_cast<double>(samples.size()));
   r.converged = r.status == CalibrationStatus::kOk;
-  estimate_alignment(samples, sigma_nT, BatchCalibrationOptions{}.min_alignment_samples, &r,
-                     &refit);
+  estimate_alignment(samples, sigma_nT, BatchCalibrationOptions{}.min_alignment_samples, &r, &refit,
+                     estimate_attitude_lag);
   GateInputs in;
   in.min_coverage_eigenvalue = direction_coverage_eigenvalues(samples)(0);
   GateVerdict verdict = evaluate_gates(r, in);
@@ -284,6 +284,10 @@ void print_text(const CalibrationResult& r, double compute_ms, double convergenc
     line("alignment_sigma",
          fmt::format("roll {}  pitch {}  yaw {}  (deg)", sigma_text(a.sigma_rad(0)),
                      sigma_text(a.sigma_rad(1)), sigma_text(a.sigma_rad(2))));
+    if (!std::isnan(r.alignment.attitude_lag_s))
+      line("attitude_lag_s", fmt::format("{:.3f} +- {:.3f}{}", r.alignment.attitude_lag_s,
+                                         r.alignment.attitude_lag_sigma_s,
+                                         r.alignment.attitude_lag_applied ? " (applied)" : ""));
     for (int i = 0; i < 3; ++i) {
       const Eigen::Vector3d c = C.row(i).transpose() * (kRadToDeg * kRadToDeg);
       line(i == 0 ? "alignment_cov_deg2" : "",
@@ -368,12 +372,8 @@ CalibrationResult fit_batch(const FitArgs& args, const SampleSet& samples) {
   parse_batch_method(args.method, &opt.method);
   opt.sigma_nT = args.sigma_nT;
   opt.robust = args.robust;
-  // The residual gate judges against what this sensor should leave: the stated
-  // --expected-residual-nT, else at least the stated noise (a 600 nT-noise sensor cannot
-  // leave the paper sensor's 7.5 nT).
-  opt.gate_options.expected_residual_nT =
-      args.expected_residual_nT ? *args.expected_residual_nT
-                                : std::max(opt.gate_options.expected_residual_nT, args.sigma_nT);
+  opt.gate_options.expected_residual_nT = gate_expected_residual_nT(args);
+  opt.estimate_attitude_lag = args.estimate_attitude_lag;
   CalibrationResult r = calibrate_batch(samples, opt);
   // Temperatures that vary but are too few for the model leave a thermal bias unmodelled: say
   // so (the fit itself cannot tell a thermal swing it does not model from noise).
@@ -556,12 +556,20 @@ int fit_filter(const FitArgs& args, SampleSet& samples, CalibrationResult& r,
   }
   r = run.result;
   convergence_time_s = run.convergence_time_s;
-  finish_filter_result(r, filtered, args.sigma_nT, refit);
+  finish_filter_result(r, filtered, args.sigma_nT, refit, args.estimate_attitude_lag);
   temperature.describe(r);
   return kExitOk;
 }
 
 }  // namespace
+
+// The residual gate judges against what this sensor should leave: the stated
+// --expected-residual-nT, else at least the stated noise (a 600 nT-noise sensor cannot leave the
+// paper sensor's 7.5 nT).
+double gate_expected_residual_nT(const FitArgs& args) {
+  return args.expected_residual_nT ? *args.expected_residual_nT
+                                   : std::max(GateOptions{}.expected_residual_nT, args.sigma_nT);
+}
 
 int run_fit(const FitArgs& args) {
   const bool batch = args.method == "centered" || args.method == "twostep";

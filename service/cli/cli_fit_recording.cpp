@@ -95,6 +95,11 @@ int run_recording_fit(const FitArgs& args) {
       return kExitUsage;
     }
   }
+  if (args.estimate_attitude_lag) {
+    std::cerr << "magcal fit: --estimate-attitude-lag applies to magcal sample files (design.md) "
+                 "only; a recording's alignment is checked for quaternion conventions instead\n";
+    return kExitUsage;
+  }
   if (args.skip_first < 0) {
     std::cerr << "magcal fit: --skip-first must be >= 0\n";
     return kExitUsage;
@@ -106,8 +111,7 @@ int run_recording_fit(const FitArgs& args) {
   parse_batch_method(args.method, &fo.batch.method);
   fo.batch.robust = args.robust;
   if (args.sigma_given) fo.sigma_nT = args.sigma_nT;
-  if (args.expected_residual_nT)
-    fo.batch.gate_options.expected_residual_nT = *args.expected_residual_nT;
+  fo.batch.gate_options.expected_residual_nT = gate_expected_residual_nT(args);
   fo.estimate_time_offset = args.estimate_time_offset;
   fo.time_offset_s = args.time_offset_s;
   fo.split_halves = args.split_halves;

@@ -193,6 +193,8 @@ CLI::App* add_fit_command(CLI::App& app, magcal::cli::FitArgs& args) {
       ->check(real_number());
   command->add_option("--skip-first", args.skip_first, "recording CSV: drop the first N rows")
       ->check(whole_number(0, kIntMax));
+  command->add_flag("--estimate-attitude-lag", args.estimate_attitude_lag,
+                    "sample files: fit the attitude-magnetometer time lag with the alignment");
   command->add_flag("--estimate-time-offset", args.estimate_time_offset,
                     "recording CSV: estimate the time-tag offset of the position stream");
   command->add_option("--offset-range-s", args.offset_range_s,

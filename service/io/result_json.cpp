@@ -76,6 +76,14 @@ nlohmann::json calibration_result_to_json(const CalibrationResult& result,
           {"roll", json_number(s(0))}, {"pitch", json_number(s(1))}, {"yaw", json_number(s(2))}};
     }
     j["alignment_singular"] = a.singular;
+    // The stage's check of itself: the attitude lag it estimated, and why it refused the rotation.
+    if (!std::isnan(result.alignment.attitude_lag_s)) {
+      j["alignment_attitude_lag_s"] = json_number(result.alignment.attitude_lag_s);
+      j["alignment_attitude_lag_sigma_s"] = json_number(result.alignment.attitude_lag_sigma_s);
+      j["alignment_attitude_lag_applied"] = result.alignment.attitude_lag_applied;
+    }
+    if (!result.alignment.inconsistency.empty())
+      j["alignment_inconsistency"] = result.alignment.inconsistency;
     if (a.singular) {
       j["alignment_determined_deg"] = {{a.combination_name, a.combination_rad * kRadToDeg}};
       j["alignment_canonical_error_deg"] = a.canonical_rotation_error_rad * kRadToDeg;

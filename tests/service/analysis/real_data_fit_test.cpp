@@ -378,10 +378,9 @@ TEST_CASE("recording fit off-nominal: unusable inputs are errors, not garbage", 
   }
 }
 
-TEST_CASE("magcal fit dispatches a foreign CSV to the recording fit (JSON keys)", "[sim][cli]") {
-  // A BROAD-layout temp file from the simulated recording (the real file takes ~10 s under ASan).
-  const ConstantFieldTruth t;
-  const FieldRecording rec = simulate_constant_field(t, 1500, 50.0, 14);
+// `magcal fit --input <the recording as a BROAD-layout temp file> <flags> --json`, parsed (the
+// real file takes ~10 s under ASan).
+nlohmann::json magcal_fit_json(const FieldRecording& rec, const std::string& flags) {
   const std::string path =
       (std::filesystem::temp_directory_path() / "magcal_real_data_fit_cli.csv").string();
   {
@@ -399,8 +398,8 @@ TEST_CASE("magcal fit dispatches a foreign CSV to the recording fit (JSON keys)"
     }
     std::fclose(f);
   }
-  const std::string cmd = std::string(MAGCAL_BIN_DIR) + "/magcal fit --input " + path +
-                          " --reference-magnitude auto --expected-residual-nT 60 --json";
+  const std::string cmd =
+      std::string(MAGCAL_BIN_DIR) + "/magcal fit --input " + path + " " + flags + " --json";
   std::string out;
   {
     std::unique_ptr<FILE, int (*)(FILE*)> pipe(popen(cmd.c_str(), "r"), pclose);
@@ -410,7 +409,14 @@ TEST_CASE("magcal fit dispatches a foreign CSV to the recording fit (JSON keys)"
   }
   std::error_code ec;
   std::filesystem::remove(path, ec);
-  const nlohmann::json j = nlohmann::json::parse(out, nullptr, false);
+  return nlohmann::json::parse(out, nullptr, false);
+}
+
+TEST_CASE("magcal fit dispatches a foreign CSV to the recording fit (JSON keys)", "[sim][cli]") {
+  const ConstantFieldTruth t;
+  const FieldRecording rec = simulate_constant_field(t, 1500, 50.0, 14);
+  const nlohmann::json j =
+      magcal_fit_json(rec, "--reference-magnitude auto --expected-residual-nT 60");
   REQUIRE_FALSE(j.is_discarded());
   for (const char* key :
        {"bias_nT", "D", "residual_rms_nT", "verdict", "rejection_reasons", "reference_magnitude_nT",
@@ -420,4 +426,59 @@ TEST_CASE("magcal fit dispatches a foreign CSV to the recording fit (JSON keys)"
   CHECK(j["verdict"] == "accepted");
   CHECK(j["n_missing_quaternion"] == rec.n_missing_quaternion);
   CHECK(j["reference"] == "constant");
+}
+
+// A noisy bench capture (150 nT) with the quaternions in the wrong convention: the alignment is
+// refused, naming the convention that fits; never applied.
+TEST_CASE("a recording's quaternion order or conjugate mix-up is refused and named", "[sim]") {
+  const ConstantFieldTruth t;
+  const double sigma = 150.0;
+  const FieldRecording good = simulate_constant_field(t, 3000, sigma, 21);
+  const auto fit = [&](const FieldRecording& rec) {
+    RecordingFitOptions o;
+    o.reference_magnitude_nT = t.f_enu_nT.norm();
+    o.sigma_nT = sigma;
+    o.batch.gate_options.expected_residual_nT = sigma;
+    std::string error;
+    const auto rep = fit_recording(rec, o, &error);
+    REQUIRE(rep);
+    return *rep;
+  };
+  struct Mixup {
+    bool scalar_last, conjugate;
+    const char* named;
+  };
+  for (const Mixup& m :
+       {Mixup{true, false, "the quaternion columns look like x, y, z, w (scalar last)"},
+        Mixup{false, true, "the quaternions look conjugated"}}) {
+    FieldRecording rec = good;
+    for (FieldRecordingRow& row : rec.rows) {
+      const QuaternionWxyz q = m.conjugate ? quaternion_conjugate(row.q_file) : row.q_file;
+      row.q_file = m.scalar_last ? QuaternionWxyz(q(1), q(2), q(3), q(0)) : q;
+    }
+    const RecordingFitReport rep = fit(rec);
+    INFO(rep.alignment.inconsistency);
+    CHECK_FALSE(rep.result.accepted);
+    CHECK(rep.alignment.inconsistency.find(m.named) != std::string::npos);
+    CHECK(rep.alignment.residual_per_axis_nT > 20.0 * sigma);
+  }
+  // The right convention stays accepted, its residual at the noise.
+  const RecordingFitReport rep = fit(good);
+  INFO(rep.alignment.inconsistency);
+  CHECK(rep.result.accepted);
+  CHECK(rep.alignment.inconsistency.empty());
+  CHECK(rep.alignment.residual_per_axis_nT < 1.5 * sigma);
+}
+
+// --sigma-nT sets the residual gate's expectation as --help says: max(7.5, --sigma-nT).
+TEST_CASE("magcal fit on a recording: --sigma-nT drives the expected residual", "[sim][cli]") {
+  const ConstantFieldTruth t;
+  const FieldRecording rec = simulate_constant_field(t, 1500, 150.0, 22);
+  const nlohmann::json j = magcal_fit_json(
+      rec, "--reference-magnitude " + std::to_string(t.f_enu_nT.norm()) + " --sigma-nT 150");
+  REQUIRE_FALSE(j.is_discarded());
+  INFO(j.dump());
+  CHECK(j["verdict"] == "accepted");
+  for (const auto& reason : j["rejection_reasons"])
+    CHECK(reason.get<std::string>().find("residual") == std::string::npos);
 }
