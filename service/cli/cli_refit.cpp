@@ -14,8 +14,8 @@
 
 #include "pipeline/time_utc.hpp"
 #include "service/cli/cli_commands.hpp"
-#include "service/daemon/daemon_config.hpp"
-#include "service/daemon/refit_runner.hpp"
+#include "service/config/daemon_config.hpp"
+#include "service/refit/refit_runner.hpp"
 #include "service/io/result_json.hpp"
 
 namespace magcal::cli {

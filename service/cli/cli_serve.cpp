@@ -10,7 +10,7 @@
 #include <iostream>
 
 #include "service/cli/cli_commands.hpp"
-#include "service/daemon/daemon_config.hpp"
+#include "service/config/daemon_config.hpp"
 #include "service/http/metrics.hpp"
 #include "service/http/operations_server.hpp"
 #include "service/io/read_only_database.hpp"

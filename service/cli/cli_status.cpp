@@ -4,7 +4,7 @@
 #include <string>
 
 #include "service/cli/cli_commands.hpp"
-#include "service/daemon/daemon_config.hpp"
+#include "service/config/daemon_config.hpp"
 #include "service/io/read_only_database.hpp"
 #include "service/io/status_report.hpp"
 

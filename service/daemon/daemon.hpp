@@ -26,7 +26,7 @@
 // TimeoutStopSec would kill it (a PostgreSQL outage without a spill file to take the samples).
 //
 // Never half-alive: storage that stays broken for [storage] max_failure_s (each failed
-// operation kept and retried, service/daemon/storage_retry.hpp), or a worker or refit thread that
+// operation kept and retried, service/daemon/intake/storage_retry.hpp), or a worker or refit thread that
 // dies for any reason, stops receiving and ends run() with a non-zero exit code and the reason in
 // the log; every received sample that was not committed is counted as storage_error and logged
 // (re-running a replay fills them: stored samples come back as counted duplicates).
@@ -39,7 +39,7 @@
 // it (spill, time bases, leases) once it answers (IngestWorker::restore()); the refit thread
 // waits for that. Past [storage] pg_max_failure_s: exit 3, as in any outage.
 //
-// Under systemd (Type=notify, WatchdogSec; service/daemon/systemd_notifier.hpp): READY=1 once
+// Under systemd (Type=notify, WatchdogSec; service/daemon/ops/systemd_notifier.hpp): READY=1 once
 // open() succeeded and the LCM subscription is live (it receives: also while the database is
 // unreachable, which /-/ready and STATUS= show), WATCHDOG=1 from the worker loop, STATUS= with
 // every status message, STOPPING=1 when run() stops receiving and the drain starts.
@@ -49,8 +49,8 @@
 #include <memory>
 #include <string>
 
-#include "service/daemon/daemon_config.hpp"
-#include "service/daemon/health.hpp"
+#include "service/config/daemon_config.hpp"
+#include "service/daemon/ops/health.hpp"
 #include "service/io/exit_codes.hpp"
 
 namespace magcal {

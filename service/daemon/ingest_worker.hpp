@@ -51,12 +51,12 @@
 #include <stdexcept>
 
 #include "pipeline/calibration_result.hpp"
-#include "service/daemon/daemon_config.hpp"
-#include "service/daemon/health.hpp"
-#include "service/daemon/ingest_queue.hpp"
-#include "service/daemon/owned_spacecraft_tracker.hpp"
-#include "service/daemon/sample_intake.hpp"
-#include "service/daemon/spacecraft_tracker.hpp"
+#include "service/config/daemon_config.hpp"
+#include "service/daemon/ops/health.hpp"
+#include "service/daemon/intake/ingest_queue.hpp"
+#include "service/daemon/ownership/owned_spacecraft_tracker.hpp"
+#include "service/daemon/intake/sample_intake.hpp"
+#include "service/daemon/ownership/spacecraft_tracker.hpp"
 #include "service/io/reference_field.hpp"
 #include "storage/connection.hpp"
 #include "storage/refit_job_log.hpp"

@@ -16,7 +16,7 @@
 #include <CLI/CLI.hpp>
 
 #include "service/daemon/daemon.hpp"
-#include "service/daemon/daemon_config.hpp"
+#include "service/config/daemon_config.hpp"
 
 namespace {
 

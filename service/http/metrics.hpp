@@ -30,7 +30,7 @@
 //   magcal_storage_failing_seconds          how long storage has been failing (0: it works)
 //   magcal_storage_pending_samples          received samples held in memory, not committed
 //   magcal_samples_spilled_total            samples written to the spill file (PostgreSQL
-//                                           outages: service/daemon/sample_spill.hpp)
+//                                           outages: service/daemon/intake/sample_spill.hpp)
 //   magcal_spill_samples                    samples in the spill file, not committed yet (an
 //                                           earlier run's too)
 //   magcal_spill_bytes                      size of the spill file
@@ -69,7 +69,7 @@
 namespace magcal::http {
 
 // The daemon's /metrics. The daemon keeps its counters once, in its own types
-// (service/daemon/health.hpp); this collector reads them at scrape time through a source the
+// (service/daemon/ops/health.hpp); this collector reads them at scrape time through a source the
 // daemon sets, so no sample is counted twice and the ingest path knows no metrics library.
 class DaemonMetrics {
  public:

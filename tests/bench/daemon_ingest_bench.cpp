@@ -36,8 +36,8 @@
 
 #include "service/daemon/daemon.hpp"
 #include "service/daemon/ingest_worker.hpp"
-#include "service/daemon/lcm_ingest.hpp"
-#include "service/daemon/spacecraft_tracker.hpp"
+#include "service/daemon/intake/lcm_ingest.hpp"
+#include "service/daemon/ownership/spacecraft_tracker.hpp"
 #include "service/io/reference_field.hpp"
 
 // Last: <httplib.h> pulls in <resolv.h>, whose `_res` macro breaks Eigen's headers.

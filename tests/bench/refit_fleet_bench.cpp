@@ -15,7 +15,7 @@
 
 #include <Eigen/LU>
 
-#include "service/daemon/refit_runner.hpp"
+#include "service/refit/refit_runner.hpp"
 #include "storage/sqlite/sqlite_stores.hpp"
 
 using namespace magcal;

@@ -1,7 +1,7 @@
 // The online filters' temperature correction: a refit's bias temperature model moves each sample
 // to the model's reference temperature, a missing temperature takes a recent one, else the sample
 // is not for the filter. Checked on hand-made models (the end-to-end accuracy of a filter using
-// it: tests/service/daemon/spacecraft_tracker_test.cpp).
+// it: tests/service/daemon/ownership/spacecraft_tracker_test.cpp).
 #include <cmath>
 #include <limits>
 

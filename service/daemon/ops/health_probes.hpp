@@ -18,8 +18,8 @@
 #include <functional>
 #include <string>
 
-#include "service/daemon/daemon_config.hpp"
-#include "service/daemon/health.hpp"
+#include "service/config/daemon_config.hpp"
+#include "service/daemon/ops/health.hpp"
 #include "storage/connection.hpp"
 
 namespace magcal {

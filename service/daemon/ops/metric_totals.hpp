@@ -2,7 +2,7 @@
 // counts once, in its own types, and the metrics library only sees these totals.
 #pragma once
 
-#include "service/daemon/health.hpp"
+#include "service/daemon/ops/health.hpp"
 #include "service/http/metrics.hpp"
 
 namespace magcal {

@@ -9,7 +9,7 @@
 #include <memory>
 #include <string>
 
-#include "service/daemon/daemon_config.hpp"
+#include "service/config/daemon_config.hpp"
 #include "service/daemon/ops/health_probes.hpp"
 
 namespace magcal {

@@ -8,7 +8,7 @@
 #include <spdlog/spdlog.h>
 
 #include "pipeline/time_utc.hpp"
-#include "service/daemon/owned_spacecraft_tracker.hpp"
+#include "service/daemon/ownership/owned_spacecraft_tracker.hpp"
 
 namespace magcal {
 namespace {

@@ -6,7 +6,7 @@
 
 #include "pipeline/time_utc.hpp"
 #include "service/daemon/ingest_worker.hpp"
-#include "service/daemon/lcm_publisher.hpp"
+#include "service/daemon/ops/lcm_publisher.hpp"
 #include "service/io/calibration_record.hpp"
 #include "storage/refit_job_log.hpp"
 

@@ -7,11 +7,11 @@
 
 #include <memory>
 
-#include "service/daemon/daemon_config.hpp"
-#include "service/daemon/health.hpp"
+#include "service/config/daemon_config.hpp"
+#include "service/daemon/ops/health.hpp"
 #include "service/daemon/refit/refit_thread.hpp"
-#include "service/daemon/refit_runner.hpp"
-#include "service/daemon/storage_retry.hpp"
+#include "service/refit/refit_runner.hpp"
+#include "service/daemon/intake/storage_retry.hpp"
 #include "storage/connection.hpp"
 
 namespace magcal {

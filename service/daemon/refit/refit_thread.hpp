@@ -20,7 +20,7 @@
 #include <set>
 #include <string>
 
-#include "service/daemon/refit_scheduler.hpp"
+#include "service/refit/refit_scheduler.hpp"
 #include "storage/refit_job_log.hpp"
 
 namespace magcal {

@@ -19,7 +19,7 @@
 #include <fstream>
 #include <random>
 
-#include "service/daemon/daemon_config.hpp"
+#include "service/config/daemon_config.hpp"
 #include "tests/service/daemon/storage_fault_support.hpp"
 #include "tests/storage/storage_backends.hpp"
 #include "tests/test_skip.hpp"

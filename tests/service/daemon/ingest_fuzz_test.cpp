@@ -2,7 +2,7 @@
 // frames are bit-flipped, truncated, extended, overwritten, given extreme field values
 // (int64 limits in utime and seq, NaN/Inf in every double, huge or negative batch n, empty,
 // non-UTF-8, 10 000-character and 3 000 random-character sat ids), then driven through the daemon's
-// real path in-process: decode_frame (service/daemon/lcm_ingest.cpp) with the receive side's
+// real path in-process: decode_frame (service/daemon/intake/lcm_ingest.cpp) with the receive side's
 // accounting, then IngestWorker on a new database, SQLite and PostgreSQL
 // (tests/storage/storage_backends.hpp; the PostgreSQL case is skipped without the server programs).
 // CI runs it under ASan+UBSan: no crash, no sanitizer report, the worker never gives up on storage,
@@ -18,7 +18,7 @@
 #include <random>
 
 #include "service/daemon/ingest_worker.hpp"
-#include "service/daemon/lcm_ingest.hpp"
+#include "service/daemon/intake/lcm_ingest.hpp"
 #include "tests/storage/storage_backends.hpp"
 
 using namespace magcal;

@@ -14,8 +14,8 @@
 #include <thread>
 #include <vector>
 
-#include "service/daemon/daemon_config.hpp"
-#include "service/daemon/sample_spill.hpp"
+#include "service/config/daemon_config.hpp"
+#include "service/daemon/intake/sample_spill.hpp"
 #include "storage/calibration_history.hpp"
 #include "storage/connection.hpp"
 #include "storage/refit_job_log.hpp"

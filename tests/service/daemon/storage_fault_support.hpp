@@ -10,7 +10,7 @@
 #include <fstream>
 #include <string>
 
-#include "service/daemon/sample_spill.hpp"
+#include "service/daemon/intake/sample_spill.hpp"
 #include "storage/sqlite/database.hpp"
 #include "storage/postgres/pg_database.hpp"
 #include "storage/sqlite/statement.hpp"
