@@ -1,6 +1,6 @@
 // One `samples` row: its field list, written once, that the SQLite and PostgreSQL stores and the
-// spill file's binary encoding (service/daemon/intake/sample_spill.cpp) all walk. Adding a column is
-// one line here (plus the StoredSample member and a migration per backend).
+// spill file's binary encoding (service/daemon/intake/sample_spill.cpp) all walk. Adding a column
+// is one line here (plus the StoredSample member and a migration per backend).
 //
 // fields(sample, f) calls, in column order:
 //   f.key(column, text)                  the spacecraft: bound by an insert, known to a read

@@ -7,8 +7,8 @@
 // itself; condition() classifies every failure the same way for SQLite and PostgreSQL, each
 // backend mapping its own codes (SQLite's result codes, PostgreSQL's SQLSTATE). transient()
 // separates what a retry can heal from what it cannot: the daemon retries the first kind
-// (service/daemon/intake/storage_retry.hpp). Data outcomes that are not failures are values: duplicate
-// samples are counted in InsertStats, "not found" is std::nullopt.
+// (service/daemon/intake/storage_retry.hpp). Data outcomes that are not failures are values:
+// duplicate samples are counted in InsertStats, "not found" is std::nullopt.
 #pragma once
 
 #include <cstdint>

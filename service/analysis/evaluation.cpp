@@ -313,9 +313,10 @@ void run_online(const EvaluationOptions& options, const SampleSet& all, std::siz
       // Started as the daemon re-anchors: the refit's state, covariance and model error.
       w.reanchor(lm_result.parameters.packed(), lm_result.covariance,
                  lm_result.model_error_covariance());
-      // What the daemon does on a re-anchor (service/daemon/ownership/owned_spacecraft_tracker.cpp): the
-      // noise from the refit's 9-parameter residual; not its autocorrelation, which describes the
-      // extended model's (whitened) residual when the refit used the model extension.
+      // What the daemon does on a re-anchor
+      // (service/daemon/ownership/owned_spacecraft_tracker.cpp): the noise from the refit's
+      // 9-parameter residual; not its autocorrelation, which describes the extended model's
+      // (whitened) residual when the refit used the model extension.
       w.seed_noise(lm_result.residual_rms_nT);
       run_filter(w, all, n_off, acc[5], truth, crlb_on);
     }

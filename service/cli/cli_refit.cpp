@@ -15,8 +15,8 @@
 #include "pipeline/time_utc.hpp"
 #include "service/cli/cli_commands.hpp"
 #include "service/config/daemon_config.hpp"
-#include "service/refit/refit_runner.hpp"
 #include "service/io/result_json.hpp"
+#include "service/refit/refit_runner.hpp"
 
 namespace magcal::cli {
 

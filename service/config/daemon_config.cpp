@@ -16,9 +16,9 @@
 #include <fmt/format.h>
 #include <toml++/toml.h>
 
-#include "service/refit/refit_scheduler.hpp"
 #include "service/http/operations_server.hpp"
 #include "service/io/fnv1a.hpp"
+#include "service/refit/refit_scheduler.hpp"
 #include "storage/connection.hpp"
 
 namespace magcal {

@@ -59,8 +59,8 @@ struct DaemonConfig {
     // has to look, and exit 3 makes systemd log it and restart (the spill is kept).
     double pg_max_failure_s = 3600.0;
     // PostgreSQL: during an outage the pending samples go, each commit interval, to a
-    // spill file (service/daemon/intake/sample_spill.hpp) instead of stopping intake, and are committed
-    // when the database returns (or at the next start). The file is
+    // spill file (service/daemon/intake/sample_spill.hpp) instead of stopping intake, and are
+    // committed when the database returns (or at the next start). The file is
     // <spill_dir>/magcal-spill-<station id>.spill; spill_dir "" = $STATE_DIRECTORY (systemd's
     // StateDirectory, /var/lib/magcal) when set, else the working directory: local to this
     // daemon, never shared. Past spill_max_bytes the worker stops taking frames (as without a

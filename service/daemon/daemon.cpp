@@ -13,17 +13,17 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "pipeline/time_utc.hpp"
-#include "service/daemon/intake/ingest_queue.hpp"
 #include "service/daemon/ingest_worker.hpp"
+#include "service/daemon/intake/ingest_queue.hpp"
 #include "service/daemon/intake/lcm_ingest.hpp"
-#include "service/daemon/ops/lcm_publisher.hpp"
+#include "service/daemon/intake/storage_retry.hpp"
 #include "service/daemon/ops/daemon_status.hpp"
 #include "service/daemon/ops/health_probes.hpp"
+#include "service/daemon/ops/lcm_publisher.hpp"
 #include "service/daemon/ops/operations_endpoint.hpp"
+#include "service/daemon/ops/systemd_notifier.hpp"
 #include "service/daemon/refit/refit_executor.hpp"
 #include "service/daemon/refit/refit_thread.hpp"
-#include "service/daemon/intake/storage_retry.hpp"
-#include "service/daemon/ops/systemd_notifier.hpp"
 #include "service/io/calibration_record.hpp"
 #include "storage/refit_job_log.hpp"
 

@@ -26,9 +26,9 @@
 // TimeoutStopSec would kill it (a PostgreSQL outage without a spill file to take the samples).
 //
 // Never half-alive: storage that stays broken for [storage] max_failure_s (each failed
-// operation kept and retried, service/daemon/intake/storage_retry.hpp), or a worker or refit thread that
-// dies for any reason, stops receiving and ends run() with a non-zero exit code and the reason in
-// the log; every received sample that was not committed is counted as storage_error and logged
+// operation kept and retried, service/daemon/intake/storage_retry.hpp), or a worker or refit thread
+// that dies for any reason, stops receiving and ends run() with a non-zero exit code and the reason
+// in the log; every received sample that was not committed is counted as storage_error and logged
 // (re-running a replay fills them: stored samples come back as counted duplicates).
 //
 // A PostgreSQL server unreachable at start (down, restarting, refusing, timing out, a name that

@@ -52,10 +52,10 @@
 
 #include "pipeline/calibration_result.hpp"
 #include "service/config/daemon_config.hpp"
-#include "service/daemon/ops/health.hpp"
 #include "service/daemon/intake/ingest_queue.hpp"
-#include "service/daemon/ownership/owned_spacecraft_tracker.hpp"
 #include "service/daemon/intake/sample_intake.hpp"
+#include "service/daemon/ops/health.hpp"
+#include "service/daemon/ownership/owned_spacecraft_tracker.hpp"
 #include "service/daemon/ownership/spacecraft_tracker.hpp"
 #include "service/io/reference_field.hpp"
 #include "storage/connection.hpp"

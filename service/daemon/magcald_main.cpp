@@ -15,8 +15,8 @@
 #include <spdlog/spdlog.h>
 #include <CLI/CLI.hpp>
 
-#include "service/daemon/daemon.hpp"
 #include "service/config/daemon_config.hpp"
+#include "service/daemon/daemon.hpp"
 
 namespace {
 

@@ -15,8 +15,8 @@
 
 #include <lcm/lcm-cpp.hpp>
 
-#include "service/daemon/ops/health.hpp"
 #include "service/daemon/intake/ingest_queue.hpp"
+#include "service/daemon/ops/health.hpp"
 
 namespace magcal {
 

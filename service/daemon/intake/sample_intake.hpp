@@ -52,13 +52,13 @@
 #include <vector>
 
 #include "service/config/daemon_config.hpp"
-#include "service/daemon/ops/health.hpp"
 #include "service/daemon/intake/ingest_queue.hpp"
 #include "service/daemon/intake/sample_spill.hpp"
 #include "service/daemon/intake/sample_validator.hpp"
-#include "service/daemon/ownership/spacecraft_tracker.hpp"
 #include "service/daemon/intake/storage_retry.hpp"
+#include "service/daemon/ops/health.hpp"
 #include "service/daemon/ops/throttled_log.hpp"
+#include "service/daemon/ownership/spacecraft_tracker.hpp"
 #include "service/io/reference_field.hpp"
 #include "storage/connection.hpp"
 #include "storage/sample_window_store.hpp"

@@ -5,8 +5,8 @@
 #include <chrono>
 #include <cstdint>
 
-#include "service/daemon/ops/health.hpp"
 #include "service/daemon/intake/ingest_queue.hpp"
+#include "service/daemon/ops/health.hpp"
 
 namespace magcal {
 

@@ -6,8 +6,8 @@
 // storage stays broken counts every received sample it could not commit as storage_error.
 //
 // Storage health: a storage operation that fails is kept and retried with backoff
-// (service/daemon/intake/storage_retry.hpp); while any is failing, storage_healthy() is false (the status
-// message says so, and /-/healthy answers 503 on SQLite; on PostgreSQL /-/ready does, while
+// (service/daemon/intake/storage_retry.hpp); while any is failing, storage_healthy() is false (the
+// status message says so, and /-/healthy answers 503 on SQLite; on PostgreSQL /-/ready does, while
 // /-/healthy stays 200: service/daemon/ops/health_probes.hpp). An undecodable frame counts as one
 // received and one rejected (decode_error / wrong_type): its sample count is unknowable.
 #pragma once
@@ -147,8 +147,8 @@ struct DaemonCounters {
   std::atomic<int64_t> refits_accepted{0};
   std::atomic<int64_t> last_refit_utime{0};
   std::atomic<int32_t> n_spacecraft{0};
-  // Storage (service/daemon/intake/storage_retry.hpp): paths failing now, failed attempts, retries, and
-  // the samples the worker holds uncommitted (a gauge it sets).
+  // Storage (service/daemon/intake/storage_retry.hpp): paths failing now, failed attempts, retries,
+  // and the samples the worker holds uncommitted (a gauge it sets).
   std::atomic<int32_t> storage_failing_paths{0};
   std::atomic<int64_t> storage_failures{0};
   std::atomic<int64_t> storage_retries{0};
@@ -161,8 +161,8 @@ struct DaemonCounters {
   std::atomic<int32_t> fleet_settings_mismatch{0};
   // Wall time (utime) since when some storage path has been failing; 0 while none is.
   std::atomic<int64_t> storage_failing_since_utime{0};
-  // The spill file (PostgreSQL outages, service/daemon/intake/sample_spill.hpp): samples written to it,
-  // this run's samples it holds now (not committed yet: in flight, like storage_pending), an
+  // The spill file (PostgreSQL outages, service/daemon/intake/sample_spill.hpp): samples written to
+  // it, this run's samples it holds now (not committed yet: in flight, like storage_pending), an
   // earlier run's it holds now (received and counted by that run; committed first once the
   // database answers) and its size; samples committed at start from a file an earlier run left,
   // and records of such a file dropped as torn or corrupt (a crash during a write).

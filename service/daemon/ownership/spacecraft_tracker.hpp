@@ -48,8 +48,8 @@
 #include "pipeline/magnetometer_ukf.hpp"
 #include "pipeline/temperature_correction.hpp"
 #include "schemas/magcal_messages.hpp"
-#include "service/refit/refit_scheduler.hpp"
 #include "service/io/calibration_record.hpp"
+#include "service/refit/refit_scheduler.hpp"
 
 namespace magcal {
 

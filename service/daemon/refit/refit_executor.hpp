@@ -8,10 +8,10 @@
 #include <memory>
 
 #include "service/config/daemon_config.hpp"
+#include "service/daemon/intake/storage_retry.hpp"
 #include "service/daemon/ops/health.hpp"
 #include "service/daemon/refit/refit_thread.hpp"
 #include "service/refit/refit_runner.hpp"
-#include "service/daemon/intake/storage_retry.hpp"
 #include "storage/connection.hpp"
 
 namespace magcal {

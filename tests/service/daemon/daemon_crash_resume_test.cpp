@@ -27,8 +27,8 @@
 
 #include <lcm/lcm-cpp.hpp>
 
-#include "storage/sqlite/database.hpp"
 #include "storage/refit_job_log.hpp"
+#include "storage/sqlite/database.hpp"
 #include "storage/sqlite/statement.hpp"
 #include "tests/service/cli_test_support.hpp"
 #include "tests/service/daemon_test_support.hpp"

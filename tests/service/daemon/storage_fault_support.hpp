@@ -11,8 +11,8 @@
 #include <string>
 
 #include "service/daemon/intake/sample_spill.hpp"
-#include "storage/sqlite/database.hpp"
 #include "storage/postgres/pg_database.hpp"
+#include "storage/sqlite/database.hpp"
 #include "storage/sqlite/statement.hpp"
 #include "tests/service/cli_test_support.hpp"
 #include "tests/service/daemon_test_support.hpp"

@@ -12,8 +12,8 @@
 
 #include "pipeline/scenario.hpp"
 #include "pipeline/simulator.hpp"
-#include "service/refit/refit_runner.hpp"
 #include "service/io/calibration_record.hpp"
+#include "service/refit/refit_runner.hpp"
 #include "storage/calibration_history.hpp"
 #include "storage/postgres/pg_database.hpp"
 #include "storage/refit_job_log.hpp"
