@@ -164,6 +164,62 @@ std::string RecordingFitOptions::validate() const {
   return {};
 }
 
+namespace {
+
+// The halves: each processed like the whole recording, split at the middle row in time, with
+// the WHOLE recording's offset (a per-half profile is flatter: on the ISS file it gives 451
+// and 490 s and moves the halves' bias apart by 1 uT, against 0.3 uT at the common offset).
+// Empty, or why a half failed.
+std::string fit_halves(const FieldRecording& rec, const RecordingFitOptions& options,
+                       RecordingFitReport& rep) {
+  if (options.split_halves && rec.rows.size() >= 2) {
+    RecordingFitOptions half_options = options;
+    half_options.split_halves = false;
+    half_options.alignment = false;
+    if (rep.time_offset_applied) {
+      half_options.estimate_time_offset = false;
+      half_options.time_offset_s = rep.time_offset_s;
+    }
+    FieldRecording half = rec;
+    const auto mid = static_cast<std::ptrdiff_t>(rec.rows.size() / 2);
+    for (int part = 0; part < 2; ++part) {
+      half.rows.assign(part == 0 ? rec.rows.begin() : rec.rows.begin() + mid,
+                       part == 0 ? rec.rows.begin() + mid : rec.rows.end());
+      std::string half_error;
+      std::optional<RecordingFitReport> h = fit_recording(half, half_options, &half_error);
+      if (!h) return fmt::format("half {}: {}", part + 1, half_error);
+      (part == 0 ? rep.first_half : rep.second_half) = std::make_shared<RecordingFitReport>(*h);
+    }
+  }
+  return "";
+}
+
+// Stage 2 on a constant reference field from the recording's own attitude, refused as the batch
+// gates refuse a rotation that is inconsistent with the data.
+void align_recording(const FieldRecording& rec, const RecordingFitOptions& options, bool constant,
+                     RecordingFitReport& rep) {
+  if (options.alignment && constant && rec.has_quaternion_columns && usable(rep.result)) {
+    rep.alignment = align_constant_field(rec, rep.result.parameters,
+                                         std::max(rep.sigma_used_nT, rep.result.residual_rms_nT));
+    if (rep.alignment.estimated) {
+      rep.result.has_alignment = true;
+      rep.result.alignment = rep.alignment.joint.alignment.estimate;
+      rep.result.alignment.inconsistency = rep.alignment.inconsistency;
+    }
+    if (!rep.alignment.inconsistency.empty()) {  // refused as the batch gates refuse it
+      GateVerdict verdict;
+      verdict.accepted = false;
+      verdict.reasons = rep.result.rejection_reasons;
+      verdict.reasons.push_back("alignment_inconsistent: " + rep.alignment.inconsistency);
+      apply_verdict(rep.result, verdict);
+    }
+  } else if (rec.has_quaternion_columns) {
+    rep.alignment.message = constant ? "stage 1 failed" : "only with a constant reference field";
+  }
+}
+
+}  // namespace
+
 std::optional<RecordingFitReport> fit_recording(const FieldRecording& rec,
                                                 const RecordingFitOptions& options,
                                                 std::string* error) {
@@ -274,47 +330,8 @@ std::optional<RecordingFitReport> fit_recording(const FieldRecording& rec,
   }
   rep.sigma_used_nT = batch.sigma_nT;
 
-  // Halves: each processed like the whole recording, split at the middle row in time, with
-  // the WHOLE recording's offset (a per-half profile is flatter: on the ISS file it gives 451
-  // and 490 s and moves the halves' bias apart by 1 uT, against 0.3 uT at the common offset).
-  if (options.split_halves && rec.rows.size() >= 2) {
-    RecordingFitOptions half_options = options;
-    half_options.split_halves = false;
-    half_options.alignment = false;
-    if (rep.time_offset_applied) {
-      half_options.estimate_time_offset = false;
-      half_options.time_offset_s = rep.time_offset_s;
-    }
-    FieldRecording half = rec;
-    const auto mid = static_cast<std::ptrdiff_t>(rec.rows.size() / 2);
-    for (int part = 0; part < 2; ++part) {
-      half.rows.assign(part == 0 ? rec.rows.begin() : rec.rows.begin() + mid,
-                       part == 0 ? rec.rows.begin() + mid : rec.rows.end());
-      std::string half_error;
-      std::optional<RecordingFitReport> h = fit_recording(half, half_options, &half_error);
-      if (!h) return fail(fmt::format("half {}: {}", part + 1, half_error));
-      (part == 0 ? rep.first_half : rep.second_half) = std::make_shared<RecordingFitReport>(*h);
-    }
-  }
-
-  if (options.alignment && constant && rec.has_quaternion_columns && usable(rep.result)) {
-    rep.alignment = align_constant_field(rec, rep.result.parameters,
-                                         std::max(rep.sigma_used_nT, rep.result.residual_rms_nT));
-    if (rep.alignment.estimated) {
-      rep.result.has_alignment = true;
-      rep.result.alignment = rep.alignment.joint.alignment.estimate;
-      rep.result.alignment.inconsistency = rep.alignment.inconsistency;
-    }
-    if (!rep.alignment.inconsistency.empty()) {  // refused as the batch gates refuse it
-      GateVerdict verdict;
-      verdict.accepted = false;
-      verdict.reasons = rep.result.rejection_reasons;
-      verdict.reasons.push_back("alignment_inconsistent: " + rep.alignment.inconsistency);
-      apply_verdict(rep.result, verdict);
-    }
-  } else if (rec.has_quaternion_columns) {
-    rep.alignment.message = constant ? "stage 1 failed" : "only with a constant reference field";
-  }
+  if (const std::string e = fit_halves(rec, options, rep); !e.empty()) return fail(e);
+  align_recording(rec, options, constant, rep);
   return rep;
 }
 

@@ -119,6 +119,37 @@ bool is_design_sample_csv_header(const std::string& header_line) {
   return true;
 }
 
+namespace {
+
+// The columns of a recording CSV (-1: absent), by name (options) or by the usual spellings.
+struct RecordingColumns {
+  int time, lat, lon, alt, bx, by, bz, qw, qx, qy, qz;
+};
+
+RecordingColumns find_recording_columns(const std::vector<std::string>& header,
+                                        const FieldRecordingOptions& options) {
+  RecordingColumns c;
+  c.time = find_column(header, options.time_column,
+                       {"date/time", "datetime", "time", "t_s", "utc", "timestamp"});
+  c.lat = find_column(header, options.latitude_column, {"latitude", "lat", "lat_deg"});
+  c.lon = find_column(header, options.longitude_column, {"longitude", "lon", "lon_deg"});
+  c.alt = find_column(header, options.altitude_column,
+                      {"altitude", "alt", "alt_km", "altitude_km", "elevation"});
+  c.bx = find_column(header, options.bx_column,
+                     {"magx", "mag_x", "mag_x_ut", "mag_x_nt", "bx", "bx_nt", "bx_ut"});
+  c.by = find_column(header, options.by_column,
+                     {"magy", "mag_y", "mag_y_ut", "mag_y_nt", "by", "by_nt", "by_ut"});
+  c.bz = find_column(header, options.bz_column,
+                     {"magz", "mag_z", "mag_z_ut", "mag_z_nt", "bz", "bz_nt", "bz_ut"});
+  c.qw = find_column(header, "", {"q_w", "qw"});
+  c.qx = find_column(header, "", {"q_x", "qx"});
+  c.qy = find_column(header, "", {"q_y", "qy"});
+  c.qz = find_column(header, "", {"q_z", "qz"});
+  return c;
+}
+
+}  // namespace
+
 std::optional<FieldRecording> read_field_recording(const std::string& path,
                                                    const FieldRecordingOptions& options,
                                                    std::string* error) {
@@ -132,39 +163,23 @@ std::optional<FieldRecording> read_field_recording(const std::string& path,
   if (!std::getline(in, line)) return fail("empty file (a header row is required)");
   const auto header = split_csv(line);
 
-  const int c_time = find_column(header, options.time_column,
-                                 {"date/time", "datetime", "time", "t_s", "utc", "timestamp"});
-  const int c_lat = find_column(header, options.latitude_column, {"latitude", "lat", "lat_deg"});
-  const int c_lon = find_column(header, options.longitude_column, {"longitude", "lon", "lon_deg"});
-  const int c_alt = find_column(header, options.altitude_column,
-                                {"altitude", "alt", "alt_km", "altitude_km", "elevation"});
-  const int c_bx = find_column(header, options.bx_column,
-                               {"magx", "mag_x", "mag_x_ut", "mag_x_nt", "bx", "bx_nt", "bx_ut"});
-  const int c_by = find_column(header, options.by_column,
-                               {"magy", "mag_y", "mag_y_ut", "mag_y_nt", "by", "by_nt", "by_ut"});
-  const int c_bz = find_column(header, options.bz_column,
-                               {"magz", "mag_z", "mag_z_ut", "mag_z_nt", "bz", "bz_nt", "bz_ut"});
-  const int c_qw = find_column(header, "", {"q_w", "qw"});
-  const int c_qx = find_column(header, "", {"q_x", "qx"});
-  const int c_qy = find_column(header, "", {"q_y", "qy"});
-  const int c_qz = find_column(header, "", {"q_z", "qz"});
-
-  if (c_time < 0) return fail("no time column (expected Date/Time, time or t_s)");
-  if (c_bx < 0 || c_by < 0 || c_bz < 0)
+  const RecordingColumns c = find_recording_columns(header, options);
+  if (c.time < 0) return fail("no time column (expected Date/Time, time or t_s)");
+  if (c.bx < 0 || c.by < 0 || c.bz < 0)
     return fail("no magnetometer columns (expected MagX/MagY/MagZ, mag_x_uT.. or bx_nT..)");
-  if ((c_lat < 0) != (c_lon < 0)) return fail("latitude and longitude must come together");
+  if ((c.lat < 0) != (c.lon < 0)) return fail("latitude and longitude must come together");
 
   FieldRecording rec;
-  rec.has_position_columns = c_lat >= 0;
-  rec.has_quaternion_columns = c_qw >= 0 && c_qx >= 0 && c_qy >= 0 && c_qz >= 0;
-  rec.time_column = header[static_cast<size_t>(c_time)];
-  if (rec.has_position_columns && c_alt < 0 && !options.altitude_km)
+  rec.has_position_columns = c.lat >= 0;
+  rec.has_quaternion_columns = c.qw >= 0 && c.qx >= 0 && c.qy >= 0 && c.qz >= 0;
+  rec.time_column = header[static_cast<size_t>(c.time)];
+  if (rec.has_position_columns && c.alt < 0 && !options.altitude_km)
     return fail("the file has no altitude column: give the altitude (e.g. --alt-km 420)");
 
   std::optional<FieldUnit> unit = options.field_unit;
-  if (!unit) unit = unit_from_column_name(header[static_cast<size_t>(c_bx)]);
+  if (!unit) unit = unit_from_column_name(header[static_cast<size_t>(c.bx)]);
   if (!unit)
-    return fail("the field unit is not in the column name '" + header[static_cast<size_t>(c_bx)] +
+    return fail("the field unit is not in the column name '" + header[static_cast<size_t>(c.bx)] +
                 "': give it (--field-unit uT|nT|G|mG)");
   rec.field_unit_name = unit_name(*unit);
   const double scale = nanotesla_per_unit(*unit);
@@ -195,25 +210,25 @@ std::optional<FieldRecording> read_field_recording(const std::string& path,
     FieldRecordingRow row;
     if (time_is_seconds) {
       double t_s = 0.0;
-      if (!number(c_time, "time", &t_s) || !std::isfinite(t_s)) return std::nullopt;
+      if (!number(c.time, "time", &t_s) || !std::isfinite(t_s)) return std::nullopt;
       row.utime = utime_from_seconds(t_s);
     } else {
-      const auto t = parse_iso8601_utc(cell(c_time));
-      if (!t) return fail("line " + std::to_string(line_no) + ": bad time '" + cell(c_time) + "'");
+      const auto t = parse_iso8601_utc(cell(c.time));
+      if (!t) return fail("line " + std::to_string(line_no) + ": bad time '" + cell(c.time) + "'");
       row.utime = *t;
     }
     for (int axis = 0; axis < 3; ++axis) {
       double v = 0.0;
-      if (!number(axis == 0 ? c_bx : axis == 1 ? c_by : c_bz, "field value", &v))
+      if (!number(axis == 0 ? c.bx : axis == 1 ? c.by : c.bz, "field value", &v))
         return std::nullopt;
       row.b_sensor_nT(axis) = v * scale;
     }
     if (rec.has_position_columns) {
       row.has_position = true;
-      if (!number(c_lat, "latitude", &row.latitude_deg)) return std::nullopt;
-      if (!number(c_lon, "longitude", &row.longitude_deg)) return std::nullopt;
-      if (c_alt >= 0) {
-        if (!number(c_alt, "altitude", &row.altitude_km)) return std::nullopt;
+      if (!number(c.lat, "latitude", &row.latitude_deg)) return std::nullopt;
+      if (!number(c.lon, "longitude", &row.longitude_deg)) return std::nullopt;
+      if (c.alt >= 0) {
+        if (!number(c.alt, "altitude", &row.altitude_km)) return std::nullopt;
       } else {
         row.altitude_km = *options.altitude_km;
       }
@@ -227,7 +242,7 @@ std::optional<FieldRecording> read_field_recording(const std::string& path,
     if (rec.has_quaternion_columns) {
       QuaternionWxyz q;
       bool ok = true;
-      const int cols[4] = {c_qw, c_qx, c_qy, c_qz};
+      const int cols[4] = {c.qw, c.qx, c.qy, c.qz};
       for (int i = 0; i < 4; ++i) ok = number(cols[i], "quaternion", &q(i)) && ok;
       if (!ok) return std::nullopt;
       if (q.allFinite() && q.norm() > 0.5) {
