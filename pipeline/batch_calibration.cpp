@@ -228,7 +228,7 @@ SampleSet without_bias_rate(const SampleSet& samples, const Eigen::Matrix3d& D,
 // sensor ageing while its temperature cycles) is the bias rate of the samples moved to T0, chosen
 // by BIC as without a temperature model; the result then carries both (its bias: at T0 and at the
 // window's end). Without it, the shipped tumbling scenario (+-15 degC and 5 nT/day) published the
-// bias at its 24 h window's end 18 sigma off (sigma 0.14 nT; a fresh-user trial). The coefficient
+// bias at its 24 h window's end 18 sigma off (sigma 0.14 nT). The coefficient
 // is then refitted on the samples without the rate, and the rate on the samples moved to T0 with
 // that coefficient, until the coefficient settles (block coordinate descent to the joint optimum):
 // a coefficient fitted beside an unmodelled drift was up to 3.6 sigma off (24 h paper windows,
@@ -392,7 +392,7 @@ CalibrationResult calibrate_batch_robust(const SampleSet& samples,
   // Before any fit, the gross spikes by the uncalibrated residual |B| - |h| (its spread is
   // bounded by |b| + |D||h|, so a cut of twice the usual robust sigmas leaves every clean sample;
   // a 3 G spike is 10^2-10^3 of them): a spike of 300 000 nT on a 4 h window dragged the centered
-  // start so far that the first refinement failed (trial: 26 of 60 accepted).
+  // start so far that the first refinement failed (26 of 60 accepted).
   for (std::size_t k = 0; k < samples.size(); ++k) {
     e[k] = samples[k].b_sensor_nT.norm() - samples[k].h_body_nT.norm();
   }

@@ -16,7 +16,7 @@ namespace magcal::batch_detail {
 
 // A least-squares fit with a residual beyond this many robust sigmas (as above) is refused: one
 // spike of 2 000-10 000 nT in 4 h of paper data moved the bias by up to 35 nT (3.9 sigma) and the
-// angles by 5 sigma while the residual RMS stayed within its gate (trial). Clean data, 10 seeds
+// angles by 5 sigma while the residual RMS stayed within its gate. Clean data, 10 seeds
 // each of 3, 12 and 24 h: the largest residual is 3.5 (paper), 3.2 (tumbling), 4.7 (pure model,
 // Gaussian) robust sigmas.
 inline constexpr double kOutlierGateRobustSigmas = 10.0;

@@ -128,7 +128,8 @@ Capabilities capabilities_of(std::string_view db) {
   return Capabilities{.commit_may_block = false,
                       .spill_during_outage = true,
                       .failure_is_unhealthy = false,
-                      .unreachable_at_start_is_outage = true};
+                      .unreachable_at_start_is_outage = true,
+                      .open_creates_missing = false};
 }
 
 std::string database_value_error(const std::string& db) {

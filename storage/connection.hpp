@@ -93,6 +93,9 @@ struct Capabilities {
   // A database that cannot be reached at start is an outage that began early (the writer
   // starts and rides it out), not a start error.
   bool unreachable_at_start_is_outage = false;
+  // Opening a database that does not exist creates it (an SQLite file); false: it must have
+  // been created first (a PostgreSQL database and its role: docs/fleet.md).
+  bool open_creates_missing = true;
 };
 
 // The capabilities of the engine `db` names (see Capabilities); opens nothing.

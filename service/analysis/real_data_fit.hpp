@@ -1,4 +1,4 @@
-// Calibration of a real recording (service/io/field_recording.hpp) — issue 7, `magcal fit` on a
+// Calibration of a real recording (service/io/field_recording.hpp): `magcal fit` on a
 // foreign CSV (Astro Pi, BROAD, ...).
 //
 // Reference magnitude, one of:

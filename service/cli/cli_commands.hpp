@@ -48,7 +48,7 @@ struct FitArgs {
   std::string sat;
   bool json = false;
   std::string trace_file;  // ekf/ukf: state and 1-sigma after every sample
-  // Real recordings in foreign CSV layouts (service/analysis/real_data_fit.hpp, issue 7).
+  // Real recordings in foreign CSV layouts (service/analysis/real_data_fit.hpp).
   bool sigma_given = false;      // --sigma-nT given explicitly (else estimated)
   std::string field_unit;        // nT|uT|G|mG; empty: from the column name
   std::optional<double> alt_km;  // assumed altitude when the file has none

@@ -28,8 +28,8 @@ int run_refit(const RefitArgs& args) {
   }
   const DaemonConfig& config = load.config;
   const std::string db_name = storage::database_name(args.db);
-  // An SQLite open would create a missing file (a PostgreSQL database must exist already).
-  if (!storage::is_postgres_uri(args.db) && !std::filesystem::exists(args.db)) {
+  // An open that would create a missing database must not (a refit of nothing).
+  if (storage::capabilities_of(args.db).open_creates_missing && !std::filesystem::exists(args.db)) {
     std::cerr << "magcal refit: database " << db_name << " does not exist\n";
     return kExitData;
   }
