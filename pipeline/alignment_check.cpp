@@ -115,12 +115,38 @@ std::string name_axis_mixup(const std::vector<AlignmentPair>& pairs, double* rms
   return "the sensor's axes look swapped: x, y, z are the reported " + reads;
 }
 
+namespace {
+
+// The stage-1 parameters' own error, constant over the window, moves each calibrated vector
+// u = (I + D) B - b by du = dD u - db (u ~ B to first order): per-axis rms of it under their
+// covariance P. On a few hours of the paper sensor (b sigma up to ~20 nT) it is most of what
+// the best rotation leaves; on a day of tumbling data, well under a nanotesla.
+double parameter_error_per_axis_nT(const std::vector<AlignmentPair>& pairs, const Matrix9d& P) {
+  if (pairs.empty() || P.isZero()) return 0.0;
+  Eigen::Matrix<double, 3, 9> J = Eigen::Matrix<double, 3, 9>::Zero();
+  J.leftCols<3>() = -Eigen::Matrix3d::Identity();
+  double sum = 0.0;
+  for (const AlignmentPair& pair : pairs) {
+    const Eigen::Vector3d& u = pair.u_sensor_nT;
+    J(0, 3) = u(0), J(1, 4) = u(1), J(2, 5) = u(2);  // D11 D22 D33
+    J(0, 6) = u(1), J(1, 6) = u(0);                  // D12
+    J(0, 7) = u(2), J(2, 7) = u(0);                  // D13
+    J(1, 8) = u(2), J(2, 8) = u(1);                  // D23
+    sum += (J * P * J.transpose()).trace();
+  }
+  return std::sqrt(sum / (3.0 * static_cast<double>(pairs.size())));
+}
+
+}  // namespace
+
 AlignmentCheck check_alignment(const TimedAlignmentPairs& timed, const AlignmentResult& fitted,
                                const AlignmentCheckOptions& options) {
   AlignmentCheck out;
   out.R_sensor_from_body = fitted.estimate.R_sensor_from_body;
   out.angle_covariance_rad2 = fitted.estimate.angle_covariance_rad2;
-  out.expected_per_axis_nT = std::max(options.sigma_nT, options.stage1_residual_rms_nT);
+  out.expected_per_axis_nT =
+      std::hypot(std::max(options.sigma_nT, options.stage1_residual_rms_nT),
+                 parameter_error_per_axis_nT(timed.pairs, options.stage1_parameter_covariance));
   out.lag = estimate_attitude_lag(timed);
   const double ratio = options.max_systematic_ratio;
 

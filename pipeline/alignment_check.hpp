@@ -32,6 +32,9 @@ struct AlignmentCheckOptions {
   double sigma_nT = 3.0;                // stated noise per axis
   double stage1_residual_rms_nT = 0.0;  // scalar residual of the stage-1 fit
   bool estimate_attitude_lag = false;   // use the lag-corrected rotation
+  // Of the stage-1 p = [b; D11 D22 D33 D12 D13 D23] the vectors were calibrated with: its error
+  // leaves a residual the rotation cannot remove, expected, not a misfit (Zero: none stated).
+  Matrix9d stage1_parameter_covariance = Matrix9d::Zero();
   double max_systematic_ratio = 5.0;
   double lag_significance = 3.0;
 };
@@ -41,7 +44,8 @@ struct AlignmentCheck {
   double residual_per_axis_nT = 0.0;    // rms per axis about the rotation used
   double white_per_axis_nT = 0.0;       // from the first differences
   double systematic_per_axis_nT = 0.0;  // the rest
-  double expected_per_axis_nT = 0.0;    // max(sigma, stage-1 residual)
+  // max(sigma, stage-1 residual), with the stage-1 parameters' error (and a fitted lag's) added
+  double expected_per_axis_nT = 0.0;
   AttitudeLagResult lag;
   bool lag_applied = false;  // estimate_attitude_lag and the lag estimated: R, P below are its
   Eigen::Matrix3d R_sensor_from_body = Eigen::Matrix3d::Identity();

@@ -363,7 +363,11 @@ void estimate_alignment(const SampleSet& samples, double sigma_nT, int min_align
       alignment_covariance_from_stage1(samples, al.estimate.R_sensor_from_body, r->covariance,
                                        corrected ? &in : nullptr, a_covariance);
   apply_alignment_check(timed_alignment_pairs(pairs, utime), al, stage1_covariance,
-                        {sigma_nT, r->residual_rms_nT, estimate_attitude_lag}, r);
+                        {.sigma_nT = sigma_nT,
+                         .stage1_residual_rms_nT = r->residual_rms_nT,
+                         .estimate_attitude_lag = estimate_attitude_lag,
+                         .stage1_parameter_covariance = r->covariance},
+                        r);
 }
 
 namespace {
