@@ -2,9 +2,8 @@
 // the orbit (pipeline/orbit_synchronous_bias.hpp) instead of always adding the swing it cannot
 // rule out, so its bias sigma says what the data know. Bars, per set of windows: every window's
 // bias sigma within 3 times the Cramer-Rao bound at the truth, RMS(error / sigma) at least 0.5 on
-// every axis (not uselessly wide). How often a swing is reported `detected` is measured, not held:
-// `detected()` still reads the largest amplitude at the most probable period against 3 of its
-// sigmas, which the period search makes fire on constant-bias nadir windows.
+// every axis (not uselessly wide), a swing reported `detected` (posterior probability above 0.99)
+// on at most 5 % of the windows (measured: 0 of 140 with the "Measure" case's 20 seeds a set).
 // The paper sensor (nadir and tumbling, 12 h) and the pure model (nadir, tumbling; 6 and 24 h).
 // Before, with the whole swing always added: on the paper's nadir 12 h windows a bias sigma of
 // 2.1-2.3 / 3.7-4.1 / 1.1-1.2 nT against 0.38 / 1.46 / 0.26 nT with a temperature channel.
@@ -83,6 +82,7 @@ void check_set(const std::string& name, const SetOutcome& o) {
             << o.rms_z().transpose() << ", swing detected on " << o.detected);
   CHECK((o.worst_sigma_over_crlb.array() <= kMaxSigmaOverCrlb).all());
   CHECK((o.rms_z().array() >= kMinRmsErrorOverSigma).all());
+  CHECK(o.detected * 20 <= o.windows);  // at most 5 %
 }
 
 }  // namespace
