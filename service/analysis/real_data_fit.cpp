@@ -24,7 +24,7 @@ constexpr int kMaxSigmaPasses = 4;
 constexpr double kJointToleranceRad = 1e-7;
 constexpr double kSigmaRelTolerance = 0.02;
 // As the batch alignment's check (AlignmentCheckOptions::max_systematic_ratio).
-constexpr double kMaxResidualRatio = AlignmentCheckOptions{}.max_systematic_ratio;
+const double kMaxResidualRatio = AlignmentCheckOptions{}.max_systematic_ratio;
 
 bool usable(const CalibrationResult& r) {
   return r.status != CalibrationStatus::kFailed && r.status != CalibrationStatus::kUnobservable;
