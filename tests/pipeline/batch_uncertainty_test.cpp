@@ -157,7 +157,8 @@ TEST_CASE("paper scenario, short windows (4 h and 6 h): sigmas still cover the e
     for (int run = 0; run < runs; ++run) {
       const SimulatedSet set = simulate("paper", 3000 + static_cast<uint64_t>(run), hours);
       const CalibrationResult r = calibrate_batch(set.samples, BatchCalibrationOptions());
-      INFO(hours << " h, run " << run << ": " << r.message << " " << (r.rejection_reasons.empty() ? "" : r.rejection_reasons.front()));
+      INFO(hours << " h, run " << run << ": " << r.message << " "
+                 << (r.rejection_reasons.empty() ? "" : r.rejection_reasons.front()));
       REQUIRE(r.status == CalibrationStatus::kOk);
       stats.add(r, set.truth, nullptr);
       stats.add_alignment(r, set.truth);
