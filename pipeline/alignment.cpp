@@ -19,17 +19,6 @@ bool finite(const Eigen::Vector3d& v) {
   return v.allFinite();
 }
 
-// Information of dtheta per unit noise variance: sum_k (|g|^2 I - g g^T) = sum [g x]^T [g x].
-Eigen::Matrix3d rotation_information(const std::vector<AlignmentPair>& pairs,
-                                     const Eigen::Matrix3d& R) {
-  Eigen::Matrix3d J = Eigen::Matrix3d::Zero();
-  for (const auto& p : pairs) {
-    const Eigen::Vector3d g = R * p.h_body_nT;
-    J += g.squaredNorm() * Eigen::Matrix3d::Identity() - g * g.transpose();
-  }
-  return J;
-}
-
 // Common checks; fills status/message and returns false when the pairs are unusable.
 bool check_pairs(const std::vector<AlignmentPair>& pairs, const AlignmentOptions& options,
                  AlignmentResult& out) {
@@ -39,22 +28,25 @@ bool check_pairs(const std::vector<AlignmentPair>& pairs, const AlignmentOptions
     out.message = err;
     return false;
   }
+  // One pass: the finiteness check, sum |h|^2 and the information about the identity.
+  double h2_sum = 0.0;
+  Eigen::Matrix3d J = Eigen::Matrix3d::Zero();
   for (const auto& p : pairs) {
     if (!finite(p.u_sensor_nT) || !finite(p.h_body_nT)) {
       out.status = AlignmentStatus::kInvalidInput;
       out.message = "non-finite alignment input";
       return false;
     }
+    h2_sum += p.h_body_nT.squaredNorm();
+    J.noalias() -= p.h_body_nT * p.h_body_nT.transpose();
   }
+  J.diagonal().array() += h2_sum;
   if (static_cast<int>(pairs.size()) < options.min_samples) {
     out.status = AlignmentStatus::kTooFewSamples;
     out.message = "alignment needs at least " + std::to_string(options.min_samples) +
                   " samples with a reference direction, got " + std::to_string(pairs.size());
     return false;
   }
-  double h2_sum = 0.0;
-  for (const auto& p : pairs) h2_sum += p.h_body_nT.squaredNorm();
-  const Eigen::Matrix3d J = rotation_information(pairs, Eigen::Matrix3d::Identity());
   const double min_eig = Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(J).eigenvalues()(0);
   if (!(h2_sum > 0.0) || min_eig / h2_sum < options.min_information_ratio) {
     out.status = AlignmentStatus::kUnobservable;
@@ -70,17 +62,23 @@ void finish(const std::vector<AlignmentPair>& pairs, const Eigen::Matrix3d& R,
   const std::size_t n = pairs.size();
   std::vector<Eigen::Vector3d> residuals(n), scores(n);
   double ss = 0.0;
+  // The information is accumulated in the residuals' pass: finish() runs once per candidate
+  // rotation of the lag search and of the axis diagnosis, so a second pass would double its cost.
+  // Information of dtheta per unit noise variance: sum_k (|g|^2 I - g g^T) = sum [g x]^T [g x].
+  Eigen::Matrix3d information = Eigen::Matrix3d::Zero();
   for (std::size_t k = 0; k < n; ++k) {
     const Eigen::Vector3d g = R * pairs[k].h_body_nT;
     residuals[k] = pairs[k].u_sensor_nT - g;
     scores[k] = cross_matrix(g).transpose() * residuals[k];  // J_k^T e_k
     ss += residuals[k].squaredNorm();
+    information.noalias() -= g * g.transpose();
+    information.diagonal().array() += g.squaredNorm();
   }
   const auto nd = static_cast<double>(n);
   out.residual_rms_nT = std::sqrt(ss / nd);
   out.sigma_used_nT =
       options.sigma_nT > 0.0 ? options.sigma_nT : std::sqrt(ss / std::max(1.0, 3.0 * nd - 3.0));
-  const Eigen::Matrix3d F_inv = rotation_information(pairs, R).inverse();
+  const Eigen::Matrix3d F_inv = information.inverse();
   Eigen::Matrix3d covariance = out.sigma_used_nT * out.sigma_used_nT * F_inv;
   out.residual_autocorrelation = 0.0;
   out.covariance_lag_window = 0;
