@@ -133,48 +133,6 @@ void PgDatabase::abandon_pending_connect() noexcept {
   PQfinish(std::exchange(pending_connect_->conn, nullptr));  // done but not taken
 }
 
-PgDatabase::PgDatabase(PgDatabase&& other) noexcept
-    : conn_(std::exchange(other.conn_, nullptr)),
-      uri_(std::move(other.uri_)),
-      name_(std::move(other.name_)),
-      read_only_(other.read_only_),
-      lock_timeout_ms_(other.lock_timeout_ms_),
-      reply_timeout_ms_(other.reply_timeout_ms_),
-      set_aside_(std::exchange(other.set_aside_, false)),
-      set_aside_since_(other.set_aside_since_),
-      set_aside_statement_(std::move(other.set_aside_statement_)),
-      open_options_(other.open_options_),
-      schema_checked_(other.schema_checked_),
-      open_transactions_(std::exchange(other.open_transactions_, 0)),
-      transaction_id_(std::exchange(other.transaction_id_, 0)),
-      prepared_(std::move(other.prepared_)),
-      pending_connect_(std::move(other.pending_connect_)),
-      conn_attempted_(other.conn_attempted_) {}
-
-PgDatabase& PgDatabase::operator=(PgDatabase&& other) noexcept {
-  if (this != &other) {
-    PQfinish(conn_);
-    conn_ = std::exchange(other.conn_, nullptr);
-    uri_ = std::move(other.uri_);
-    name_ = std::move(other.name_);
-    read_only_ = other.read_only_;
-    lock_timeout_ms_ = other.lock_timeout_ms_;
-    reply_timeout_ms_ = other.reply_timeout_ms_;
-    set_aside_ = std::exchange(other.set_aside_, false);
-    set_aside_since_ = other.set_aside_since_;
-    set_aside_statement_ = std::move(other.set_aside_statement_);
-    open_options_ = other.open_options_;
-    schema_checked_ = other.schema_checked_;
-    open_transactions_ = std::exchange(other.open_transactions_, 0);
-    transaction_id_ = std::exchange(other.transaction_id_, 0);
-    prepared_ = std::move(other.prepared_);
-    abandon_pending_connect();
-    pending_connect_ = std::move(other.pending_connect_);
-    conn_attempted_ = other.conn_attempted_;
-  }
-  return *this;
-}
-
 void PgDatabase::connect() {
   if (!pending_connect_) {
     auto pending = std::make_shared<PendingConnect>();

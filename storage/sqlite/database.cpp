@@ -184,23 +184,6 @@ Database::~Database() {
   if (db_) sqlite3_close_v2(db_);
 }
 
-Database::Database(Database&& other) noexcept
-    : db_(std::exchange(other.db_, nullptr)),
-      path_(std::move(other.path_)),
-      read_only_(other.read_only_),
-      immutable_file_(other.immutable_file_) {}
-
-Database& Database::operator=(Database&& other) noexcept {
-  if (this != &other) {
-    if (db_) sqlite3_close_v2(db_);
-    db_ = std::exchange(other.db_, nullptr);
-    path_ = std::move(other.path_);
-    read_only_ = other.read_only_;
-    immutable_file_ = other.immutable_file_;
-  }
-  return *this;
-}
-
 static_assert(kSqliteReadonlyDbMoved == SQLITE_READONLY_DBMOVED);
 
 void Database::configure(const OpenOptions& options) {

@@ -39,8 +39,9 @@ class Database final : public Connection, public SqlSession {
   // `path` may be ":memory:". Throws StorageError.
   explicit Database(const std::string& path, const OpenOptions& options = {});
   ~Database();
-  Database(Database&& other) noexcept;
-  Database& operator=(Database&& other) noexcept;
+  // A connection is an identity: its stores hold references to it.
+  Database(const Database&) = delete;
+  Database& operator=(const Database&) = delete;
 
   // The newest schema this build's SQLite migrations make (storage/migrations/*.sql).
   static int latest_schema_version();
