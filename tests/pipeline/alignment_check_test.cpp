@@ -143,7 +143,9 @@ TEST_CASE("an attitude 1 s ahead on a 1.5 deg/s tumble is refused, naming the la
   INFO(a.inconsistency);
   CHECK(a.attitude_lag_applied);
   CHECK(std::abs(a.attitude_lag_s + 1.0) < 3.0 * a.attitude_lag_sigma_s);
-  CHECK(a.attitude_lag_sigma_s < 0.1);
+  // The stated sigma bounds the h-only model's bias (the rotation shares part of the lag's
+  // signature on this tumble, which widens it): precise, and still a bound.
+  CHECK(a.attitude_lag_sigma_s < 0.15);
   CHECK(fitted.result.accepted);
   CHECK(rotation_error_chi2(a, fitted.R_true) < 14.16);
 }
@@ -191,6 +193,30 @@ TEST_CASE("a negated or swapped sensor axis is named in the refusal", "[alignmen
   }
 }
 
+// A spin nearly about the body's z axis (the minor axis, stable): a lag looks almost exactly like
+// a rotation about it, and only the inertial field's motion, which the h-only model gets wrong,
+// tells them apart. The lag then comes out about half the truth, and its sigma must say so.
+TEST_CASE("a 1.87 s lead on a 2.5 deg/s spin about a body axis stays within its sigma",
+          "[alignment_check]") {
+  LagCase c;
+  c.lead_s = 1.8652426885979554;
+  c.rate_deg_s = 2.4990469958987465;
+  c.rate_axis = Eigen::Vector3d(-0.17321939288380583, -0.042166208399352818, 2.8676637948733408);
+  c.noise_nT = 2.1613518163970089;
+  c.duration_h = 3.2595369652108523;
+  c.installation_deg = Eigen::Vector3d(5.0807113951936556, 1.1929644738451981, -2.5776177384269245);
+  c.seed = 4250690405642391127ull;
+  const LagRun plain = run_lag_case(c, false);
+  INFO(plain.result.alignment.inconsistency);
+  CHECK_FALSE(alignment_accepted(plain.result));
+  const LagRun fitted = run_lag_case(c, true);
+  const AlignmentEstimate& a = fitted.result.alignment;
+  INFO(a.inconsistency);
+  REQUIRE(a.attitude_lag_applied);
+  CHECK(std::abs(a.attitude_lag_s + c.lead_s) < 3.0 * a.attitude_lag_sigma_s);
+  if (alignment_accepted(fitted.result)) CHECK(rotation_error_chi2(a, fitted.R_true) < 14.16);
+}
+
 TEST_CASE("attitude lag Monte-Carlo: lag, noise, coverage and rotation drawn",
           "[alignment_check]") {
   lag_monte_carlo(6, 20261205);
@@ -198,5 +224,5 @@ TEST_CASE("attitude lag Monte-Carlo: lag, noise, coverage and rotation drawn",
 
 TEST_CASE("attitude lag Monte-Carlo, long run", "[.][alignment_check_long]") {
   const char* draws = std::getenv("MAGCAL_LAG_DRAWS");
-  lag_monte_carlo(draws ? std::atoi(draws) : 60, 7);
+  lag_monte_carlo(draws ? std::atoi(draws) : 100, 7);
 }
