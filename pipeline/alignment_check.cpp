@@ -154,16 +154,20 @@ AlignmentCheck check_alignment(const TimedAlignmentPairs& timed, const Alignment
   out.residual_per_axis_nT = rms_per_axis(e);
   split_residual(e, &out.white_per_axis_nT, &out.systematic_per_axis_nT);
   // Tested against no lag, where the h-only model's bias (its bound grows with |tau|) is nil:
-  // the noise's share of the lag's sigma.
+  // the noise's share of the lag's sigma, at a detection level that every refit passes (a
+  // false refusal per refit at 3 sigma would be 0.3 %). And the lag must exceed that bias's
+  // bound: beyond it the lag is not told from a rotation (and misfits of other kinds, which
+  // the same geometry amplifies alike, could make it).
   const double lag_noise_sigma_s = std::sqrt(std::max(
       0.0, out.lag.sigma_s * out.lag.sigma_s - out.lag.model_sigma_s * out.lag.model_sigma_s));
   const bool lag_significant =
-      out.lag.estimated && std::abs(out.lag.lag_s) > options.lag_significance * lag_noise_sigma_s;
+      out.lag.estimated &&
+      std::abs(out.lag.lag_s) > options.lag_detection_significance * lag_noise_sigma_s &&
+      std::abs(out.lag.lag_s) > out.lag.model_sigma_s;
   const bool lag_moves_rotation =
       lag_significant && rotation_shift_chi2(out.R_sensor_from_body, out.lag.R_sensor_from_body,
                                              out.angle_covariance_rad2) >
                              options.lag_significance * options.lag_significance;
-
   if (options.estimate_attitude_lag && out.lag.estimated) {
     out.lag_applied = true;
     out.R_sensor_from_body = out.lag.R_sensor_from_body;
