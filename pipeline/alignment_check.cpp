@@ -9,6 +9,7 @@
 #include <Eigen/Dense>
 #include <Eigen/Geometry>
 
+#include "pipeline/hac_covariance.hpp"
 #include "pipeline/rotation.hpp"
 
 namespace magcal {
@@ -164,10 +165,11 @@ AlignmentCheck check_alignment(const TimedAlignmentPairs& timed, const Alignment
       out.lag.estimated &&
       std::abs(out.lag.lag_s) > options.lag_detection_significance * lag_noise_sigma_s &&
       std::abs(out.lag.lag_s) > out.lag.model_sigma_s;
-  const bool lag_moves_rotation =
-      lag_significant && rotation_shift_chi2(out.R_sensor_from_body, out.lag.R_sensor_from_body,
-                                             out.angle_covariance_rad2) >
-                             options.lag_significance * options.lag_significance;
+  const bool lag_fit_moves_rotation =
+      out.lag.estimated && rotation_shift_chi2(out.R_sensor_from_body, out.lag.R_sensor_from_body,
+                                               out.angle_covariance_rad2) >
+                               options.lag_significance * options.lag_significance;
+  const bool lag_moves_rotation = lag_significant && lag_fit_moves_rotation;
   if (options.estimate_attitude_lag && out.lag.estimated) {
     out.lag_applied = true;
     out.R_sensor_from_body = out.lag.R_sensor_from_body;
@@ -196,6 +198,11 @@ AlignmentCheck check_alignment(const TimedAlignmentPairs& timed, const Alignment
         out.lag.residual_rms_nT / std::sqrt(3.0), out.expected_per_axis_nT,
         options.lag_significance);
     return out;
+  } else if (lag_fit_moves_rotation) {
+    // A lag the data cannot tell from a rotation (about the axis the attitude turns about) moves
+    // the rotation beyond its sigma: the rotation's sigma is the lag fit's, where that is larger.
+    out.angle_covariance_rad2 =
+        covariance_not_below<3>(out.angle_covariance_rad2, out.lag.angle_covariance_rad2);
   }
   if (out.systematic_per_axis_nT <= ratio * out.expected_per_axis_nT) return out;
 
@@ -230,6 +237,7 @@ void apply_alignment_check(const TimedAlignmentPairs& timed, const AlignmentResu
   for (const AlignmentPair& p : timed.pairs) sum_h2 += p.h_body_nT.squaredNorm();
   const double rms_h = std::sqrt(sum_h2 / static_cast<double>(timed.pairs.size()));
   r->alignment.residual_fraction = fitted.residual_rms_nT / rms_h;
+  r->alignment.angle_covariance_rad2 = check.angle_covariance_rad2;
   if (check.lag_applied) {
     r->alignment.R_sensor_from_body = check.R_sensor_from_body;
     r->alignment.angle_covariance_rad2 = check.angle_covariance_rad2 + stage1_covariance_rad2;

@@ -12,6 +12,8 @@
 //  - a time lag is detected (|tau| > lag_detection_significance x the noise's share of
 //    sigma_tau, the lag model's bias bound being nil at no lag, and |tau| > that bound) and
 //    fitting it moves the rotation by more than lag_significance of its sigma (Mahalanobis);
+//    a lag fit that moves it so without a detected lag (a lag looks like a rotation about the
+//    axis the attitude turns about) widens the rotation's covariance to the lag fit's instead;
 // unless estimate_attitude_lag, which takes the lag-corrected rotation and its covariance
 // (pipeline/attitude_lag.hpp) and checks that fit's residual instead. A refusal names what fits:
 // the lag, or a signed permutation of the sensor axes (name_axis_mixup). Never applied silently.
