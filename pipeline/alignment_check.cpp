@@ -9,6 +9,7 @@
 #include <Eigen/Dense>
 #include <Eigen/Geometry>
 
+#include "pipeline/hac_covariance.hpp"
 #include "pipeline/rotation.hpp"
 
 namespace magcal {
@@ -153,13 +154,22 @@ AlignmentCheck check_alignment(const TimedAlignmentPairs& timed, const Alignment
   std::vector<Eigen::Vector3d> e = residuals_about(timed.pairs, out.R_sensor_from_body);
   out.residual_per_axis_nT = rms_per_axis(e);
   split_residual(e, &out.white_per_axis_nT, &out.systematic_per_axis_nT);
+  // Tested against no lag, where the h-only model's bias (its bound grows with |tau|) is nil:
+  // the noise's share of the lag's sigma, at a detection level that every refit passes (a
+  // false refusal per refit at 3 sigma would be 0.3 %). And the lag must exceed that bias's
+  // bound: beyond it the lag is not told from a rotation (and misfits of other kinds, which
+  // the same geometry amplifies alike, could make it).
+  const double lag_noise_sigma_s = std::sqrt(std::max(
+      0.0, out.lag.sigma_s * out.lag.sigma_s - out.lag.model_sigma_s * out.lag.model_sigma_s));
   const bool lag_significant =
-      out.lag.estimated && std::abs(out.lag.lag_s) > options.lag_significance * out.lag.sigma_s;
-  const bool lag_moves_rotation =
-      lag_significant && rotation_shift_chi2(out.R_sensor_from_body, out.lag.R_sensor_from_body,
-                                             out.angle_covariance_rad2) >
-                             options.lag_significance * options.lag_significance;
-
+      out.lag.estimated &&
+      std::abs(out.lag.lag_s) > options.lag_detection_significance * lag_noise_sigma_s &&
+      std::abs(out.lag.lag_s) > out.lag.model_sigma_s;
+  const bool lag_fit_moves_rotation =
+      out.lag.estimated && rotation_shift_chi2(out.R_sensor_from_body, out.lag.R_sensor_from_body,
+                                               out.angle_covariance_rad2) >
+                               options.lag_significance * options.lag_significance;
+  const bool lag_moves_rotation = lag_significant && lag_fit_moves_rotation;
   if (options.estimate_attitude_lag && out.lag.estimated) {
     out.lag_applied = true;
     out.R_sensor_from_body = out.lag.R_sensor_from_body;
@@ -188,6 +198,11 @@ AlignmentCheck check_alignment(const TimedAlignmentPairs& timed, const Alignment
         out.lag.residual_rms_nT / std::sqrt(3.0), out.expected_per_axis_nT,
         options.lag_significance);
     return out;
+  } else if (lag_fit_moves_rotation) {
+    // A lag the data cannot tell from a rotation (about the axis the attitude turns about) moves
+    // the rotation beyond its sigma: the rotation's sigma is the lag fit's, where that is larger.
+    out.angle_covariance_rad2 =
+        covariance_not_below<3>(out.angle_covariance_rad2, out.lag.angle_covariance_rad2);
   }
   if (out.systematic_per_axis_nT <= ratio * out.expected_per_axis_nT) return out;
 
@@ -222,6 +237,7 @@ void apply_alignment_check(const TimedAlignmentPairs& timed, const AlignmentResu
   for (const AlignmentPair& p : timed.pairs) sum_h2 += p.h_body_nT.squaredNorm();
   const double rms_h = std::sqrt(sum_h2 / static_cast<double>(timed.pairs.size()));
   r->alignment.residual_fraction = fitted.residual_rms_nT / rms_h;
+  r->alignment.angle_covariance_rad2 = check.angle_covariance_rad2;
   if (check.lag_applied) {
     r->alignment.R_sensor_from_body = check.R_sensor_from_body;
     r->alignment.angle_covariance_rad2 = check.angle_covariance_rad2 + stage1_covariance_rad2;

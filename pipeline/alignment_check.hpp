@@ -9,8 +9,11 @@
 // covariance from the residuals covers. The rotation is refused when
 //  - s_sys > max_systematic_ratio x the noise the stage-1 fit leaves (max(stated sigma, stage-1
 //    scalar residual rms)), or
-//  - a time lag is significant (|tau| > lag_significance sigma_tau) and fitting it moves the
-//    rotation by more than lag_significance of its sigma (Mahalanobis);
+//  - a time lag is detected (|tau| > lag_detection_significance x the noise's share of
+//    sigma_tau, the lag model's bias bound being nil at no lag, and |tau| > that bound) and
+//    fitting it moves the rotation by more than lag_significance of its sigma (Mahalanobis);
+//    a lag fit that moves it so without a detected lag (a lag looks like a rotation about the
+//    axis the attitude turns about) widens the rotation's covariance to the lag fit's instead;
 // unless estimate_attitude_lag, which takes the lag-corrected rotation and its covariance
 // (pipeline/attitude_lag.hpp) and checks that fit's residual instead. A refusal names what fits:
 // the lag, or a signed permutation of the sensor axes (name_axis_mixup). Never applied silently.
@@ -37,6 +40,7 @@ struct AlignmentCheckOptions {
   Matrix9d stage1_parameter_covariance = Matrix9d::Zero();
   double max_systematic_ratio = 5.0;
   double lag_significance = 3.0;
+  double lag_detection_significance = 5.0;  // a lag against none, in noise sigmas
 };
 
 struct AlignmentCheck {

@@ -169,13 +169,12 @@ AttitudeLagResult estimate_attitude_lag(const TimedAlignmentPairs& timed, int mi
   std::vector<Eigen::Vector4d> scores(n);
   std::vector<Eigen::Vector3d> residuals(n);
   normal_equations(&F, &rhs, &scores, &residuals);
-  double ss = 0.0, ss0 = 0.0, magnitude_rate2 = 0.0, rate2 = 0.0;
+  double ss = 0.0, ss0 = 0.0, magnitude_rate2 = 0.0;
   for (std::size_t k = 0; k < n; ++k) {
     ss += residuals[k].squaredNorm();
     ss0 += (pairs[k].u_sensor_nT - out.R_zero_lag * pairs[k].h_body_nT).squaredNorm();
     const double along = pairs[k].h_body_nT.normalized().dot(rate[k]);
     magnitude_rate2 += along * along;
-    rate2 += rate[k].squaredNorm();
   }
   const auto nd = static_cast<double>(n);
   const double s2 = ss / std::max(1.0, 3.0 * nd - 4.0);
@@ -186,22 +185,19 @@ AttitudeLagResult estimate_attitude_lag(const TimedAlignmentPairs& timed, int mi
   out.lag_s = tau;
   out.field_inertial_rate_bound_nT_per_s =
       kInertialRateOverMagnitudeRate * std::sqrt(magnitude_rate2 / nd);
-  out.model_sigma_s = kInertialRateOverMagnitudeRate * std::abs(tau) *
-                      std::sqrt(magnitude_rate2 / std::max(rate2, 1e-300));
-  out.sigma_s = std::hypot(std::sqrt(std::max(0.0, covariance(3, 3))), out.model_sigma_s);
+  // The h-only model's misfit m (|tau| times the inertial field's rate, per sample) biases the
+  // fit by F^-1 J^T m; for any |m| <= M, (v' F^-1 J^T m)^2 <= M^2 v' F^-1 v in every direction v
+  // (F = J'J). That bound holds where the lag is nearly a rotation about a body-fixed spin axis
+  // too: there only the inertial field's motion, the very term the model gets wrong, tells the
+  // lag from the rotation, and F^-1 is large along that direction.
+  const double misfit_bound2_nT2 = tau * tau * out.field_inertial_rate_bound_nT_per_s *
+                                   out.field_inertial_rate_bound_nT_per_s * nd;
+  const Eigen::Matrix4d model_covariance = misfit_bound2_nT2 * F_inv;
+  out.model_sigma_s = std::sqrt(model_covariance(3, 3));
+  out.sigma_s = std::sqrt(covariance(3, 3) + model_covariance(3, 3));
   out.R_sensor_from_body = R;
-  // The angles move with tau (their cross-covariance): the model's bound moves them too.
-  const Eigen::Vector3d angle_per_lag = covariance.topRightCorner<3, 1>() / covariance(3, 3);
-  // And the inertial field's motion shifted with the lag is a misfit the rotation partly
-  // absorbs: up to its size over |h| in angle, per axis.
-  double h2 = 0.0;
-  for (const AlignmentPair& p : pairs) h2 += p.h_body_nT.squaredNorm();
-  const double misfit_rad =
-      std::abs(tau) * out.field_inertial_rate_bound_nT_per_s / std::sqrt(3.0 * h2 / nd);
   out.angle_covariance_rad2 =
-      covariance.topLeftCorner<3, 3>() +
-      angle_per_lag * angle_per_lag.transpose() * out.model_sigma_s * out.model_sigma_s +
-      misfit_rad * misfit_rad * Eigen::Matrix3d::Identity();
+      covariance.topLeftCorner<3, 3>() + model_covariance.topLeftCorner<3, 3>();
   out.residual_rms_nT = std::sqrt(ss / nd);
   out.residual_rms_zero_lag_nT = std::sqrt(ss0 / nd);
   out.estimated = std::isfinite(out.sigma_s);

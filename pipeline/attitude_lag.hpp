@@ -15,10 +15,13 @@
 //
 // Only h in the body frame is known here: shifting it in time also shifts the inertial field's
 // own motion (about twice the orbital rate in LEO), which the true lag does not. That leaves a
-// model error of |tau| times the field's inertial rate (~90 nT/s in LEO), with a bias of tau of
-// the order of that rate over the body rate; its sigma takes the bias's bound into account
-// (model_sigma_s), and the angles' covariance the misfit's size over |h| (per axis), so the
-// lag-corrected rotation's sigma is conservative (Monte-Carlo in alignment_check_test).
+// model error m of |tau| times the field's inertial rate (~90 nT/s in LEO). Its bias of (angles,
+// tau), F^-1 J^T m, is bounded in every direction by the covariance M^2 F^-1 (M the bound of |m|
+// over the samples): of the order of that rate over the body rate on a tumble, but up to the
+// whole lag where the attitude turns about a nearly body-fixed axis, where a lag looks like a
+// rotation about it and only the inertial field's motion tells them apart. sigma_s and the
+// angles' covariance include it (model_sigma_s its share; nil at tau = 0, so a test of no lag
+// uses the rest), Monte-Carlo in alignment_check_test.
 #pragma once
 
 #include <cstdint>

@@ -88,42 +88,49 @@ LagCase random_case(std::mt19937_64& rng) {
   return c;
 }
 
-// The Monte-Carlo of the lag cases: never accepted with the rotation outside 3 sigma, and with
-// the lag estimated, the lag within 3 sigma.
+struct LagCounts {
+  int cases = 0, accepted_without_lag = 0, lag_within = 0, estimated_accepted = 0;
+};
+
+// One lag case, without and with the lag estimated: never accepted with the rotation outside 3
+// sigma, and with the lag estimated, the lag within 3 sigma.
+void check_lag_case(const LagCase& c, LagCounts* counts) {
+  const LagRun plain = run_lag_case(c, false);
+  const LagRun fitted = run_lag_case(c, true);
+  const AlignmentEstimate& a = fitted.result.alignment;
+  const double lag_z = (a.attitude_lag_s + c.lead_s) / a.attitude_lag_sigma_s;
+  std::printf(
+      "draw %d: lead %.2f s rate %.2f deg/s noise %.1f nT %.1f h | plain %s chi2 %.1f | lag "
+      "%.3f +- %.3f (z %.2f) %s chi2 %.1f %s\n",
+      counts->cases++, c.lead_s, c.rate_deg_s, c.noise_nT, c.duration_h,
+      alignment_accepted(plain.result) ? "accepted" : "refused",
+      rotation_error_chi2(plain.result.alignment, plain.R_true), a.attitude_lag_s,
+      a.attitude_lag_sigma_s, lag_z, alignment_accepted(fitted.result) ? "accepted" : "refused",
+      rotation_error_chi2(a, fitted.R_true),
+      fitted.result.rejection_reasons.empty() ? ""
+                                              : fitted.result.rejection_reasons.front().c_str());
+  INFO(plain.result.alignment.inconsistency);
+  INFO(a.inconsistency);
+  // 3 sigma of a 3-dof rotation: chi-square 3 dof at the 3-sigma tail probability.
+  if (alignment_accepted(plain.result)) {
+    ++counts->accepted_without_lag;
+    CHECK(rotation_error_chi2(plain.result.alignment, plain.R_true) < 14.16);
+  }
+  REQUIRE(a.attitude_lag_applied);
+  CHECK(std::abs(lag_z) < 3.0);
+  counts->lag_within += std::abs(lag_z) < 3.0;
+  if (alignment_accepted(fitted.result)) {
+    ++counts->estimated_accepted;
+    CHECK(rotation_error_chi2(a, fitted.R_true) < 14.16);
+  }
+}
+
 void lag_monte_carlo(int draws, uint64_t seed) {
   std::mt19937_64 rng(seed);
-  int accepted_without_lag = 0, lag_within = 0, estimated_accepted = 0;
-  for (int i = 0; i < draws; ++i) {
-    const LagCase c = random_case(rng);
-    const LagRun plain = run_lag_case(c, false);
-    const LagRun fitted = run_lag_case(c, true);
-    const AlignmentEstimate& a = fitted.result.alignment;
-    const double lag_z = (a.attitude_lag_s + c.lead_s) / a.attitude_lag_sigma_s;
-    std::printf(
-        "draw %d: lead %.2f s rate %.2f deg/s noise %.1f nT %.1f h | plain %s chi2 %.1f | lag "
-        "%.3f +- %.3f (z %.2f) %s chi2 %.1f %s\n",
-        i, c.lead_s, c.rate_deg_s, c.noise_nT, c.duration_h,
-        alignment_accepted(plain.result) ? "accepted" : "refused",
-        rotation_error_chi2(plain.result.alignment, plain.R_true), a.attitude_lag_s,
-        a.attitude_lag_sigma_s, lag_z, alignment_accepted(fitted.result) ? "accepted" : "refused",
-        rotation_error_chi2(a, fitted.R_true),
-        fitted.result.rejection_reasons.empty() ? ""
-                                                : fitted.result.rejection_reasons.front().c_str());
-    // 3 sigma of a 3-dof rotation: chi-square 3 dof at the 3-sigma tail probability.
-    if (alignment_accepted(plain.result)) {
-      ++accepted_without_lag;
-      CHECK(rotation_error_chi2(plain.result.alignment, plain.R_true) < 14.16);
-    }
-    REQUIRE(a.attitude_lag_applied);
-    CHECK(std::abs(lag_z) < 3.0);
-    lag_within += std::abs(lag_z) < 3.0;
-    if (alignment_accepted(fitted.result)) {
-      ++estimated_accepted;
-      CHECK(rotation_error_chi2(a, fitted.R_true) < 14.16);
-    }
-  }
+  LagCounts counts;
+  for (int i = 0; i < draws; ++i) check_lag_case(random_case(rng), &counts);
   std::printf("%d draws: accepted without the lag %d, lag within 3 sigma %d, accepted with it %d\n",
-              draws, accepted_without_lag, lag_within, estimated_accepted);
+              draws, counts.accepted_without_lag, counts.lag_within, counts.estimated_accepted);
 }
 
 }  // namespace
@@ -143,7 +150,9 @@ TEST_CASE("an attitude 1 s ahead on a 1.5 deg/s tumble is refused, naming the la
   INFO(a.inconsistency);
   CHECK(a.attitude_lag_applied);
   CHECK(std::abs(a.attitude_lag_s + 1.0) < 3.0 * a.attitude_lag_sigma_s);
-  CHECK(a.attitude_lag_sigma_s < 0.1);
+  // The stated sigma bounds the h-only model's bias (the rotation shares part of the lag's
+  // signature on this tumble, which widens it): precise, and still a bound.
+  CHECK(a.attitude_lag_sigma_s < 0.15);
   CHECK(fitted.result.accepted);
   CHECK(rotation_error_chi2(a, fitted.R_true) < 14.16);
 }
@@ -191,6 +200,40 @@ TEST_CASE("a negated or swapped sensor axis is named in the refusal", "[alignmen
   }
 }
 
+// Spins nearly about a body axis (tumbling preset's minor z and major y axes, both stable): a lag
+// looks almost exactly like a rotation about it, and only the inertial field's motion, which the
+// h-only model gets wrong, tells them apart. A 1.87 s lead at 2.5 deg/s came out -0.90 +- 0.09
+// s and was accepted 10 sigma off; a 1.97 s lead at 2.1 deg/s went undetected without the lag
+// estimate, the rotation accepted 4 deg off.
+TEST_CASE("lags on spins about a body axis: sigmas cover the lag and the rotation",
+          "[alignment_check]") {
+  LagCase about_z;
+  about_z.lead_s = 1.8652426885979554;
+  about_z.rate_deg_s = 2.4990469958987465;
+  about_z.rate_axis =
+      Eigen::Vector3d(-0.17321939288380583, -0.042166208399352818, 2.8676637948733408);
+  about_z.noise_nT = 2.1613518163970089;
+  about_z.duration_h = 3.2595369652108523;
+  about_z.installation_deg =
+      Eigen::Vector3d(5.0807113951936556, 1.1929644738451981, -2.5776177384269245);
+  about_z.seed = 4250690405642391127ull;
+  LagCase about_y;
+  about_y.lead_s = -1.9720751803883581;
+  about_y.rate_deg_s = 2.127097126144184;
+  about_y.rate_axis =
+      Eigen::Vector3d(0.0044606433522825645, 0.61640853085357683, 0.018280313213283876);
+  about_y.noise_nT = 3.4563998874748201;
+  about_y.duration_h = 10.19025559740583;
+  about_y.installation_deg =
+      Eigen::Vector3d(-0.33882227815953658, -0.50473270541582393, 1.7148359905866986);
+  about_y.seed = 7651382403188225828ull;
+  LagCounts counts;
+  check_lag_case(about_z, &counts);
+  check_lag_case(about_y, &counts);
+  // Without the lag the first is refused, the second accepted (its covariance widened).
+  CHECK(counts.accepted_without_lag == 1);
+}
+
 TEST_CASE("attitude lag Monte-Carlo: lag, noise, coverage and rotation drawn",
           "[alignment_check]") {
   lag_monte_carlo(6, 20261205);
@@ -198,5 +241,5 @@ TEST_CASE("attitude lag Monte-Carlo: lag, noise, coverage and rotation drawn",
 
 TEST_CASE("attitude lag Monte-Carlo, long run", "[.][alignment_check_long]") {
   const char* draws = std::getenv("MAGCAL_LAG_DRAWS");
-  lag_monte_carlo(draws ? std::atoi(draws) : 60, 7);
+  lag_monte_carlo(draws ? std::atoi(draws) : 100, 7);
 }
