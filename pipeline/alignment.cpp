@@ -99,13 +99,7 @@ void finish(const std::vector<AlignmentPair>& pairs, const Eigen::Matrix3d& R,
 Eigen::Matrix3d procrustes_rotation(const std::vector<AlignmentPair>& pairs) {
   Eigen::Matrix3d M = Eigen::Matrix3d::Zero();
   for (const auto& p : pairs) M += p.u_sensor_nT * p.h_body_nT.transpose();
-  const Eigen::JacobiSVD<Eigen::Matrix3d> svd(M, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  const Eigen::Matrix3d& U = svd.matrixU();
-  const Eigen::Matrix3d& V = svd.matrixV();
-  // The sign flip on the smallest singular direction turns a best reflection into the best
-  // proper rotation (det +1).
-  const double d = (U * V.transpose()).determinant() < 0.0 ? -1.0 : 1.0;
-  return U * Eigen::Vector3d(1.0, 1.0, d).asDiagonal() * V.transpose();
+  return wahba_rotation(M);
 }
 
 // Linear LS for dtheta in u_k - R h_k = [(R h_k) x] dtheta.
@@ -123,6 +117,16 @@ Eigen::Vector3d small_angle_step(const std::vector<AlignmentPair>& pairs,
 }
 
 }  // namespace
+
+Eigen::Matrix3d wahba_rotation(const Eigen::Matrix3d& M) {
+  const Eigen::JacobiSVD<Eigen::Matrix3d> svd(M, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  const Eigen::Matrix3d& U = svd.matrixU();
+  const Eigen::Matrix3d& V = svd.matrixV();
+  // The sign flip on the smallest singular direction turns a best reflection into the best
+  // proper rotation (det +1).
+  const double d = (U * V.transpose()).determinant() < 0.0 ? -1.0 : 1.0;
+  return U * Eigen::Vector3d(1.0, 1.0, d).asDiagonal() * V.transpose();
+}
 
 std::vector<AlignmentPair> make_alignment_pairs(const SampleSet& samples,
                                                 const std::vector<Eigen::Vector3d>& u_sensor_nT,

@@ -110,6 +110,12 @@ struct AlignmentResult {
   bool ok() const { return status == AlignmentStatus::kOk; }
 };
 
+// The proper rotation R (det +1) that maximises tr(R^T M) for M = sum_k u_k h_k^T (3x3, any
+// units): Wahba's problem solved by the SVD M = U S V^T, R = U diag(1, 1, det(U V^T)) V^T
+// (Markley 1988). The rotation of align_procrustes, without its checks and covariance, for
+// searches that only need the best rotation of many candidate pairings.
+Eigen::Matrix3d wahba_rotation(const Eigen::Matrix3d& M);
+
 // Exact orthogonal Procrustes (preferred).
 AlignmentResult align_procrustes(const std::vector<AlignmentPair>& pairs,
                                  const AlignmentOptions& options = {});

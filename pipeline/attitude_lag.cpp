@@ -33,15 +33,13 @@ double angle_between(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
   return std::atan2(a.cross(b).norm(), a.dot(b));
 }
 
-// Procrustes rotation of u on g (proper, det +1).
+// Procrustes rotation of u on g (proper, det +1), once per candidate lag: one pass, no copy.
 Eigen::Matrix3d best_rotation(const std::vector<AlignmentPair>& pairs,
                               const std::vector<Eigen::Vector3d>& g) {
-  std::vector<AlignmentPair> shifted(pairs.size());
-  for (std::size_t k = 0; k < pairs.size(); ++k) shifted[k] = {pairs[k].u_sensor_nT, g[k]};
-  AlignmentOptions o;
-  o.sigma_nT = 1.0;  // only the rotation is used
-  const AlignmentResult r = align_procrustes(shifted, o);
-  return r.estimate.R_sensor_from_body;
+  Eigen::Matrix3d M = Eigen::Matrix3d::Zero();
+  for (std::size_t k = 0; k < pairs.size(); ++k)
+    M.noalias() += pairs[k].u_sensor_nT * g[k].transpose();
+  return wahba_rotation(M);
 }
 
 }  // namespace
