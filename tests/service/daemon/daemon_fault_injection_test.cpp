@@ -257,7 +257,11 @@ TEST_CASE("kill -9 at 20 random points of a replay: after a re-replay every samp
   const std::string log = tmp.file("day.lcm");
   write_log(log, kN, 20'000);  // 30 frames over 0.6 s at speed 1
   std::mt19937 rng(20261130);
-  std::uniform_int_distribution<int> delay_ms(0, 700);  // after the database is open
+  // Kill points by progress, not by time, so that they land mid-stream on a machine of any
+  // speed: once the committed count reaches a random share of the replay, anywhere within the
+  // next commit interval.
+  std::uniform_int_distribution<int> target_samples(1, kN - 1);
+  std::uniform_int_distribution<int> jitter_ms(0, 100);  // commit_every_ms below
   int mid_stream = 0;
   int64_t max_missing = 0;
   std::string kept;  // samples stored at each kill
@@ -268,8 +272,10 @@ TEST_CASE("kill -9 at 20 random points of a replay: after a re-replay every samp
     const auto cfg = write_config(tmp, "d.toml", out, "commit_every_ms = 100\n");
     const pid_t d = start_daemon(cfg, db, log, "1", tmp.file("kill.log"));
     REQUIRE(d > 0);
-    REQUIRE(wait_until([&] { return fs::exists(db); }, 10));
-    std::this_thread::sleep_for(std::chrono::milliseconds(delay_ms(rng)));
+    const int64_t target = target_samples(rng);
+    // Or the replay ended first (every sample committed: not mid-stream, counted below).
+    REQUIRE(wait_until([&] { return read_stored(db).count >= target; }, 60));
+    std::this_thread::sleep_for(std::chrono::milliseconds(jitter_ms(rng)));
     ::kill(d, SIGKILL);
     const int killed_rc = wait_exit(d, 10);
     REQUIRE((killed_rc == -2 || killed_rc == 0));  // killed, or the replay had ended
@@ -310,8 +316,8 @@ TEST_CASE("kill -9 at 20 random points of a replay: after a re-replay every samp
     fs::remove(db + "-wal");
     fs::remove(db + "-shm");
   }
-  // The seeded delays land mostly mid-stream (the others before the first or after the last
-  // commit), so the check above is not vacuous.
+  // The kill points land mostly mid-stream (the others after the last commit), so the checks
+  // above are not vacuous.
   CHECK(mid_stream >= kKills / 4);
   WARN("kill -9: " << kKills << " kills, " << mid_stream << " mid-stream, at most " << max_missing
                    << " of " << kN
