@@ -18,7 +18,6 @@
 
 #include "service/http/operations_server.hpp"
 #include "service/io/fnv1a.hpp"
-#include "service/refit/refit_scheduler.hpp"
 #include "storage/connection.hpp"
 
 namespace magcal {

@@ -13,7 +13,7 @@
 
 #include "pipeline/acceptance_gates.hpp"
 #include "pipeline/magnetometer_ukf.hpp"
-#include "service/refit/refit_scheduler.hpp"
+#include "service/config/refit_schedule.hpp"
 #include "storage/connection.hpp"
 
 namespace magcal {

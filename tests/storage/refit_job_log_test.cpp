@@ -3,10 +3,13 @@
 #include "storage/refit_job_log.hpp"
 
 #include <algorithm>
+#include <atomic>
 #include <catch2/catch.hpp>
+#include <chrono>
 #include <numeric>
 #include <optional>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "storage/calibration_history.hpp"
@@ -18,6 +21,14 @@ using magcal::test::PostgresBackend;
 using magcal::test::SqliteBackend;
 
 namespace {
+
+using SteadyClock = std::chrono::steady_clock;
+
+// When a call was in flight.
+struct ClaimSpan {
+  SteadyClock::time_point begin;
+  SteadyClock::time_point end;
+};
 
 // A calibrations row of SAT1 for a job to link to.
 int64_t add_calibration(Connection& db) {
@@ -193,12 +204,61 @@ TEMPLATE_TEST_CASE("daemons claiming the same refits at once: exactly one wins e
     stations.push_back("station-" + std::to_string(d));
   }
   std::vector<std::vector<int64_t>> won(kDaemons);
-  const auto errors = magcal::test::run_at_once(kDaemons, [&](int d) {
-    const auto k = static_cast<size_t>(d);
-    for (int r = 0; r < kRefits; ++r) {
-      if (logs[k]->claim("SAT1", "scheduled", r, 0, stations[k])) won[k].push_back(r);
+  // Left to themselves the claims hardly overlap: on SQLite a claim is one statement of some
+  // 20 us, and on two busy cores one daemon's claim has mostly ended before the next one's
+  // starts. So for each refit another session holds the table's write lock until all the
+  // daemons have sent their claim: the claims wait together and race for the row once it goes.
+  const bool sqlite = std::string_view(TestType::kName) == "sqlite";
+  const std::string lock_sql =
+      sqlite ? "BEGIN IMMEDIATE" : "BEGIN; LOCK TABLE refit_jobs IN EXCLUSIVE MODE";
+  std::atomic<int> locked_refit{-1};  // the lock is held for this refit's claims
+  std::atomic<int> sent{0};           // claims begun (all refits)
+  std::atomic<int> ended{0};          // claims returned (all refits)
+  std::atomic<bool> stalled{false};   // a thread threw or waited past its deadline
+  std::vector<ClaimSpan> spans(static_cast<size_t>(kDaemons * kRefits));
+  std::vector<SteadyClock::time_point> released(kRefits);
+  const auto await = [&](const auto& condition) {
+    const auto deadline = SteadyClock::now() + std::chrono::seconds(10);
+    while (!condition()) {
+      if (stalled.load() || SteadyClock::now() > deadline) {
+        stalled.store(true);
+        return false;
+      }
+      // Sleeping, not spinning: the PostgreSQL server shares the cores.
+      std::this_thread::sleep_for(std::chrono::microseconds(100));
+    }
+    return true;
+  };
+  const auto errors = magcal::test::run_at_once(kDaemons + 1, [&](int d) {
+    try {
+      for (int r = 0; r < kRefits; ++r) {
+        if (d == kDaemons) {  // the lock holder
+          if (!await([&] { return ended.load() == r * kDaemons; })) return;
+          setup->exec(lock_sql);
+          locked_refit.store(r);
+          const bool all_sent = await([&] { return sent.load() == (r + 1) * kDaemons; });
+          released[static_cast<size_t>(r)] = SteadyClock::now();
+          setup->exec("COMMIT");
+          if (!all_sent) return;
+          continue;
+        }
+        if (!await([&] { return locked_refit.load() == r; })) return;
+        ClaimSpan& span = spans[static_cast<size_t>(r * kDaemons + d)];
+        span.begin = SteadyClock::now();
+        sent.fetch_add(1);
+        const auto k = static_cast<size_t>(d);
+        const bool claimed = logs[k]->claim("SAT1", "scheduled", r, 0, stations[k]).has_value();
+        span.end = SteadyClock::now();
+        ended.fetch_add(1);
+        if (claimed) won[k].push_back(r);
+      }
+    } catch (...) {
+      stalled.store(true);  // the others stop waiting for this one
+      throw;
     }
   });
+  CHECK_FALSE(stalled.load());
+  CHECK(errors[kDaemons] == "");
   std::vector<int64_t> all;
   for (int d = 0; d < kDaemons; ++d) {
     CHECK(errors[static_cast<size_t>(d)] == "");
@@ -208,5 +268,15 @@ TEMPLATE_TEST_CASE("daemons claiming the same refits at once: exactly one wins e
   std::vector<int64_t> each(kRefits);
   std::iota(each.begin(), each.end(), 0);
   CHECK(all == each);  // every refit claimed, none twice
+  // The race happened: refits whose claims were all in flight when the lock went, none
+  // returned before (each waited for the lock, as a daemon's claim waits for another's).
+  int raced = 0;
+  for (size_t r = 0; r < kRefits; ++r) {
+    const auto begin = spans.begin() + static_cast<std::ptrdiff_t>(r * kDaemons);
+    raced += std::all_of(begin, begin + kDaemons, [&](const ClaimSpan& span) {
+      return span.begin < released[r] && released[r] < span.end;
+    });
+  }
+  CHECK(raced == kRefits);
   CHECK(setup->make_refit_job_log()->recent("SAT1", 2 * kRefits).size() == kRefits);
 }

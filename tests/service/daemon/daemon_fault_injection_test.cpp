@@ -31,10 +31,8 @@ TEST_CASE("database locked by another process past the busy timeout: retried, al
   const Scenario sc("magcald_fault_lock", kN, 50'000);  // 60 frames over 3 s
   const auto& [tmp, log, db] = sc;
   const std::string out = tmp.file("out.lcm");
-  const auto cfg = write_config(tmp, "d.toml", out, "busy_timeout_ms = 100\nmax_failure_s = 30\n");
-  const pid_t d = start_daemon(cfg, db, log, "1", tmp.file("magcald.log"));
-  REQUIRE(d > 0);
-  REQUIRE(wait_until([&] { return fs::exists(db) && read_stored(db).count >= 200; }, 20));
+  const pid_t d =
+      start_daemon_until_stored(tmp, db, log, "busy_timeout_ms = 100\nmax_failure_s = 30\n", 200);
 
   // Another process takes the write lock and holds it for 2 s (20x the busy timeout).
   const pid_t locker = hold_write_lock(tmp, db, 2);
@@ -109,27 +107,14 @@ TEST_CASE("full filesystem: kept and retried, exit 3 after max_failure_s, re-rep
 
   // Space freed: a restart and the same replay store the rest, the stored part as duplicates.
   fs::remove(fsm.dir + "/filler.bin");
-  const auto cfg2 = write_config(tmp, "d2.toml", tmp.file("out2.lcm"), "");
-  const int rc2 = run({kBin + "/magcald", "--http-listen", "", "--config", cfg2, "--db", db,
-                       "--lcm-url", "file://" + log + "?speed=0"},
-                      tmp.file("run2.log"));
-  INFO(slurp(tmp.file("run2.log")));
-  CHECK(rc2 == 0);
-  const auto s2 = read_published(tmp.file("out2.lcm")).statuses.back();
-  CHECK(s2.received == kN);
-  CHECK(rejected(s2, "duplicate") == s1.stored);
-  CHECK(s2.stored == kN - s1.stored);
+  const auto s2 = expect_rerun_fills(tmp, "", db, log, s1.stored, kN);
   CHECK(s2.storage_healthy);
-  const auto st2 = read_stored(db);
-  CHECK(st2.integrity == "ok");
-  CHECK(st2.count == kN);
-  CHECK(st2.distinct == kN);
   WARN("full filesystem: " << s1.storage_failures << " failed commits over max_failure_s 1.5 s, "
                            << "at most " << max_pending << " samples pending, " << s1.stored
                            << " stored, " << rejected(s1, "storage_error")
                            << " counted not committed, exit " << rc1 << "; after freeing space "
                            << s2.stored << " stored, " << rejected(s2, "duplicate")
-                           << " duplicates, exit " << rc2);
+                           << " duplicates");
 }
 
 TEST_CASE("database file deleted or moved away underneath: clear log, exit 3, no crash",
@@ -142,10 +127,7 @@ TEST_CASE("database file deleted or moved away underneath: clear log, exit 3, no
       const Scenario sc(moved ? "magcald_fault_moved" : "magcald_fault_deleted", kN, 50'000);
       const auto& [tmp, log, db] = sc;
       const std::string away = tmp.file("moved.db");
-      const auto cfg = write_config(tmp, "d.toml", tmp.file("out.lcm"), "max_failure_s = 1.5\n");
-      const pid_t d = start_daemon(cfg, db, log, "1", tmp.file("magcald.log"));
-      REQUIRE(d > 0);
-      REQUIRE(wait_until([&] { return read_stored(db).count >= 300; }, 20));
+      const pid_t d = start_daemon_until_stored(tmp, db, log, "max_failure_s = 1.5\n", 300);
       for (const char* suffix : {"", "-wal", "-shm"}) {
         if (moved) {
           fs::rename(db + suffix, away + suffix);
@@ -188,16 +170,13 @@ TEST_CASE("database made read-only underneath: the open file keeps working, a re
   if (::geteuid() == 0) as_user = {"setpriv", "--reuid=65534", "--regid=65534", "--clear-groups"};
   fs::permissions(tmp.path, fs::perms::all);  // the daemon's user creates the database here
   const auto cfg = write_config(tmp, "d.toml", tmp.file("out.lcm"), "max_failure_s = 2\n");
-  auto daemon_args = [&](const std::string& speed) {
+  auto daemon_as_user = [&](const std::string& speed) {
     std::vector<std::string> args = as_user;
-    for (const std::string& a : {kBin + "/magcald", std::string("--http-listen"), std::string(),
-                                 std::string("--config"), cfg, std::string("--db"), db,
-                                 std::string("--lcm-url"), "file://" + log + "?speed=" + speed}) {
-      args.push_back(a);
-    }
+    const auto daemon = daemon_args(cfg, db, log, speed);
+    args.insert(args.end(), daemon.begin(), daemon.end());
     return args;
   };
-  const pid_t d = spawn(daemon_args("1"), tmp.file("run1.log"));
+  const pid_t d = spawn(daemon_as_user("1"), tmp.file("run1.log"));
   REQUIRE(d > 0);
   REQUIRE(wait_until([&] { return read_stored(db).count >= 300; }, 20));
   const auto ro = fs::perms::owner_read | fs::perms::group_read | fs::perms::others_read;
@@ -214,7 +193,7 @@ TEST_CASE("database made read-only underneath: the open file keeps working, a re
   const auto before = read_stored(db);
   CHECK(before.count == kN);
 
-  const int rc2 = run(daemon_args("0"), tmp.file("run2.log"));
+  const int rc2 = run(daemon_as_user("0"), tmp.file("run2.log"));
   const std::string run2_log = slurp(tmp.file("run2.log"));
   INFO(run2_log);
   CHECK(rc2 == 2);
@@ -233,10 +212,7 @@ TEST_CASE("a permanent storage error (table dropped underneath): exit 3 at once,
   constexpr int kN = 3000;
   const Scenario sc("magcald_fault_dropped", kN, 50'000);  // 60 frames over 3 s
   const auto& [tmp, log, db] = sc;
-  const auto cfg = write_config(tmp, "d.toml", tmp.file("out.lcm"), "max_failure_s = 30\n");
-  const pid_t d = start_daemon(cfg, db, log, "1", tmp.file("magcald.log"));
-  REQUIRE(d > 0);
-  REQUIRE(wait_until([&] { return read_stored(db).count >= 300; }, 20));
+  const pid_t d = start_daemon_until_stored(tmp, db, log, "max_failure_s = 30\n", 300);
   REQUIRE(run({"sqlite3", "-cmd", ".timeout 5000", db, "DROP TABLE samples;"},
               tmp.file("drop.log")) == 0);
   const auto stop =
@@ -262,66 +238,32 @@ TEST_CASE("kill -9 at 20 random points of a replay: after a re-replay every samp
   // next commit interval.
   std::uniform_int_distribution<int> target_samples(1, kN - 1);
   std::uniform_int_distribution<int> jitter_ms(0, 100);  // commit_every_ms below
-  int mid_stream = 0;
-  int64_t max_missing = 0;
-  std::string kept;  // samples stored at each kill
+  KillTally tally(kN);
   for (int k = 0; k < kKills; ++k) {
     INFO("kill " << k);
     const std::string db = tmp.file("m" + std::to_string(k) + ".db");
     const std::string out = tmp.file("out" + std::to_string(k) + ".lcm");
     const auto cfg = write_config(tmp, "d.toml", out, "commit_every_ms = 100\n");
-    const pid_t d = start_daemon(cfg, db, log, "1", tmp.file("kill.log"));
-    REQUIRE(d > 0);
-    const int64_t target = target_samples(rng);
-    // Or the replay ended first (every sample committed: not mid-stream, counted below).
-    REQUIRE(wait_until([&] { return read_stored(db).count >= target; }, 60));
-    std::this_thread::sleep_for(std::chrono::milliseconds(jitter_ms(rng)));
-    ::kill(d, SIGKILL);
-    const int killed_rc = wait_exit(d, 10);
-    REQUIRE((killed_rc == -2 || killed_rc == 0));  // killed, or the replay had ended
     // What survived: a sound file holding a prefix of the replay (only the uncommitted tail,
     // the pending batch and the queue, is missing).
-    const auto before = read_stored(db);
+    const int64_t target = target_samples(rng);
+    const auto before = kill_replay_after(
+        tmp, cfg, db, log, [&] { return read_stored(db).count >= target; }, jitter_ms(rng));
     const int64_t k_stored = std::max<int64_t>(before.count, 0);
     if (before.count >= 0) {
       CHECK(before.integrity == "ok");
       CHECK(before.is_prefix());
     }
-    // What the daemon reported stored before it died is in the file: nothing committed is lost
-    // (its last status messages may be lost with it: the output log is buffered).
-    const auto run1 = read_published(out);
-    if (!run1.statuses.empty()) {
-      const auto& last = run1.statuses.back();
-      CHECK(k_stored >= last.stored);
-    }
-    if (k_stored > 0 && k_stored < kN) ++mid_stream;
-    kept += std::to_string(k_stored) + " ";
-    max_missing = std::max(max_missing, kN - k_stored);
-
-    const int rc = run({kBin + "/magcald", "--http-listen", "", "--config", cfg, "--db", db,
-                        "--lcm-url", "file://" + log + "?speed=0"},
-                       tmp.file("rerun.log"));
-    INFO(slurp(tmp.file("rerun.log")));
-    REQUIRE(rc == 0);
-    const auto s = read_published(out).statuses.back();
-    CHECK(s.received == kN);
-    CHECK(rejected(s, "duplicate") == k_stored);
-    CHECK(s.stored == kN - k_stored);
-    CHECK(s.rejected == k_stored);
-    const auto after = read_stored(db);
-    CHECK(after.integrity == "ok");
-    CHECK(after.count == kN);
-    CHECK(after.distinct == kN);
+    tally.add(k_stored, out);  // what the daemon reported stored before it died is in the file
+    expect_rerun_fills(tmp, "", db, log, k_stored, kN);
     fs::remove(db);
     fs::remove(db + "-wal");
     fs::remove(db + "-shm");
   }
-  // The kill points land mostly mid-stream (the others after the last commit), so the checks
-  // above are not vacuous.
-  CHECK(mid_stream >= kKills / 4);
-  WARN("kill -9: " << kKills << " kills, " << mid_stream << " mid-stream, at most " << max_missing
-                   << " of " << kN
-                   << " samples missing before the re-replay; stored at each kill: " << kept);
+  // The kill points land mostly mid-stream (the others after the last commit), so the check
+  // above is not vacuous.
+  CHECK(tally.mid_stream >= kKills / 4);
+  WARN("kill -9: " << tally.summary(kKills));
 }
 
 TEST_CASE("SIGTERM while storage fails: retried until max_failure_s, exit 3, losses counted",
@@ -329,11 +271,8 @@ TEST_CASE("SIGTERM while storage fails: retried until max_failure_s, exit 3, los
   constexpr int kN = 3000;
   const Scenario sc("magcald_fault_sigterm", kN, 50'000);  // 60 frames over 3 s
   const auto& [tmp, log, db] = sc;
-  const auto cfg = write_config(tmp, "d.toml", tmp.file("out.lcm"),
-                                "busy_timeout_ms = 100\nmax_failure_s = 2\n");
-  const pid_t d = start_daemon(cfg, db, log, "1", tmp.file("magcald.log"));
-  REQUIRE(d > 0);
-  REQUIRE(wait_until([&] { return read_stored(db).count >= 200; }, 20));
+  const pid_t d =
+      start_daemon_until_stored(tmp, db, log, "busy_timeout_ms = 100\nmax_failure_s = 2\n", 200);
   const pid_t locker = hold_write_lock(tmp, db, 30);
   // Commits are failing now (the retry's first error line).
   REQUIRE(wait_until(
@@ -357,16 +296,7 @@ TEST_CASE("SIGTERM while storage fails: retried until max_failure_s, exit 3, los
   CHECK(st.is_prefix());
 
   // Lock gone: a restart and the same replay fill the rest, the stored part as duplicates.
-  const auto cfg2 = write_config(tmp, "d2.toml", tmp.file("out2.lcm"), "");
-  REQUIRE(run({kBin + "/magcald", "--http-listen", "", "--config", cfg2, "--db", db, "--lcm-url",
-               "file://" + log + "?speed=0"},
-              tmp.file("run2.log")) == 0);
-  const auto s2 = read_published(tmp.file("out2.lcm")).statuses.back();
-  CHECK(rejected(s2, "duplicate") == s.stored);
-  CHECK(s2.stored == kN - s.stored);
-  const auto st2 = read_stored(db);
-  CHECK(st2.count == kN);
-  CHECK(st2.distinct == kN);
+  const auto s2 = expect_rerun_fills(tmp, "", db, log, s.stored, kN);
   WARN("SIGTERM during a lock: exit "
        << rc << " after " << stop_s << " s, " << s.stored << " stored, " << not_committed
        << " counted not committed, " << s.storage_failures << " failures; re-replay stored "

@@ -87,6 +87,18 @@ int64_t samples_locks(const std::string& uri, const std::string& mode) {
                           mode + "' AND l.pid <> pg_backend_pid()");
 }
 
+// Another session (psql in the background, its output in tmp as lock.log) holding the samples
+// table locked against everything, reads and writes alike, while it runs `statements`: its pid,
+// once the lock is granted.
+pid_t lock_samples(const PgScenario& sc, const std::string& statements) {
+  const pid_t locker = spawn_psql(
+      sc.tmp, sc.uri, "lock",
+      "BEGIN;\nLOCK TABLE samples IN ACCESS EXCLUSIVE MODE;\n" + statements + "COMMIT;\n");
+  REQUIRE(locker > 0);
+  REQUIRE(wait_until([&] { return samples_locks(sc.uri, "AccessExclusiveLock") == 1; }, 10));
+  return locker;
+}
+
 }  // namespace
 
 TEST_CASE("PostgreSQL: samples locked by another session past lock_timeout: retried, all once",
@@ -98,19 +110,14 @@ TEST_CASE("PostgreSQL: samples locked by another session past lock_timeout: retr
   if (sc.uri.empty()) return;
   const auto& tmp = sc.tmp;
   const std::string out = tmp.file("out.lcm");
-  const auto cfg = write_config(tmp, "d.toml", out, sc.storage("busy_timeout_ms = 100\n"));
-  const pid_t d = start_daemon(cfg, sc.uri, sc.log, "1", tmp.file("magcald.log"));
-  REQUIRE(d > 0);
-  REQUIRE(wait_until([&] { return read_stored(sc.uri).count >= 200; }, 20));
+  const pid_t d =
+      start_daemon_until_stored(tmp, sc.uri, sc.log, sc.storage("busy_timeout_ms = 100\n"), 200);
 
-  // Another session locks the table against everything, reads and writes alike, for 2 s (20x
-  // lock_timeout), and counts its rows when it took the lock and before it lets go.
-  const pid_t locker = spawn_psql(tmp, sc.uri, "lock",
-                                  "BEGIN;\nLOCK TABLE samples IN ACCESS EXCLUSIVE MODE;\n"
-                                  "SELECT count(*) FROM samples;\nSELECT pg_sleep(2);\n"
-                                  "SELECT count(*) FROM samples;\nCOMMIT;\n");
-  REQUIRE(locker > 0);
-  REQUIRE(wait_until([&] { return samples_locks(sc.uri, "AccessExclusiveLock") == 1; }, 10));
+  // Another session locks the table for 2 s (20x lock_timeout), and counts its rows when it
+  // took the lock and before it lets go.
+  const pid_t locker = lock_samples(sc,
+                                    "SELECT count(*) FROM samples;\nSELECT pg_sleep(2);\n"
+                                    "SELECT count(*) FROM samples;\n");
   REQUIRE(wait_exit(locker, 20) == 0);
   std::istringstream counts(slurp(tmp.file("lock.log")));
   int64_t stored_at_lock = -1, stored_at_release = -2;
@@ -143,10 +150,7 @@ TEST_CASE("PostgreSQL: the daemon's server processes terminated: it reconnects, 
   if (sc.uri.empty()) return;
   const auto& tmp = sc.tmp;
   const std::string out = tmp.file("out.lcm");
-  const auto cfg = write_config(tmp, "d.toml", out, sc.storage());
-  const pid_t d = start_daemon(cfg, sc.uri, sc.log, "1", tmp.file("magcald.log"));
-  REQUIRE(d > 0);
-  REQUIRE(wait_until([&] { return read_stored(sc.uri).count >= 200; }, 20));
+  const pid_t d = start_daemon_until_stored(tmp, sc.uri, sc.log, sc.storage(), 200);
   // Every session on its database but the caller's (the daemon's connections: its worker, its
   // refit thread), every 0.3 s while the replay goes on: mid-transaction, between, idle. A
   // terminated connection comes back at its next statement: each round waits for one.
@@ -233,9 +237,7 @@ TEST_CASE("PostgreSQL: a permanent error (INSERT revoked, table dropped): exit 3
       // saying so, and the file keeps the samples.
       if (revoked) run_psql(tmp, sc.uri, "regrant", "GRANT INSERT ON samples TO " + role + ";\n");
       const auto cfg2 = write_config(tmp, "d2.toml", tmp.file("out2.lcm"), sc.storage());
-      const int rc2 = run({kBin + "/magcald", "--http-listen", "", "--config", cfg2, "--db",
-                           station_uri, "--lcm-url", "file://" + sc.log + "?speed=0"},
-                          tmp.file("run2.log"));
+      const int rc2 = run_daemon(cfg2, station_uri, sc.log, tmp.file("run2.log"));
       const std::string run2_log = slurp(tmp.file("run2.log"));
       INFO(run2_log);
       if (revoked) {
@@ -270,55 +272,32 @@ TEST_CASE(
   if (sc.uri.empty()) return;
   const auto& tmp = sc.tmp;
   std::mt19937 rng(20261202);
-  std::uniform_int_distribution<int> delay_ms(0, 1000);  // after the first commit
-  int mid_stream = 0;
-  int64_t max_missing = 0;
-  std::string kept;  // samples stored at each kill
+  // Kill points by progress (as the SQLite case): a random share of the replay committed, then
+  // anywhere within the next commit interval.
+  std::uniform_int_distribution<int> target_samples(1, kN - 1);
+  std::uniform_int_distribution<int> jitter_ms(0, 100);  // commit_every_ms below
+  KillTally tally(kN);
   for (int k = 0; k < kKills; ++k) {
     INFO("kill " << k);
     const std::string db = magcal::test::pg_server_or_skip()->create_database();
     const std::string out = tmp.file("out" + std::to_string(k) + ".lcm");
     const auto cfg = write_config(tmp, "d.toml", out, sc.storage("commit_every_ms = 100\n"));
-    const pid_t d = start_daemon(cfg, db, sc.log, "1", tmp.file("kill.log"));
-    REQUIRE(d > 0);
-    REQUIRE(wait_until([&] { return read_stored(db).count > 0; }, 10));
-    std::this_thread::sleep_for(std::chrono::milliseconds(delay_ms(rng)));
-    ::kill(d, SIGKILL);
-    const int killed_rc = wait_exit(d, 10);
-    REQUIRE((killed_rc == -2 || killed_rc == 0));  // killed, or the replay had ended
     // What survived: a prefix of the replay (only the uncommitted tail is missing), at least
     // what the daemon reported stored before it died.
-    const auto before = read_stored(db);
+    const int64_t target = target_samples(rng);
+    const auto before = kill_replay_after(
+        tmp, cfg, db, sc.log, [&] { return read_stored(db).count >= target; }, jitter_ms(rng));
     const int64_t k_stored = std::max<int64_t>(before.count, 0);
     CHECK(before.is_prefix());
-    const auto run1 = read_published(out);
-    if (!run1.statuses.empty()) CHECK(k_stored >= run1.statuses.back().stored);
-    if (k_stored > 0 && k_stored < kN) ++mid_stream;
-    kept += std::to_string(k_stored) + " ";
-    max_missing = std::max(max_missing, kN - k_stored);
+    tally.add(k_stored, out);
     // No outage: nothing spilled (the kill left the file, open since the start, empty).
     CHECK(magcal::SampleSpill(sc.spill_file(), "", int64_t{1} << 30).held_samples() == 0);
 
     // The killed process's heartbeat is still live: the restart says so and goes on.
-    const int rc = run({kBin + "/magcald", "--http-listen", "", "--config", cfg, "--db", db,
-                        "--lcm-url", "file://" + sc.log + "?speed=0"},
-                       tmp.file("rerun.log"));
-    INFO(slurp(tmp.file("rerun.log")));
-    REQUIRE(rc == 0);
-    const auto s = read_published(out).statuses.back();
-    CHECK(s.received == kN);
-    CHECK(rejected(s, "duplicate") == k_stored);
-    CHECK(s.stored == kN - k_stored);
-    CHECK(s.rejected == k_stored);
-    const auto after = read_stored(db);
-    CHECK(after.count == kN);
-    CHECK(after.distinct == kN);
+    expect_rerun_fills(tmp, sc.storage(), db, sc.log, k_stored, kN);
   }
-  CHECK(mid_stream >= kKills / 4);
-  WARN("PostgreSQL kill -9: " << kKills << " kills, " << mid_stream << " mid-stream, at most "
-                              << max_missing << " of " << kN
-                              << " samples missing before the re-replay; stored at each kill: "
-                              << kept);
+  CHECK(tally.mid_stream >= kKills / 4);
+  WARN("PostgreSQL kill -9: " << tally.summary(kKills));
 }
 
 TEST_CASE(
@@ -332,15 +311,9 @@ TEST_CASE(
   if (sc.uri.empty()) return;
   const auto& tmp = sc.tmp;
   const std::string out = tmp.file("out.lcm");
-  const auto cfg = write_config(tmp, "d.toml", out, sc.storage("busy_timeout_ms = 100\n"));
-  const pid_t d = start_daemon(cfg, sc.uri, sc.log, "1", tmp.file("magcald.log"));
-  REQUIRE(d > 0);
-  REQUIRE(wait_until([&] { return read_stored(sc.uri).count >= 200; }, 20));
-  const pid_t locker = spawn_psql(tmp, sc.uri, "lock",
-                                  "BEGIN;\nLOCK TABLE samples IN ACCESS EXCLUSIVE MODE;\n"
-                                  "SELECT pg_sleep(3);\nCOMMIT;\n");
-  REQUIRE(locker > 0);
-  REQUIRE(wait_until([&] { return samples_locks(sc.uri, "AccessExclusiveLock") == 1; }, 10));
+  const pid_t d =
+      start_daemon_until_stored(tmp, sc.uri, sc.log, sc.storage("busy_timeout_ms = 100\n"), 200);
+  const pid_t locker = lock_samples(sc, "SELECT pg_sleep(3);\n");
   // Commits are failing now (the retry's first error line).
   REQUIRE(wait_until(
       [&] { return slurp(tmp.file("magcald.log")).find("kept, retry in") != std::string::npos; },
@@ -365,17 +338,8 @@ TEST_CASE(
   CHECK(read_stored(sc.uri).count == s.stored);
 
   // The next start commits the spill, the same replay fills the rest: every sample once.
-  const auto cfg2 = write_config(tmp, "d2.toml", tmp.file("out2.lcm"), sc.storage());
-  REQUIRE(run({kBin + "/magcald", "--http-listen", "", "--config", cfg2, "--db", sc.uri,
-               "--lcm-url", "file://" + sc.log + "?speed=0"},
-              tmp.file("run2.log")) == 0);
+  const auto s2 = expect_rerun_fills(tmp, sc.storage(), sc.uri, sc.log, s.stored + spilled, kN);
   CHECK_FALSE(fs::exists(sc.spill_file()));
-  const auto s2 = read_published(tmp.file("out2.lcm")).statuses.back();
-  CHECK(rejected(s2, "duplicate") == s.stored + spilled);
-  CHECK(s2.stored == kN - s.stored - spilled);
-  const auto st = read_stored(sc.uri);
-  CHECK(st.count == kN);
-  CHECK(st.distinct == kN);
   WARN("PostgreSQL SIGTERM during a lock: exit "
        << rc << " after " << stop_s << " s, " << s.stored << " stored, " << spilled
        << " spilled; re-replay stored " << s2.stored << ", " << rejected(s2, "duplicate")

@@ -3,6 +3,8 @@
 // the same estimate as an uninterrupted run).
 #include <catch2/catch.hpp>
 
+#include "pipeline/time_utc.hpp"
+#include "tests/process_support.hpp"
 #include "tests/service/daemon/ingest_worker_fixture.hpp"
 
 using namespace magcal;
@@ -490,12 +492,20 @@ TEST_CASE(
     c.fleet.reorder_delay_s = 1.0;  // the last sample waits (its predecessor is 10 s older)
     DaemonCounters counters;
     auto w = make_worker(c, counters);
+    // The worker's own clock (wall time): the tail's last growth came after this.
+    const int64_t fed_utime = now_utime();
     feed(*w, s, 0, n);
     const SpacecraftTracker& t = *w->fleet().find("SAT-1");
     CHECK(t.filtered_utime == s[n - 2].utime);
-    std::this_thread::sleep_for(std::chrono::milliseconds(1300));
-    w->commit_if_due();  // nothing new to commit: the poll finds the quiet tail
-    CHECK(t.filtered_utime == s[n - 1].utime);
+    // Polled as the worker's thread does (nothing new to commit): the poll finds the quiet tail,
+    // and not before the delay has passed.
+    REQUIRE(magcal::test::wait_until(
+        [&] {
+          w->commit_if_due();
+          return t.filtered_utime == s[n - 1].utime;
+        },
+        10));
+    CHECK(now_utime() - fed_utime >= c.reorder_delay_utime());
     CHECK(counters.ukf_updates == static_cast<int64_t>(n));
   }
 }

@@ -3,12 +3,17 @@
 // samples table holds, and what a daemon that rode out or stopped on a fault published.
 #pragma once
 
+#include <signal.h>
 #include <sys/mount.h>
 
+#include <algorithm>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <string>
+#include <thread>
+#include <vector>
 
 #include "service/daemon/intake/sample_spill.hpp"
 #include "storage/postgres/pg_database.hpp"
@@ -46,12 +51,30 @@ inline std::string write_config(const TempDir& tmp, const std::string& name,
   return path;
 }
 
+// magcald replaying `log_lcm` into `db` at `speed` (1: the recorded pace, 0: at once).
+inline std::vector<std::string> daemon_args(const std::string& config, const std::string& db,
+                                            const std::string& log_lcm, const std::string& speed) {
+  return {kBin + "/magcald",
+          "--http-listen",
+          "",
+          "--config",
+          config,
+          "--db",
+          db,
+          "--lcm-url",
+          "file://" + log_lcm + "?speed=" + speed};
+}
+
 inline pid_t start_daemon(const std::string& config, const std::string& db,
                           const std::string& log_lcm, const std::string& speed,
                           const std::string& out_log) {
-  return spawn({kBin + "/magcald", "--http-listen", "", "--config", config, "--db", db, "--lcm-url",
-                "file://" + log_lcm + "?speed=" + speed},
-               out_log);
+  return spawn(daemon_args(config, db, log_lcm, speed), out_log);
+}
+
+// The same at once, to its end: its exit code.
+inline int run_daemon(const std::string& config, const std::string& db, const std::string& log_lcm,
+                      const std::string& out_log) {
+  return run(daemon_args(config, db, log_lcm, "0"), out_log);
 }
 
 // What the samples table holds, read back with SQLite (read-only; -1 counts: no database).
@@ -115,6 +138,83 @@ inline Stored read_stored(const std::string& db) {
     return s;
   }
 }
+
+// magcald replaying `log_lcm` at the recorded pace into `db` (config d.toml in tmp with
+// `storage` keys, publishing to out.lcm, its log magcald.log), once it has stored `min_stored`
+// samples: its pid.
+inline pid_t start_daemon_until_stored(const TempDir& tmp, const std::string& db,
+                                       const std::string& log_lcm, const std::string& storage,
+                                       int64_t min_stored) {
+  const auto cfg = write_config(tmp, "d.toml", tmp.file("out.lcm"), storage);
+  const pid_t d = start_daemon(cfg, db, log_lcm, "1", tmp.file("magcald.log"));
+  REQUIRE(d > 0);
+  REQUIRE(wait_until([&] { return read_stored(db).count >= min_stored; }, 20));
+  return d;
+}
+
+// A restart once the fault is gone: the same replay of the n samples in `log_lcm` at once
+// (config rerun.toml in tmp with `storage` keys, publishing to rerun.lcm, its log rerun.log)
+// stores the rest and counts the `already_stored` ones as duplicates; then `db` holds every
+// sample once (on SQLite, a sound file). Returns the replay's last status message.
+inline magcal::daemon_status_t expect_rerun_fills(const TempDir& tmp, const std::string& storage,
+                                                  const std::string& db, const std::string& log_lcm,
+                                                  int64_t already_stored, int64_t n) {
+  const auto cfg = write_config(tmp, "rerun.toml", tmp.file("rerun.lcm"), storage);
+  const int rc = run_daemon(cfg, db, log_lcm, tmp.file("rerun.log"));
+  INFO(slurp(tmp.file("rerun.log")));
+  REQUIRE(rc == 0);
+  const auto pub = read_published(tmp.file("rerun.lcm"));
+  REQUIRE_FALSE(pub.statuses.empty());
+  const auto& s = pub.statuses.back();
+  CHECK(s.received == n);
+  CHECK(rejected(s, "duplicate") == already_stored);
+  CHECK(s.rejected == already_stored);
+  CHECK(s.stored == n - already_stored);
+  const auto st = read_stored(db);
+  if (!magcal::storage::is_postgres_uri(db)) CHECK(st.integrity == "ok");
+  CHECK(st.count == n);
+  CHECK(st.distinct == n);
+  return s;
+}
+
+// magcald replaying `log_lcm` into `db` at the recorded pace (config `config`, its log kill.log in
+// tmp), killed with SIGKILL `delay_ms` after `ready` holds (or ended by then): what the kill left
+// in `db`. `ready` is a condition on the replay's progress, so the deadline is generous.
+inline Stored kill_replay_after(const TempDir& tmp, const std::string& config,
+                                const std::string& db, const std::string& log_lcm,
+                                const std::function<bool()>& ready, int delay_ms) {
+  const pid_t d = start_daemon(config, db, log_lcm, "1", tmp.file("kill.log"));
+  REQUIRE(d > 0);
+  REQUIRE(wait_until(ready, 60));
+  std::this_thread::sleep_for(std::chrono::milliseconds(delay_ms));
+  ::kill(d, SIGKILL);
+  const int killed_rc = wait_exit(d, 10);
+  REQUIRE((killed_rc == -2 || killed_rc == 0));  // killed, or the replay had ended
+  return read_stored(db);
+}
+
+// The kill -9 tests' record of the n-sample replays they killed: each kill's stored count, checked
+// against what the daemon had published (nothing it reported stored is lost; its last status
+// messages may be lost with it: the output log is buffered).
+struct KillTally {
+  explicit KillTally(int64_t samples) : n(samples) {}
+  int64_t n;
+  int mid_stream = 0;       // kills that left part of the replay stored
+  int64_t max_missing = 0;  // the most samples a kill left to the re-replay
+  std::string kept;         // samples stored at each kill
+  void add(int64_t stored, const std::string& out_lcm) {
+    const auto pub = read_published(out_lcm);
+    if (!pub.statuses.empty()) CHECK(stored >= pub.statuses.back().stored);
+    if (stored > 0 && stored < n) ++mid_stream;
+    kept += std::to_string(stored) + " ";
+    max_missing = std::max(max_missing, n - stored);
+  }
+  std::string summary(int kills) const {
+    return std::to_string(kills) + " kills, " + std::to_string(mid_stream) +
+           " mid-stream, at most " + std::to_string(max_missing) + " of " + std::to_string(n) +
+           " samples missing before the re-replay; stored at each kill: " + kept;
+  }
+};
 
 // A tmpfs of `size` mounted by the test (needs root or CAP_SYS_ADMIN; CI runs as root).
 struct TmpfsMount {

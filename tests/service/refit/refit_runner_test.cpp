@@ -10,6 +10,7 @@
 #include <chrono>
 #include <thread>
 
+#include "pipeline/hac_covariance.hpp"
 #include "pipeline/scenario.hpp"
 #include "pipeline/simulator.hpp"
 #include "service/io/calibration_record.hpp"
@@ -135,7 +136,12 @@ TEST_CASE("refits: the short first window is no reference, every full-window ref
   REQUIRE(last);
   CHECK(std::isfinite(last->noise_scale));
   CHECK(std::isfinite(last->residual_autocorrelation));
-  CHECK(last->covariance_lag_window >= 0);
+  // The HAC covariance's lag window is the one the refit's own residuals give (here 0: with
+  // white sensor noise their lag-1 autocorrelation is below 3 / sqrt(n)); stored, not NULL (-1).
+  INFO("lag window " << last->covariance_lag_window << ", lag-1 autocorrelation "
+                     << last->residual_autocorrelation << ", n " << last->n_samples);
+  CHECK(last->covariance_lag_window ==
+        bartlett_lag_window(last->residual_autocorrelation, last->n_samples));
   CHECK(std::isfinite(last->residual_rms_all_nT));
   CHECK(last->has_nonlinearity == 1);
   CHECK(std::isfinite(last->k3[0]));

@@ -428,6 +428,14 @@ int64_t other_sessions(PgDatabase& admin) {
                    "pid <> pg_backend_pid()");
 }
 
+// Whether server session `pid` has run `sql` (its last statement) to the end: the reply the
+// client stopped waiting for has been sent.
+bool session_finished(PgDatabase& admin, int pid, const std::string& sql) {
+  return query_int(admin,
+                   "SELECT count(*) FROM pg_stat_activity WHERE pid = " + std::to_string(pid) +
+                       " AND state <> 'active' AND query = '" + sql + "'") == 1;
+}
+
 TEST_CASE("PostgreSQL without a reply: transient at the deadline, one session, commits in doubt") {
   PgTestServer* server = pg_server_or_skip();
   if (server == nullptr) return;
@@ -464,27 +472,27 @@ TEST_CASE("PostgreSQL without a reply: transient at the deadline, one session, c
     CHECK(std::string(waiting.what()).find("still no reply to SELECT pg_sleep(2.5), sent") !=
           std::string::npos);
     CHECK(other_sessions(admin) == 1);
-    // Once it has answered (its server session no longer active): a new session.
+    // Once it has answered: a new session.
     REQUIRE(magcal::test::wait_until(
-        [&] {
-          return query_int(admin, "SELECT count(*) FROM pg_stat_activity WHERE pid = " +
-                                      std::to_string(pid) + " AND state = 'active'") == 0;
-        },
-        10));
+        [&] { return session_finished(admin, pid, "SELECT pg_sleep(2.5)"); }, 10));
     CHECK(query_int(db, "SELECT 7") == 7);
     CHECK(db.backend_pid() != pid);
     CHECK(other_sessions(admin) == 1);
   }
 
   SECTION("inside a transaction: nothing of it is committed, the connection is replaced") {
+    const int pid = db.backend_pid();
     {
       PgTransaction tx(db);
       db.exec("INSERT INTO meta VALUES ('a', '1')");
       CHECK(error_of([&] { db.execute("SELECT pg_sleep(1)"); }).transient());
       CHECK(error_of([&] { tx.commit(); }).in_doubt_transaction() == 0);  // never sent
     }
-    std::this_thread::sleep_for(std::chrono::milliseconds(1200));
+    // Once it has answered, the next statement runs on a new session.
+    REQUIRE(magcal::test::wait_until(
+        [&] { return session_finished(admin, pid, "SELECT pg_sleep(1)"); }, 10));
     CHECK(query_int(db, "SELECT count(*) FROM meta") == 0);
+    CHECK(db.backend_pid() != pid);
   }
 
   SECTION("a connection set aside that breaks is replaced at once") {

@@ -5,9 +5,9 @@
 // owner once it ends.
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <chrono>
 #include <string>
-#include <thread>
 #include <vector>
 
 #include "service/daemon/ingest_worker.hpp"
@@ -221,10 +221,25 @@ TEST_CASE("ownership follows reception: each station owns what it receives, also
   b->maintain_leases();
   CHECK(owners(a, b.get()) == "ABABABABAB");
 
-  // B dies (no clean stop): once its leases ran out, A takes its spacecraft over at its next
-  // lease round, though it does not receive them.
+  // B dies (no clean stop): once its leases and its heartbeat ran out, A takes its spacecraft
+  // over at its next lease round, though it does not receive them. (Lease times are the
+  // callers' wall clock: the test waits until the store says they have expired.)
   b.reset();
-  std::this_thread::sleep_for(std::chrono::duration<double>(kLease_s * 1.1));
+  {
+    const auto watch = storage::open_database(db);
+    const auto leases = watch->make_lease_store();
+    REQUIRE(wait_until(
+        [&] {
+          const int64_t now = wall_now_utime();
+          const auto live = leases->live_stations(now);
+          if (std::find(live.begin(), live.end(), "B") != live.end()) return false;
+          const auto all = leases->list();
+          return std::none_of(all.begin(), all.end(), [&](const storage::Lease& l) {
+            return l.owner == "B" && l.held_at(now);
+          });
+        },
+        10 * kLease_s));
+  }
   a.maintain_leases();
   CHECK(owners(a, nullptr) == "AAAAAAAAAA");
 
