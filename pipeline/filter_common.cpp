@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <utility>
 
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
@@ -38,6 +39,31 @@ constexpr double kBlockBiasDStep = 1e-5;
 
 bool is_finite(const Eigen::Vector3d& v) {
   return v.allFinite();
+}
+
+// f(k) for the columns k = 0..8 of a 9 x 9 matrix (or 8..0), k a compile-time constant: the
+// per-sample loops over a triangle become straight-line code (as run-time loops they were
+// vectorised with alias checks and remainder branches that cost more than the arithmetic).
+constexpr bool kLastToFirst = true;
+template <bool Reversed, typename F, int... J>
+void for_each_column(F&& f, std::integer_sequence<int, J...>) {
+  (f(std::integral_constant<int, (Reversed ? 8 - J : J)>{}), ...);
+}
+template <bool Reversed = false, typename F>
+void for_each_column(F&& f) {
+  for_each_column<Reversed>(f, std::make_integer_sequence<int, 9>{});
+}
+
+// L v for a lower triangular L (the entries above the diagonal are not read): 45 multiply-adds,
+// no call into Eigen's general matrix-vector kernel (which zeroes its result first and reads all
+// 81 entries).
+Vector9d lower_triangular_times(const Matrix9d& L, const Vector9d& v) {
+  Vector9d out = Vector9d::Zero();
+  for_each_column([&](auto column) {
+    constexpr int j = decltype(column)::value;
+    for (int i = j; i < 9; ++i) out(i) += L(i, j) * v(j);
+  });
+  return out;
 }
 
 }  // namespace
@@ -157,12 +183,19 @@ bool cholesky_downdate_whitened(Matrix9d& S, const Vector9d& p) {
   const Vector9d inv = (delta.cwiseProduct(delta_prev)).cwiseSqrt().cwiseInverse();
   const Vector9d a = delta.cwiseProduct(inv);  // sqrt(delta_k / delta_{k-1})
   const Vector9d b = p.cwiseProduct(inv);      // p_k / sqrt(delta_k delta_{k-1})
-  Vector9d rest = S * p;                       // sum_j p_j S_j
-  for (int k = 0; k < 9; ++k) {
-    rest -= p(k) * S.col(k);  // now sum_{j>k} p_j S_j (zero above row k+1)
-    S.col(k) = a(k) * S.col(k) - b(k) * rest;
-    S.col(k).head(k).setZero();  // exact zeros above the diagonal despite round-off
-  }
+  // From the last column back, so sum_{j>k} p_j S_j is a running sum of the old columns; S is
+  // lower triangular, so column k and that sum are zero above row k (only the triangle is read
+  // and written).
+  const Vector9d p_local = p;  // p could alias S
+  Vector9d rest = Vector9d::Zero();
+  for_each_column<kLastToFirst>([&](auto column) {
+    constexpr int k = decltype(column)::value;
+    for (int i = k; i < 9; ++i) {
+      const double s_ik = S(i, k);
+      S(i, k) = a(k) * s_ik - b(k) * rest(i);
+      rest(i) += p_local(k) * s_ik;
+    }
+  });
   return true;
 }
 
@@ -527,7 +560,7 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
                                      double h_norm_nT, const Eigen::Vector3d& b_cal, double y_hat,
                                      double hph, const Vector9d& Pxz_white) {
   const double sigma = options_->sigma_nT;
-  const Vector9d Pxz = state_.S * Pxz_white;
+  const Vector9d Pxz = lower_triangular_times(state_.S, Pxz_white);
   const double y = scalar_measurement(b_sensor_nT, h_norm_nT) - scalar_noise_mean(sigma);
   const double R1 = scalar_noise_variance(b_cal, sigma);
   const double R_white = R1 * state_.noise_scale2;
@@ -594,10 +627,7 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
   if (options_->sandwich_block_samples > 0 && score.allFinite()) {
     state_.score_block += score;
     if (++state_.score_block_n >= options_->sandwich_block_samples) {
-      const Vector9d& g = state_.score_block;
-      for (int i = 0, k = 0; i < 9; ++i) {
-        for (int j = i; j < 9; ++j) state_.anchor_information_and_meat(k++) += g(i) * g(j);
-      }
+      add_outer_product<9>(state_.anchor_information_and_meat, state_.score_block);
       ++state_.score_blocks;
       state_.score_block.setZero();
       state_.score_block_n = 0;

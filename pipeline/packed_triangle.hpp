@@ -68,4 +68,11 @@ Eigen::Matrix<double, N, N> symmetric_from_packed(const PackedTriangle<N>& p) {
   return M;
 }
 
+// p += u u^T (packed), one multiply-add per element at a compile-time position.
+template <int N, typename Derived>
+void add_outer_product(PackedTriangle<N>& p, const Eigen::MatrixBase<Derived>& u) {
+  static_assert(Derived::SizeAtCompileTime == N);
+  packed_triangle_detail::for_each_packed<N>([&](int k, int i, int j) { p(k) += u(i) * u(j); });
+}
+
 }  // namespace magcal
