@@ -3,7 +3,6 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
-#include <utility>
 
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
@@ -41,27 +40,16 @@ bool is_finite(const Eigen::Vector3d& v) {
   return v.allFinite();
 }
 
-// f(k) for the columns k = 0..8 of a 9 x 9 matrix (or 8..0), k a compile-time constant: the
-// per-sample loops over a triangle become straight-line code (as run-time loops they were
-// vectorised with alias checks and remainder branches that cost more than the arithmetic).
-constexpr bool kLastToFirst = true;
-template <bool Reversed, typename F, int... J>
-void for_each_column(F&& f, std::integer_sequence<int, J...>) {
-  (f(std::integral_constant<int, (Reversed ? 8 - J : J)>{}), ...);
-}
-template <bool Reversed = false, typename F>
-void for_each_column(F&& f) {
-  for_each_column<Reversed>(f, std::make_integer_sequence<int, 9>{});
-}
-
 // L v for a lower triangular L (the entries above the diagonal are not read): 45 multiply-adds,
 // no call into Eigen's general matrix-vector kernel (which zeroes its result first and reads all
 // 81 entries).
 Vector9d lower_triangular_times(const Matrix9d& L, const Vector9d& v) {
-  Vector9d out = Vector9d::Zero();
-  for_each_column([&](auto column) {
-    constexpr int j = decltype(column)::value;
-    for (int i = j; i < 9; ++i) out(i) += L(i, j) * v(j);
+  Vector9d out;
+  for_each_column<9>([&](auto row) {  // row by row: each sum stays in a register
+    constexpr int i = decltype(row)::value;
+    double sum = 0.0;
+    for (int j = 0; j <= i; ++j) sum += L(i, j) * v(j);
+    out(i) = sum;
   });
   return out;
 }
@@ -166,34 +154,34 @@ const char* to_string(FilterUpdateStatus s) {
 }
 
 bool cholesky_downdate_whitened(Matrix9d& S, const Vector9d& p) {
+  return cholesky_downdate_whitened(S, p, lower_triangular_times(S, p));
+}
+
+bool cholesky_downdate_whitened(Matrix9d& S, const Vector9d& p, const Vector9d& S_p) {
   // S' = S M with M M^T = I - p p^T lower triangular, in closed form (delta_0 = 1,
   // delta_k = 1 - sum_{j<=k} p_j^2): M_kk = sqrt(delta_k / delta_{k-1}),
-  // M_ik = -p_i p_k / sqrt(delta_k delta_{k-1}) (i > k). All square roots and divisions are
-  // independent (no serial chain as in the textbook downdate); column k of S' is
-  // a_k S_k - b_k sum_{j>k} p_j S_j.
-  Vector9d delta;
-  double acc = 1.0;
-  for (int k = 0; k < 9; ++k) {
-    acc -= p(k) * p(k);
-    delta(k) = acc;
-  }
-  if (!(delta(8) > 0.0)) return false;
-  Vector9d delta_prev;
-  delta_prev << 1.0, delta.head<8>();
-  const Vector9d inv = (delta.cwiseProduct(delta_prev)).cwiseSqrt().cwiseInverse();
-  const Vector9d a = delta.cwiseProduct(inv);  // sqrt(delta_k / delta_{k-1})
-  const Vector9d b = p.cwiseProduct(inv);      // p_k / sqrt(delta_k delta_{k-1})
-  // From the last column back, so sum_{j>k} p_j S_j is a running sum of the old columns; S is
-  // lower triangular, so column k and that sum are zero above row k (only the triangle is read
-  // and written).
+  // M_ik = -p_i p_k / sqrt(delta_k delta_{k-1}) (i > k). The square roots and divisions of
+  // different columns are independent (no serial chain as in the textbook downdate); column k of
+  // S' is a_k S_k - b_k sum_{j>k} p_j S_j, that sum is S p less the columns done. Column k
+  // needs only delta_k, so it starts while the later deltas are still being summed.
+  double delta = 1.0;
+  for (int k = 0; k < 9; ++k) delta -= p(k) * p(k);
+  if (!(delta > 0.0)) return false;
   const Vector9d p_local = p;  // p could alias S
-  Vector9d rest = Vector9d::Zero();
-  for_each_column<kLastToFirst>([&](auto column) {
+  Vector9d rest = S_p;         // sum_{j>=k} p_j S_j before column k (rows >= k are read)
+  double delta_prev = 1.0;
+  for_each_column<9>([&](auto column) {
     constexpr int k = decltype(column)::value;
+    const double delta_k = delta_prev - p_local(k) * p_local(k);
+    const double inv = 1.0 / std::sqrt(delta_k * delta_prev);
+    const double a = delta_k * inv;     // sqrt(delta_k / delta_{k-1})
+    const double b = p_local(k) * inv;  // p_k / sqrt(delta_k delta_{k-1})
+    delta_prev = delta_k;
+    // S is lower triangular: column k is zero above row k.
     for (int i = k; i < 9; ++i) {
       const double s_ik = S(i, k);
-      S(i, k) = a(k) * s_ik - b(k) * rest(i);
-      rest(i) += p_local(k) * s_ik;
+      rest(i) -= p_local(k) * s_ik;
+      S(i, k) = a * s_ik - b * rest(i);
     }
   });
   return true;
@@ -618,7 +606,8 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
   // The sample's score for the reported covariance (H: the measurement Jacobian at the prior).
   const Vector9d score =
       scalar_measurement_jacobian_at(b_cal, b_sensor_nT).transpose() * (nu / (S_gain - hph));
-  if (!x_new.allFinite() || !cholesky_downdate_whitened(state_.S, Pxz_white * inv_sqrt_S)) {
+  if (!x_new.allFinite() ||
+      !cholesky_downdate_whitened(state_.S, Pxz_white * inv_sqrt_S, Pxz * inv_sqrt_S)) {
     ++state_.n_rejected_invalid;
     u.status = FilterUpdateStatus::kRejectedNumerical;
     return;
