@@ -40,6 +40,20 @@ bool is_finite(const Eigen::Vector3d& v) {
   return v.allFinite();
 }
 
+// L v for a lower triangular L (the entries above the diagonal are not read): 45 multiply-adds,
+// no call into Eigen's general matrix-vector kernel (which zeroes its result first and reads all
+// 81 entries).
+Vector9d lower_triangular_times(const Matrix9d& L, const Vector9d& v) {
+  Vector9d out;
+  for_each_column<9>([&](auto row) {  // row by row: each sum stays in a register
+    constexpr int i = decltype(row)::value;
+    double sum = 0.0;
+    for (int j = 0; j <= i; ++j) sum += L(i, j) * v(j);
+    out(i) = sum;
+  });
+  return out;
+}
+
 }  // namespace
 
 std::string FilterOptions::validate() const {
@@ -140,29 +154,36 @@ const char* to_string(FilterUpdateStatus s) {
 }
 
 bool cholesky_downdate_whitened(Matrix9d& S, const Vector9d& p) {
+  return cholesky_downdate_whitened(S, p, lower_triangular_times(S, p));
+}
+
+bool cholesky_downdate_whitened(Matrix9d& S, const Vector9d& p, const Vector9d& S_p) {
   // S' = S M with M M^T = I - p p^T lower triangular, in closed form (delta_0 = 1,
   // delta_k = 1 - sum_{j<=k} p_j^2): M_kk = sqrt(delta_k / delta_{k-1}),
-  // M_ik = -p_i p_k / sqrt(delta_k delta_{k-1}) (i > k). All square roots and divisions are
-  // independent (no serial chain as in the textbook downdate); column k of S' is
-  // a_k S_k - b_k sum_{j>k} p_j S_j.
-  Vector9d delta;
-  double acc = 1.0;
-  for (int k = 0; k < 9; ++k) {
-    acc -= p(k) * p(k);
-    delta(k) = acc;
-  }
-  if (!(delta(8) > 0.0)) return false;
-  Vector9d delta_prev;
-  delta_prev << 1.0, delta.head<8>();
-  const Vector9d inv = (delta.cwiseProduct(delta_prev)).cwiseSqrt().cwiseInverse();
-  const Vector9d a = delta.cwiseProduct(inv);  // sqrt(delta_k / delta_{k-1})
-  const Vector9d b = p.cwiseProduct(inv);      // p_k / sqrt(delta_k delta_{k-1})
-  Vector9d rest = S * p;                       // sum_j p_j S_j
-  for (int k = 0; k < 9; ++k) {
-    rest -= p(k) * S.col(k);  // now sum_{j>k} p_j S_j (zero above row k+1)
-    S.col(k) = a(k) * S.col(k) - b(k) * rest;
-    S.col(k).head(k).setZero();  // exact zeros above the diagonal despite round-off
-  }
+  // M_ik = -p_i p_k / sqrt(delta_k delta_{k-1}) (i > k). The square roots and divisions of
+  // different columns are independent (no serial chain as in the textbook downdate); column k of
+  // S' is a_k S_k - b_k sum_{j>k} p_j S_j, that sum is S p less the columns done. Column k
+  // needs only delta_k, so it starts while the later deltas are still being summed.
+  double delta = 1.0;
+  for (int k = 0; k < 9; ++k) delta -= p(k) * p(k);
+  if (!(delta > 0.0)) return false;
+  const Vector9d p_local = p;  // p could alias S
+  Vector9d rest = S_p;         // sum_{j>=k} p_j S_j before column k (rows >= k are read)
+  double delta_prev = 1.0;
+  for_each_column<9>([&](auto column) {
+    constexpr int k = decltype(column)::value;
+    const double delta_k = delta_prev - p_local(k) * p_local(k);
+    const double inv = 1.0 / std::sqrt(delta_k * delta_prev);
+    const double a = delta_k * inv;     // sqrt(delta_k / delta_{k-1})
+    const double b = p_local(k) * inv;  // p_k / sqrt(delta_k delta_{k-1})
+    delta_prev = delta_k;
+    // S is lower triangular: column k is zero above row k.
+    for (int i = k; i < 9; ++i) {
+      const double s_ik = S(i, k);
+      rest(i) -= p_local(k) * s_ik;
+      S(i, k) = a * s_ik - b * rest(i);
+    }
+  });
   return true;
 }
 
@@ -527,7 +548,7 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
                                      double h_norm_nT, const Eigen::Vector3d& b_cal, double y_hat,
                                      double hph, const Vector9d& Pxz_white) {
   const double sigma = options_->sigma_nT;
-  const Vector9d Pxz = state_.S * Pxz_white;
+  const Vector9d Pxz = lower_triangular_times(state_.S, Pxz_white);
   const double y = scalar_measurement(b_sensor_nT, h_norm_nT) - scalar_noise_mean(sigma);
   const double R1 = scalar_noise_variance(b_cal, sigma);
   const double R_white = R1 * state_.noise_scale2;
@@ -585,7 +606,8 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
   // The sample's score for the reported covariance (H: the measurement Jacobian at the prior).
   const Vector9d score =
       scalar_measurement_jacobian_at(b_cal, b_sensor_nT).transpose() * (nu / (S_gain - hph));
-  if (!x_new.allFinite() || !cholesky_downdate_whitened(state_.S, Pxz_white * inv_sqrt_S)) {
+  if (!x_new.allFinite() ||
+      !cholesky_downdate_whitened(state_.S, Pxz_white * inv_sqrt_S, Pxz * inv_sqrt_S)) {
     ++state_.n_rejected_invalid;
     u.status = FilterUpdateStatus::kRejectedNumerical;
     return;
@@ -594,10 +616,7 @@ void ScalarFilterBase::finish_update(FilterUpdate& u, const Eigen::Vector3d& b_s
   if (options_->sandwich_block_samples > 0 && score.allFinite()) {
     state_.score_block += score;
     if (++state_.score_block_n >= options_->sandwich_block_samples) {
-      const Vector9d& g = state_.score_block;
-      for (int i = 0, k = 0; i < 9; ++i) {
-        for (int j = i; j < 9; ++j) state_.anchor_information_and_meat(k++) += g(i) * g(j);
-      }
+      add_outer_product<9>(state_.anchor_information_and_meat, state_.score_block);
       ++state_.score_blocks;
       state_.score_block.setZero();
       state_.score_block_n = 0;

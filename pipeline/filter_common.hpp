@@ -349,7 +349,10 @@ Vector9d process_noise_diagonal(const Vector9d& q_per_sqrt_hour, double dt_s);
 // Rank-1 Cholesky downdate of the lower factor S in place, given the whitened vector
 // p = S^-1 u: S S^T - u u^T = S (I - p p^T) S^T. Returns false, S untouched, when |p| >= 1
 // (the result would not be positive definite). O(n^2), no allocation, no serial sqrt chain.
+// Reads and writes the lower triangle only (above it S must be zero, as a Cholesky factor is).
 bool cholesky_downdate_whitened(Matrix9d& S, const Vector9d& p);
+// The same given S_p = S p (a filter has it: S_p is its Pxz / sqrt(S_y)).
+bool cholesky_downdate_whitened(Matrix9d& S, const Vector9d& p, const Vector9d& S_p);
 
 // Makes P symmetric positive definite and returns its lower Cholesky factor in L (P = L L^T).
 // Symmetrises P and tries LLT; if that fails, adds a small diagonal jitter (relative to each

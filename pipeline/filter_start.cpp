@@ -80,7 +80,7 @@ void ScalarMoments::add(const Eigen::Vector3d& B, double y, double w, ScalarLag1
   u << 2.0 * B(0), 2.0 * B(1), 2.0 * B(2), -B(0) * B(0), -B(1) * B(1), -B(2) * B(2),
       -2.0 * B(0) * B(1), -2.0 * B(0) * B(2), -2.0 * B(1) * B(2), 1.0, y;
   u *= std::sqrt(w);
-  for (int i = 0; i < 11; ++i) m.segment(packed_index<11>(i, i), 11 - i) += u(i) * u.tail(11 - i);
+  add_outer_product<11>(m, u);
   if (lag1) {
     int k = 0;
     if (n > 0) {

@@ -49,6 +49,12 @@ void for_each_packed(F&& f) {
   for_each_packed<N>(f, std::make_index_sequence<N*(N + 1) / 2>{});
 }
 
+// Always inlined: an out-of-line copy would call f through a reference for every column.
+template <int N, bool Reversed, typename F, int... K>
+[[gnu::always_inline]] inline void for_each_column(F&& f, std::integer_sequence<int, K...>) {
+  (f(std::integral_constant<int, (Reversed ? N - 1 - K : K)>{}), ...);
+}
+
 }  // namespace packed_triangle_detail
 
 // The upper triangle of M (all of a symmetric M).
@@ -66,6 +72,23 @@ Eigen::Matrix<double, N, N> symmetric_from_packed(const PackedTriangle<N>& p) {
   packed_triangle_detail::for_each_packed<N>(
       [&](int k, int i, int j) { M(i, j) = M(j, i) = p(k); });
   return M;
+}
+
+// f(std::integral_constant<int, k>{}) for the columns k = 0..N-1 of an N x N matrix (or N-1..0):
+// per-sample loops over a triangle as straight-line code with compile-time bounds (as run-time
+// loops they were vectorised with alias checks and remainder branches that cost more than the
+// arithmetic).
+inline constexpr bool kLastToFirst = true;
+template <int N, bool Reversed = false, typename F>
+[[gnu::always_inline]] inline void for_each_column(F&& f) {
+  packed_triangle_detail::for_each_column<N, Reversed>(f, std::make_integer_sequence<int, N>{});
+}
+
+// p += u u^T (packed), one multiply-add per element at a compile-time position.
+template <int N, typename Derived>
+void add_outer_product(PackedTriangle<N>& p, const Eigen::MatrixBase<Derived>& u) {
+  static_assert(Derived::SizeAtCompileTime == N);
+  packed_triangle_detail::for_each_packed<N>([&](int k, int i, int j) { p(k) += u(i) * u(j); });
 }
 
 }  // namespace magcal
