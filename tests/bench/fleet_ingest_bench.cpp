@@ -411,8 +411,11 @@ void BM_FleetIngest(benchmark::State& state) {
   const std::string config = dir + "/magcald.toml";
   {
     std::ofstream out(config);
-    // No refit: min_samples beyond any spacecraft's count.
-    out << "[refit]\nclock = \"data\"\nmin_samples = " << samples_per_sat + 1 << "\n";
+    // No refit: min_samples beyond any spacecraft's count. The spill files in the bench's own
+    // folder: a daemon refuses to start beside another run's spill file (which an interrupted
+    // run would leave in the working directory).
+    out << "[refit]\nclock = \"data\"\nmin_samples = " << samples_per_sat + 1 << "\n"
+        << "[storage]\nspill_dir = \"" << dir << "\"\n";
   }
   const std::vector<std::string> merged{logs.merged};
   const std::vector<std::string> disjoint(logs.disjoint.begin(), logs.disjoint.end());
