@@ -1,8 +1,8 @@
 #include "pipeline/orbit.hpp"
 
-#include <numbers>
 #include <cassert>
 #include <cmath>
+#include <numbers>
 
 #include "pipeline/frames.hpp"
 #include "pipeline/rotation.hpp"
@@ -33,7 +33,8 @@ std::string Orbit::Options::validate(const KeplerianElements& el) const {
     return "eccentricity: must be in [0, 1)";
   if (el.semi_major_axis_m * (1.0 - el.eccentricity) < kEarthEquatorialRadius_m)
     return "semi_major_axis/eccentricity: perigee below the Earth's surface";
-  if (!std::isfinite(el.inclination_rad) || el.inclination_rad < 0.0 || el.inclination_rad > std::numbers::pi)
+  if (!std::isfinite(el.inclination_rad) || el.inclination_rad < 0.0 ||
+      el.inclination_rad > std::numbers::pi)
     return "inclination: must be in [0, 180] deg";
   if (!std::isfinite(el.raan_rad)) return "raan: not finite";
   if (!std::isfinite(el.arg_perigee_rad)) return "arg_perigee: not finite";

@@ -3,8 +3,8 @@
 #include <cmath>
 
 #include "pipeline/igrf.hpp"
-#include "pipeline/time_utc.hpp"
 #include "pipeline/rotation.hpp"
+#include "pipeline/time_utc.hpp"
 
 namespace magcal {
 

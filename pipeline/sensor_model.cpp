@@ -1,9 +1,9 @@
 #include "pipeline/sensor_model.hpp"
 
-#include <numbers>
 #include <algorithm>
 #include <cassert>
 #include <cmath>
+#include <numbers>
 
 #include <Eigen/LU>
 
@@ -12,8 +12,7 @@
 
 namespace magcal {
 
-namespace {
-}  // namespace
+namespace {}  // namespace
 
 double NormalSampler::next() {
   if (has_spare_) {
@@ -98,8 +97,9 @@ double SensorModel::temperature_C(double t_s) const {
   if (p_.temperature_amplitude_C == 0.0 || p_.temperature_period_s <= 0.0)
     return p_.temperature_mean_C;
   return p_.temperature_mean_C +
-         p_.temperature_amplitude_C * std::sin(2.0 * std::numbers::pi * t_s / p_.temperature_period_s +
-                                               p_.temperature_phase_deg * kDegToRad);
+         p_.temperature_amplitude_C *
+             std::sin(2.0 * std::numbers::pi * t_s / p_.temperature_period_s +
+                      p_.temperature_phase_deg * kDegToRad);
 }
 
 Eigen::Vector3d SensorModel::bias_nT(double t_s, double temperature_C) const {

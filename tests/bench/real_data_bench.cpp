@@ -1,7 +1,7 @@
-// Real-recording fit speed (service/analysis/real_data_fit.hpp) on ../shared/data/real: the ISS Astro Pi
-// file with time-offset estimation (13 703 samples, 40 s grid over +-1000 s + refinement) and the
-// BROAD file with the sphere fit, 9-parameter fit and joint stage 2 (53 240 samples). Reading
-// the CSV is outside the timed loop. Skipped (error message) when the files are absent.
+// Real-recording fit speed (service/analysis/real_data_fit.hpp) on ../shared/data/real: the ISS
+// Astro Pi file with time-offset estimation (13 703 samples, 40 s grid over +-1000 s + refinement)
+// and the BROAD file with the sphere fit, 9-parameter fit and joint stage 2 (53 240 samples).
+// Reading the CSV is outside the timed loop. Skipped (error message) when the files are absent.
 // Run: build/bin/real_data_bench --benchmark_format=json
 #include <filesystem>
 #include <string>
