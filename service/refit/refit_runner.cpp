@@ -2,7 +2,9 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <limits>
+#include <thread>
 
 #include <spdlog/spdlog.h>
 
@@ -52,7 +54,11 @@ RefitRunner::RefitRunner(const DaemonConfig& config, storage::Connection& db)
       samples_(db.make_sample_window_store()),
       history_(db.make_calibration_history()),
       jobs_(db.make_refit_job_log()),
-      leases_(db.make_lease_store()) {}
+      leases_(db.make_lease_store()) {
+  if (const char* ms = std::getenv("MAGCAL_FAULT_REFIT_PAUSE_MS"); ms != nullptr) {
+    pause_before_storing_ = std::chrono::milliseconds(std::max(0L, std::strtol(ms, nullptr, 10)));
+  }
+}
 
 std::vector<std::string> RefitRunner::spacecraft() {
   return samples_->spacecraft();
@@ -240,6 +246,7 @@ RefitOutcome RefitRunner::run(const std::string& sat_id, std::optional<int64_t> 
     out.result = calibrate_batch(window_, options_, previous ? &*previous : nullptr);
     out.result.utime = t_ref;  // the time the refit refers to: its scheduled window end
     if (previous) accept_corroborated_change(sat_id, *previous, out.result);
+    if (pause_before_storing_.count() > 0) std::this_thread::sleep_for(pause_before_storing_);
     // The result and its job's outcome in one transaction: a restart after a crash finds a
     // refit either done (both) or interrupted (neither), and runs only the latter again.
     storage::Transaction tx(db_);

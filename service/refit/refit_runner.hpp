@@ -9,6 +9,8 @@
 // Publishing and re-anchoring the UKF are the caller's business.
 #pragma once
 
+#include <chrono>
+
 #include <cstdint>
 #include <optional>
 #include <string>
@@ -99,6 +101,11 @@ class RefitRunner {
   std::unique_ptr<storage::LeaseStore> leases_;  // which stations are live
   std::vector<storage::StoredSample> rows_;      // reused between refits
   SampleSet window_;
+  // Fault injection for the tests that kill a daemon inside a refit (daemon_crash_resume_test):
+  // the environment's MAGCAL_FAULT_REFIT_PAUSE_MS holds each computed refit that long before the
+  // transaction that stores it and ends its job, so that a kill can land there whatever the
+  // machine's speed. Unset (0) in operations.
+  std::chrono::milliseconds pause_before_storing_{0};
 };
 
 }  // namespace magcal

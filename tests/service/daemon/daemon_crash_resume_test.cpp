@@ -14,6 +14,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <limits>
@@ -219,8 +220,12 @@ TEST_CASE("SIGKILL at 20 points of a three-spacecraft replay: the UKF resumes as
                  resume > 0 ? resume - kResumeOverlap_utime : std::numeric_limits<int64_t>::min());
     const bool at_refit = k == 5 || k == 6 || k == 16 || k == 17;
     const int64_t jobs_at_start = progress(db).refit_jobs;  // before the daemon can add one
+    // A kill aimed at a refit: each refit holds its computed result for a while before storing
+    // it (refit_runner.hpp's fault injection), or a fast refit ends between two polls.
+    if (at_refit) ::setenv("MAGCAL_FAULT_REFIT_PAUSE_MS", "2000", 1);
     const pid_t d =
         spawn(daemon_args(db, "file://" + rest + "?speed=9000"), tmp.file("killed.log"));
+    ::unsetenv("MAGCAL_FAULT_REFIT_PAUSE_MS");
     REQUIRE(d > 0);
     bool exited = false;  // before the kill point: it is missed (checked below)
     for (const auto deadline = Clock::now() + std::chrono::seconds(120);
