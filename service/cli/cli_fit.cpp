@@ -285,9 +285,12 @@ void print_text(const CalibrationResult& r, double compute_ms, double convergenc
          fmt::format("roll {}  pitch {}  yaw {}  (deg)", sigma_text(a.sigma_rad(0)),
                      sigma_text(a.sigma_rad(1)), sigma_text(a.sigma_rad(2))));
     if (!std::isnan(r.alignment.attitude_lag_s))
-      line("attitude_lag_s", fmt::format("{:.3f} +- {:.3f}{}", r.alignment.attitude_lag_s,
-                                         r.alignment.attitude_lag_sigma_s,
-                                         r.alignment.attitude_lag_applied ? " (applied)" : ""));
+      line("attitude_lag_s",
+           fmt::format("{:.3f} +- {:.3f}{}", r.alignment.attitude_lag_s,
+                       r.alignment.attitude_lag_sigma_s,
+                       r.alignment.attitude_lag_applied ? " (applied)"
+                                                        : " (seen by the check, not applied: "
+                                                          "--estimate-attitude-lag fits it)"));
     for (int i = 0; i < 3; ++i) {
       const Eigen::Vector3d c = C.row(i).transpose() * (kRadToDeg * kRadToDeg);
       line(i == 0 ? "alignment_cov_deg2" : "",
