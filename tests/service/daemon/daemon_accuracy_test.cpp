@@ -280,8 +280,9 @@ TEST_CASE(
     const Truth with_truth = replay(with_tmp, "paper", seed, 14, config);
     const Truth without_truth =
         replay(without_tmp, without_tmp.file("no_temperature.toml"), seed, 14, config);
-    const UkfVerdict with =
-        judge_ukf(history(with_tmp.file("d.db"), with_truth.sat_id, "ukf"), with_truth);
+    const auto with_ukf = history(with_tmp.file("d.db"), with_truth.sat_id, "ukf");
+    REQUIRE(with_ukf.size() > 500);
+    const UkfVerdict with = judge_ukf(with_ukf, with_truth);
     const auto without_ukf = history(without_tmp.file("d.db"), without_truth.sat_id, "ukf");
     REQUIRE(without_ukf.size() > 500);
     const UkfVerdict without = judge_ukf(without_ukf, without_truth);
