@@ -142,6 +142,7 @@
 
 #include "pipeline/calibration_result.hpp"
 #include "pipeline/calibration_types.hpp"
+#include "pipeline/cholesky_factor.hpp"
 #include "pipeline/filter_start.hpp"
 #include "pipeline/packed_triangle.hpp"
 
@@ -345,14 +346,6 @@ StartAttempt start_attempt_due(int64_t n_samples, const FilterOptions& options);
 
 // diag(Q) for a step of dt_s: q_i^2 dt_s / 3600 (dt_s <= 0 gives 0).
 Vector9d process_noise_diagonal(const Vector9d& q_per_sqrt_hour, double dt_s);
-
-// Rank-1 Cholesky downdate of the lower factor S in place, given the whitened vector
-// p = S^-1 u: S S^T - u u^T = S (I - p p^T) S^T. Returns false, S untouched, when |p| >= 1
-// (the result would not be positive definite). O(n^2), no allocation, no serial sqrt chain.
-// Reads and writes the lower triangle only (above it S must be zero, as a Cholesky factor is).
-bool cholesky_downdate_whitened(Matrix9d& S, const Vector9d& p);
-// The same given S_p = S p (a filter has it: S_p is its Pxz / sqrt(S_y)).
-bool cholesky_downdate_whitened(Matrix9d& S, const Vector9d& p, const Vector9d& S_p);
 
 // Makes P symmetric positive definite and returns its lower Cholesky factor in L (P = L L^T).
 // Symmetrises P and tries LLT; if that fails, adds a small diagonal jitter (relative to each

@@ -118,9 +118,12 @@ enum class TransactionMode {
 class Connection {
  public:
   virtual ~Connection() = default;
-  // A connection owns its engine's session: moved, never copied.
+  // A connection owns its engine's session and is an identity (its stores hold references to
+  // it): neither copied nor moved.
   Connection(const Connection&) = delete;
   Connection& operator=(const Connection&) = delete;
+  Connection(Connection&&) = delete;
+  Connection& operator=(Connection&&) = delete;
 
   // The database for messages and logs: the file path, or the URI without its password.
   virtual const std::string& name() const = 0;
@@ -151,8 +154,6 @@ class Connection {
 
  protected:
   Connection() = default;
-  Connection(Connection&&) = default;
-  Connection& operator=(Connection&&) = default;
 
   // Where the stores written once prepare their statements (storage/sql_statement.hpp).
   virtual SqlSession& sql_session() = 0;

@@ -66,9 +66,6 @@ class PgDatabase final : public Connection, public SqlSession {
   // StorageError.
   explicit PgDatabase(const std::string& uri, const OpenOptions& options = {});
   ~PgDatabase();
-  // A connection is an identity: its stores hold references to it.
-  PgDatabase(const PgDatabase&) = delete;
-  PgDatabase& operator=(const PgDatabase&) = delete;
 
   // The newest schema this build's PostgreSQL migrations make (postgres/migrations/*.sql).
   static int latest_schema_version();

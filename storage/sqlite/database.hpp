@@ -39,9 +39,6 @@ class Database final : public Connection, public SqlSession {
   // `path` may be ":memory:". Throws StorageError.
   explicit Database(const std::string& path, const OpenOptions& options = {});
   ~Database();
-  // A connection is an identity: its stores hold references to it.
-  Database(const Database&) = delete;
-  Database& operator=(const Database&) = delete;
 
   // The newest schema this build's SQLite migrations make (storage/migrations/*.sql).
   static int latest_schema_version();
