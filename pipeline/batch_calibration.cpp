@@ -435,10 +435,6 @@ CalibrationResult calibrate_batch_robust(const SampleSet& samples,
   return r;
 }
 
-}  // namespace
-
-namespace {
-
 // The field error the estimate leaves on the samples it came from (kept as measured, outliers
 // included: they are what the on-board software will meet).
 CalibrationResult with_field_error(CalibrationResult r, const SampleSet& samples) {
