@@ -13,6 +13,7 @@
 #include "pipeline/batch_model_selection.hpp"
 #include "pipeline/batch_screening.hpp"
 #include "pipeline/bias_variability.hpp"
+#include "pipeline/calibration_table.hpp"
 #include "pipeline/crlb.hpp"
 #include "pipeline/model_extension.hpp"
 #include "pipeline/orbit_synchronous_bias.hpp"
@@ -434,6 +435,14 @@ CalibrationResult calibrate_batch_robust(const SampleSet& samples,
   return r;
 }
 
+// The field error the estimate leaves on the samples it came from (kept as measured, outliers
+// included: they are what the on-board software will meet).
+CalibrationResult with_field_error(CalibrationResult r, const SampleSet& samples) {
+  if (r.status != CalibrationStatus::kFailed && r.status != CalibrationStatus::kUnobservable)
+    r.field_error = table_field_error(r, samples);
+  return r;
+}
+
 }  // namespace
 
 CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrationOptions& options,
@@ -443,7 +452,7 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
     if (r.status == CalibrationStatus::kFailed || r.status == CalibrationStatus::kUnobservable) {
       name_raw_spikes(samples, options.sigma_nT, &r);
     }
-    return r;
+    return with_field_error(std::move(r), samples);
   }
   // Zero field vectors (a sensor's dropouts) and isolated samples beyond the sensor range
   // (kMaxLeftOutBeyondRangeFraction) carry no measurement: left out before anything else, and
@@ -481,7 +490,8 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
                   std::to_string(static_cast<int>(100.0 * kMaxLeftOutBeyondRangeFraction)) + " %)");
   }
   if (static_cast<int>(measured.size()) < options.min_samples) {
-    if (measured.size() == samples.size()) return calibrate_batch_core(samples, options, nullptr);
+    if (measured.size() == samples.size())
+      return with_field_error(calibrate_batch_core(samples, options, nullptr), samples);
     return failed("too few samples besides the " +
                   std::to_string(samples.size() - measured.size()) +
                   " zero field vectors (sensor dropouts) and samples beyond the sensor range: " +
@@ -496,7 +506,7 @@ CalibrationResult calibrate_batch(const SampleSet& samples, const BatchCalibrati
   r.window_start_utime = t0->utime;
   r.window_end_utime = t1->utime;
   r.utime = t1->utime;
-  return r;
+  return with_field_error(std::move(r), measured);
 }
 
 }  // namespace magcal

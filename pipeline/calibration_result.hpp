@@ -10,6 +10,7 @@
 #include <Eigen/Core>
 
 #include "pipeline/calibration_types.hpp"
+#include "pipeline/field_error.hpp"
 
 namespace magcal {
 
@@ -160,6 +161,11 @@ struct CalibrationResult {
   // effective per-axis measurement noise the (adaptive) filter currently uses.
   double nis_mean = std::numeric_limits<double>::quiet_NaN();
   double measurement_noise_nT = std::numeric_limits<double>::quiet_NaN();
+
+  // The field error this calibration leaves on its own window's samples (pipeline/field_error.hpp,
+  // the table of pipeline/calibration_table.hpp applied): batch refits and `magcal fit`; not
+  // computed (n = 0) for the daemon's filter snapshots.
+  FieldError field_error;
 
   // Acceptance verdict (gates); rejected results keep their numbers for inspection.
   bool accepted = true;

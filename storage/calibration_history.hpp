@@ -85,6 +85,13 @@ struct CalibrationRecord {
                                            std::numeric_limits<double>::quiet_NaN()};
   // Covariance of r, (nT/h)^2: xx yy zz xy xz yz (pack_symmetric).
   std::array<double, 6> bias_rate_cov{};
+  // Schema 12: the field error the result leaves on its window (pipeline/field_error.hpp), rms
+  // and worst of the direction error (deg) and of the magnitude error (nT); NaN (NULL): not
+  // computed (filter snapshots, rows stored before schema 12, a window without directions).
+  double field_direction_error_rms_deg = std::numeric_limits<double>::quiet_NaN();
+  double field_direction_error_worst_deg = std::numeric_limits<double>::quiet_NaN();
+  double field_magnitude_error_rms_nT = std::numeric_limits<double>::quiet_NaN();
+  double field_magnitude_error_worst_nT = std::numeric_limits<double>::quiet_NaN();
   std::string software_version;  // empty: this build's MAGCAL_VERSION
   int64_t created_utime = 0;     // 0: wall-clock now
 };

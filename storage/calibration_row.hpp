@@ -31,8 +31,9 @@ inline constexpr const char* kInsertColumns =
     "temperature_coefficient_x_nT_per_C, temperature_coefficient_y_nT_per_C, "
     "temperature_coefficient_z_nT_per_C, temperature_coefficient_cov, temperature_model_refit_id, "
     "has_bias_rate, bias_rate_x_nT_per_h, bias_rate_y_nT_per_h, bias_rate_z_nT_per_h, "
-    "bias_rate_cov, bias_variability_nT2";
-inline constexpr int kInsertValues = 61;
+    "bias_rate_cov, bias_variability_nT2, field_direction_error_rms_deg, "
+    "field_direction_error_worst_deg, field_magnitude_error_rms_nT, field_magnitude_error_worst_nT";
+inline constexpr int kInsertValues = 65;
 // `SELECT <kSelectColumns> FROM calibrations ...`: id, then kInsertColumns.
 inline std::string select_sql(std::string_view tail) {
   return std::string("SELECT id, ") + kInsertColumns + " FROM calibrations " + std::string(tail);
@@ -147,6 +148,10 @@ void write(const CalibrationRecord& r, const std::string& reasons_json, Sink& ou
   } else {
     out.null();
   }
+  out.real(r.field_direction_error_rms_deg);
+  out.real(r.field_direction_error_worst_deg);
+  out.real(r.field_magnitude_error_rms_nT);
+  out.real(r.field_magnitude_error_worst_nT);
 }
 
 // A row of `SELECT select_sql(...)` read back. Row:
@@ -217,6 +222,10 @@ CalibrationRecord read(Row& row, Reasons&& reasons) {
   if (!row.blob(61, r.bias_variability_nT2, what("bias_variability_nT2"))) {
     r.bias_variability_nT2 = {};  // NULL: none
   }
+  r.field_direction_error_rms_deg = row.real(62);
+  r.field_direction_error_worst_deg = row.real(63);
+  r.field_magnitude_error_rms_nT = row.real(64);
+  r.field_magnitude_error_worst_nT = row.real(65);
   return r;
 }
 

@@ -7,8 +7,11 @@
 #include <cstdint>
 #include <optional>
 #include <string>
+#include <utility>
 
+#include "pipeline/calibration_result.hpp"
 #include "pipeline/roll_pitch_yaw_report.hpp"
+#include "service/io/calibration_export.hpp"
 #include "service/io/exit_codes.hpp"
 
 namespace magcal::cli {
@@ -101,6 +104,35 @@ struct StatusArgs {
   bool json = false;
 };
 int run_status(const StatusArgs& args);
+
+// A calibration named on the command line (export, compare): a history id (with --db), "latest"
+// (with --db and --sat: the newest accepted refit), or a JSON file (`magcal fit --json`, one
+// object of `magcal history --format json`).
+struct ExportArgs {
+  std::string calibration;  // ID | latest | FILE.json
+  std::string db;
+  std::string sat;
+  std::string format = "json";  // json | csv
+  std::string out;              // empty: stdout
+  double rounding_field_nT = kDefaultRoundingField_nT;
+};
+int run_export(const ExportArgs& args);
+
+struct CompareArgs {
+  std::string a, b;  // each ID | latest | FILE.json
+  std::string db;
+  std::string sat;
+  std::string samples;       // the window: a sample FILE.csv...
+  std::string since, until;  // ...or the stored samples (--db) in this range (default B's window)
+  bool json = false;
+};
+int run_compare(const CompareArgs& args);
+
+// The calibration `spec` names (see ExportArgs), or nullopt with one line printed as
+// "magcal <command>: ..." and *exit_code set.
+std::optional<std::pair<CalibrationResult, CalibrationOrigin>> load_named_calibration(
+    const std::string& spec, const std::string& db, const std::string& sat, const char* command,
+    int* exit_code);
 
 struct ServeArgs {
   std::string db;

@@ -26,6 +26,7 @@
 
 #include "pipeline/alignment.hpp"
 #include "pipeline/batch_calibration.hpp"
+#include "pipeline/calibration_table.hpp"
 #include "pipeline/magnetometer_ekf.hpp"
 #include "pipeline/magnetometer_ukf.hpp"
 #include "pipeline/roll_pitch_yaw_report.hpp"
@@ -216,8 +217,8 @@ void finish_filter_result(CalibrationResult& r, const SampleSet& samples, double
   apply_verdict(r, verdict);
 }
 
-void print_text(const CalibrationResult& r, double compute_ms, double convergence_time_s,
-                double gimbal_lock_margin_deg) {
+void print_text(const CalibrationResult& r, const FieldError& raw_error, double compute_ms,
+                double convergence_time_s, double gimbal_lock_margin_deg) {
   const Eigen::Vector3d b = r.parameters.bias_nT, s = r.bias_sigma_nT();
   const Eigen::Matrix3d& D = r.parameters.D;
   const Vector9d sd = r.covariance.diagonal().cwiseMax(0.0).cwiseSqrt();
@@ -230,13 +231,30 @@ void print_text(const CalibrationResult& r, double compute_ms, double convergenc
   for (const std::string& reason : r.rejection_reasons) line("  reason", reason);
   if (!r.message.empty()) line("message", r.message);
   line("n_samples", std::to_string(r.n_samples));
+  // What the numbers mean (estimation.md section 1): the equation, the time they refer to, the
+  // bias's frame and reference.
+  line("equation", r.has_alignment ? "B_cal = R^T ((I + D) B - b): B sensor frame, B_cal body frame"
+                                   : "B_cal = (I + D) B - b: sensor frame (no alignment)");
+  if (r.has_temperature_model || r.has_bias_rate) {
+    line("", fmt::format("b(t, T) = b{}{}", r.has_temperature_model ? " + k_T (T - T0)" : "",
+                         r.has_bias_rate ? " + r (t - t_ref)" : ""));
+  }
+  line("epoch", fmt::format("{} (window {} to {})", history_time(r.utime),
+                            history_time(r.window_start_utime), history_time(r.window_end_utime)));
+  std::string bias_reference = "sensor frame";
+  if (r.has_temperature_model)
+    bias_reference += fmt::format(", at T0 = {:.3f} degC", r.reference_temperature_C);
+  if (r.has_bias_rate)
+    bias_reference += ", at t_ref = " + history_time(r.window_end_utime) + " (the window's end)";
+  line("bias", bias_reference);
   line("bias_nT", fmt::format("{:12.3f} {:12.3f} {:12.3f}", b.x(), b.y(), b.z()));
   line("bias_sigma_nT", fmt::format("{:12.3f} {:12.3f} {:12.3f}", s.x(), s.y(), s.z()));
   for (int i = 0; i < 3; ++i) {
     line(i == 0 ? "D" : "", fmt::format("{:12.6f} {:12.6f} {:12.6f}", D(i, 0), D(i, 1), D(i, 2)));
   }
-  line("D_sigma", fmt::format("{:.2e} {:.2e} {:.2e} {:.2e} {:.2e} {:.2e}", sd(3), sd(4), sd(5),
-                              sd(6), sd(7), sd(8)));
+  line("D_sigma",
+       fmt::format("D11 {:.2e}  D22 {:.2e}  D33 {:.2e}  D12 {:.2e}  D13 {:.2e}  D23 {:.2e}", sd(3),
+                   sd(4), sd(5), sd(6), sd(7), sd(8)));
   if (r.has_temperature_model) {  // bias_nT is then the bias at the reference temperature
     const Eigen::Vector3d k = r.temperature_coefficient_nT_per_C;
     const Eigen::Vector3d ks = r.temperature_coefficient_sigma_nT_per_C();
@@ -310,6 +328,15 @@ void print_text(const CalibrationResult& r, double compute_ms, double convergenc
     line("alignment", "not estimated (no reference directions)");
   }
   line("residual_rms_nT", fmt::format("{:.3f}", r.residual_rms_nT));
+  // The field error the calibration leaves on the window, and the raw field's (before).
+  const auto error_text = [](const ErrorFigures& after, const ErrorFigures& before) {
+    return fmt::format("rms {:.4g}  worst {:.4g}  (uncalibrated: rms {:.4g}  worst {:.4g})",
+                       after.rms, after.worst, before.rms, before.worst);
+  };
+  if (r.field_error.direction_deg.n > 0)
+    line("field_dir_err_deg", error_text(r.field_error.direction_deg, raw_error.direction_deg));
+  if (r.field_error.magnitude_nT.n > 0)
+    line("field_mag_err_nT", error_text(r.field_error.magnitude_nT, raw_error.magnitude_nT));
   line("fisher_condition", fmt::format("{:.3g}", r.fisher_condition_number));
   line("iterations", std::to_string(r.iterations));
   line("converged", r.converged ? "yes" : "no");
@@ -561,6 +588,7 @@ int fit_filter(const FitArgs& args, SampleSet& samples, CalibrationResult& r,
   convergence_time_s = run.convergence_time_s;
   finish_filter_result(r, filtered, args.sigma_nT, refit, args.estimate_attitude_lag);
   temperature.describe(r);
+  r.field_error = table_field_error(r, samples);  // with the temperature term, on the raw samples
   return kExitOk;
 }
 
@@ -612,14 +640,18 @@ int run_fit(const FitArgs& args) {
               << "\n";
     return kExitData;
   }
+  // The raw field against the reference: what the calibration improves on.
+  const FieldError raw_error = field_error(calibrated_field(CalibrationTable{}, samples), samples);
   if (args.json) {
     nlohmann::json j = calibration_result_to_json(r, args.gimbal_lock_margin_deg);
+    j["uncalibrated_field_direction_error_deg"] = error_figures_json(raw_error.direction_deg);
+    j["uncalibrated_field_magnitude_error_nT"] = error_figures_json(raw_error.magnitude_nT);
     j["compute_ms"] = compute_ms;
     j["input"] = args.input;
     if (filter) j["convergence_time_s"] = json_number(convergence_time_s);
     std::cout << j.dump(2) << "\n";
   } else {
-    print_text(r, compute_ms, convergence_time_s, args.gimbal_lock_margin_deg);
+    print_text(r, raw_error, compute_ms, convergence_time_s, args.gimbal_lock_margin_deg);
   }
   return kExitOk;
 }

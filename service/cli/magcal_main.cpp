@@ -66,9 +66,9 @@ CLI::Validator seed_number() {
 
 // --db: an SQLite file or a postgresql:// URI; a mistyped URI scheme is a bad argument (exit 1),
 // not a database that cannot be opened (exit 2).
-CLI::Option* add_db_option(CLI::App* command, std::string& db) {
+CLI::Option* add_db_option(CLI::App* command, std::string& db, bool required = true) {
   return command->add_option("--db", db, "SQLite database file or postgresql:// URI")
-      ->required()
+      ->required(required)
       ->check(CLI::Validator(
           [](std::string& text) { return magcal::storage::database_value_error(text); }, "DB"));
 }
@@ -253,6 +253,41 @@ CLI::App* add_history_command(CLI::App& app, magcal::cli::HistoryArgs& args) {
   return command;
 }
 
+// `magcal export` and `compare` name calibrations as a history id, `latest` or a JSON file.
+constexpr const char* kCalibrationHelp =
+    "history id (--db), 'latest' (--db --sat: newest accepted refit) or FILE.json (fit --json)";
+
+CLI::App* add_export_command(CLI::App& app, magcal::cli::ExportArgs& args) {
+  CLI::App* const command = app.add_subcommand(
+      "export", "a calibration as an uplink table: B_cal = M B - o (body frame), float32");
+  command->add_option("calibration", args.calibration, kCalibrationHelp)->required();
+  add_db_option(command, args.db, false);
+  command->add_option("--sat", args.sat, "spacecraft id (with latest)");
+  command->add_option("--format", args.format, "json|csv (default json)")
+      ->check(CLI::IsMember({"json", "csv"}));
+  command->add_option("--out", args.out, "write to FILE (default stdout)");
+  command
+      ->add_option("--rounding-field-nT", args.rounding_field_nT,
+                   "|B| the stated float32 rounding error is for (default 70000)")
+      ->check(real_number());
+  return command;
+}
+
+CLI::App* add_compare_command(CLI::App& app, magcal::cli::CompareArgs& args) {
+  CLI::App* const command = app.add_subcommand(
+      "compare", "two calibrations: their difference and the field error each leaves");
+  command->add_option("a", args.a, std::string("A: ") + kCalibrationHelp)->required();
+  command->add_option("b", args.b, "B: the candidate, as A")->required();
+  add_db_option(command, args.db, false);
+  command->add_option("--sat", args.sat, "spacecraft id (latest, stored samples)");
+  command->add_option("--samples", args.samples, "the window: a sample FILE.csv");
+  command->add_option("--since", args.since,
+                      "stored samples from (ISO 8601 UTC; default B's window)");
+  command->add_option("--until", args.until, "stored samples to (ISO 8601 UTC, inclusive)");
+  command->add_flag("--json", args.json, "print JSON");
+  return command;
+}
+
 CLI::App* add_status_command(CLI::App& app, magcal::cli::StatusArgs& args) {
   CLI::App* const command = app.add_subcommand("status", "per-spacecraft summary");
   add_db_option(command, args.db);
@@ -316,6 +351,8 @@ int main(int argc, char** argv) {
   HistoryArgs history;
   StatusArgs status;
   ServeArgs serve;
+  ExportArgs export_args;
+  CompareArgs compare;
   // In the order of --help; the one the command line names runs.
   const std::pair<const CLI::App*, std::function<int()>> subcommands[] = {
       {add_field_command(app, field), [&] { return run_field(field); }},
@@ -324,6 +361,8 @@ int main(int argc, char** argv) {
       {add_evaluate_command(app, evaluate), [&] { return run_evaluate(evaluate); }},
       {add_refit_command(app, refit), [&] { return run_refit(refit); }},
       {add_history_command(app, history), [&] { return run_history(history); }},
+      {add_export_command(app, export_args), [&] { return run_export(export_args); }},
+      {add_compare_command(app, compare), [&] { return run_compare(compare); }},
       {add_status_command(app, status), [&] { return run_status(status); }},
       {add_serve_command(app, serve), [&] { return run_serve(serve); }}};
   if (const auto exit_code = parse_command_line(app, argc, argv)) return *exit_code;

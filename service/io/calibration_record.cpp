@@ -262,6 +262,10 @@ storage::CalibrationRecord record_from_result(const std::string& sat_id,
       rec.bias_rate_nT_per_h[static_cast<size_t>(i)] = r.bias_rate_nT_per_h(i);
     Eigen::Map<Vector6d>(rec.bias_rate_cov.data()) = pack_symmetric(r.bias_rate_covariance);
   }
+  rec.field_direction_error_rms_deg = r.field_error.direction_deg.rms;
+  rec.field_direction_error_worst_deg = r.field_error.direction_deg.worst;
+  rec.field_magnitude_error_rms_nT = r.field_error.magnitude_nT.rms;
+  rec.field_magnitude_error_worst_nT = r.field_error.magnitude_nT.worst;
   return rec;
 }
 
@@ -330,6 +334,11 @@ CalibrationResult result_from_record(const storage::CalibrationRecord& rec) {
       r.bias_rate_nT_per_h(i) = rec.bias_rate_nT_per_h[static_cast<size_t>(i)];
     r.bias_rate_covariance = unpack_symmetric(Eigen::Map<const Vector6d>(rec.bias_rate_cov.data()));
   }
+  // Sample counts are not stored (n stays 0).
+  r.field_error.direction_deg.rms = rec.field_direction_error_rms_deg;
+  r.field_error.direction_deg.worst = rec.field_direction_error_worst_deg;
+  r.field_error.magnitude_nT.rms = rec.field_magnitude_error_rms_nT;
+  r.field_error.magnitude_nT.worst = rec.field_magnitude_error_worst_nT;
   return r;
 }
 

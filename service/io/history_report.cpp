@@ -36,6 +36,26 @@ std::string csv_quoted(const std::string& s) {
   return out + '"';
 }
 
+// "D11_sigma,...,D23_sigma,cov_b1_b1,cov_b1_b2,...,cov_D23_D23": the D sigmas, then the
+// covariance of p = [b1 b2 b3 D11 D22 D33 D12 D13 D23] as its upper triangle, row-major (the
+// order of storage::cov_index).
+std::string covariance_csv_header() {
+  static constexpr const char* kNames[9] = {"b1",  "b2",  "b3",  "D11", "D22",
+                                            "D33", "D12", "D13", "D23"};
+  std::string header;
+  for (int i = 3; i < 9; ++i) header += std::string(i == 3 ? "" : ",") + kNames[i] + "_sigma";
+  for (int i = 0; i < 9; ++i) {
+    for (int j = i; j < 9; ++j) header += std::string(",cov_") + kNames[i] + "_" + kNames[j];
+  }
+  return header;
+}
+
+// The 1-sigma of p_i (sqrt of the covariance's diagonal; NaN where it is not a variance).
+double parameter_sigma(const storage::CalibrationRecord& r, int i) {
+  const double var = r.cov[storage::cov_index(i, i)];
+  return var >= 0.0 ? std::sqrt(var) : std::numeric_limits<double>::quiet_NaN();
+}
+
 bool known_method(const std::string& m) {
   return m == "ukf" || m == "ekf" || m == "centered" || m == "twostep";
 }
@@ -127,7 +147,10 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
       "temperature_coefficient_sigma_z_nT_per_C,temperature_model_refit_id,"
       "alignment_determined_name,alignment_determined_deg,has_bias_rate,bias_rate_x_nT_per_h,"
       "bias_rate_y_nT_per_h,bias_rate_z_nT_per_h,bias_rate_sigma_x_nT_per_h,"
-      "bias_rate_sigma_y_nT_per_h,bias_rate_sigma_z_nT_per_h\n";
+      "bias_rate_sigma_y_nT_per_h,bias_rate_sigma_z_nT_per_h," +
+      covariance_csv_header() +
+      ",field_direction_error_rms_deg,field_direction_error_worst_deg,"
+      "field_magnitude_error_rms_nT,field_magnitude_error_worst_nT\n";
   for (const auto& r : rows) {
     std::string line = history_time(r.utime) + ',' + std::to_string(r.utime) + ',' +
                        csv_quoted(r.sat_id) + ',' + csv_quoted(r.method) + ',' +
@@ -203,6 +226,13 @@ std::string history_csv_text(const std::vector<storage::CalibrationRecord>& rows
         drifting ? result_from_record(r).bias_rate_sigma_nT_per_h()
                  : Eigen::Vector3d::Constant(std::numeric_limits<double>::quiet_NaN());
     for (int i = 0; i < 3; ++i) line += ',' + csv_number(rate_sigma(i));
+    // Appended: the D sigmas and the covariance's upper triangle (as the JSON's D_sigma and
+    // covariance; empty where unknown), then the field error on the window.
+    for (int i = 3; i < 9; ++i) line += ',' + csv_number(parameter_sigma(r, i));
+    for (const double v : r.cov) line += ',' + csv_number(v);
+    for (const double v : {r.field_direction_error_rms_deg, r.field_direction_error_worst_deg,
+                           r.field_magnitude_error_rms_nT, r.field_magnitude_error_worst_nT})
+      line += ',' + csv_number(v);
     text += line + '\n';
   }
   return text;
@@ -264,10 +294,7 @@ std::array<double, kFieldCount> field_values(const storage::CalibrationRecord& r
   for (int i = 0; i < 3; ++i) v[1 + i] = r.bias_nT[i];
   for (int i = 0; i < 3; ++i) v[4 + i] = r.bias_sigma_nT[i];
   for (int i = 0; i < 6; ++i) v[7 + i] = r.D[i];
-  for (int i = 0; i < 6; ++i) {
-    const double var = r.cov[storage::cov_index(3 + i, 3 + i)];
-    v[13 + i] = var >= 0.0 ? std::sqrt(var) : std::numeric_limits<double>::quiet_NaN();
-  }
+  for (int i = 0; i < 6; ++i) v[13 + i] = parameter_sigma(r, 3 + i);
   v[19] = r.residual_rms_nT;
   return v;
 }

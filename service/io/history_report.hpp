@@ -9,7 +9,10 @@
 // alignment's are alignment_singular, q_sensor_from_body_{w,x,y,z}, alignment_{roll,pitch,yaw}_deg,
 // alignment_sigma_{roll,pitch,yaw}_deg, alignment_determined_sigma_deg and
 // alignment_covariance_{11,22,33,12,13,23}_deg2 (empty without an alignment; sigmas and covariance
-// empty for rows stored before the covariance was kept).
+// empty for rows stored before the covariance was kept). Then D11_sigma..D23_sigma and the
+// covariance's upper triangle cov_b1_b1, cov_b1_b2, ..., cov_D23_D23 (row-major, p = [b1 b2 b3
+// D11 D22 D33 D12 D13 D23]), and field_direction_error_{rms,worst}_deg,
+// field_magnitude_error_{rms,worst}_nT (empty: not computed).
 #pragma once
 
 #include <optional>

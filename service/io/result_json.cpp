@@ -32,6 +32,11 @@ nlohmann::json json_matrix(const Mat& m) {
 
 }  // namespace
 
+nlohmann::json error_figures_json(const ErrorFigures& figures) {
+  if (!std::isfinite(figures.rms)) return nullptr;
+  return {{"rms", json_number(figures.rms)}, {"worst", json_number(figures.worst)}};
+}
+
 nlohmann::json calibration_result_to_json(const CalibrationResult& result,
                                           double gimbal_lock_margin_deg) {
   nlohmann::json j;
@@ -93,6 +98,10 @@ nlohmann::json calibration_result_to_json(const CalibrationResult& result,
       }
     }
   }
+  // The field error the calibration leaves on its window (pipeline/field_error.hpp); null when
+  // not computed.
+  j["field_direction_error_deg"] = error_figures_json(result.field_error.direction_deg);
+  j["field_magnitude_error_nT"] = error_figures_json(result.field_error.magnitude_nT);
   j["residual_rms_nT"] = json_number(result.residual_rms_nT);
   j["iterations"] = result.iterations;
   j["converged"] = result.converged;

@@ -21,6 +21,10 @@
 // When result.has_temperature_model (bias_nT is then the bias at T0):
 // reference_temperature_C (T0), temperature_coefficient_nT_per_C [3] and
 // temperature_coefficient_sigma_nT_per_C [3].
+// When result.has_bias_rate (bias_nT is then the bias at window_end_utime): bias_rate_nT_per_h
+// [3], bias_rate_sigma_nT_per_h [3], bias_rate_covariance [[3]x3].
+// field_direction_error_deg and field_magnitude_error_nT: {rms, worst} of the field error the
+// calibration leaves on its window (pipeline/field_error.hpp), null when not computed.
 // Non-finite numbers become null (JSON has no NaN).
 // Callers add their own keys (compute_ms, time strings, ...) to the returned object.
 #pragma once
@@ -38,6 +42,9 @@ nlohmann::json calibration_result_to_json(
 
 // A finite double as a JSON number, anything else as null.
 nlohmann::json json_number(double value);
+
+// {"rms": ..., "worst": ...}, or null when not computed (rms NaN).
+nlohmann::json error_figures_json(const ErrorFigures& figures);
 
 // Lossless ISO 8601: whole seconds print without a fraction, anything else with microseconds.
 std::string history_time(int64_t utime);

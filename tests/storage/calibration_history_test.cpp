@@ -106,6 +106,10 @@ void check_round_trip(const CalibrationRecord& got, const CalibrationRecord& wan
   CHECK(same(got.bias_rate_nT_per_h, want.bias_rate_nT_per_h));
   CHECK(same(got.bias_rate_cov, want.bias_rate_cov));
   CHECK(same(got.bias_variability_nT2, want.bias_variability_nT2));
+  CHECK(same(got.field_direction_error_rms_deg, want.field_direction_error_rms_deg));
+  CHECK(same(got.field_direction_error_worst_deg, want.field_direction_error_worst_deg));
+  CHECK(same(got.field_magnitude_error_rms_nT, want.field_magnitude_error_rms_nT));
+  CHECK(same(got.field_magnitude_error_worst_nT, want.field_magnitude_error_worst_nT));
   CHECK(got.software_version == want.software_version);
   CHECK(got.created_utime == want.created_utime);
 }
@@ -175,6 +179,10 @@ TEMPLATE_TEST_CASE_METHOD(BackendTest, "every field of a record round-trips bit 
   r.bias_rate_nT_per_h = {-2.75, 0.125, 1e-3 / 7.0};
   r.bias_rate_cov = {0.0289, 0.0025, 9e-4, -1e-4, 2e-5, 3e-6};
   r.bias_variability_nT2 = {26.01, 0.1 + 0.2, 1e-300};
+  r.field_direction_error_rms_deg = 0.1 + 0.2;
+  r.field_direction_error_worst_deg = 1.0 / 7.0;
+  r.field_magnitude_error_rms_nT = 3.0e-300;
+  r.field_magnitude_error_worst_nT = 12.5;
   const int64_t id = history->append(r);
   const auto got = history->get(id);
   REQUIRE(got);

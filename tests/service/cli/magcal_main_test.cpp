@@ -103,7 +103,7 @@ TEST_CASE("an unknown subcommand is named, with the ones there are") {
   CHECK(r.out.empty());
   CHECK(r.err ==
         "magcal: unknown subcommand 'bogus' (subcommands: field, sim, fit, evaluate, refit, "
-        "history, status, serve)\n");
+        "history, export, compare, status, serve)\n");
 }
 
 TEST_CASE("sim: --help lists every preset, an empty --sat-id is refused and nothing written") {

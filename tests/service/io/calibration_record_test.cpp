@@ -122,6 +122,22 @@ TEST_CASE("a refit's bias variability goes through the history record: the same 
   CHECK(back.model_error_covariance()(0, 0) == 26.01);
 }
 
+TEST_CASE("the field error goes through the history record and back", "[calibration_record]") {
+  auto r = finite_result();
+  r.method = "twostep";
+  r.field_error.direction_deg = {100, 0.075, 0.31};
+  r.field_error.magnitude_nT = {120, 4.25, 17.5};
+  const CalibrationResult back = result_from_record(record_from_result("SAT-1", r));
+  CHECK(back.field_error.direction_deg.rms == 0.075);
+  CHECK(back.field_error.direction_deg.worst == 0.31);
+  CHECK(back.field_error.magnitude_nT.rms == 4.25);
+  CHECK(back.field_error.magnitude_nT.worst == 17.5);
+  CHECK(back.field_error.computed());
+  // Not computed (a filter snapshot): stays so.
+  CHECK_FALSE(
+      result_from_record(record_from_result("SAT-1", finite_result())).field_error.computed());
+}
+
 TEST_CASE("the bias temperature model and the bias rate go through the history record and back",
           "[calibration_record]") {
   auto r = finite_result();

@@ -310,3 +310,35 @@ TEST_CASE("history JSON, CSV and table: a refit's bias rate") {
   CHECK(lines[2].find("window's end") == std::string::npos);
   CHECK(lines[3].find("window's end") == std::string::npos);
 }
+
+TEST_CASE("history CSV: the D sigmas, the covariance's upper triangle and the field error") {
+  storage::CalibrationRecord r;
+  r.sat_id = "S";
+  r.method = "twostep";
+  r.utime = kT0;
+  for (int k = 0; k < 45; ++k) r.cov[static_cast<size_t>(k)] = 0.5 * (k + 1);
+  r.cov[static_cast<size_t>(storage::cov_index(4, 4))] = 6.25;  // D22: sigma 2.5
+  r.field_direction_error_rms_deg = 0.08;
+  r.field_magnitude_error_worst_nT = 9.5;
+  const auto table = csv_fields(history_csv_text({r}));
+  REQUIRE(table.size() == 2);
+  REQUIRE(table[0].size() == table[1].size());
+  auto column = [&](const std::string& name) { return csv_column(table, name); };
+  CHECK(table[1][column("D22_sigma")] == "2.5");
+  // Every covariance entry once, named by its two parameters, in cov_index order.
+  const char* names[9] = {"b1", "b2", "b3", "D11", "D22", "D33", "D12", "D13", "D23"};
+  for (int i = 0; i < 9; ++i) {
+    for (int j = i; j < 9; ++j) {
+      const double v = r.cov[static_cast<size_t>(storage::cov_index(i, j))];
+      CHECK(std::stod(table[1][column(std::string("cov_") + names[i] + "_" + names[j])]) == v);
+    }
+  }
+  CHECK(table[1][column("field_direction_error_rms_deg")] == "0.08");
+  CHECK(table[1][column("field_direction_error_worst_deg")].empty());
+  CHECK(table[1][column("field_magnitude_error_worst_nT")] == "9.5");
+  // The same figures in the JSON.
+  const auto json = nlohmann::json::parse(history_json_text({r}));
+  CHECK(json[0]["D_sigma"][1] == 2.5);
+  CHECK(json[0]["field_direction_error_deg"]["rms"] == 0.08);
+  CHECK(json[0]["field_magnitude_error_nT"].is_null());  // no rms: not computed
+}

@@ -146,6 +146,13 @@ TEST_CASE("refits: the short first window is no reference, every full-window ref
   CHECK(last->has_nonlinearity == 1);
   CHECK(std::isfinite(last->k3[0]));
   CHECK(std::isnan(last->nis_mean));  // a refit has no innovations: NULL
+  // The field error it leaves on its window (schema 12): hundredths of a degree (noise and the
+  // hysteresis no table removes), far below the raw field's degrees; its magnitude error is the
+  // residual rms, the same |B_cal| - |h| over the same samples.
+  CHECK(last->field_direction_error_rms_deg > 0.0);
+  CHECK(last->field_direction_error_rms_deg < 0.1);
+  CHECK(last->field_direction_error_worst_deg >= last->field_direction_error_rms_deg);
+  CHECK(last->field_magnitude_error_rms_nT == Approx(last->residual_rms_nT).epsilon(1e-6));
   // The reference for a later full-window refit is a full-window one, not the 8 h refit.
   const auto reference =
       history.latest_accepted_refit("PAPER-1", static_cast<int64_t>(0.9 * 12 * hour), 1000);
