@@ -465,6 +465,38 @@ CalibrationResult fit_batch(const FitArgs& args, const SampleSet& samples) {
   return r;
 }
 
+// A refused alignment whose reference came from a recording's quaternions: the fit is tried
+// with the usual misreadings of a quaternion (scalar last, the conjugate), and one whose
+// alignment is then accepted is named among the rejection reasons, with the fix.
+void diagnose_quaternion_reading(const FitArgs& args, const FieldRecording& rec,
+                                 CalibrationResult& r) {
+  if (r.accepted || rec.has_reference_columns || !rec.has_quaternion_columns) return;
+  const auto is_alignment_reason = [](const std::string& reason) {
+    return reason.rfind("alignment", 0) == 0;
+  };
+  if (std::none_of(r.rejection_reasons.begin(), r.rejection_reasons.end(), is_alignment_reason))
+    return;
+  ReferenceField field;
+  for (const QuaternionReading reading :
+       {QuaternionReading::kScalarLast, QuaternionReading::kConjugate,
+        QuaternionReading::kScalarLastConjugate}) {
+    std::string error;
+    const SampleSet samples = samples_from_recording(rec, field, &error, reading);
+    if (samples.empty()) continue;
+    const CalibrationResult tried = fit_batch(args, samples);
+    if (std::any_of(tried.rejection_reasons.begin(), tried.rejection_reasons.end(),
+                    is_alignment_reason) ||
+        !tried.has_alignment)
+      continue;
+    r.rejection_reasons.push_back(fmt::format(
+        "attitude_convention: read as {} the quaternions give an accepted alignment; magcal "
+        "reads q0..q3 / qw..qz as w, x, y, z, body from ECI (docs/input-formats.md): reorder or "
+        "conjugate them in the file",
+        describe(reading)));
+    return;
+  }
+}
+
 // Why the filters cannot take these samples (the batch path's input validation), "" when they
 // can.
 std::string filter_input_problem(const std::string& input, const SampleSet& samples) {
@@ -707,6 +739,7 @@ int run_fit_file(const FitArgs& args) {
   const auto t_start = std::chrono::steady_clock::now();
   if (batch) {
     r = fit_batch(args, samples);
+    if (recording) diagnose_quaternion_reading(args, *recording, r);
   } else if (const int code = fit_filter(args, samples, r, convergence_time_s); code != kExitOk) {
     return code;
   }

@@ -514,8 +514,36 @@ bool recording_has_reference_directions(const FieldRecording& rec) {
   return rec.has_reference_columns || (rec.has_position_columns && rec.has_quaternion_columns);
 }
 
+const char* describe(QuaternionReading reading) {
+  switch (reading) {
+    case QuaternionReading::kAsStated:
+      return "w, x, y, z, body from ECI (as stated)";
+    case QuaternionReading::kScalarLast:
+      return "x, y, z, w (scalar last)";
+    case QuaternionReading::kConjugate:
+      return "the conjugate (ECI from body)";
+    case QuaternionReading::kScalarLastConjugate:
+      return "x, y, z, w (scalar last) and the conjugate (ECI from body)";
+  }
+  return "?";
+}
+
+namespace {
+
+QuaternionWxyz read_quaternion(const QuaternionWxyz& q_file, QuaternionReading reading) {
+  const bool scalar_last = reading == QuaternionReading::kScalarLast ||
+                           reading == QuaternionReading::kScalarLastConjugate;
+  const bool conjugate = reading == QuaternionReading::kConjugate ||
+                         reading == QuaternionReading::kScalarLastConjugate;
+  const QuaternionWxyz q =
+      scalar_last ? QuaternionWxyz(q_file(3), q_file(0), q_file(1), q_file(2)) : q_file;
+  return conjugate ? quaternion_conjugate(q) : q;
+}
+
+}  // namespace
+
 SampleSet samples_from_recording(const FieldRecording& rec, ReferenceField& field,
-                                 std::string* error) {
+                                 std::string* error, QuaternionReading reading) {
   SampleSet samples;
   samples.reserve(rec.rows.size());
   for (size_t k = 0; k < rec.rows.size(); ++k) {
@@ -530,7 +558,7 @@ SampleSet samples_from_recording(const FieldRecording& rec, ReferenceField& fiel
     } else {
       std::optional<Eigen::Vector3d> h;
       if (row.has_position && row.has_quaternion) {
-        h = field.field_body_nT(row.utime, row.r_ecef_m, row.q_file);
+        h = field.field_body_nT(row.utime, row.r_ecef_m, read_quaternion(row.q_file, reading));
         s.has_reference_direction = true;
       } else if (row.has_position) {
         h = field.field_ecef_nT(row.utime, row.r_ecef_m);

@@ -136,8 +136,14 @@ bool recording_has_reference_directions(const FieldRecording& rec);
 // IGRF field at the row's position rotated into the body frame with the row's quaternion
 // (q_body_from_eci, w x y z: h_body = A(q) B_eci, as magcald's ingest); a row without a
 // quaternion keeps |h| only. Empty with *error set when a row has no IGRF field.
+// How a row's quaternion is read: as stated (w x y z, q_body_from_eci), or one of the usual
+// misreadings fit tries when an alignment is refused (to name the likely one).
+enum class QuaternionReading { kAsStated, kScalarLast, kConjugate, kScalarLastConjugate };
+// What a reading means, for a message ("x, y, z, w (scalar last)", ...).
+const char* describe(QuaternionReading reading);
 SampleSet samples_from_recording(const FieldRecording& rec, ReferenceField& field,
-                                 std::string* error);
+                                 std::string* error,
+                                 QuaternionReading reading = QuaternionReading::kAsStated);
 
 // True when the CSV header holds every column of the design's sample format
 // (t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT), which read_sample_csv reads.

@@ -962,3 +962,50 @@ TEST_CASE("fit: several files give one result each (JSON lines), - reads standar
   CHECK(nlohmann::json::parse(piped.out)["bias_nT"] == nlohmann::json::parse(one.out)["bias_nT"]);
   for (const auto& f : {a, b}) std::filesystem::remove(f);
 }
+
+TEST_CASE("fit: a recording's quaternions in another convention: the refused alignment names it",
+          "[cli][fit][recording]") {
+  const auto samples = temp_path("convention_samples.csv");
+  REQUIRE(
+      run_magcal("sim --scenario paper --hours 6 --seed 3 --out " + samples.string()).exit_code ==
+      0);
+  const auto recording = temp_path("convention_export.csv");
+  write_as_export(samples, recording);
+  const std::vector<std::string> lines = read_lines(recording);
+  // q0..q3 are the fields 7..10 of the `;`-separated export.
+  const auto rewritten = [&](const char* name, auto change) {
+    std::vector<std::string> out = {lines.front()};
+    for (size_t k = 1; k < lines.size(); ++k) {
+      std::vector<std::string> f;
+      std::istringstream in(lines[k]);
+      for (std::string cell; std::getline(in, cell, ';');) f.push_back(cell);
+      change(f);
+      out.push_back(fmt::format("{}", fmt::join(f, ";")));
+    }
+    const auto path = temp_path(name);
+    write_lines(path, out);
+    return path;
+  };
+  const auto scalar_last = rewritten("convention_last.csv", [](std::vector<std::string>& f) {
+    std::rotate(f.begin() + 7, f.begin() + 8, f.begin() + 11);
+  });
+  const auto conjugate = rewritten("convention_conj.csv", [](std::vector<std::string>& f) {
+    for (int i = 8; i <= 10; ++i) f[i] = f[i][0] == '-' ? f[i].substr(1) : "-" + f[i];
+  });
+  const std::pair<std::filesystem::path, const char*> cases[] = {
+      {scalar_last, "read as x, y, z, w (scalar last) the quaternions give an accepted alignment"},
+      {conjugate, "read as the conjugate (ECI from body) the quaternions give an accepted"}};
+  for (const auto& [path, reason] : cases) {
+    const Run r = run_magcal("fit --input " + path.string() + " --method twostep --json");
+    INFO(r.err);
+    REQUIRE(r.exit_code == 0);
+    const nlohmann::json j = nlohmann::json::parse(r.out);
+    CHECK(j["verdict"] == "rejected");
+    CHECK(j["rejection_reasons"].dump().find(reason) != std::string::npos);
+  }
+  const Run as_stated =
+      run_magcal("fit --input " + recording.string() + " --method twostep --json");
+  CHECK(nlohmann::json::parse(as_stated.out)["rejection_reasons"].dump().find(
+            "attitude_convention") == std::string::npos);
+  for (const auto& f : {samples, recording, scalar_last, conjugate}) std::filesystem::remove(f);
+}
