@@ -822,6 +822,33 @@ Vector9d sigmas_of(const nlohmann::json& j) {
   return s;
 }
 
+// The 9 parameters of a recording's fit within 0.1 sigma of the sample format's.
+void check_same_estimates(const nlohmann::json& sample_format, const nlohmann::json& recording) {
+  const Vector9d difference = parameters_of(recording) - parameters_of(sample_format);
+  const Vector9d sigma = sigmas_of(sample_format);
+  for (int i = 0; i < 9; ++i) {
+    INFO("parameter " << i << ": " << difference(i) << " against sigma " << sigma(i));
+    CHECK(std::abs(difference(i)) < 0.1 * sigma(i));
+  }
+}
+
+// `magcal sim --scenario paper` for `hours` into a sample CSV.
+std::filesystem::path simulate_paper_csv(const std::string& name, int hours, int seed) {
+  const auto csv = temp_path(name);
+  REQUIRE(run_magcal(fmt::format("sim --scenario paper --hours {} --seed {} --out {}", hours, seed,
+                                 csv.string()))
+              .exit_code == 0);
+  return csv;
+}
+
+// fit --method twostep --json on `input`, which must give a result.
+Run fit_twostep_json(const std::filesystem::path& input) {
+  Run r = run_magcal("fit --input " + input.string() + " --method twostep --json");
+  INFO(r.err);
+  REQUIRE(r.exit_code == 0);
+  return r;
+}
+
 }  // namespace
 
 TEST_CASE(
@@ -832,21 +859,13 @@ TEST_CASE(
     for (int seed = 1; seed <= 10; ++seed) {
       INFO(scenario << " seed " << seed);
       const bool thermal = std::string(scenario) == "tumbling_thermal";
-      std::filesystem::path samples = temp_path("same_samples.csv");
-      if (thermal) {
-        samples = simulate_thermal_csv("same", "tumbling", seed, "1.0, -0.8, 1.2", 15.0);
-      } else {
-        REQUIRE(run_magcal("sim --scenario paper --hours 6 --seed " + std::to_string(seed) +
-                           " --out " + samples.string())
-                    .exit_code == 0);
-      }
+      const std::filesystem::path samples =
+          thermal ? simulate_thermal_csv("same", "tumbling", seed, "1.0, -0.8, 1.2", 15.0)
+                  : simulate_paper_csv("same_samples.csv", 6, seed);
       const auto recording = temp_path("same_export.csv");
       write_as_export(samples, recording);
-      const Run a = run_magcal("fit --input " + samples.string() + " --method twostep --json");
-      const Run b = run_magcal("fit --input " + recording.string() + " --method twostep --json");
-      INFO(b.err);
-      REQUIRE(a.exit_code == 0);
-      REQUIRE(b.exit_code == 0);
+      const Run a = fit_twostep_json(samples);
+      const Run b = fit_twostep_json(recording);
       CHECK(b.err.find("columns used: Time (UTC), Bx (uT), By (uT), Bz (uT), Latitude, "
                        "Longitude, Altitude (m), q0, q1, q2, q3, temp_C; ignored: mode") !=
             std::string::npos);
@@ -854,12 +873,7 @@ TEST_CASE(
       const nlohmann::json ja = nlohmann::json::parse(a.out), jb = nlohmann::json::parse(b.out);
       CHECK(jb["n_samples"] == ja["n_samples"]);
       CHECK(jb["verdict"] == ja["verdict"]);
-      const Vector9d difference = parameters_of(jb) - parameters_of(ja);
-      const Vector9d sigma = sigmas_of(ja);
-      for (int i = 0; i < 9; ++i) {
-        INFO("parameter " << i << ": " << difference(i) << " against sigma " << sigma(i));
-        CHECK(std::abs(difference(i)) < 0.1 * sigma(i));
-      }
+      check_same_estimates(ja, jb);
       REQUIRE(jb.contains("R_sensor_from_body"));
       for (const char* angle : {"roll", "pitch", "yaw"}) {
         CHECK(std::abs(jb["alignment_deg"][angle].get<double>() -
@@ -891,10 +905,7 @@ TEST_CASE(
 
 TEST_CASE("fit: a sample CSV with attitude and position but no reference columns is fitted",
           "[cli][fit][recording]") {
-  const auto samples = temp_path("noh_samples.csv");
-  REQUIRE(
-      run_magcal("sim --scenario paper --hours 3 --seed 4 --out " + samples.string()).exit_code ==
-      0);
+  const auto samples = simulate_paper_csv("noh_samples.csv", 3, 4);
   std::vector<std::string> lines = read_lines(samples);
   for (std::string& line : lines) {  // the columns hx_nT, hy_nT, hz_nT (4..6) removed
     std::vector<std::string> fields;
@@ -907,14 +918,9 @@ TEST_CASE("fit: a sample CSV with attitude and position but no reference columns
   }
   const auto without_h = temp_path("noh.csv");
   write_lines(without_h, lines);
-  const Run a = run_magcal("fit --input " + samples.string() + " --method twostep --json");
-  const Run b = run_magcal("fit --input " + without_h.string() + " --method twostep --json");
-  INFO(b.err);
-  REQUIRE(a.exit_code == 0);
-  REQUIRE(b.exit_code == 0);
-  const nlohmann::json ja = nlohmann::json::parse(a.out), jb = nlohmann::json::parse(b.out);
-  const Vector9d difference = parameters_of(jb) - parameters_of(ja);
-  for (int i = 0; i < 9; ++i) CHECK(std::abs(difference(i)) < 0.1 * sigmas_of(ja)(i));
+  const nlohmann::json ja = nlohmann::json::parse(fit_twostep_json(samples).out);
+  const nlohmann::json jb = nlohmann::json::parse(fit_twostep_json(without_h).out);
+  check_same_estimates(ja, jb);
   CHECK(jb.contains("R_sensor_from_body"));
   for (const auto& f : {samples, without_h}) std::filesystem::remove(f);
 }
@@ -965,10 +971,7 @@ TEST_CASE("fit: several files give one result each (JSON lines), - reads standar
 
 TEST_CASE("fit: a recording's quaternions in another convention: the refused alignment names it",
           "[cli][fit][recording]") {
-  const auto samples = temp_path("convention_samples.csv");
-  REQUIRE(
-      run_magcal("sim --scenario paper --hours 6 --seed 3 --out " + samples.string()).exit_code ==
-      0);
+  const auto samples = simulate_paper_csv("convention_samples.csv", 6, 3);
   const auto recording = temp_path("convention_export.csv");
   write_as_export(samples, recording);
   const std::vector<std::string> lines = read_lines(recording);
