@@ -243,7 +243,7 @@ TEST_CASE("export shapes: a time without a zone is counted (stated), unless the 
   }
 }
 
-TEST_CASE("export shapes: byte-order mark, `;` with a decimal comma, gauss in brackets",
+TEST_CASE("export shapes: byte-order mark, semicolons with a decimal comma, gauss in brackets",
           "[recording][export]") {
   std::string error;
   const auto rec = read_text("semicolon",
