@@ -8,11 +8,13 @@
 #include <optional>
 #include <string>
 #include <utility>
+#include <vector>
 
 #include "pipeline/calibration_result.hpp"
 #include "pipeline/roll_pitch_yaw_report.hpp"
 #include "service/io/calibration_export.hpp"
 #include "service/io/exit_codes.hpp"
+#include "service/io/field_recording.hpp"
 
 namespace magcal::cli {
 
@@ -44,7 +46,10 @@ struct SimArgs {
 int run_sim(const SimArgs& args);
 
 struct FitArgs {
-  std::string input;  // FILE.csv or FILE.lcm
+  // --input, as given: files, globs, "-" (a CSV on standard input); one result per file.
+  std::vector<std::string> inputs;
+  std::string input;        // the file being fitted: FILE.csv, FILE.lcm or "-"
+  bool json_lines = false;  // with several files: each JSON result on one line
   std::string method = "twostep";
   double sigma_nT = 3.0;
   bool robust = false;
@@ -69,8 +74,15 @@ struct FitArgs {
 int run_fit(const FitArgs& args);
 // The residual gate's expected rms: --expected-residual-nT, else at least the stated noise.
 double gate_expected_residual_nT(const FitArgs& args);
-// Dispatched from run_fit when the CSV is not the design's sample format.
-int run_recording_fit(const FitArgs& args);
+// The recording reader's options from the command line: kExitOk, or kExitUsage (printed).
+int recording_read_options(const FitArgs& args, FieldRecordingOptions* options);
+// What fit read from a CSV recording, on stderr once the fit has a result (an error stays one
+// line): the columns used and ignored, the rows the row rules dropped or sorted, the times
+// taken as UTC without a zone.
+void note_recording(const FieldRecording& rec);
+// Dispatched from run_fit for a CSV recording without reference directions (magnitude only,
+// service/analysis/real_data_fit.hpp).
+int run_recording_fit(const FitArgs& args, const FieldRecording& recording);
 
 struct EvaluateArgs {
   std::string scenario = "paper";

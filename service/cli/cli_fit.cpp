@@ -1,5 +1,5 @@
-// `magcal fit --input FILE.csv|FILE.lcm --method centered|twostep|ekf|ukf [--sigma-nT S]
-//  [--robust] [--sat ID] [--trace FILE.csv] [--json]`
+// `magcal fit --input FILE.csv|FILE.lcm|- [--input ...] --method centered|twostep|ekf|ukf
+//  [--sigma-nT S] [--robust] [--sat ID] [--trace FILE.csv] [--json]`
 //
 // Reads samples (service/io/sample_files.hpp). LCM samples with has_reference use h_body_nT;
 // otherwise has_position -> IGRF at r_ecef (service/io/reference_field.hpp), rotated to body when
@@ -7,10 +7,18 @@
 // the batch pipeline (pipeline/batch_calibration.hpp); ekf / ukf run the online filters over the
 // samples in time order and report the final snapshot, the convergence time (time after which
 // every bias 1-sigma stayed below 10 nT) and, with --trace, t_s + state + 1-sigma per sample.
+// A CSV in another layout (docs/input-formats.md, service/io/field_recording.hpp) with a
+// body-frame reference, or a position and an attitude to compute one from, is fitted the same
+// way; one without goes to the magnitude-only fit (cli_fit_recording.cpp). Several --input
+// files (or globs) give one result each; "-" reads a CSV from standard input.
 // Output: aligned text, or one JSON object with --json (design.md keys,
-// service/io/result_json.hpp). Exit: 0 result printed (accepted, rejected or not converged); 1
-// usage; 2 data (unreadable file, too few samples, NaN, unusable geometry, failed fit).
+// service/io/result_json.hpp; one line per file with several files). Exit: 0 result printed
+// (accepted, rejected or not converged); 1 usage; 2 data (unreadable file, too few samples, NaN,
+// unusable geometry, failed fit).
+#include <glob.h>
+
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -20,6 +28,7 @@
 #include <iostream>
 #include <memory>
 #include <optional>
+#include <set>
 
 #include <fmt/format.h>
 #include <fmt/ranges.h>
@@ -34,6 +43,7 @@
 #include "pipeline/temperature_correction.hpp"
 #include "pipeline/temperature_model.hpp"
 #include "service/cli/cli_commands.hpp"
+#include "service/io/csv_line.hpp"
 #include "service/io/field_recording.hpp"
 #include "service/io/reference_field.hpp"
 #include "service/io/result_json.hpp"
@@ -51,6 +61,7 @@ struct Loaded {
   SampleSet samples;
   std::string error;
   int exit_code = kExitOk;
+  std::string notes;  // for stderr once the fit has a result (an error stays one line)
 };
 
 // The one-line note on repeats the readers dropped (sample_files.hpp: one time tag holds one
@@ -63,25 +74,62 @@ void note_duplicates(const std::string& input, int64_t dropped, const char* what
       input, dropped, what, key);
 }
 
+}  // namespace
+
+void note_recording(const FieldRecording& rec) {
+  const auto names = [](const std::vector<std::string>& v) {
+    return v.empty() ? std::string("none") : fmt::format("{}", fmt::join(v, ", "));
+  };
+  std::cerr << fmt::format("magcal fit: {}: columns used: {}; ignored: {}\n", rec.source,
+                           names(rec.used_columns), names(rec.ignored_columns));
+  if (rec.n_rejected_non_finite > 0)
+    std::cerr << fmt::format(
+        "magcal fit: {}: dropped {} rows with an empty or non-finite time, field or position\n",
+        rec.source, rec.n_rejected_non_finite);
+  note_duplicates(rec.source, rec.n_duplicates_dropped, "rows", "time");
+  if (rec.n_out_of_order > 0)
+    std::cerr << fmt::format("magcal fit: {}: {} rows out of time order, sorted\n", rec.source,
+                             rec.n_out_of_order);
+  if (rec.n_times_without_zone > 0)
+    std::cerr << fmt::format(
+        "magcal fit: {}: {} times without a zone (no Z or +hh:mm) taken as UTC\n", rec.source,
+        rec.n_times_without_zone);
+}
+
+namespace {
+
+// A CSV whose header is the design's sample format: read_sample_csv.
+Loaded load_sample_csv(const CsvTable& table) {
+  Loaded out;
+  CsvReadResult csv = read_sample_csv(table);
+  if (!csv.ok()) {
+    out.error = csv.error;
+    out.exit_code = kExitData;
+    return out;
+  }
+  // The design's columns and its writer's extras are the format; anything else is named.
+  std::vector<std::string> ignored;
+  for (const std::string& name : table.header) {
+    static const std::set<std::string> known = {
+        "t_s", "bx_nT", "by_nT", "bz_nT",      "hx_nT",      "hy_nT",      "hz_nT",        "qw",
+        "qx",  "qy",    "qz",    "r_ecef_x_m", "r_ecef_y_m", "r_ecef_z_m", "temperature_C"};
+    if (!known.count(name)) ignored.push_back(name);
+  }
+  if (!ignored.empty())
+    out.notes += fmt::format("magcal fit: {}: columns ignored: {}\n", table.source,
+                             fmt::join(ignored, ", "));
+  if (csv.missing_dropped > 0)
+    out.notes += fmt::format("magcal fit: {}: dropped {} rows with an empty or non-finite value\n",
+                             table.source, csv.missing_dropped);
+  note_duplicates(table.source, csv.duplicates_dropped, "rows", "t_s");
+  out.samples.reserve(csv.rows.size());
+  for (const CsvSampleRow& row : csv.rows) out.samples.push_back(row.sample);
+  return out;
+}
+
+// An LCM log of mag_sample_t / mag_batch_t.
 Loaded load_samples(const FitArgs& args) {
   Loaded out;
-  if (ends_with(args.input, ".csv")) {
-    CsvReadResult csv = read_sample_csv(args.input);
-    if (!csv.ok()) {
-      out.error = csv.error;
-      out.exit_code = kExitData;
-      return out;
-    }
-    note_duplicates(args.input, csv.duplicates_dropped, "rows", "t_s");
-    out.samples.reserve(csv.rows.size());
-    for (const CsvSampleRow& row : csv.rows) out.samples.push_back(row.sample);
-    return out;
-  }
-  if (!ends_with(args.input, ".lcm")) {
-    out.error = "--input must be a .csv or .lcm file: " + args.input;
-    out.exit_code = kExitUsage;
-    return out;
-  }
   LcmReadOptions opt;
   if (!args.sat.empty()) opt.sat_id = args.sat;
   LcmReadResult lcm = read_sample_lcm_log(args.input, opt);
@@ -374,20 +422,42 @@ int fit_options_error(const FitArgs& args, bool batch, bool filter) {
   return kExitOk;
 }
 
+// The options of the magnitude-only fit of a recording without reference directions
+// (real_data_fit.hpp), which mean nothing where the reference is a body-frame field.
+constexpr std::array<const char*, 5> kMagnitudeOnlyOptions = {
+    "--estimate-time-offset", "--offset-range-s", "--time-offset-s", "--reference-magnitude",
+    "--split-halves"};
+
+std::array<bool, 5> magnitude_only_options_given(const FitArgs& args) {
+  return {args.estimate_time_offset, !args.offset_range_s.empty(), args.time_offset_s.has_value(),
+          !args.reference_magnitude.empty(), args.split_halves};
+}
+
+// For a recording with reference directions: kExitUsage when a magnitude-only option is given.
+int magnitude_only_options_error(const FitArgs& args) {
+  const std::array<bool, 5> given = magnitude_only_options_given(args);
+  for (size_t i = 0; i < given.size(); ++i) {
+    if (given[i]) {
+      std::cerr << "magcal fit: " << kMagnitudeOnlyOptions[i]
+                << " applies to recordings without reference directions only; " << args.input
+                << " has a body-frame reference (hx/hy/hz, or a position and an attitude)\n";
+      return kExitUsage;
+    }
+  }
+  return kExitOk;
+}
+
 // The recording options mean nothing for the design's sample files: say so, never ignore.
 // kExitUsage when one is given, else kExitOk.
 int recording_options_error(const FitArgs& args) {
+  const std::array<bool, 5> given = magnitude_only_options_given(args);
   const std::pair<bool, const char*> recording_only[] = {
-      {!args.field_unit.empty(), "--field-unit"},
-      {args.alt_km.has_value(), "--alt-km"},
-      {args.skip_first != 0, "--skip-first"},
-      {args.estimate_time_offset, "--estimate-time-offset"},
-      {!args.offset_range_s.empty(), "--offset-range-s"},
-      {args.time_offset_s.has_value(), "--time-offset-s"},
-      {!args.reference_magnitude.empty(), "--reference-magnitude"},
-      {args.split_halves, "--split-halves"}};
-  for (const auto& [given, flag] : recording_only) {
-    if (given) {
+      {!args.field_unit.empty(), "--field-unit"}, {args.alt_km.has_value(), "--alt-km"},
+      {args.skip_first != 0, "--skip-first"},     {given[0], kMagnitudeOnlyOptions[0]},
+      {given[1], kMagnitudeOnlyOptions[1]},       {given[2], kMagnitudeOnlyOptions[2]},
+      {given[3], kMagnitudeOnlyOptions[3]},       {given[4], kMagnitudeOnlyOptions[4]}};
+  for (const auto& [flag_given, flag] : recording_only) {
+    if (flag_given) {
       std::cerr << "magcal fit: " << flag << " applies to recordings in foreign CSV layouts only; "
                 << args.input << " is a magcal sample file (design.md)\n";
       return kExitUsage;
@@ -420,6 +490,38 @@ CalibrationResult fit_batch(const FitArgs& args, const SampleSet& samples) {
     }
   }
   return r;
+}
+
+// A refused alignment whose reference came from a recording's quaternions: the fit is tried
+// with the usual misreadings of a quaternion (scalar last, the conjugate), and one whose
+// alignment is then accepted is named among the rejection reasons, with the fix.
+void diagnose_quaternion_reading(const FitArgs& args, const FieldRecording& rec,
+                                 CalibrationResult& r) {
+  if (r.accepted || rec.has_reference_columns || !rec.has_quaternion_columns) return;
+  const auto is_alignment_reason = [](const std::string& reason) {
+    return reason.rfind("alignment", 0) == 0;
+  };
+  if (std::none_of(r.rejection_reasons.begin(), r.rejection_reasons.end(), is_alignment_reason))
+    return;
+  ReferenceField field;
+  for (const QuaternionReading reading :
+       {QuaternionReading::kScalarLast, QuaternionReading::kConjugate,
+        QuaternionReading::kScalarLastConjugate}) {
+    std::string error;
+    const SampleSet samples = samples_from_recording(rec, field, &error, reading);
+    if (samples.empty()) continue;
+    const CalibrationResult tried = fit_batch(args, samples);
+    if (std::any_of(tried.rejection_reasons.begin(), tried.rejection_reasons.end(),
+                    is_alignment_reason) ||
+        !tried.has_alignment)
+      continue;
+    r.rejection_reasons.push_back(fmt::format(
+        "attitude_convention: read as {} the quaternions give an accepted alignment; magcal "
+        "reads q0..q3 / qw..qz as w, x, y, z, body from ECI (docs/input-formats.md): reorder or "
+        "conjugate them in the file",
+        describe(reading)));
+    return;
+  }
 }
 
 // Why the filters cannot take these samples (the batch path's input validation), "" when they
@@ -602,22 +704,58 @@ double gate_expected_residual_nT(const FitArgs& args) {
                                    : std::max(GateOptions{}.expected_residual_nT, args.sigma_nT);
 }
 
-int run_fit(const FitArgs& args) {
+namespace {
+
+// One input file (args.input) fitted and printed.
+int run_fit_file(const FitArgs& args) {
   const bool batch = args.method == "centered" || args.method == "twostep";
   const bool filter = args.method == "ekf" || args.method == "ukf";
   if (const int usage = fit_options_error(args, batch, filter); usage != kExitOk) return usage;
-  if (!std::filesystem::exists(args.input)) {
+  const bool csv = args.input == "-" || ends_with(args.input, ".csv");
+  if (args.input != "-" && !std::filesystem::exists(args.input)) {
     std::cerr << "magcal fit: input " << args.input << " does not exist\n";
     return kExitData;
   }
-  if (ends_with(args.input, ".csv")) {  // foreign layouts (Astro Pi, BROAD): real_data_fit.hpp
-    std::ifstream head(args.input);
-    std::string header;
-    if (std::getline(head, header) && !is_design_sample_csv_header(header))
-      return run_recording_fit(args);
+  if (!csv && !ends_with(args.input, ".lcm")) {
+    std::cerr << "magcal fit: --input must be a .csv or .lcm file, or - (a CSV on standard "
+                 "input): "
+              << args.input << "\n";
+    return kExitUsage;
   }
-  if (const int usage = recording_options_error(args); usage != kExitOk) return usage;
-  Loaded loaded = load_samples(args);
+  Loaded loaded;
+  std::optional<FieldRecording> recording;  // a CSV in another layout than the design's
+  if (csv) {
+    CsvTable table;
+    if (const std::string e = read_csv_table(args.input, &table); !e.empty()) {
+      std::cerr << "magcal fit: " << e << "\n";
+      return kExitData;
+    }
+    if (is_design_sample_csv_header(table.header)) {
+      if (const int usage = recording_options_error(args); usage != kExitOk) return usage;
+      loaded = load_sample_csv(table);
+    } else {
+      FieldRecordingOptions ro;
+      if (const int usage = recording_read_options(args, &ro); usage != kExitOk) return usage;
+      std::string error;
+      recording = read_field_recording(table, ro, &error);
+      if (!recording) {
+        std::cerr << "magcal fit: " << error << "\n";
+        return kExitData;
+      }
+      if (!recording_has_reference_directions(*recording))
+        return run_recording_fit(args, *recording);
+      if (const int usage = magnitude_only_options_error(args); usage != kExitOk) return usage;
+      ReferenceField field;
+      loaded.samples = samples_from_recording(*recording, field, &error);
+      if (loaded.samples.empty()) {
+        loaded.error = error;
+        loaded.exit_code = kExitData;
+      }
+    }
+  } else {
+    if (const int usage = recording_options_error(args); usage != kExitOk) return usage;
+    loaded = load_samples(args);
+  }
   if (!loaded.error.empty()) {
     std::cerr << "magcal fit: " << loaded.error << "\n";
     return loaded.exit_code;
@@ -629,6 +767,7 @@ int run_fit(const FitArgs& args) {
   const auto t_start = std::chrono::steady_clock::now();
   if (batch) {
     r = fit_batch(args, samples);
+    if (recording) diagnose_quaternion_reading(args, *recording, r);
   } else if (const int code = fit_filter(args, samples, r, convergence_time_s); code != kExitOk) {
     return code;
   }
@@ -640,6 +779,8 @@ int run_fit(const FitArgs& args) {
               << "\n";
     return kExitData;
   }
+  std::cerr << loaded.notes;
+  if (recording) note_recording(*recording);
   // The raw field against the reference: what the calibration improves on.
   const FieldError raw_error = field_error(calibrated_field(CalibrationTable{}, samples), samples);
   if (args.json) {
@@ -649,11 +790,65 @@ int run_fit(const FitArgs& args) {
     j["compute_ms"] = compute_ms;
     j["input"] = args.input;
     if (filter) j["convergence_time_s"] = json_number(convergence_time_s);
-    std::cout << j.dump(2) << "\n";
+    std::cout << (args.json_lines ? j.dump() : j.dump(2)) << "\n";
   } else {
     print_text(r, raw_error, compute_ms, convergence_time_s, args.gimbal_lock_margin_deg);
   }
   return kExitOk;
+}
+
+bool is_glob_pattern(const std::string& s) {
+  return s.find_first_of("*?[") != std::string::npos;
+}
+
+// The --input values with their globs expanded (sorted, as the shell does); "" or the error.
+std::string expand_inputs(const std::vector<std::string>& inputs, std::vector<std::string>* files) {
+  for (const std::string& input : inputs) {
+    if (!is_glob_pattern(input)) {
+      files->push_back(input);
+      continue;
+    }
+    glob_t matches{};
+    const int rc = ::glob(input.c_str(), 0, nullptr, &matches);
+    if (rc == 0)
+      for (size_t i = 0; i < matches.gl_pathc; ++i) files->emplace_back(matches.gl_pathv[i]);
+    ::globfree(&matches);
+    if (rc != 0) return "--input " + input + ": no file matches";
+  }
+  if (std::count(files->begin(), files->end(), "-") > 1)
+    return "--input -: standard input can be read once";
+  return "";
+}
+
+}  // namespace
+
+int run_fit(const FitArgs& args) {
+  std::vector<std::string> files;
+  if (args.inputs.empty()) files.push_back(args.input);
+  if (const std::string e = expand_inputs(args.inputs, &files); !e.empty()) {
+    std::cerr << "magcal fit: " << e << "\n";
+    return kExitUsage;
+  }
+  FitArgs one = args;
+  if (files.size() == 1) {
+    one.input = files.front();
+    return run_fit_file(one);
+  }
+  if (!args.trace_file.empty()) {
+    std::cerr << "magcal fit: --trace takes one input file (got " << files.size() << ")\n";
+    return kExitUsage;
+  }
+  // One result per file: JSON lines with --json, else each text block under its file's name.
+  // A file that fails says why on stderr and the others go on; the exit code is the worst.
+  one.json_lines = args.json;
+  int worst = kExitOk;
+  for (const std::string& file : files) {
+    one.input = file;
+    if (!args.json) std::cout << "== " << file << "\n" << std::flush;
+    worst = std::max(worst, run_fit_file(one));
+    std::cout << std::flush;
+  }
+  return worst;
 }
 
 }  // namespace magcal::cli

@@ -82,30 +82,37 @@ void print_text(const RecordingFitReport& rep, const FieldRecording& rec) {
 
 }  // namespace
 
-int run_recording_fit(const FitArgs& args) {
-  if (args.method != "centered" && args.method != "twostep") {
-    std::cerr << "magcal fit: recordings are fitted with --method centered|twostep\n";
-    return kExitUsage;
-  }
-  FieldRecordingOptions ro;
+int recording_read_options(const FitArgs& args, FieldRecordingOptions* ro) {
   if (!args.field_unit.empty()) {
-    ro.field_unit = parse_field_unit(args.field_unit);
-    if (!ro.field_unit) {
+    ro->field_unit = parse_field_unit(args.field_unit);
+    if (!ro->field_unit) {
       std::cerr << "magcal fit: --field-unit must be nT, uT, G or mG\n";
       return kExitUsage;
     }
-  }
-  if (args.estimate_attitude_lag) {
-    std::cerr << "magcal fit: --estimate-attitude-lag applies to magcal sample files (design.md) "
-                 "only; a recording's alignment is checked for quaternion conventions instead\n";
-    return kExitUsage;
   }
   if (args.skip_first < 0) {
     std::cerr << "magcal fit: --skip-first must be >= 0\n";
     return kExitUsage;
   }
-  ro.skip_first = args.skip_first;
-  ro.altitude_km = args.alt_km;
+  ro->skip_first = args.skip_first;
+  ro->altitude_km = args.alt_km;
+  return kExitOk;
+}
+
+int run_recording_fit(const FitArgs& args, const FieldRecording& recording) {
+  const FieldRecording* const rec = &recording;
+  if (args.method != "centered" && args.method != "twostep") {
+    std::cerr << "magcal fit: " << rec->source
+              << ": a recording without reference directions (no hx/hy/hz, nor a position with "
+                 "an attitude quaternion) is fitted with --method centered|twostep\n";
+    return kExitUsage;
+  }
+  if (args.estimate_attitude_lag) {
+    std::cerr << "magcal fit: --estimate-attitude-lag needs reference directions (hx/hy/hz, or "
+                 "a position with an attitude quaternion); this recording's alignment is checked "
+                 "for quaternion conventions instead\n";
+    return kExitUsage;
+  }
 
   RecordingFitOptions fo;
   parse_batch_method(args.method, &fo.batch.method);
@@ -150,11 +157,6 @@ int run_recording_fit(const FitArgs& args) {
     return kExitUsage;
   }
   std::string error;
-  const std::optional<FieldRecording> rec = read_field_recording(args.input, ro, &error);
-  if (!rec) {
-    std::cerr << "magcal fit: " << error << "\n";
-    return kExitData;
-  }
   const std::optional<RecordingFitReport> rep = fit_recording(*rec, fo, &error);
   if (!rep) {
     std::cerr << "magcal fit: " << args.input << ": " << error << "\n";
@@ -166,10 +168,11 @@ int run_recording_fit(const FitArgs& args) {
               << "\n";
     return kExitData;
   }
+  note_recording(*rec);
   if (args.json) {
     nlohmann::json j = recording_fit_to_json(*rep, *rec);
     j["input"] = args.input;
-    std::cout << j.dump(2) << "\n";
+    std::cout << (args.json_lines ? j.dump() : j.dump(2)) << "\n";
   } else {
     print_text(*rep, *rec);
   }

@@ -171,7 +171,11 @@ CLI::App* add_sim_command(CLI::App& app, magcal::cli::SimArgs& args) {
 // `magcal fit`: a calibration from a sample file or a recording in a foreign CSV layout.
 CLI::App* add_fit_command(CLI::App& app, magcal::cli::FitArgs& args) {
   CLI::App* const command = app.add_subcommand("fit", "calibrate from a file");
-  command->add_option("--input", args.input, "FILE.csv or FILE.lcm")->required();
+  command
+      ->add_option("--input", args.inputs,
+                   "FILE.csv, FILE.lcm, or - (a CSV on standard input); several files (repeated, "
+                   "listed or a glob 'day*.csv'): one result per file (JSON lines with --json)")
+      ->required();
   command->add_option("--method", args.method, "centered|twostep|ekf|ukf")
       ->check(CLI::IsMember({"centered", "twostep", "ekf", "ukf"}));
   const CLI::Option* sigma =
@@ -211,6 +215,17 @@ CLI::App* add_fit_command(CLI::App& app, magcal::cli::FitArgs& args) {
       ->add_option("--expected-residual-nT", args.expected_residual_nT,
                    "expected residual rms for the acceptance gate (default max(7.5, --sigma-nT))")
       ->check(real_number());
+  command->footer(
+      "CSV input (docs/input-formats.md): a header row naming the columns (any order; others "
+      "are ignored and named on stderr), separated by , ; or tab; quotes and a byte-order mark "
+      "are fine. Accepted names (compared in lower case; a unit may follow in parentheses, "
+      "\"Bx (uT)\"):\n" +
+      magcal::recording_column_table_text() +
+      "Field columns need a unit: a suffix _nT _uT _G _mG, a unit in parentheses, or "
+      "--field-unit. With hx/hy/hz, or a position and a quaternion, every --method applies and "
+      "the alignment is estimated (with a temperature column, the temperature model too); "
+      "without, centered|twostep fit |B| only. Rows with an empty or non-finite value are "
+      "dropped, rows are sorted by time, exact repeats dropped: counted on stderr.\n");
   command->callback([&args, sigma] { args.sigma_given = sigma->count() > 0; });
   return command;
 }

@@ -7,8 +7,9 @@
 //
 // Caches (why this is a class and lives in service/, not pipeline/):
 //   - the IGRF coefficients are re-interpolated only when the date moves by more than
-//     kCoefficientRefreshYears (~1 day; the secular variation changes a coefficient by at most
-//     ~0.3 nT per day, below the model's own accuracy);
+//     kCoefficientRefreshYears (~1 hour, as the simulator: the secular variation moves the field
+//     by < 0.02 nT an hour; a day's ~0.3 nT drift, though below the model's accuracy, moved a
+//     tumbling thermal day's temperature coefficient by 0.2 sigma against the simulator's field);
 //   - the precession-nutation matrix is recomputed at most once per second of data time
 //     (EarthOrientationCache); the Earth rotation angle is exact every call.
 // Not thread-safe: one ReferenceField per worker thread.
@@ -33,8 +34,8 @@ namespace magcal {
 
 class ReferenceField {
  public:
-  // Re-interpolate the coefficients when the date moves by more than this (1 day).
-  static constexpr double kCoefficientRefreshYears = 1.0 / 365.25;
+  // Re-interpolate the coefficients when the date moves by more than this (1 hour).
+  static constexpr double kCoefficientRefreshYears = 1.0 / 8784.0;
 
   // Built-in IGRF-14.
   explicit ReferenceField(double dut1_s = 0.0);

@@ -113,9 +113,20 @@ std::string parse_temperature(std::string_view text, CsvSampleRow* row) {
   return "";
 }
 
-// One data row's fields into `row`; "" or what is wrong with them.
-std::string parse_row(const std::vector<std::string_view>& fields, const CsvColumns& c,
-                      CsvSampleRow* row) {
+// A field the row rules drop rather than refuse: empty (a blank cell) or a number that is not
+// finite (NaN, inf), as exports write for a missing reading.
+bool is_missing_value(std::string_view text) {
+  double v = 0.0;
+  if (text.empty()) return true;
+  if (text.front() == '+' || text.front() == '-') text.remove_prefix(1);
+  const auto [ptr, ec] = std::from_chars(text.data(), text.data() + text.size(), v);
+  return ec == std::errc() && ptr == text.data() + text.size() && !std::isfinite(v);
+}
+
+// One data row's fields into `row`; "" or what is wrong with them. *missing is set (and ""
+// returned) when a required field is empty or not finite: the row is dropped and counted.
+std::string parse_row(const std::vector<std::string>& fields, const CsvColumns& c,
+                      CsvSampleRow* row, bool* missing) {
   auto field = [&](int col, double* v) {
     return col < static_cast<int>(fields.size()) &&
            parse_double(fields[static_cast<size_t>(col)], v);
@@ -123,8 +134,12 @@ std::string parse_row(const std::vector<std::string_view>& fields, const CsvColu
   std::array<double, 7> v{};
   for (size_t i = 0; i < 7; ++i) {
     if (c.required[i] >= static_cast<int>(fields.size())) return "too few fields";
-    if (!field(c.required[i], &v[i]))
-      return std::string("column ") + kRequired[i] + ": not a finite number";
+    if (field(c.required[i], &v[i])) continue;
+    if (is_missing_value(fields[static_cast<size_t>(c.required[i])])) {
+      *missing = true;
+      return "";
+    }
+    return std::string("column ") + kRequired[i] + ": not a number";
   }
   if (std::abs(v[0]) > 1e11) return "column t_s: out of range";
   for (size_t i = 1; i < 7; ++i) {
@@ -160,47 +175,48 @@ std::string parse_row(const std::vector<std::string_view>& fields, const CsvColu
 }  // namespace
 
 CsvReadResult read_sample_csv(const std::string& path) {
+  CsvTable table;
+  if (std::string error = read_csv_table(path, &table); !error.empty()) {
+    CsvReadResult result;
+    result.error = error.find("empty file") != std::string::npos
+                       ? path +
+                             ": empty file (header t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT "
+                             "required)"
+                       : error;
+    return result;
+  }
+  return read_sample_csv(table);
+}
+
+CsvReadResult read_sample_csv(const CsvTable& table) {
   CsvReadResult result;
-  std::ifstream in(path);
-  if (!in) {
-    result.error = path + ": cannot open";
-    return result;
-  }
-  std::string line;
-  int line_no = 0;
-  // Header: first non-blank line.
-  std::vector<std::string> header;
-  while (std::getline(in, line)) {
-    ++line_no;
-    if (line.find_first_not_of(" \t\r") == std::string::npos) continue;
-    for (auto f : split_csv_line(line)) header.emplace_back(f);
-    break;
-  }
-  if (header.empty()) {
-    result.error = path + ": empty file (header t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT required)";
-    return result;
-  }
+  const std::string& path = table.source;
   CsvColumns columns;
-  if (const std::string lacks = locate_columns(header, &columns); !lacks.empty()) {
-    result.error = path + " line " + std::to_string(line_no) + ": " + lacks;
+  if (const std::string lacks = locate_columns(table.header, &columns); !lacks.empty()) {
+    result.error = path + " line " + std::to_string(table.header_line) + ": " + lacks;
     return result;
   }
   // utime -> index in rows and the line of that row, for the one-sample-per-time-tag rule.
   std::unordered_map<int64_t, std::pair<size_t, int>> row_of_utime;
 
-  while (std::getline(in, line)) {
-    ++line_no;
-    if (line.find_first_not_of(" \t\r") == std::string::npos) continue;
+  for (const CsvTable::Row& table_row : table.rows) {
+    const int line_no = table_row.line;
     auto fail = [&](const std::string& what) {
       result.rows.clear();
       result.duplicates_dropped = 0;
+      result.missing_dropped = 0;
       result.error = path + " line " + std::to_string(line_no) + ": " + what;
       return result;
     };
     CsvSampleRow row;
-    if (const std::string problem = parse_row(split_csv_line(line), columns, &row);
+    bool missing = false;
+    if (const std::string problem = parse_row(table_row.cells, columns, &row, &missing);
         !problem.empty()) {
       return fail(problem);
+    }
+    if (missing) {
+      ++result.missing_dropped;
+      continue;
     }
     const auto [seen, first] =
         row_of_utime.try_emplace(row.sample.utime, result.rows.size(), line_no);
@@ -216,10 +232,6 @@ CsvReadResult read_sample_csv(const std::string& path) {
                   " but other values (one time tag holds one sample)");
     }
     result.rows.push_back(std::move(row));
-  }
-  if (in.bad()) {
-    result.rows.clear();
-    result.error = path + ": read error";
   }
   return result;
 }

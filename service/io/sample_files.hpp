@@ -25,6 +25,7 @@
 
 #include "pipeline/calibration_types.hpp"
 #include "schemas/magcal_messages.hpp"
+#include "service/io/csv_line.hpp"
 #include "service/io/sample_checks.hpp"
 
 namespace magcal {
@@ -59,12 +60,16 @@ struct CsvReadResult {
   std::vector<CsvSampleRow> rows;
   std::string error;  // empty = ok; e.g. "file.csv line 17: column bz_nT: not a number"
   int64_t duplicates_dropped = 0;  // exact repeats of an earlier row (see read_sample_csv)
+  int64_t missing_dropped = 0;     // rows with a required field empty or not finite
   bool ok() const { return error.empty(); }
 };
 
-// Reads a sample CSV. Blank lines are skipped; any unparsable or non-finite required field, or a
-// field component beyond kMaxFieldComponent_nT, is an error naming the line and column (no
-// partial result is returned then: rows is empty). The optional temperature_C column: empty or
+// Reads a sample CSV (read_csv_table: BOM, `;` or tab separators and quoted fields accepted;
+// "-" is standard input). Blank lines are skipped. The row rules every CSV input shares: a row
+// whose required field is empty or not finite (NaN, inf) is dropped and counted in
+// missing_dropped; an unparsable required field, or a field component beyond
+// kMaxFieldComponent_nT, is an error naming the line and column (no partial result is returned
+// then: rows is empty); rows may come in any order. The optional temperature_C column: empty or
 // NaN = unknown; anything else that is not a number within the plausible range above is an
 // error naming the line, as for the field columns.
 // One time tag holds one sample (as magcald's ingest, which keeps the first sample of a
@@ -73,6 +78,8 @@ struct CsvReadResult {
 // twice, it would shrink every reported sigma by sqrt(2)); a row with the same utime but other
 // values is an error naming both lines (which of the two is the measurement is unknowable).
 CsvReadResult read_sample_csv(const std::string& path);
+// The same on a table already read (its source names the file in errors).
+CsvReadResult read_sample_csv(const CsvTable& table);
 
 // Streaming CSV writer. Writes the header on open, one row per write(); close() flushes and
 // reports I/O errors. Extras are written as empty fields when absent.

@@ -12,6 +12,7 @@
 #include <fstream>
 #include <iterator>
 #include <random>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -19,7 +20,12 @@
 #include <lcm/lcm-cpp.hpp>
 #include <nlohmann/json.hpp>
 
+#include <fmt/format.h>
+#include <fmt/ranges.h>
+
+#include "pipeline/frames.hpp"
 #include "pipeline/rotation.hpp"
+#include "pipeline/time_utc.hpp"
 #include "service/io/sample_files.hpp"
 
 using namespace magcal;
@@ -763,4 +769,246 @@ TEST_CASE("fit: repeated rows count once (same sigma), a conflicting repeat is a
                          "line 602: same t_s as line 101 but other values");
   std::filesystem::remove(once);
   std::filesystem::remove(twice);
+}
+
+// ---------------------------------------------------------------- a user's own recording
+
+namespace {
+
+// A magcal sample CSV rewritten as a flight-dynamics export: ISO time with the zone in the
+// header, the field in µT with the unit in quoted names, latitude/longitude/altitude (m) from
+// the position, the attitude as q0..q3, a temperature, a mode column; `;`-separated with a
+// decimal comma, and no reference columns (the reader computes them from IGRF as magcald does).
+void write_as_export(const std::filesystem::path& from, const std::filesystem::path& to) {
+  const CsvReadResult csv = read_sample_csv(from.string());
+  REQUIRE(csv.ok());
+  std::ofstream out(to);
+  out << "\xEF\xBB\xBF\"Time (UTC)\";\"Bx (uT)\";\"By (uT)\";\"Bz (uT)\";Latitude;Longitude;"
+         "\"Altitude (m)\";q0;q1;q2;q3;temp_C;mode\n";
+  const auto number = [](double v) {
+    std::string text = fmt::format("{:.17g}", v);
+    std::replace(text.begin(), text.end(), '.', ',');
+    return text;
+  };
+  for (const CsvSampleRow& row : csv.rows) {
+    REQUIRE(row.extras.r_ecef_m);
+    REQUIRE(row.extras.q_body_from_eci);
+    const GeodeticPosition g = geodetic_from_ecef(*row.extras.r_ecef_m);
+    const Eigen::Vector4d& q = *row.extras.q_body_from_eci;
+    std::string time = format_iso8601_utc(row.sample.utime, 6);
+    time.erase(time.find_last_not_of("Z") + 1);  // the header says UTC
+    out << time;
+    for (int i = 0; i < 3; ++i) out << ';' << number(row.sample.b_sensor_nT(i) * 1e-3);
+    out << ';' << number(g.latitude_rad * kRadToDeg) << ';' << number(g.longitude_rad * kRadToDeg)
+        << ';' << number(g.altitude_m);
+    for (int i = 0; i < 4; ++i) out << ';' << number(q(i));
+    out << ';' << (row.extras.temperature_C ? number(*row.extras.temperature_C) : "")
+        << ";nominal\n";
+  }
+}
+
+Vector9d parameters_of(const nlohmann::json& j) {
+  Vector9d x;
+  for (int i = 0; i < 3; ++i) x(i) = j["bias_nT"][i].get<double>();
+  const auto D = [&](int r, int c) { return j["D"][r][c].get<double>(); };
+  x.tail<6>() << D(0, 0), D(1, 1), D(2, 2), D(0, 1), D(0, 2), D(1, 2);
+  return x;
+}
+
+Vector9d sigmas_of(const nlohmann::json& j) {
+  Vector9d s;
+  for (int i = 0; i < 3; ++i) s(i) = j["bias_sigma_nT"][i].get<double>();
+  for (int i = 0; i < 6; ++i) s(3 + i) = j["D_sigma"][i].get<double>();
+  return s;
+}
+
+// The 9 parameters of a recording's fit within 0.1 sigma of the sample format's.
+void check_same_estimates(const nlohmann::json& sample_format, const nlohmann::json& recording) {
+  const Vector9d difference = parameters_of(recording) - parameters_of(sample_format);
+  const Vector9d sigma = sigmas_of(sample_format);
+  for (int i = 0; i < 9; ++i) {
+    INFO("parameter " << i << ": " << difference(i) << " against sigma " << sigma(i));
+    CHECK(std::abs(difference(i)) < 0.1 * sigma(i));
+  }
+}
+
+// `magcal sim --scenario paper` for `hours` into a sample CSV.
+std::filesystem::path simulate_paper_csv(const std::string& name, int hours, int seed) {
+  const auto csv = temp_path(name);
+  REQUIRE(run_magcal(fmt::format("sim --scenario paper --hours {} --seed {} --out {}", hours, seed,
+                                 csv.string()))
+              .exit_code == 0);
+  return csv;
+}
+
+// fit --method twostep --json on `input`, which must give a result.
+Run fit_twostep_json(const std::filesystem::path& input) {
+  Run r = run_magcal("fit --input " + input.string() + " --method twostep --json");
+  INFO(r.err);
+  REQUIRE(r.exit_code == 0);
+  return r;
+}
+
+}  // namespace
+
+TEST_CASE(
+    "fit: a recording with position, attitude and temperature gives the sample format's "
+    "estimates (paper and tumbling thermal, 10 seeds)",
+    "[cli][fit][recording]") {
+  for (const char* scenario : {"paper", "tumbling_thermal"}) {
+    for (int seed = 1; seed <= 10; ++seed) {
+      INFO(scenario << " seed " << seed);
+      const bool thermal = std::string(scenario) == "tumbling_thermal";
+      const std::filesystem::path samples =
+          thermal ? simulate_thermal_csv("same", "tumbling", seed, "1.0, -0.8, 1.2", 15.0)
+                  : simulate_paper_csv("same_samples.csv", 6, seed);
+      const auto recording = temp_path("same_export.csv");
+      write_as_export(samples, recording);
+      const Run a = fit_twostep_json(samples);
+      const Run b = fit_twostep_json(recording);
+      CHECK(b.err.find("columns used: Time (UTC), Bx (uT), By (uT), Bz (uT), Latitude, "
+                       "Longitude, Altitude (m), q0, q1, q2, q3, temp_C; ignored: mode") !=
+            std::string::npos);
+      CHECK(b.err.find("without a zone") == std::string::npos);  // the header says UTC
+      const nlohmann::json ja = nlohmann::json::parse(a.out), jb = nlohmann::json::parse(b.out);
+      CHECK(jb["n_samples"] == ja["n_samples"]);
+      CHECK(jb["verdict"] == ja["verdict"]);
+      check_same_estimates(ja, jb);
+      REQUIRE(jb.contains("R_sensor_from_body"));
+      for (const char* angle : {"roll", "pitch", "yaw"}) {
+        CHECK(std::abs(jb["alignment_deg"][angle].get<double>() -
+                       ja["alignment_deg"][angle].get<double>()) <
+              0.1 * ja["alignment_sigma_deg"][angle].get<double>());
+      }
+      CHECK(jb.contains("temperature_coefficient_nT_per_C") == thermal);
+      if (thermal) {
+        REQUIRE(ja.contains("temperature_coefficient_nT_per_C"));
+        for (int i = 0; i < 3; ++i) {
+          CHECK(std::abs(jb["temperature_coefficient_nT_per_C"][i].get<double>() -
+                         ja["temperature_coefficient_nT_per_C"][i].get<double>()) <
+                0.1 * ja["temperature_coefficient_sigma_nT_per_C"][i].get<double>());
+        }
+      }
+      if (seed == 1) {  // the filters take recordings too
+        for (const char* method : {"ekf", "ukf"}) {
+          const Run f =
+              run_magcal("fit --input " + recording.string() + " --method " + method + " --json");
+          INFO(method << ": " << f.err);
+          CHECK(f.exit_code == 0);
+        }
+      }
+      std::filesystem::remove(samples);
+      std::filesystem::remove(recording);
+    }
+  }
+}
+
+TEST_CASE("fit: a sample CSV with attitude and position but no reference columns is fitted",
+          "[cli][fit][recording]") {
+  const auto samples = simulate_paper_csv("noh_samples.csv", 3, 4);
+  std::vector<std::string> lines = read_lines(samples);
+  for (std::string& line : lines) {  // the columns hx_nT, hy_nT, hz_nT (4..6) removed
+    std::vector<std::string> fields;
+    size_t start = 0;
+    for (size_t comma; (comma = line.find(',', start)) != std::string::npos; start = comma + 1)
+      fields.push_back(line.substr(start, comma - start));
+    fields.push_back(line.substr(start));
+    fields.erase(fields.begin() + 4, fields.begin() + 7);
+    line = fmt::format("{}", fmt::join(fields, ","));
+  }
+  const auto without_h = temp_path("noh.csv");
+  write_lines(without_h, lines);
+  const nlohmann::json ja = nlohmann::json::parse(fit_twostep_json(samples).out);
+  const nlohmann::json jb = nlohmann::json::parse(fit_twostep_json(without_h).out);
+  check_same_estimates(ja, jb);
+  CHECK(jb.contains("R_sensor_from_body"));
+  for (const auto& f : {samples, without_h}) std::filesystem::remove(f);
+}
+
+TEST_CASE("fit: several files give one result each (JSON lines), - reads standard input",
+          "[cli][fit][recording]") {
+  const auto a = temp_path("multi_a.csv");
+  const auto b = temp_path("multi_b.csv");
+  REQUIRE(write_sample_csv(a.string(), model_data(600, 3.0, 21)).empty());
+  REQUIRE(write_sample_csv(b.string(), model_data(600, 3.0, 22)).empty());
+  const Run one = run_magcal("fit --input " + a.string() + " --method twostep --json");
+  REQUIRE(one.exit_code == 0);
+  // Repeated --input, and a glob: one JSON object per line, in order.
+  const std::string glob = temp_path("multi_*.csv").string();
+  for (const std::string& inputs :
+       {"--input " + a.string() + " --input " + b.string(), "--input '" + glob + "'"}) {
+    const Run r = run_magcal("fit " + inputs + " --method twostep --json");
+    INFO(r.err);
+    REQUIRE(r.exit_code == 0);
+    const std::vector<std::string> lines = [&] {
+      std::vector<std::string> v;
+      std::istringstream in(r.out);
+      for (std::string l; std::getline(in, l);) v.push_back(l);
+      return v;
+    }();
+    REQUIRE(lines.size() == 2);
+    const nlohmann::json j0 = nlohmann::json::parse(lines[0]);
+    CHECK(j0["input"] == a.string());
+    CHECK(nlohmann::json::parse(lines[1])["input"] == b.string());
+    CHECK(j0["bias_nT"] == nlohmann::json::parse(one.out)["bias_nT"]);
+  }
+  // A file that fails says so and the others still give their result; the exit code says it.
+  const Run partial = run_magcal("fit --input " + a.string() + " --input /nonexistent/x.csv " +
+                                 "--method twostep --json");
+  CHECK(partial.exit_code == 2);
+  CHECK(std::count(partial.out.begin(), partial.out.end(), '\n') == 1);
+  CHECK(partial.err.find("does not exist") != std::string::npos);
+  require_one_line_error(
+      run_magcal("fit --input '" + temp_path("none_*.csv").string() + "' --method twostep"), 1,
+      "no file matches");
+  // Standard input: the same result as the file.
+  const Run piped = run_magcal("fit --input - --method twostep --json < " + a.string());
+  INFO(piped.err);
+  REQUIRE(piped.exit_code == 0);
+  CHECK(nlohmann::json::parse(piped.out)["bias_nT"] == nlohmann::json::parse(one.out)["bias_nT"]);
+  for (const auto& f : {a, b}) std::filesystem::remove(f);
+}
+
+TEST_CASE("fit: a recording's quaternions in another convention: the refused alignment names it",
+          "[cli][fit][recording]") {
+  const auto samples = simulate_paper_csv("convention_samples.csv", 6, 3);
+  const auto recording = temp_path("convention_export.csv");
+  write_as_export(samples, recording);
+  const std::vector<std::string> lines = read_lines(recording);
+  // q0..q3 are the fields 7..10 of the `;`-separated export.
+  const auto rewritten = [&](const char* name, auto change) {
+    std::vector<std::string> out = {lines.front()};
+    for (size_t k = 1; k < lines.size(); ++k) {
+      std::vector<std::string> f;
+      std::istringstream in(lines[k]);
+      for (std::string cell; std::getline(in, cell, ';');) f.push_back(cell);
+      change(f);
+      out.push_back(fmt::format("{}", fmt::join(f, ";")));
+    }
+    const auto path = temp_path(name);
+    write_lines(path, out);
+    return path;
+  };
+  const auto scalar_last = rewritten("convention_last.csv", [](std::vector<std::string>& f) {
+    std::rotate(f.begin() + 7, f.begin() + 8, f.begin() + 11);
+  });
+  const auto conjugate = rewritten("convention_conj.csv", [](std::vector<std::string>& f) {
+    for (int i = 8; i <= 10; ++i) f[i] = f[i][0] == '-' ? f[i].substr(1) : "-" + f[i];
+  });
+  const std::pair<std::filesystem::path, const char*> cases[] = {
+      {scalar_last, "read as x, y, z, w (scalar last) the quaternions give an accepted alignment"},
+      {conjugate, "read as the conjugate (ECI from body) the quaternions give an accepted"}};
+  for (const auto& [path, reason] : cases) {
+    const Run r = run_magcal("fit --input " + path.string() + " --method twostep --json");
+    INFO(r.err);
+    REQUIRE(r.exit_code == 0);
+    const nlohmann::json j = nlohmann::json::parse(r.out);
+    CHECK(j["verdict"] == "rejected");
+    CHECK(j["rejection_reasons"].dump().find(reason) != std::string::npos);
+  }
+  const Run as_stated =
+      run_magcal("fit --input " + recording.string() + " --method twostep --json");
+  CHECK(nlohmann::json::parse(as_stated.out)["rejection_reasons"].dump().find(
+            "attitude_convention") == std::string::npos);
+  for (const auto& f : {samples, recording, scalar_last, conjugate}) std::filesystem::remove(f);
 }

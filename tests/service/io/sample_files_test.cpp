@@ -121,7 +121,15 @@ TEST_CASE("CSV reader errors name the file, line and column") {
   CHECK(r.error.find("by_nT") != std::string::npos);
   CHECK(r.rows.empty());
 
-  write_text(path, "t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT\n1,2,3,nan,5,6,7\n");
+  // A missing reading (empty or not finite) drops its row, counted; text is an error.
+  write_text(path,
+             "t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT\n1,2,3,nan,5,6,7\n2,2,3,4,,6,7\n"
+             "3,2,3,4,5,6,7\n4,inf,3,4,5,6,7\n");
+  r = read_sample_csv(path);
+  REQUIRE(r.ok());
+  CHECK(r.rows.size() == 1);
+  CHECK(r.missing_dropped == 3);
+  write_text(path, "t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT\n1,2,3,n/a,5,6,7\n");
   CHECK(read_sample_csv(path).error.find("bz_nT") != std::string::npos);
   write_text(path, "t_s,bx_nT,by_nT,bz_nT,hx_nT,hy_nT,hz_nT\n1,2,3\n");
   CHECK(read_sample_csv(path).error.find("line 2") != std::string::npos);
