@@ -9,6 +9,7 @@
 #include <cmath>
 #include <string_view>
 #include <thread>
+#include <unordered_map>
 #include <utility>
 
 #include "pipeline/time_utc.hpp"
@@ -79,6 +80,29 @@ struct PgDatabase::PendingConnect {
   bool done = false;
   bool abandoned = false;  // its PgDatabase is gone: the thread closes what it opened
   std::chrono::steady_clock::time_point started = std::chrono::steady_clock::now();
+
+  // This process's connects to each URI that its server left unanswered past an open's wait.
+  // An open meanwhile waits as a reconnect does: a daemon opens three connections (worker,
+  // refit, operations server) one after the other, and a frozen server must not hold its start
+  // up for three waits.
+  static std::shared_ptr<PendingConnect> unanswered(const std::string& uri) {
+    std::lock_guard lock(unanswered_mutex);
+    const auto it = unanswered_by_uri.find(uri);
+    if (it == unanswered_by_uri.end()) return nullptr;
+    auto pending = it->second.lock();
+    if (!pending) unanswered_by_uri.erase(it);
+    return pending;
+  }
+  static void set_unanswered(const std::string& uri, const std::shared_ptr<PendingConnect>& p) {
+    std::lock_guard lock(unanswered_mutex);
+    unanswered_by_uri[uri] = p;
+  }
+  bool answered() {
+    std::lock_guard lock(mutex);
+    return done;
+  }
+  static inline std::mutex unanswered_mutex;
+  static inline std::unordered_map<std::string, std::weak_ptr<PendingConnect>> unanswered_by_uri;
 };
 
 PgDatabase::PgDatabase(const std::string& uri, const OpenOptions& options)
@@ -162,15 +186,20 @@ void PgDatabase::connect() {
     pending_connect_ = std::move(pending);
   }
   {
+    // (Before the lock: answered() locks another connect's mutex.)
+    const bool reconnect = schema_checked_ || conn_attempted_;
+    const auto unanswered = reconnect ? nullptr : PendingConnect::unanswered(uri_);
+    const bool short_wait = reconnect || (unanswered != nullptr && !unanswered->answered());
     std::unique_lock lock(pending_connect_->mutex);
     const auto done = [this] { return pending_connect_->done; };
     if (!open_options_.connect_later) {
       pending_connect_->done_cv.wait(lock, done);
-    } else if (!pending_connect_->done_cv.wait_for(lock,
-                                                   schema_checked_ || conn_attempted_
-                                                       ? std::chrono::milliseconds(100)
-                                                       : std::chrono::milliseconds(2000),
-                                                   done)) {
+    } else if (!pending_connect_->done_cv.wait_for(
+                   lock,
+                   short_wait ? std::chrono::milliseconds(100) : std::chrono::milliseconds(2000),
+                   done)) {
+      lock.unlock();
+      PendingConnect::set_unanswered(uri_, pending_connect_);
       conn_attempted_ = true;
       const double connecting_s = std::chrono::duration<double>(std::chrono::steady_clock::now() -
                                                                 pending_connect_->started)

@@ -136,8 +136,9 @@ class PgDatabase final : public Connection, public SqlSession {
   void open_session();
   // Opens conn_. The connect runs on its own thread (libpq's blocking connect, which keeps its
   // connect_timeout per host and its multi-host order); this waits for it at most the open's
-  // wait (OpenOptions::connect_later: 2 s at the open, 100 ms at a reconnect, so a daemon's
-  // worker never blocks on a server that does not answer; otherwise until it ends), and
+  // wait (OpenOptions::connect_later: 2 s at the open, 100 ms at a reconnect or at an open while
+  // another connect of this process to the URI is unanswered, so a daemon's worker never blocks
+  // on a server that does not answer; otherwise until it ends), and
   // throws transient while it is still in flight. The next call picks the same connect up.
   void connect();
   // Reconnects a lost connection, outside a transaction (see the header comment).

@@ -146,24 +146,32 @@ TEST_CASE("PostgreSQL: the daemon's server processes terminated: it reconnects, 
           "[daemon][fault][postgres]") {
   constexpr int kN = 3000;
   constexpr int kTerminations = 6;
-  const PgScenario sc("magcald_pgfault_terminate", kN, 100'000);  // 60 frames over 6 s
+  constexpr int64_t kEvery = 200;                                 // stored samples per round
+  const PgScenario sc("magcald_pgfault_terminate", kN, 200'000);  // 60 frames over 12 s
   if (sc.uri.empty()) return;
   const auto& tmp = sc.tmp;
   const std::string out = tmp.file("out.lcm");
-  const pid_t d = start_daemon_until_stored(tmp, sc.uri, sc.log, sc.storage(), 200);
+  const pid_t d = start_daemon_until_stored(tmp, sc.uri, sc.log, sc.storage(), kEvery);
   // Every session on its database but the caller's (the daemon's connections: its worker, its
-  // refit thread), every 0.3 s while the replay goes on: mid-transaction, between, idle. A
-  // terminated connection comes back at its next statement: each round waits for one.
+  // refit thread), at every kEvery samples stored, in the first half of the replay:
+  // mid-transaction, between, idle. A terminated connection comes back at its next statement:
+  // each round waits for the daemon to have stored again, so the rounds follow the replay
+  // however slow the machine, and the replay goes on long after the last (at its end, a commit
+  // still failing leaves the samples to the spill file and the next start).
   const char* const kSessions =
       "SELECT count(*) FROM pg_stat_activity WHERE datname = current_database() AND "
       "pid <> pg_backend_pid()";
   int64_t terminated = 0;
   for (int i = 0; i < kTerminations; ++i) {
-    wait_until([&] { return pg_query_int(sc.uri, kSessions) > 0; }, 3);
+    REQUIRE(wait_until(
+        [&] {
+          return read_stored(sc.uri).count >= kEvery * (i + 1) &&
+                 pg_query_int(sc.uri, kSessions) > 0;
+        },
+        30));
     terminated += pg_query_int(sc.uri,
                                "SELECT count(pg_terminate_backend(pid)) FROM pg_stat_activity "
                                "WHERE datname = current_database() AND pid <> pg_backend_pid()");
-    std::this_thread::sleep_for(std::chrono::milliseconds(300));
   }
   const int rc = wait_exit(d, 60);
   const std::string daemon_log = slurp(tmp.file("magcald.log"));

@@ -600,6 +600,46 @@ TEST_CASE("PostgreSQL: a daemon's migration never leaves the lock to a session n
   CHECK(query_int(idle, "SELECT 3") == 3);
 }
 
+TEST_CASE("PostgreSQL: a server that answers no connect holds a process's opens up once") {
+  // A daemon opens its connections one after the other (worker, refit thread, operations
+  // server): once an open has waited for a server that accepts connections and answers nothing,
+  // the next opens wait as a reconnect does, and each connects once the server answers.
+  PgTestServer* server = pg_server_or_skip();
+  if (server == nullptr) return;
+  const std::string uri = server->create_database();
+  struct Thaw {
+    PgTestServer& server;
+    ~Thaw() { server.freeze(false); }
+  } thaw{*server};
+  server->freeze(true);
+  OpenOptions daemon;
+  daemon.connect_later = true;
+  using clock = std::chrono::steady_clock;
+  const auto t0 = clock::now();
+  PgDatabase worker(uri, daemon);
+  const auto t1 = clock::now();
+  PgDatabase refit(uri, daemon);
+  PgDatabase api(uri, daemon);
+  const double first_s = std::chrono::duration<double>(t1 - t0).count();
+  const double others_s = std::chrono::duration<double>(clock::now() - t1).count();
+  INFO("first open " << first_s << " s, the next two " << others_s << " s");
+  CHECK(first_s >= 1.9);  // the open's wait for an answer (2 s)
+  CHECK(others_s < first_s);
+  server->freeze(false);
+  for (PgDatabase* db : {&worker, &refit, &api}) {
+    CHECK(magcal::test::wait_until(
+        [&] {
+          try {
+            return query_int(*db, "SELECT 1") == 1;
+          } catch (const StorageError& e) {
+            if (!e.transient()) throw;
+            return false;
+          }
+        },
+        30));
+  }
+}
+
 TEST_CASE("PostgreSQL values: bigint, double precision, bytea and text exactly, both formats") {
   PgTestServer* server = pg_server_or_skip();
   if (server == nullptr) return;

@@ -155,7 +155,12 @@ class PgTestServer {
       const std::string name = entry.path().filename();
       if (name.find_first_not_of("0123456789") != std::string::npos) continue;
       // /proc/PID/stat: "pid (comm) state ppid ...", comm may hold spaces and parentheses.
-      const std::string stat = slurp(entry.path().string() + "/stat");
+      std::string stat;
+      try {
+        stat = slurp(entry.path().string() + "/stat");
+      } catch (const std::exception&) {
+        continue;  // the process ended meanwhile (ESRCH): nothing to signal
+      }
       const size_t after_comm = stat.rfind(')');
       if (after_comm == std::string::npos) continue;
       if (std::atol(stat.c_str() + after_comm + 4) == postmaster) {
