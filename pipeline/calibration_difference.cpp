@@ -31,6 +31,9 @@ CalibrationDifference calibration_difference(const CalibrationResult& a,
   for (int i = 0; i < 9; ++i) d.z(i) = d.sigma(i) > 0.0 ? d.dp(i) / d.sigma(i) : kNaN;
   d.chi2 = mahalanobis2<9>(d.dp, C);
   d.has_alignment = a.has_alignment && b.has_alignment;
+  d.same_model = a.has_alignment == b.has_alignment &&
+                 a.has_temperature_model == b.has_temperature_model &&
+                 a.has_bias_rate == b.has_bias_rate;
   d.alignment_chi2 = kNaN;
   if (d.has_alignment) {
     const Eigen::AngleAxisd rotation(Eigen::Matrix3d(b.alignment.R_sensor_from_body *

@@ -21,6 +21,9 @@ struct CalibrationDifference {
   Vector9d z = Vector9d::Zero();      // dp_i / sigma_i (NaN where sigma is 0)
   double chi2 = 0.0;                  // NaN when C_A + C_B is not positive definite
   bool significant = false;           // chi2 beyond kChi2Quantile99_9dof (or alignment's)
+  // Both have the same terms (alignment, temperature model, bias rate). When not, the chi2
+  // leaves out what only one has, and "not significant" does not make them equivalent.
+  bool same_model = true;
 
   bool has_alignment = false;  // both carry one
   Eigen::Vector3d dtheta_rad = Eigen::Vector3d::Zero();

@@ -5,9 +5,9 @@
 //   (pipeline/calibration_difference.hpp);
 // - the field error each leaves on the window (pipeline/field_error.hpp: direction in degrees,
 //   magnitude in nT, rms and worst), the raw field's, and B's calibrated field against A's;
-// - one line of advice: "within the noise: keep A" when the difference is not significant,
-//   else whether B improves the direction error (the magnitude error on a window without
-//   reference directions): "worth uploading" or "keep A".
+// - one line of advice: "within the noise: keep A" when the difference is not significant
+//   (and both have the same terms), else by the direction and magnitude errors (the magnitude
+//   error alone on a window without reference directions): "worth uploading" or "keep A".
 // The window: a sample FILE.csv (the format of `magcal sim`), or the samples stored for the
 // spacecraft (--db) from --since to --until, by default B's window. Exit: 0 printed; 1 usage;
 // 2 data (no such calibration, no samples).
@@ -98,26 +98,55 @@ struct Figures {
   FieldError a, b, between, raw;
 };
 
-// The advice line; *upload: whether it says to upload B.
+// The advice line; *upload: whether it says to upload B. Within the noise (same terms, chi2
+// not significant): keep A. Otherwise by the field errors on the window: B when it lowers both
+// rms errors, A when it lowers neither; when it lowers one and raises the other, B when the
+// factor it gains exceeds the factor it loses. Without reference directions: the magnitude
+// error alone.
 std::string advice(const CalibrationDifference& d, const Figures& f, bool* upload) {
   *upload = false;
   const bool known = !std::isnan(d.chi2);
-  if (known && !d.significant) return "within the noise: keep A";
-  const bool direction = f.a.direction_deg.n > 0 && f.b.direction_deg.n > 0;
-  const ErrorFigures& ea = direction ? f.a.direction_deg : f.a.magnitude_nT;
-  const ErrorFigures& eb = direction ? f.b.direction_deg : f.b.magnitude_nT;
-  const std::string what = direction ? "direction error" : "magnitude error";
-  const auto value = [direction](double v) {
-    return direction ? fmt::format("{:.3g}°", v) : fmt::format("{:.3g} nT", v);
-  };
+  if (known && !d.significant && d.same_model) return "within the noise: keep A";
   const std::string caveat = known ? "" : " (the difference's uncertainty is unknown)";
-  if (eb.rms < ea.rms) {
-    *upload = true;
-    return fmt::format("B improves the {} from {} to {}: worth uploading{}", what, value(ea.rms),
-                       value(eb.rms), caveat);
+  const auto deg = [](double v) { return fmt::format("{:.3g}°", v); };
+  const auto nT = [](double v) { return fmt::format("{:.3g} nT", v); };
+  const ErrorFigures &ma = f.a.magnitude_nT, &mb = f.b.magnitude_nT;
+  const bool direction = f.a.direction_deg.n > 0 && f.b.direction_deg.n > 0;
+  if (!direction) {
+    *upload = mb.rms < ma.rms;
+    return *upload ? fmt::format("B improves the magnitude error from {} to {}: worth uploading{}",
+                                 nT(ma.rms), nT(mb.rms), caveat)
+                   : fmt::format(
+                         "B does not improve the magnitude error ({} against {} with A): "
+                         "keep A{}",
+                         nT(mb.rms), nT(ma.rms), caveat);
   }
-  return fmt::format("B does not improve the {} ({} against {} with A): keep A{}", what,
-                     value(eb.rms), value(ea.rms), caveat);
+  const ErrorFigures &da = f.a.direction_deg, &db = f.b.direction_deg;
+  const bool direction_better = db.rms < da.rms, magnitude_better = mb.rms < ma.rms;
+  if (direction_better && magnitude_better) {
+    *upload = true;
+    return fmt::format(
+        "B improves the direction error from {} to {} and the magnitude error from {} to {}: "
+        "worth uploading{}",
+        deg(da.rms), deg(db.rms), nT(ma.rms), nT(mb.rms), caveat);
+  }
+  if (!direction_better && !magnitude_better) {
+    return fmt::format(
+        "B does not improve the direction error ({} against {} with A) nor the magnitude error "
+        "({} against {}): keep A{}",
+        deg(db.rms), deg(da.rms), nT(mb.rms), nT(ma.rms), caveat);
+  }
+  // One better, one worse: the larger factor decides.
+  const double direction_factor = da.rms / db.rms, magnitude_factor = ma.rms / mb.rms;
+  *upload = direction_factor * magnitude_factor > 1.0;
+  const std::string gained =
+      direction_better ? fmt::format("the direction error from {} to {}", deg(da.rms), deg(db.rms))
+                       : fmt::format("the magnitude error from {} to {}", nT(ma.rms), nT(mb.rms));
+  const std::string lost =
+      direction_better ? fmt::format("the magnitude error from {} to {}", nT(ma.rms), nT(mb.rms))
+                       : fmt::format("the direction error from {} to {}", deg(da.rms), deg(db.rms));
+  return fmt::format("B improves {} but raises {}: {}{}", gained, lost,
+                     *upload ? "worth uploading" : "keep A", caveat);
 }
 
 nlohmann::json figures_json(const FieldError& e) {
@@ -168,7 +197,8 @@ void print_text(const Window& w, const CalibrationResult& a, const CalibrationOr
                                  CalibrationDifference::kChi2Quantile99_9dof,
                                  std::isnan(d.chi2) ? "uncertainty unknown"
                                  : d.significant    ? "significant"
-                                                    : "within the noise"));
+                                 : d.same_model     ? "within the noise"
+                                                    : "within the noise on the terms both have"));
   std::cout << fmt::format("{:<22}{:>12} {:>12}\n", "field error", "rms", "worst");
   const auto row = [](const std::string& name, const ErrorFigures& e) {
     if (e.n == 0) return;
@@ -227,6 +257,7 @@ int run_compare(const CompareArgs& args) {
   diff["chi2"] = json_number(d.chi2);
   diff["dof"] = 9;
   diff["significant"] = d.significant;
+  diff["same_model"] = d.same_model;
   if (d.has_alignment) {
     diff["alignment_deg"] = json_number(d.dtheta_rad.norm() * kRadToDeg);
     diff["alignment_chi2"] = json_number(d.alignment_chi2);

@@ -169,6 +169,11 @@ int run_recording_fit(const FitArgs& args, const FieldRecording& recording) {
     return kExitData;
   }
   note_recording(*rec);
+  if (rec->has_temperature_column) {
+    std::cerr << "magcal fit: " << rec->source
+              << ": the temperature is not modelled in a fit against |H| alone (no hx/hy/hz, nor "
+                 "a position with an attitude quaternion): the bias is the window's mean\n";
+  }
   if (args.json) {
     nlohmann::json j = recording_fit_to_json(*rep, *rec);
     j["input"] = args.input;

@@ -273,6 +273,33 @@ TEST_CASE("compare: two refits of a day, field errors against the simulator's tr
   CHECK(same.out.find("within the noise: keep A") != std::string::npos);
   CHECK(same.out.find("direction A (deg)") != std::string::npos);
 
+  // A calibration without an alignment (a recording with |H| only) against one with: never
+  // "within the noise", whatever the chi2 of the 9 parameters both have; B's alignment removes
+  // the direction error A leaves.
+  {
+    std::ifstream in(dir.file("s.csv"));
+    std::ofstream out(dir.file("no_attitude.csv"));
+    for (std::string line; std::getline(in, line);) {
+      std::vector<std::string> cells;
+      std::stringstream cells_in(line);
+      for (std::string cell; std::getline(cells_in, cell, ',');) cells.push_back(cell);
+      REQUIRE(cells.size() == 15);  // t_s, b, h, q, r_ecef, temperature_C
+      out << cells[0] << ',' << cells[1] << ',' << cells[2] << ',' << cells[3] << ',' << cells[11]
+          << ',' << cells[12] << ',' << cells[13] << ',' << cells[14] << '\n';
+    }
+  }
+  fit("no_attitude.csv", "twostep", "a0.json");
+  const nlohmann::json unaligned =
+      parse(test::run_magcal("compare " + dir.file("a0.json") + " " + dir.file("b.json") +
+                                 " --samples " + dir.file("s.csv") + " --json",
+                             dir));
+  INFO(unaligned.dump(1));
+  CHECK(unaligned["difference"]["same_model"] == false);
+  CHECK(unaligned["upload_b"] == true);
+  CHECK(unaligned["advice"].get<std::string>().find("B improves the direction error from") == 0);
+  CHECK(unaligned["field_error"]["a"]["direction_deg"]["rms"].get<double>() >
+        10 * unaligned["field_error"]["b"]["direction_deg"]["rms"].get<double>());
+
   // Without a window: the fix is named.
   const Run no_window =
       test::run_magcal("compare " + dir.file("a.json") + " " + dir.file("b.json"), dir);

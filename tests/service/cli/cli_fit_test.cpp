@@ -779,12 +779,15 @@ namespace {
 // header, the field in µT with the unit in quoted names, latitude/longitude/altitude (m) from
 // the position, the attitude as q0..q3, a temperature, a mode column; `;`-separated with a
 // decimal comma, and no reference columns (the reader computes them from IGRF as magcald does).
-void write_as_export(const std::filesystem::path& from, const std::filesystem::path& to) {
+// `attitude` false: without the quaternion columns (a recording with |H| only).
+void write_as_export(const std::filesystem::path& from, const std::filesystem::path& to,
+                     bool attitude = true) {
   const CsvReadResult csv = read_sample_csv(from.string());
   REQUIRE(csv.ok());
   std::ofstream out(to);
   out << "\xEF\xBB\xBF\"Time (UTC)\";\"Bx (uT)\";\"By (uT)\";\"Bz (uT)\";Latitude;Longitude;"
-         "\"Altitude (m)\";q0;q1;q2;q3;temp_C;mode\n";
+         "\"Altitude (m)\";"
+      << (attitude ? "q0;q1;q2;q3;" : "") << "temp_C;mode\n";
   const auto number = [](double v) {
     std::string text = fmt::format("{:.17g}", v);
     std::replace(text.begin(), text.end(), '.', ',');
@@ -801,7 +804,9 @@ void write_as_export(const std::filesystem::path& from, const std::filesystem::p
     for (int i = 0; i < 3; ++i) out << ';' << number(row.sample.b_sensor_nT(i) * 1e-3);
     out << ';' << number(g.latitude_rad * kRadToDeg) << ';' << number(g.longitude_rad * kRadToDeg)
         << ';' << number(g.altitude_m);
-    for (int i = 0; i < 4; ++i) out << ';' << number(q(i));
+    if (attitude) {
+      for (int i = 0; i < 4; ++i) out << ';' << number(q(i));
+    }
     out << ';' << (row.extras.temperature_C ? number(*row.extras.temperature_C) : "")
         << ";nominal\n";
   }
@@ -901,6 +906,21 @@ TEST_CASE(
       std::filesystem::remove(recording);
     }
   }
+}
+
+TEST_CASE(
+    "fit: a recording with a temperature but no attitude says the temperature is not modelled",
+    "[cli][fit][recording]") {
+  const auto samples = simulate_thermal_csv("noatt", "tumbling", 1, "1.0, -0.8, 1.2", 15.0);
+  const auto recording = temp_path("noatt_export.csv");
+  write_as_export(samples, recording, false);
+  const Run r = fit_twostep_json(recording);
+  CHECK(r.err.find("temp_C; ignored: mode") != std::string::npos);
+  CHECK(r.err.find("the temperature is not modelled in a fit against |H| alone") !=
+        std::string::npos);
+  CHECK_FALSE(nlohmann::json::parse(r.out).contains("temperature_coefficient_nT_per_C"));
+  std::filesystem::remove(samples);
+  std::filesystem::remove(recording);
 }
 
 TEST_CASE("fit: a sample CSV with attitude and position but no reference columns is fitted",
