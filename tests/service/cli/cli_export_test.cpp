@@ -222,10 +222,13 @@ TEST_CASE("compare: two refits of a day, field errors against the simulator's tr
   fit("even.csv", "twostep", "b1.json");
   fit("odd.csv", "twostep", "b2.json");
 
-  const nlohmann::json c =
-      parse(test::run_magcal("compare " + dir.file("a.json") + " " + dir.file("b.json") +
-                                 " --samples " + dir.file("s.csv") + " --json",
-                             dir));
+  // compare --json of two fits on the day's samples.
+  const auto compare_json = [&](const std::string& a, const std::string& b) {
+    return parse(test::run_magcal("compare " + dir.file(a) + " " + dir.file(b) + " --samples " +
+                                      dir.file("s.csv") + " --json",
+                                  dir));
+  };
+  const nlohmann::json c = compare_json("a.json", "b.json");
   INFO(c.dump(1));
   // The truth: the true calibration's error on the window (noise and what no table removes),
   // and each calibration's distance from it (noise-free); the reported error combines the two.
@@ -257,10 +260,7 @@ TEST_CASE("compare: two refits of a day, field errors against the simulator's tr
         10 * c["field_error"]["b"]["direction_deg"]["rms"].get<double>());
 
   // Reversed, the better one is A: keep it.
-  const nlohmann::json reversed =
-      parse(test::run_magcal("compare " + dir.file("b.json") + " " + dir.file("a.json") +
-                                 " --samples " + dir.file("s.csv") + " --json",
-                             dir));
+  const nlohmann::json reversed = compare_json("b.json", "a.json");
   CHECK(reversed["upload_b"] == false);
   CHECK(reversed["advice"].get<std::string>().find("keep A") != std::string::npos);
 
@@ -289,10 +289,7 @@ TEST_CASE("compare: two refits of a day, field errors against the simulator's tr
     }
   }
   fit("no_attitude.csv", "twostep", "a0.json");
-  const nlohmann::json unaligned =
-      parse(test::run_magcal("compare " + dir.file("a0.json") + " " + dir.file("b.json") +
-                                 " --samples " + dir.file("s.csv") + " --json",
-                             dir));
+  const nlohmann::json unaligned = compare_json("a0.json", "b.json");
   INFO(unaligned.dump(1));
   CHECK(unaligned["difference"]["same_model"] == false);
   CHECK(unaligned["upload_b"] == true);

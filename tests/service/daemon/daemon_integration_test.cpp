@@ -313,7 +313,11 @@ TEST_CASE("SIGTERM mid-stream, restart: every sample stored or counted, no jump"
   TempDir tmp("restart");
   const std::string log = simulate_day(tmp);
   const std::string db = tmp / "m.db";
-  write_config(tmp / "d.toml", "[lcm]\npublish_url = \"file://" + tmp / "out1.lcm" + "?mode=w\"\n");
+  // Nothing purged while the day is replayed: where the signal lands depends on the machine's
+  // speed, and past 13 h of data retention would delete what the counts below compare.
+  const std::string keep_the_day = "[storage]\nretention_margin_hours = 24\n";
+  write_config(tmp / "d.toml",
+               "[lcm]\npublish_url = \"file://" + tmp / "out1.lcm" + "?mode=w\"\n" + keep_the_day);
   // speed 20000: the day's 43 packets arrive over ~4 s, so the signal lands mid-stream.
   const pid_t d1 = spawn({kBin + "/magcald", "--http-listen", "", "--config", tmp / "d.toml",
                           "--db", db, "--lcm-url", "file://" + log + "?speed=20000"},
@@ -351,7 +355,8 @@ TEST_CASE("SIGTERM mid-stream, restart: every sample stored or counted, no jump"
   REQUIRE_FALSE(before.empty());
 
   // Restart and replay the whole day: what was stored comes back as duplicates.
-  write_config(tmp / "d.toml", "[lcm]\npublish_url = \"file://" + tmp / "out2.lcm" + "?mode=w\"\n");
+  write_config(tmp / "d.toml",
+               "[lcm]\npublish_url = \"file://" + tmp / "out2.lcm" + "?mode=w\"\n" + keep_the_day);
   const int rc2 = run({kBin + "/magcald", "--http-listen", "", "--config", tmp / "d.toml", "--db",
                        db, "--lcm-url", "file://" + log + "?speed=0"},
                       tmp / "run2.log");
